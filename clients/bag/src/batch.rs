@@ -1,0 +1,341 @@
+//! The batch messages a bag carries: a typed enum for decoding, a trait for typed writing and a
+//! cheap look into encoded batches (sample count, first sample time) without decoding them.
+use crate::BagError;
+use prost::Message;
+use scancorr_proto::v1::{
+    CommandBatch, CorrectedPointBatch, EstimatorAlarm, ProbeBatch, ScaleBatch, TemperatureBatch,
+};
+use scancorr_proto::Stream;
+
+/// One decoded bag message: the batch type is fixed by the stream it was recorded on.
+///
+/// Exists so readers get a single typed value per message instead of matching on the stream
+/// and decoding by hand.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RawBatch {
+    /// `raw/command`.
+    Command(CommandBatch),
+    /// `raw/scale`.
+    Scale(ScaleBatch),
+    /// `raw/probe`.
+    Probe(ProbeBatch),
+    /// `raw/temperature`.
+    Temperature(TemperatureBatch),
+    /// `corrected/points`.
+    Points(CorrectedPointBatch),
+    /// `alarms/estimator` (one alarm per message).
+    Alarm(EstimatorAlarm),
+}
+
+impl RawBatch {
+    /// Decodes `payload` as the message type of `stream`.
+    pub fn decode(stream: Stream, payload: &[u8]) -> Result<Self, BagError> {
+        Self::decode_inner(stream, payload).map_err(|error| BagError::Decode {
+            message: stream.message_name(),
+            context: String::new(),
+            error,
+        })
+    }
+
+    pub(crate) fn decode_inner(stream: Stream, b: &[u8]) -> Result<Self, prost::DecodeError> {
+        Ok(match stream {
+            Stream::Command => RawBatch::Command(CommandBatch::decode(b)?),
+            Stream::Scale => RawBatch::Scale(ScaleBatch::decode(b)?),
+            Stream::Probe => RawBatch::Probe(ProbeBatch::decode(b)?),
+            Stream::Temperature => RawBatch::Temperature(TemperatureBatch::decode(b)?),
+            Stream::Points => RawBatch::Points(CorrectedPointBatch::decode(b)?),
+            Stream::Alarms => RawBatch::Alarm(EstimatorAlarm::decode(b)?),
+        })
+    }
+
+    /// The stream this batch belongs on.
+    pub fn stream(&self) -> Stream {
+        match self {
+            RawBatch::Command(_) => Stream::Command,
+            RawBatch::Scale(_) => Stream::Scale,
+            RawBatch::Probe(_) => Stream::Probe,
+            RawBatch::Temperature(_) => Stream::Temperature,
+            RawBatch::Points(_) => Stream::Points,
+            RawBatch::Alarm(_) => Stream::Alarms,
+        }
+    }
+
+    /// Number of samples (points; 1 for an alarm) in the batch.
+    pub fn sample_count(&self) -> usize {
+        match self {
+            RawBatch::Command(b) => b.sample_count(),
+            RawBatch::Scale(b) => b.sample_count(),
+            RawBatch::Probe(b) => b.sample_count(),
+            RawBatch::Temperature(b) => b.sample_count(),
+            RawBatch::Points(b) => b.sample_count(),
+            RawBatch::Alarm(b) => b.sample_count(),
+        }
+    }
+
+    /// `t_ns` of the first sample, `None` for an empty batch: the bag's `publish_time`.
+    pub fn first_t_ns(&self) -> Option<i64> {
+        match self {
+            RawBatch::Command(b) => b.first_t_ns(),
+            RawBatch::Scale(b) => b.first_t_ns(),
+            RawBatch::Probe(b) => b.first_t_ns(),
+            RawBatch::Temperature(b) => b.first_t_ns(),
+            RawBatch::Points(b) => b.first_t_ns(),
+            RawBatch::Alarm(b) => b.first_t_ns(),
+        }
+    }
+
+    /// Encodes the batch (protobuf), e.g. to re-record a filtered bag.
+    pub fn encode_to_vec(&self) -> Vec<u8> {
+        match self {
+            RawBatch::Command(b) => b.encode_to_vec(),
+            RawBatch::Scale(b) => b.encode_to_vec(),
+            RawBatch::Probe(b) => b.encode_to_vec(),
+            RawBatch::Temperature(b) => b.encode_to_vec(),
+            RawBatch::Points(b) => b.encode_to_vec(),
+            RawBatch::Alarm(b) => b.encode_to_vec(),
+        }
+    }
+}
+
+/// A protobuf message that is recorded as one bag message on a fixed stream.
+///
+/// Exists so [`crate::BagWriter::write_msg`] can derive the stream and the publish time from
+/// the message type and content, which rules out recording a batch on the wrong stream.
+pub trait BatchMessage: Message + Sized {
+    /// The stream this message type is published on.
+    const STREAM: Stream;
+    /// Number of samples in the message (1 for an alarm).
+    fn sample_count(&self) -> usize;
+    /// `t_ns` of the first sample, `None` when there is none.
+    fn first_t_ns(&self) -> Option<i64>;
+    /// Wraps the message into [`RawBatch`].
+    fn into_raw(self) -> RawBatch;
+}
+
+macro_rules! batch_message {
+    ($ty:ty, $stream:expr, $field:ident, $variant:ident) => {
+        impl BatchMessage for $ty {
+            const STREAM: Stream = $stream;
+            fn sample_count(&self) -> usize {
+                self.$field.len()
+            }
+            fn first_t_ns(&self) -> Option<i64> {
+                self.$field.first().map(|s| s.t_ns)
+            }
+            fn into_raw(self) -> RawBatch {
+                RawBatch::$variant(self)
+            }
+        }
+        impl From<$ty> for RawBatch {
+            fn from(b: $ty) -> RawBatch {
+                RawBatch::$variant(b)
+            }
+        }
+    };
+}
+
+batch_message!(CommandBatch, Stream::Command, samples, Command);
+batch_message!(ScaleBatch, Stream::Scale, samples, Scale);
+batch_message!(ProbeBatch, Stream::Probe, samples, Probe);
+batch_message!(TemperatureBatch, Stream::Temperature, samples, Temperature);
+batch_message!(CorrectedPointBatch, Stream::Points, points, Points);
+
+impl BatchMessage for EstimatorAlarm {
+    const STREAM: Stream = Stream::Alarms;
+    fn sample_count(&self) -> usize {
+        1
+    }
+    fn first_t_ns(&self) -> Option<i64> {
+        Some(self.t_ns)
+    }
+    fn into_raw(self) -> RawBatch {
+        RawBatch::Alarm(self)
+    }
+}
+
+impl From<EstimatorAlarm> for RawBatch {
+    fn from(a: EstimatorAlarm) -> RawBatch {
+        RawBatch::Alarm(a)
+    }
+}
+
+/// What [`peek`] finds in an encoded batch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BatchPeek {
+    /// Number of samples (points; 1 for an alarm).
+    pub samples: u64,
+    /// `t_ns` of the first sample, `None` for an empty batch.
+    pub first_t_ns: Option<i64>,
+}
+
+/// Counts the samples of an encoded batch and finds its first `t_ns` by walking the protobuf
+/// wire format, without decoding (no allocation).
+///
+/// Exists because recorders hold raw bytes from the bus: they need the publish time (first
+/// sample time) and the writer keeps per-channel sample counts. Returns `None` for bytes that
+/// are not well-formed protobuf.
+pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
+    // Field numbers: the repeated samples/points field is 1 in every batch; `t_ns` is 3 in
+    // every sample, point and alarm.
+    const REPEATED: u32 = 1;
+    const T_NS: u32 = 3;
+    if stream == Stream::Alarms {
+        return Some(BatchPeek {
+            samples: 1,
+            first_t_ns: Some(find_t_ns(payload, T_NS)?),
+        });
+    }
+    let mut samples = 0u64;
+    let mut first = None;
+    let mut rest = payload;
+    while !rest.is_empty() {
+        let (field, value) = next_field(&mut rest)?;
+        if let (REPEATED, Value::Bytes(sample)) = (field, value) {
+            if samples == 0 {
+                first = Some(find_t_ns(sample, T_NS)?);
+            }
+            samples += 1;
+        }
+    }
+    Some(BatchPeek {
+        samples,
+        first_t_ns: first,
+    })
+}
+
+/// The value of varint field `number` (last occurrence wins, 0 when absent, as in proto3).
+fn find_t_ns(mut msg: &[u8], number: u32) -> Option<i64> {
+    let mut t = 0i64;
+    while !msg.is_empty() {
+        if let (f, Value::Varint(v)) = next_field(&mut msg)? {
+            if f == number {
+                t = v as i64;
+            }
+        }
+    }
+    Some(t)
+}
+
+enum Value<'a> {
+    Varint(u64),
+    Bytes(&'a [u8]),
+    Fixed,
+}
+
+fn next_field<'a>(b: &mut &'a [u8]) -> Option<(u32, Value<'a>)> {
+    let key = varint(b)?;
+    let field = u32::try_from(key >> 3).ok()?;
+    let value = match key & 7 {
+        0 => Value::Varint(varint(b)?),
+        1 => {
+            *b = b.get(8..)?;
+            Value::Fixed
+        }
+        2 => {
+            let len = usize::try_from(varint(b)?).ok()?;
+            let (v, rest) = (b.get(..len)?, b.get(len..)?);
+            *b = rest;
+            Value::Bytes(v)
+        }
+        5 => {
+            *b = b.get(4..)?;
+            Value::Fixed
+        }
+        _ => return None,
+    };
+    (field != 0).then_some((field, value))
+}
+
+fn varint(b: &mut &[u8]) -> Option<u64> {
+    let mut v = 0u64;
+    for i in 0..10 {
+        let (&byte, rest) = b.split_first()?;
+        *b = rest;
+        v |= u64::from(byte & 0x7f) << (7 * i);
+        if byte < 0x80 {
+            return Some(v);
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scancorr_proto::v1::{CorrectedPoint, ScaleSample};
+
+    #[test]
+    fn peek_matches_decoding() {
+        let b = ScaleBatch {
+            samples: (0..5)
+                .map(|i| ScaleSample {
+                    machine_id: "m1".into(),
+                    seq: i,
+                    t_ns: -7 + i as i64,
+                    ..Default::default()
+                })
+                .collect(),
+        };
+        let p = peek(Stream::Scale, &b.encode_to_vec()).unwrap();
+        assert_eq!(
+            p,
+            BatchPeek {
+                samples: 5,
+                first_t_ns: Some(-7)
+            }
+        );
+        assert_eq!(
+            peek(Stream::Scale, &[]),
+            Some(BatchPeek {
+                samples: 0,
+                first_t_ns: None
+            })
+        );
+        let pts = CorrectedPointBatch {
+            points: vec![
+                CorrectedPoint {
+                    t_ns: 42,
+                    ..Default::default()
+                },
+                CorrectedPoint::default(),
+            ],
+        };
+        assert_eq!(
+            peek(Stream::Points, &pts.encode_to_vec()),
+            Some(BatchPeek {
+                samples: 2,
+                first_t_ns: Some(42)
+            })
+        );
+        let alarm = EstimatorAlarm {
+            t_ns: 9,
+            raised: true,
+            ..Default::default()
+        };
+        assert_eq!(
+            peek(Stream::Alarms, &alarm.encode_to_vec()),
+            Some(BatchPeek {
+                samples: 1,
+                first_t_ns: Some(9)
+            })
+        );
+        assert_eq!(
+            peek(Stream::Scale, &[0x0a, 0x05, 0x01]),
+            None,
+            "length past the end"
+        );
+        assert_eq!(peek(Stream::Scale, &[0xff; 11]), None, "overlong varint");
+        let raw = RawBatch::from(b.clone());
+        assert_eq!(raw.stream(), Stream::Scale);
+        assert_eq!(raw.sample_count(), 5);
+        assert_eq!(raw.first_t_ns(), Some(-7));
+        assert_eq!(
+            RawBatch::decode(Stream::Scale, &raw.encode_to_vec()).unwrap(),
+            raw
+        );
+        assert!(matches!(
+            RawBatch::decode(Stream::Scale, &[0x0a, 0x05]),
+            Err(BagError::Decode { .. })
+        ));
+    }
+}

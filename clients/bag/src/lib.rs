@@ -1,0 +1,41 @@
+//! Bag files for scancorr: MCAP recordings of the raw and corrected streams of one or more
+//! machines, with the measured artifact and run information as metadata.
+//!
+//! Format (standard MCAP, readable by any MCAP tool, e.g. the Python `mcap` package):
+//! - one channel per key expression (topic `<prefix>/<machine>/<suffix>`, e.g.
+//!   `cmm/m1/raw/scale`), message encoding `protobuf`, schema encoding `protobuf`, schema name the
+//!   fully-qualified message name (`scancorr.v1.ScaleBatch`) and schema data the serialized
+//!   `FileDescriptorSet` ([`scancorr_proto::FILE_DESCRIPTOR_SET`]);
+//! - each message is one batch (`CommandBatch`, `ScaleBatch`, `ProbeBatch`, `TemperatureBatch`,
+//!   `CorrectedPointBatch`, `EstimatorAlarm`) as prost encodes it; `log_time` is the receive
+//!   time, `publish_time` the sample time (`t_ns` of the first sample);
+//! - metadata records: `scancorr.artifact` ([`Artifact`]), any others the recorder adds (e.g.
+//!   `scancorr.run`), and `scancorr.sample_counts` (topic → samples, written on finish);
+//! - zstd-compressed chunks of 1 MiB: a file cut short (recorder killed) reads up to its last
+//!   complete chunk, and [`BagReader::truncation`] says so.
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+
+mod artifact;
+mod batch;
+mod error;
+mod reader;
+mod writer;
+
+pub use artifact::{Artifact, ArtifactKind, ARTIFACT_METADATA};
+pub use batch::{peek, BatchMessage, BatchPeek, RawBatch};
+pub use error::{BagError, Result};
+pub use reader::{
+    BagMessage, BagReader, ChannelInfo, Messages, MetadataRecord, Truncation, UnknownChannel,
+};
+pub use scancorr_proto::Stream;
+pub use writer::{BagHeader, BagWriter, Compression, DEFAULT_CHUNK_SIZE, DEFAULT_PROFILE};
+
+/// Schema and message encoding of every scancorr channel.
+pub const ENCODING: &str = "protobuf";
+
+/// Suggested metadata record name for run information (program, seed, machine id…).
+pub const RUN_METADATA: &str = "scancorr.run";
+
+/// Metadata record the writer adds on finish: topic → number of samples recorded. Reserved.
+pub const SAMPLE_COUNTS_METADATA: &str = "scancorr.sample_counts";

@@ -1,0 +1,163 @@
+//! The scancorr wire contract: protobuf package `scancorr.v1`.
+//!
+//! Units: mm, s, °C, mm/s², degrees; `t_ns` is the machine controller's clock in ns.
+//! The `.proto` source is `proto/scancorr/v1/scancorr.proto`; this crate holds the generated
+//! prost types, the key-expression layout and the encoded `FileDescriptorSet` that MCAP bags
+//! carry as their schema.
+#![forbid(unsafe_code)]
+
+/// Generated types of package `scancorr.v1`.
+pub mod v1 {
+    #![allow(missing_docs)]
+    include!(concat!(env!("OUT_DIR"), "/scancorr.v1.rs"));
+}
+
+pub use prost::Message;
+
+/// The encoded `google.protobuf.FileDescriptorSet` of `scancorr/v1/scancorr.proto`
+/// (schema data of MCAP channels with schema encoding `protobuf`).
+pub const FILE_DESCRIPTOR_SET: &[u8] =
+    include_bytes!(concat!(env!("OUT_DIR"), "/scancorr_v1_descriptor.bin"));
+
+/// Protobuf package name; message full names are `scancorr.v1.<Message>`.
+pub const PACKAGE: &str = "scancorr.v1";
+
+/// Default key-expression prefix.
+pub const DEFAULT_PREFIX: &str = "cmm";
+
+/// The streams of one machine and their key-expression suffixes and message types.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Stream {
+    /// `raw/command`: [`v1::CommandBatch`].
+    Command,
+    /// `raw/scale`: [`v1::ScaleBatch`].
+    Scale,
+    /// `raw/probe`: [`v1::ProbeBatch`].
+    Probe,
+    /// `raw/temperature`: [`v1::TemperatureBatch`].
+    Temperature,
+    /// `corrected/points`: [`v1::CorrectedPointBatch`].
+    Points,
+    /// `alarms/estimator`: [`v1::EstimatorAlarm`].
+    Alarms,
+}
+
+impl Stream {
+    /// The four raw input streams.
+    pub const RAW: [Stream; 4] = [Stream::Command, Stream::Scale, Stream::Probe, Stream::Temperature];
+    /// The two output streams.
+    pub const OUTPUT: [Stream; 2] = [Stream::Points, Stream::Alarms];
+
+    /// Key-expression suffix after `<prefix>/<machine>/`.
+    pub fn suffix(self) -> &'static str {
+        match self {
+            Stream::Command => "raw/command",
+            Stream::Scale => "raw/scale",
+            Stream::Probe => "raw/probe",
+            Stream::Temperature => "raw/temperature",
+            Stream::Points => "corrected/points",
+            Stream::Alarms => "alarms/estimator",
+        }
+    }
+
+    /// Full protobuf message name of the payload.
+    pub fn message_name(self) -> &'static str {
+        match self {
+            Stream::Command => "scancorr.v1.CommandBatch",
+            Stream::Scale => "scancorr.v1.ScaleBatch",
+            Stream::Probe => "scancorr.v1.ProbeBatch",
+            Stream::Temperature => "scancorr.v1.TemperatureBatch",
+            Stream::Points => "scancorr.v1.CorrectedPointBatch",
+            Stream::Alarms => "scancorr.v1.EstimatorAlarm",
+        }
+    }
+
+    /// The key expression of this stream for one machine.
+    pub fn key(self, prefix: &str, machine: &str) -> String {
+        format!("{prefix}/{machine}/{}", self.suffix())
+    }
+
+    /// Parses `<prefix>/<machine>/<suffix>` back into (machine, stream).
+    pub fn parse_key<'a>(prefix: &str, key: &'a str) -> Option<(&'a str, Stream)> {
+        let rest = key.strip_prefix(prefix)?.strip_prefix('/')?;
+        let (machine, suffix) = rest.split_once('/')?;
+        let stream = [
+            Stream::Command,
+            Stream::Scale,
+            Stream::Probe,
+            Stream::Temperature,
+            Stream::Points,
+            Stream::Alarms,
+        ]
+        .into_iter()
+        .find(|s| s.suffix() == suffix)?;
+        (!machine.is_empty()).then_some((machine, stream))
+    }
+}
+
+/// Key expression of a machine's calibration queryable.
+pub fn calibration_key(prefix: &str, machine: &str) -> String {
+    format!("{prefix}/{machine}/calibration")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use prost::Message;
+
+    #[test]
+    fn descriptor_set_names_every_stream_message() {
+        let fds = prost_types_lite::decode_file_names(FILE_DESCRIPTOR_SET);
+        assert!(fds.iter().any(|n| n == "scancorr/v1/scancorr.proto"), "{fds:?}");
+        for s in Stream::RAW.iter().chain(Stream::OUTPUT.iter()) {
+            let short = s.message_name().rsplit('.').next().unwrap();
+            assert!(
+                FILE_DESCRIPTOR_SET.windows(short.len()).any(|w| w == short.as_bytes()),
+                "{short} missing from descriptor set"
+            );
+        }
+    }
+
+    /// Minimal decoding of `FileDescriptorSet.file[].name` without pulling prost-types in.
+    mod prost_types_lite {
+        #[derive(Clone, PartialEq, prost::Message)]
+        struct FileDescriptorProto {
+            #[prost(string, optional, tag = "1")]
+            name: Option<String>,
+        }
+        #[derive(Clone, PartialEq, prost::Message)]
+        struct FileDescriptorSet {
+            #[prost(message, repeated, tag = "1")]
+            file: Vec<FileDescriptorProto>,
+        }
+        pub fn decode_file_names(b: &[u8]) -> Vec<String> {
+            use prost::Message;
+            FileDescriptorSet::decode(b)
+                .unwrap()
+                .file
+                .into_iter()
+                .filter_map(|f| f.name)
+                .collect()
+        }
+    }
+
+    #[test]
+    fn batch_roundtrip() {
+        let b = v1::ScaleBatch {
+            samples: vec![v1::ScaleSample { machine_id: "m1".into(), seq: 7, t_ns: 1_000_000, x: 1.5, y: -2.0, z: 3.25 }],
+        };
+        let bytes = b.encode_to_vec();
+        assert_eq!(v1::ScaleBatch::decode(bytes.as_slice()).unwrap(), b);
+    }
+
+    #[test]
+    fn keys_roundtrip() {
+        for s in Stream::RAW.iter().chain(Stream::OUTPUT.iter()) {
+            let k = s.key("cmm", "m7");
+            assert_eq!(Stream::parse_key("cmm", &k), Some(("m7", *s)));
+        }
+        assert_eq!(Stream::parse_key("cmm", "cmm/m7/raw/other"), None);
+        assert_eq!(Stream::parse_key("cmm", "other/m7/raw/scale"), None);
+        assert_eq!(calibration_key("cmm", "m1"), "cmm/m1/calibration");
+    }
+}

@@ -1,0 +1,104 @@
+//! Second-order IIR sections (biquads) for the judgement stage.
+//!
+//! Equation: y[k] = b0 x[k] + b1 x[k−1] + b2 x[k−2] − a1 y[k−1] − a2 y[k−2] (direct form II
+//! transposed). Source idea: the `biquad` crate's split of validated coefficients from filter
+//! state, and the bilinear-transform Butterworth design of the Audio-EQ cookbook.
+
+/// Validated coefficients of one section (a0 normalised to 1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Coefficients {
+    b0: f64,
+    b1: f64,
+    b2: f64,
+    a1: f64,
+    a2: f64,
+}
+
+/// State of one section.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct State {
+    s1: f64,
+    s2: f64,
+}
+
+impl Coefficients {
+    /// A low-pass section with cutoff `fc` and quality `q` at sampling rate `fs`.
+    /// `None` unless 0 < fc < fs/2 and q > 0.
+    pub fn lowpass(fs: f64, fc: f64, q: f64) -> Option<Coefficients> {
+        if !(fs.is_finite() && fc.is_finite() && q.is_finite() && fc > 0.0 && fc < fs / 2.0 && q > 0.0) {
+            return None;
+        }
+        let w0 = 2.0 * std::f64::consts::PI * fc / fs;
+        let (sin, cos) = w0.sin_cos();
+        let alpha = sin / (2.0 * q);
+        let a0 = 1.0 + alpha;
+        Some(Coefficients {
+            b0: (1.0 - cos) / 2.0 / a0,
+            b1: (1.0 - cos) / a0,
+            b2: (1.0 - cos) / 2.0 / a0,
+            a1: -2.0 * cos / a0,
+            a2: (1.0 - alpha) / a0,
+        })
+    }
+
+    /// Butterworth low-pass of even `order` (2, 4, 6, 8) as cascaded sections.
+    pub fn butterworth(fs: f64, fc: f64, order: usize) -> Option<Vec<Coefficients>> {
+        if order == 0 || order % 2 != 0 || order > 8 {
+            return None;
+        }
+        (0..order / 2)
+            .map(|k| {
+                let theta = std::f64::consts::PI * (2 * k + 1) as f64 / (2 * order) as f64;
+                Coefficients::lowpass(fs, fc, 1.0 / (2.0 * theta.sin()))
+            })
+            .collect()
+    }
+
+    /// The state at rest with constant input `x` (unit DC gain: output `x`).
+    pub fn steady(&self, x: f64) -> State {
+        // DF2T at rest: y = x; s2 = b2 x − a2 y; s1 = b1 x − a1 y + s2.
+        let s2 = self.b2 * x - self.a2 * x;
+        State { s1: self.b1 * x - self.a1 * x + s2, s2 }
+    }
+
+    /// Filters one sample.
+    #[inline]
+    pub fn run(&self, st: &mut State, x: f64) -> f64 {
+        let y = self.b0 * x + st.s1;
+        st.s1 = self.b1 * x - self.a1 * y + st.s2;
+        st.s2 = self.b2 * x - self.a2 * y;
+        y
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn butterworth_has_unit_dc_gain_and_attenuates() {
+        let c = Coefficients::butterworth(1000.0, 40.0, 4).unwrap();
+        let mut st: Vec<State> = c.iter().map(|c| c.steady(0.0)).collect();
+        let run = |st: &mut Vec<State>, x: f64| c.iter().zip(st.iter_mut()).fold(x, |v, (c, s)| c.run(s, v));
+        let mut y = 0.0;
+        for _ in 0..2000 {
+            y = run(&mut st, 1.0);
+        }
+        assert!((y - 1.0).abs() < 1e-9);
+        // 200 Hz sine: 4th-order Butterworth at 40 Hz attenuates by (40/200)^4 ≈ 1.6e-3 (bilinear: less).
+        let mut peak: f64 = 0.0;
+        for k in 0..4000 {
+            let v = run(&mut st, 1.0 + (2.0 * std::f64::consts::PI * 200.0 * k as f64 / 1000.0).sin());
+            if k > 2000 {
+                peak = peak.max((v - 1.0).abs());
+            }
+        }
+        assert!(peak < 3e-3, "{peak}");
+        assert!(Coefficients::butterworth(1000.0, 600.0, 4).is_none());
+        assert!(Coefficients::butterworth(1000.0, 40.0, 3).is_none());
+        // Steady state starts without transient.
+        let s = c[0].steady(5.0);
+        let mut s2 = s;
+        assert!((c[0].run(&mut s2, 5.0) - 5.0).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,471 @@
+//! The calibration document: one machine's versioned model, as human-editable JSON.
+//!
+//! A [`Calibration`] is what users read, edit, store and send; [`Calibration::build`] turns a
+//! valid one into a [`Model`] (discretised nominal models, built effects, filter
+//! coefficients) that the [`Corrector`](crate::Corrector) runs. Every refusal names the field.
+
+use crate::biquad;
+use crate::effects::{BuiltEffect, EffectConfig, SensorTable};
+use crate::sample::AlarmAction;
+use crate::stylus::TipGeometry;
+use crate::transfer::{Discrete, TransferFunction};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+/// A calibration document.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Calibration {
+    /// The machine this calibrates; a document for another machine is refused.
+    pub machine_id: String,
+    /// Version number, increasing per machine; every corrected point names it.
+    pub version: u64,
+    /// The version this one was derived from (history of the model lab).
+    #[serde(default)]
+    pub parent_version: Option<u64>,
+    /// What changed and why, in words.
+    #[serde(default)]
+    pub note: String,
+    /// Creation time, RFC 3339 (informative; the core keeps no clock).
+    #[serde(default)]
+    pub created: String,
+    /// Sample period of the controller's command and scale streams, s.
+    pub sample_period_s: f64,
+    /// Nominal transfer-function model of the machine (G1 per axis) and probes (G2).
+    pub nominal: Nominal,
+    /// Stylus and tip geometry.
+    pub geometry: Geometry,
+    /// Effects corrected, in order (the order of per-effect corrections in each point).
+    #[serde(default)]
+    pub effects: Vec<EffectConfig>,
+    /// Estimator-validity judgement settings.
+    #[serde(default)]
+    pub judgement: Judgement,
+    /// Stream-join settings.
+    #[serde(default)]
+    pub join: Join,
+}
+
+/// Nominal model: G_N = G1(axis)·G2(probe type).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Nominal {
+    /// G1 for the x, y and z axes.
+    pub axes: Axes,
+    /// G2 per probe type, selected by the active tip's `probe`.
+    pub probes: BTreeMap<String, TransferFunction>,
+}
+
+/// One transfer function per axis.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Axes {
+    /// X axis.
+    pub x: TransferFunction,
+    /// Y axis.
+    pub y: TransferFunction,
+    /// Z axis.
+    pub z: TransferFunction,
+}
+
+/// Stylus/tip geometry.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Geometry {
+    /// Tips that may be active.
+    pub tips: Vec<TipGeometry>,
+    /// Below this deflection the contact direction is unknown: the point's normal is zero
+    /// and its surface point is the tip centre, mm.
+    #[serde(default = "default_min_contact")]
+    pub min_contact_deflection_mm: f64,
+}
+
+fn default_min_contact() -> f64 {
+    0.005
+}
+
+/// Judgement (estimator validity) settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Judgement {
+    /// |A_est − A_meas| above this (filtered) raises an alarm, mm/s².
+    pub threshold_mm_s2: f64,
+    /// ...when it stays above for at least this long, s.
+    pub min_duration_s: f64,
+    /// Clears when below `clear_fraction × threshold`...
+    pub clear_fraction: f64,
+    /// ...for at least this long, s.
+    pub clear_duration_s: f64,
+    /// Low-pass cutoff applied to both accelerations, Hz.
+    pub filter_cutoff_hz: f64,
+    /// Butterworth order (2, 4, 6 or 8).
+    pub filter_order: usize,
+    /// What a raised alarm does to the points.
+    pub action: AlarmAction,
+}
+
+impl Default for Judgement {
+    fn default() -> Self {
+        Judgement {
+            threshold_mm_s2: 150.0,
+            min_duration_s: 0.004,
+            clear_fraction: 0.5,
+            clear_duration_s: 0.05,
+            filter_cutoff_hz: 40.0,
+            filter_order: 4,
+            action: AlarmAction::Flag,
+        }
+    }
+}
+
+/// Stream-join settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Join {
+    /// Consecutive samples of a stream further apart than this many sample periods are a
+    /// gap: nothing is interpolated across it.
+    pub max_gap_periods: f64,
+    /// A point at time t uses the temperatures measured up to t − this delay, so the slow
+    /// temperature stream never holds the fast ones back, s.
+    pub temperature_delay_s: f64,
+    /// A held temperature older than this (at t − delay) is stale, s.
+    pub temperature_max_age_s: f64,
+    /// Most samples buffered per stream while waiting for the others.
+    pub max_pending: usize,
+}
+
+impl Default for Join {
+    fn default() -> Self {
+        Join { max_gap_periods: 2.5, temperature_delay_s: 0.2, temperature_max_age_s: 5.0, max_pending: 20_000 }
+    }
+}
+
+/// Why a calibration document was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibError {
+    /// Not valid JSON, or not the document's shape (unknown or missing field, wrong type).
+    #[error("calibration document, at `{path}`: {msg}")]
+    Parse {
+        /// Path of the field, e.g. `effects[0].p`.
+        path: String,
+        /// What is wrong.
+        msg: String,
+    },
+    /// A field has a value the model cannot use.
+    #[error("calibration field `{field}`: {reason}")]
+    Invalid {
+        /// Path of the field.
+        field: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The document belongs to another machine.
+    #[error("calibration is for machine `{document}`, not `{expected}`")]
+    WrongMachine {
+        /// Machine named in the document.
+        document: String,
+        /// Machine it was offered for.
+        expected: String,
+    },
+}
+
+fn invalid(field: impl Into<String>, reason: impl Into<String>) -> CalibError {
+    CalibError::Invalid { field: field.into(), reason: reason.into() }
+}
+
+/// The built, runnable form of a calibration.
+#[derive(Debug)]
+pub struct Model {
+    /// The document it was built from.
+    pub doc: Calibration,
+    /// Discretised G_N per probe type, per axis.
+    pub nominal: BTreeMap<String, Arc<[Discrete; 3]>>,
+    /// Tips by id.
+    pub tips: BTreeMap<u32, TipGeometry>,
+    /// Effects in document order.
+    pub effects: Vec<BuiltEffect>,
+    /// Temperature sensors the effects read, by slot.
+    pub sensors: SensorTable,
+    /// Judgement filter sections.
+    pub filter: Vec<biquad::Coefficients>,
+    /// Samples above threshold before raising.
+    pub raise_samples: u32,
+    /// Samples below the clear level before clearing.
+    pub clear_samples: u32,
+    /// Gap limit, ns.
+    pub max_gap_ns: i64,
+    /// Temperature delay, ns.
+    pub temperature_delay_ns: i64,
+    /// Temperature maximum age, ns.
+    pub temperature_max_age_ns: i64,
+}
+
+impl Calibration {
+    /// Parses a JSON document, naming the field on error. Does not validate values; see
+    /// [`Calibration::build`].
+    pub fn from_json(text: &str) -> Result<Calibration, CalibError> {
+        let de = &mut serde_json::Deserializer::from_str(text);
+        serde_path_to_error::deserialize(de).map_err(|e| {
+            let path = e.path().to_string();
+            CalibError::Parse { path, msg: e.into_inner().to_string() }
+        })
+    }
+
+    /// Pretty JSON.
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("a calibration always serialises")
+    }
+
+    /// Parses and validates in one go.
+    pub fn parse_valid(text: &str) -> Result<Calibration, CalibError> {
+        let c = Calibration::from_json(text)?;
+        c.build()?;
+        Ok(c)
+    }
+
+    /// Refuses a document for another machine.
+    pub fn check_machine(&self, machine: &str) -> Result<(), CalibError> {
+        if self.machine_id == machine {
+            Ok(())
+        } else {
+            Err(CalibError::WrongMachine { document: self.machine_id.clone(), expected: machine.to_string() })
+        }
+    }
+
+    /// Validates every value and builds the runnable model.
+    pub fn build(&self) -> Result<Model, CalibError> {
+        if self.machine_id.trim().is_empty() {
+            return Err(invalid("machine_id", "must not be empty"));
+        }
+        let t = self.sample_period_s;
+        if !(t.is_finite() && t > 0.0 && t < 1.0) {
+            return Err(invalid("sample_period_s", "must be a finite number between 0 and 1 s"));
+        }
+        // Nominal models: G1 per axis × G2 per probe type.
+        let mut g1 = vec![];
+        for (name, tf) in [("x", &self.nominal.axes.x), ("y", &self.nominal.axes.y), ("z", &self.nominal.axes.z)] {
+            g1.push(tf.rational().map_err(|e| invalid(format!("nominal.axes.{name}"), e.to_string()))?);
+        }
+        if self.nominal.probes.is_empty() {
+            return Err(invalid("nominal.probes", "at least one probe type is needed"));
+        }
+        let mut nominal = BTreeMap::new();
+        for (probe, tf) in &self.nominal.probes {
+            let field = format!("nominal.probes.{probe}");
+            let g2 = tf.rational().map_err(|e| invalid(&field, e.to_string()))?;
+            let mut d = vec![];
+            for (i, g) in g1.iter().enumerate() {
+                d.push(
+                    Discrete::new(&g.mul(&g2), t)
+                        .map_err(|e| invalid(format!("nominal (axis {} × {field})", ["x", "y", "z"][i]), e.to_string()))?,
+                );
+            }
+            let arr: [Discrete; 3] = d.try_into().expect("three axes");
+            nominal.insert(probe.clone(), Arc::new(arr));
+        }
+        // Geometry.
+        if self.geometry.tips.is_empty() {
+            return Err(invalid("geometry.tips", "at least one tip is needed"));
+        }
+        let mut tips = BTreeMap::new();
+        for (i, tip) in self.geometry.tips.iter().enumerate() {
+            let field = format!("geometry.tips[{i}]");
+            tip.validate(&field).map_err(|e| invalid(&field, e))?;
+            if !self.nominal.probes.contains_key(&tip.probe) {
+                return Err(invalid(
+                    format!("{field}.probe"),
+                    format!("probe type `{}` has no model in nominal.probes", tip.probe),
+                ));
+            }
+            if tips.insert(tip.id, tip.clone()).is_some() {
+                return Err(invalid(format!("{field}.id"), format!("tip id {} appears twice", tip.id)));
+            }
+        }
+        let mc = self.geometry.min_contact_deflection_mm;
+        if !(mc.is_finite() && mc >= 0.0) {
+            return Err(invalid("geometry.min_contact_deflection_mm", "must be a finite number ≥ 0"));
+        }
+        // Effects.
+        let mut sensors = SensorTable::default();
+        let mut effects = vec![];
+        let mut ids = std::collections::BTreeSet::new();
+        for (i, e) in self.effects.iter().enumerate() {
+            let b = e.build(&mut sensors).map_err(|r| {
+                let (f, reason) = match r.split_once(": ") {
+                    Some((f, rest)) if !f.contains(' ') => (format!("effects[{i}].{f}"), rest.to_string()),
+                    _ => (format!("effects[{i}]"), r.clone()),
+                };
+                invalid(f, reason)
+            })?;
+            if !ids.insert(b.id.clone()) {
+                return Err(invalid(format!("effects[{i}]"), format!("effect id `{}` appears twice; give one an `id`", b.id)));
+            }
+            effects.push(b);
+        }
+        // Judgement.
+        let j = &self.judgement;
+        for (n, v) in [
+            ("threshold_mm_s2", j.threshold_mm_s2),
+            ("min_duration_s", j.min_duration_s),
+            ("clear_fraction", j.clear_fraction),
+            ("clear_duration_s", j.clear_duration_s),
+            ("filter_cutoff_hz", j.filter_cutoff_hz),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(invalid(format!("judgement.{n}"), "must be a finite number ≥ 0"));
+            }
+        }
+        if j.threshold_mm_s2 <= 0.0 {
+            return Err(invalid("judgement.threshold_mm_s2", "must be > 0"));
+        }
+        if j.clear_fraction > 1.0 {
+            return Err(invalid("judgement.clear_fraction", "must be between 0 and 1"));
+        }
+        let filter = biquad::Coefficients::butterworth(1.0 / t, j.filter_cutoff_hz, j.filter_order).ok_or_else(|| {
+            invalid(
+                "judgement.filter_cutoff_hz",
+                format!("needs 0 < cutoff < {} Hz (half the sample rate) and filter_order 2, 4, 6 or 8", 0.5 / t),
+            )
+        })?;
+        // Join.
+        let jn = &self.join;
+        if !(jn.max_gap_periods.is_finite() && jn.max_gap_periods >= 1.0) {
+            return Err(invalid("join.max_gap_periods", "must be a finite number ≥ 1"));
+        }
+        for (n, v) in [("temperature_delay_s", jn.temperature_delay_s), ("temperature_max_age_s", jn.temperature_max_age_s)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(invalid(format!("join.{n}"), "must be a finite number ≥ 0"));
+            }
+        }
+        if jn.max_pending < 16 {
+            return Err(invalid("join.max_pending", "must be at least 16"));
+        }
+        let ns = |s: f64| (s * 1e9).round() as i64;
+        Ok(Model {
+            doc: self.clone(),
+            nominal,
+            tips,
+            effects,
+            sensors,
+            filter,
+            raise_samples: ((j.min_duration_s / t).round() as u32).max(1),
+            clear_samples: ((j.clear_duration_s / t).round() as u32).max(1),
+            max_gap_ns: ns(jn.max_gap_periods * t),
+            temperature_delay_ns: ns(jn.temperature_delay_s),
+            temperature_max_age_ns: ns(jn.temperature_max_age_s),
+        })
+    }
+
+    /// A minimal valid document: first-order axes, one probe, one straight tip, no effects.
+    /// Used by tests, examples and `scancorr` defaults.
+    pub fn example(machine_id: &str) -> Calibration {
+        Calibration {
+            machine_id: machine_id.to_string(),
+            version: 1,
+            parent_version: None,
+            note: "nominal model only".into(),
+            created: String::new(),
+            sample_period_s: 0.001,
+            nominal: Nominal {
+                axes: Axes {
+                    x: TransferFunction::FirstOrder { tau_s: 0.012 },
+                    y: TransferFunction::FirstOrder { tau_s: 0.015 },
+                    z: TransferFunction::FirstOrder { tau_s: 0.010 },
+                },
+                probes: [("sp25".to_string(), TransferFunction::FirstOrder { tau_s: 0.002 })].into(),
+            },
+            geometry: Geometry {
+                tips: vec![TipGeometry {
+                    id: 1,
+                    probe: "sp25".into(),
+                    l1_mm: 50.0,
+                    radius_mm: 1.5,
+                    l2_mm: 0.0,
+                    beta1_deg: 0.0,
+                    l3_mm: 0.0,
+                    beta2_deg: 0.0,
+                }],
+                min_contact_deflection_mm: default_min_contact(),
+            },
+            effects: vec![],
+            judgement: Judgement::default(),
+            join: Join::default(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::effects::{accel_deflection, stylus_thermal};
+
+    fn doc() -> serde_json::Value {
+        let mut c = Calibration::example("m1");
+        c.effects.push(EffectConfig::AccelDeflection(accel_deflection::Config::zeros(1, false)));
+        c.effects.push(EffectConfig::StylusThermal(stylus_thermal::Config::zeros(false)));
+        serde_json::to_value(&c).unwrap()
+    }
+
+    fn err(v: serde_json::Value) -> String {
+        match Calibration::from_json(&v.to_string()).and_then(|c| c.build().map(|_| c)) {
+            Ok(_) => panic!("accepted {v}"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[test]
+    fn example_round_trips_and_builds() {
+        let v = doc();
+        let c = Calibration::from_json(&v.to_string()).unwrap();
+        let m = c.build().unwrap();
+        assert_eq!(m.effects.len(), 2);
+        assert_eq!(m.sensors.names(), &["stylus".to_string()]);
+        assert_eq!(Calibration::from_json(&c.to_json()).unwrap(), c);
+    }
+
+    #[test]
+    fn refusals_name_the_field() {
+        let mut v = doc();
+        v["colour"] = "blue".into();
+        assert!(err(v).contains("colour"));
+
+        let mut v = doc();
+        v["effects"][0]["kind"] = "gravity_waves".into();
+        let e = err(v);
+        assert!(e.contains("effects[0]") && e.contains("gravity_waves"), "{e}");
+
+        let mut v = doc();
+        v["effects"][0].as_object_mut().unwrap().remove("p");
+        let e = err(v);
+        assert!(e.contains("effects[0]") && e.contains("`p`"), "{e}");
+
+        let mut v = doc();
+        v["effects"][1]["alpha_shank_per_k"] = serde_json::json!("warm");
+        assert!(err(v).contains("effects[1]"));
+
+        let mut v = doc();
+        v["nominal"]["axes"]["y"]["tau_s"] = serde_json::json!(-1.0);
+        let e = err(v);
+        assert!(e.contains("nominal.axes.y") && e.contains("tau_s"), "{e}");
+
+        let mut v = doc();
+        v["geometry"]["tips"][0]["probe"] = "unknown".into();
+        assert!(err(v).contains("geometry.tips[0].probe"));
+
+        let mut v = doc();
+        v["judgement"]["filter_cutoff_hz"] = serde_json::json!(900.0);
+        assert!(err(v).contains("judgement.filter_cutoff_hz"));
+
+        let mut v = doc();
+        v["effects"][0]["p"] = serde_json::json!([[[0, 0, 0], [0, 0, 0], [0, 0, 0]]]);
+        let e = err(v);
+        assert!(e.contains("effects[0].p"), "{e}");
+
+        // Non-finite numbers cannot be written in JSON; an overflowing literal is refused.
+        let text = doc().to_string().replace("\"sample_period_s\":0.001", "\"sample_period_s\":1e999");
+        let e = Calibration::from_json(&text).unwrap_err().to_string();
+        assert!(e.contains("sample_period_s"), "{e}");
+        assert!(Calibration::example("m1").check_machine("m2").is_err());
+    }
+}

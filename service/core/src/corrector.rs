@@ -1,0 +1,636 @@
+//! The corrector: one machine's stream join, estimator, effects, synthesis and judgement.
+//!
+//! Stream join. Each stream must arrive in its own order (seq and t_ns increasing);
+//! duplicates, samples going back in time and non-finite values are dropped and counted.
+//! One point is produced per scale sample at time t once every stream it needs has a
+//! watermark (latest t seen) at or past t: the command and probe streams are interpolated to
+//! t between their two neighbouring samples (never across a gap of more than
+//! `join.max_gap_periods` periods: such points are dropped), temperatures — a slow stream —
+//! are taken as the last reading at or before t − `join.temperature_delay_s` and must be
+//! younger than `join.temperature_max_age_s`. Because the decision and the values depend only
+//! on the samples' times, the output does not depend on how the streams were interleaved on
+//! arrival (as long as no buffer reaches `join.max_pending`).
+//!
+//! Synthesis: tip centre = scales + Σ corrections + R·deflection + R·tip offset;
+//! surface point = tip centre − tip radius · n, n = deflection direction (out of the material).
+
+use crate::calib::{CalibError, Calibration, Model};
+use crate::effects::BuiltEffect;
+use crate::estimator::{rotation, Estimate, Estimator};
+use crate::judge::Judge;
+use crate::sample::*;
+use crate::stylus::machine_from_probe;
+use std::collections::VecDeque;
+use std::sync::Arc;
+
+/// Why a sample or a point was dropped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum DropReason {
+    /// A value was NaN or infinite.
+    NonFinite,
+    /// seq not above the last accepted seq of its stream.
+    Duplicate,
+    /// t_ns not above the last accepted t_ns of its stream (below, for temperatures).
+    OutOfOrder,
+    /// No command sample around the scale time (before the first / after the last).
+    NoCommand,
+    /// The command stream has a gap around the scale time.
+    CommandGap,
+    /// No probe sample around the scale time.
+    NoProbe,
+    /// The probe stream has a gap around the scale time.
+    ProbeGap,
+    /// A temperature the calibration needs was never measured.
+    TemperatureMissing,
+    /// A temperature the calibration needs is older than the maximum age.
+    TemperatureStale,
+    /// The active tip is not in the calibration's geometry.
+    UnknownTip,
+    /// A stream buffer was full (another stream stalled).
+    BufferOverflow,
+}
+
+impl DropReason {
+    /// All reasons, in index order.
+    pub const ALL: [DropReason; 11] = [
+        DropReason::NonFinite,
+        DropReason::Duplicate,
+        DropReason::OutOfOrder,
+        DropReason::NoCommand,
+        DropReason::CommandGap,
+        DropReason::NoProbe,
+        DropReason::ProbeGap,
+        DropReason::TemperatureMissing,
+        DropReason::TemperatureStale,
+        DropReason::UnknownTip,
+        DropReason::BufferOverflow,
+    ];
+    /// snake_case name used in JSON output and logs.
+    pub fn name(self) -> &'static str {
+        [
+            "non_finite",
+            "duplicate",
+            "out_of_order",
+            "no_command",
+            "command_gap",
+            "no_probe",
+            "probe_gap",
+            "temperature_missing",
+            "temperature_stale",
+            "unknown_tip",
+            "buffer_overflow",
+        ][self as usize]
+    }
+}
+
+/// Counters of one corrector.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Stats {
+    /// Samples received per stream (command, scale, probe, temperature).
+    pub samples_in: [u64; 4],
+    /// Points produced.
+    pub points_out: u64,
+    /// Points produced while the estimate was not valid.
+    pub points_invalid: u64,
+    /// Drops by reason ([`DropReason`] index).
+    pub dropped: [u64; 11],
+    /// Seq jumps (missing samples) seen per stream.
+    pub seq_gaps: [u64; 4],
+    /// Alarms raised.
+    pub alarms_raised: u64,
+}
+
+impl Stats {
+    /// Total samples in.
+    pub fn samples(&self) -> u64 {
+        self.samples_in.iter().sum()
+    }
+    /// Total drops.
+    pub fn dropped_total(&self) -> u64 {
+        self.dropped.iter().sum()
+    }
+    /// Non-zero drop counts by name.
+    pub fn dropped_by_name(&self) -> Vec<(&'static str, u64)> {
+        DropReason::ALL.iter().filter(|r| self.dropped[**r as usize] > 0).map(|r| (r.name(), self.dropped[*r as usize])).collect()
+    }
+    /// Adds another corrector's counts.
+    pub fn add(&mut self, o: &Stats) {
+        for i in 0..4 {
+            self.samples_in[i] += o.samples_in[i];
+            self.seq_gaps[i] += o.seq_gaps[i];
+        }
+        for i in 0..self.dropped.len() {
+            self.dropped[i] += o.dropped[i];
+        }
+        self.points_out += o.points_out;
+        self.points_invalid += o.points_invalid;
+        self.alarms_raised += o.alarms_raised;
+    }
+}
+
+/// What one call produced.
+#[derive(Debug, Default, Clone)]
+pub struct Output {
+    /// Corrected points, in scale-time order.
+    pub points: Vec<CorrectedPoint>,
+    /// Alarms raised or cleared.
+    pub alarms: Vec<Alarm>,
+    /// The context of each point, when [`Corrector::record_context`] is on (the lab's input).
+    pub contexts: Vec<PointContext>,
+}
+
+impl Output {
+    /// Empties all lists, keeping their capacity.
+    pub fn clear(&mut self) {
+        self.points.clear();
+        self.alarms.clear();
+        self.contexts.clear();
+    }
+}
+
+#[derive(Debug, Clone, Copy, Default)]
+struct Intake {
+    last_seq: Option<u64>,
+    last_t: Option<i64>,
+}
+
+#[derive(Debug, Clone)]
+struct PendingTemp {
+    t_ns: i64,
+    sensor: String,
+    slot: Option<usize>,
+    celsius: f64,
+}
+
+/// One machine's correction pipeline.
+#[derive(Debug)]
+pub struct Corrector {
+    model: Arc<Model>,
+    intake: [Intake; 4],
+    cmd_q: VecDeque<CommandSample>,
+    scale_q: VecDeque<ScaleSample>,
+    probe_q: VecDeque<ProbeSample>,
+    temp_q: VecDeque<PendingTemp>,
+    held: [(f64, i64); MAX_SENSORS],
+    held_valid: u16,
+    /// Last reading of every sensor seen (also those the calibration does not use, so a new
+    /// calibration that needs them has them at once).
+    held_all: Vec<(String, f64, i64)>,
+    estimator: Option<Estimator>,
+    probe_type: String,
+    e0: Option<Estimate>,
+    e1: Option<Estimate>,
+    judge: Judge,
+    last_judged_t: Option<i64>,
+    point_seq: u64,
+    alarm_seq: u64,
+    record_context: bool,
+    stats: Stats,
+}
+
+impl Corrector {
+    /// A corrector for a calibration (validated here).
+    pub fn new(cal: &Calibration) -> Result<Corrector, CalibError> {
+        Ok(Corrector::with_model(Arc::new(cal.build()?)))
+    }
+
+    /// A corrector for an already built model.
+    pub fn with_model(model: Arc<Model>) -> Corrector {
+        let judge = Judge::new(
+            model.filter.clone(),
+            model.doc.judgement.threshold_mm_s2,
+            model.doc.judgement.clear_fraction,
+            model.raise_samples,
+            model.clear_samples,
+        );
+        Corrector {
+            model,
+            intake: [Intake::default(); 4],
+            cmd_q: VecDeque::new(),
+            scale_q: VecDeque::new(),
+            probe_q: VecDeque::new(),
+            temp_q: VecDeque::new(),
+            held: [(0.0, 0); MAX_SENSORS],
+            held_valid: 0,
+            held_all: vec![],
+            estimator: None,
+            probe_type: String::new(),
+            e0: None,
+            e1: None,
+            judge,
+            last_judged_t: None,
+            point_seq: 0,
+            alarm_seq: 0,
+            record_context: false,
+            stats: Stats::default(),
+        }
+    }
+
+    /// Also output each point's [`PointContext`] (for the model lab).
+    pub fn record_context(&mut self, on: bool) {
+        self.record_context = on;
+    }
+
+    /// The calibration in force.
+    pub fn calibration(&self) -> &Calibration {
+        &self.model.doc
+    }
+
+    /// Effect ids in the order of [`CorrectedPoint::corrections`].
+    pub fn effect_ids(&self) -> Vec<String> {
+        self.model.effects.iter().map(|e| e.id.clone()).collect()
+    }
+
+    /// Temperature sensor names by [`PointContext::temps`] slot.
+    pub fn sensor_names(&self) -> &[String] {
+        self.model.sensors.names()
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &Stats {
+        &self.stats
+    }
+
+    /// Latest accepted t_ns per stream (command, scale, probe, temperature).
+    pub fn watermarks(&self) -> [Option<i64>; 4] {
+        [self.intake[0].last_t, self.intake[1].last_t, self.intake[2].last_t, self.intake[3].last_t]
+    }
+
+    /// Samples waiting per stream.
+    pub fn pending(&self) -> [usize; 4] {
+        [self.cmd_q.len(), self.scale_q.len(), self.probe_q.len(), self.temp_q.len()]
+    }
+
+    /// Switches to a new calibration at this sample boundary. Nothing buffered is lost; the
+    /// estimator keeps running when the nominal model is unchanged and restarts (points
+    /// flagged invalid while it settles) when it changed.
+    pub fn set_model(&mut self, model: Arc<Model>) {
+        if model.doc.nominal != self.model.doc.nominal || model.doc.sample_period_s != self.model.doc.sample_period_s {
+            self.estimator = None;
+            self.probe_type.clear();
+        }
+        let j = &model.doc.judgement;
+        self.judge.reconfigure(model.filter.clone(), j.threshold_mm_s2, j.clear_fraction, model.raise_samples, model.clear_samples);
+        // Temperature slots may differ: re-resolve the held values by name.
+        self.held_valid = 0;
+        for (i, name) in model.sensors.names().iter().enumerate() {
+            if let Some((_, v, t)) = self.held_all.iter().find(|(n, _, _)| n == name) {
+                self.held[i] = (*v, *t);
+                self.held_valid |= 1 << i;
+            }
+        }
+        for p in self.temp_q.iter_mut() {
+            p.slot = model.sensors.find(&p.sensor);
+        }
+        self.model = model;
+    }
+
+    /// Takes one sample and appends whatever it completes to `out`.
+    pub fn push(&mut self, sample: Sample, out: &mut Output) {
+        if self.accept(&sample) {
+            let max = self.model.doc.join.max_pending;
+            match sample {
+                Sample::Command(c) => {
+                    self.cmd_q.push_back(c);
+                    if self.cmd_q.len() > max {
+                        self.cmd_q.pop_front();
+                        self.drop(DropReason::BufferOverflow);
+                    }
+                }
+                Sample::Scale(s) => {
+                    self.scale_q.push_back(s);
+                    if self.scale_q.len() > max {
+                        self.scale_q.pop_front();
+                        self.drop(DropReason::BufferOverflow);
+                    }
+                }
+                Sample::Probe(p) => {
+                    self.probe_q.push_back(p);
+                    if self.probe_q.len() > max {
+                        self.probe_q.pop_front();
+                        self.drop(DropReason::BufferOverflow);
+                    }
+                }
+                Sample::Temperature(t) => {
+                    let slot = self.model.sensors.find(&t.sensor);
+                    self.temp_q.push_back(PendingTemp { t_ns: t.t_ns, slot, celsius: t.celsius, sensor: t.sensor });
+                    if self.temp_q.len() > max {
+                        let p = self.temp_q.pop_front().expect("non-empty");
+                        self.hold(&p);
+                    }
+                }
+            }
+        }
+        self.emit(false, out);
+    }
+
+    /// Takes many samples.
+    pub fn push_all(&mut self, samples: impl IntoIterator<Item = Sample>, out: &mut Output) {
+        for s in samples {
+            self.push(s, out);
+        }
+    }
+
+    /// End of input: produces every point that can still be produced and drops the rest.
+    pub fn flush(&mut self, out: &mut Output) {
+        self.emit(true, out);
+    }
+
+    fn drop(&mut self, r: DropReason) {
+        self.stats.dropped[r as usize] += 1;
+    }
+
+    fn accept(&mut self, s: &Sample) -> bool {
+        let k = s.stream() as usize;
+        self.stats.samples_in[k] += 1;
+        let (seq, t, finite) = match s {
+            Sample::Command(c) => (
+                c.seq,
+                c.t_ns,
+                c.pos.iter().chain(c.arc_center.iter()).all(|v| v.is_finite()) && c.arc_radius.is_finite() && c.arc_radius >= 0.0,
+            ),
+            Sample::Scale(c) => (c.seq, c.t_ns, c.pos.iter().all(|v| v.is_finite())),
+            Sample::Probe(c) => (
+                c.seq,
+                c.t_ns,
+                c.deflection.iter().all(|v| v.is_finite()) && c.head_a1_deg.is_finite() && c.head_a2_deg.is_finite(),
+            ),
+            Sample::Temperature(c) => (c.seq, c.t_ns, c.celsius.is_finite()),
+        };
+        let st = &mut self.intake[k];
+        if !finite {
+            self.stats.dropped[DropReason::NonFinite as usize] += 1;
+            return false;
+        }
+        if st.last_seq.is_some_and(|l| seq <= l) {
+            self.stats.dropped[DropReason::Duplicate as usize] += 1;
+            return false;
+        }
+        // Temperatures of several sensors may share a time stamp; other streams may not.
+        let back = if k == StreamId::Temperature as usize { st.last_t.is_some_and(|l| t < l) } else { st.last_t.is_some_and(|l| t <= l) };
+        if back {
+            self.stats.dropped[DropReason::OutOfOrder as usize] += 1;
+            return false;
+        }
+        if st.last_seq.is_some_and(|l| seq > l + 1) {
+            self.stats.seq_gaps[k] += 1;
+        }
+        st.last_seq = Some(seq);
+        st.last_t = Some(t);
+        true
+    }
+
+    fn hold(&mut self, p: &PendingTemp) {
+        match self.held_all.iter_mut().find(|(n, _, _)| *n == p.sensor) {
+            Some(h) => (h.1, h.2) = (p.celsius, p.t_ns),
+            None => self.held_all.push((p.sensor.clone(), p.celsius, p.t_ns)),
+        }
+        if let Some(slot) = p.slot {
+            self.held[slot] = (p.celsius, p.t_ns);
+            self.held_valid |= 1 << slot;
+        }
+    }
+
+    fn emit(&mut self, flush: bool, out: &mut Output) {
+        let needs_temp = !self.model.sensors.names().is_empty();
+        while let Some(s) = self.scale_q.front().copied() {
+            if !flush {
+                let wm = self.watermarks();
+                let ready = wm[0].is_some_and(|w| w >= s.t_ns)
+                    && wm[2].is_some_and(|w| w >= s.t_ns)
+                    && (!needs_temp || wm[3].is_some_and(|w| w >= s.t_ns - self.model.temperature_delay_ns));
+                if !ready {
+                    break;
+                }
+            }
+            self.scale_q.pop_front();
+            if let Err(r) = self.point(s, out) {
+                self.drop(r);
+            }
+        }
+    }
+
+    /// Steps the estimator through the commands up to the first at or after `t`.
+    fn advance_estimator(&mut self, t: i64) {
+        while self.e1.is_none_or(|e| e.cmd.t_ns < t) {
+            let Some(c) = self.cmd_q.pop_front() else { break };
+            let gap = self.e1.is_some_and(|e| c.t_ns - e.cmd.t_ns > self.model.max_gap_ns);
+            let est = match self.estimator.as_mut() {
+                Some(est) if !gap => est.step(&c),
+                Some(est) => est.restart(&c),
+                None => {
+                    let probe = self.probe_type_for(t);
+                    let m = self.model.nominal[&probe].clone();
+                    self.probe_type = probe;
+                    let mut est = Estimator::new(m);
+                    let e = est.restart(&c);
+                    self.estimator = Some(est);
+                    e
+                }
+            };
+            self.e0 = self.e1.replace(est);
+        }
+    }
+
+    fn probe_type_for(&self, _t: i64) -> String {
+        // The tip active at the front of the probe buffer; the first tip otherwise.
+        self.probe_q
+            .front()
+            .and_then(|p| self.model.tips.get(&p.tip_id))
+            .or_else(|| self.model.tips.values().next())
+            .map(|t| t.probe.clone())
+            .expect("a built model has at least one tip")
+    }
+
+    fn point(&mut self, s: ScaleSample, out: &mut Output) -> Result<(), DropReason> {
+        let t = s.t_ns;
+        let gap = self.model.max_gap_ns;
+        // Command bracket → estimate at t.
+        self.advance_estimator(t);
+        let e1 = self.e1.ok_or(DropReason::NoCommand)?;
+        let est = if e1.cmd.t_ns == t {
+            e1
+        } else if e1.cmd.t_ns < t {
+            return Err(DropReason::NoCommand);
+        } else {
+            let e0 = self.e0.filter(|e| e.cmd.t_ns <= t).ok_or(DropReason::NoCommand)?;
+            if e1.cmd.t_ns - e0.cmd.t_ns > gap {
+                return Err(DropReason::CommandGap);
+            }
+            lerp_estimate(&e0, &e1, t)
+        };
+        // Probe bracket.
+        while self.probe_q.len() >= 2 && self.probe_q[1].t_ns <= t {
+            self.probe_q.pop_front();
+        }
+        let p0 = *self.probe_q.front().ok_or(DropReason::NoProbe)?;
+        if p0.t_ns > t {
+            return Err(DropReason::NoProbe);
+        }
+        let defl_probe = if p0.t_ns == t {
+            p0.deflection
+        } else {
+            let p1 = *self.probe_q.get(1).ok_or(DropReason::NoProbe)?;
+            if p1.t_ns - p0.t_ns > gap {
+                return Err(DropReason::ProbeGap);
+            }
+            let w = (t - p0.t_ns) as f64 / (p1.t_ns - p0.t_ns) as f64;
+            p0.deflection + (p1.deflection - p0.deflection) * w
+        };
+        // Temperatures measured up to t − delay.
+        let t_temp = t - self.model.temperature_delay_ns;
+        while self.temp_q.front().is_some_and(|p| p.t_ns <= t_temp) {
+            let p = self.temp_q.pop_front().expect("non-empty");
+            self.hold(&p);
+        }
+        let n_sensors = self.model.sensors.names().len();
+        for slot in 0..n_sensors {
+            if self.held_valid & (1 << slot) == 0 {
+                return Err(DropReason::TemperatureMissing);
+            }
+            if t_temp - self.held[slot].1 > self.model.temperature_max_age_ns {
+                return Err(DropReason::TemperatureStale);
+            }
+        }
+        // Tip and probe model.
+        let model = self.model.clone();
+        let tip = model.tips.get(&p0.tip_id).ok_or(DropReason::UnknownTip)?;
+        if tip.probe != self.probe_type {
+            if let Some(est) = self.estimator.as_mut() {
+                est.switch_model(model.nominal[&tip.probe].clone(), &e1.cmd);
+            }
+            self.probe_type = tip.probe.clone();
+        }
+        let settled = self.estimator.as_ref().is_some_and(|e| e.settled());
+
+        let r = machine_from_probe(p0.head_a1_deg, p0.head_a2_deg);
+        let cmd = &est.cmd;
+        let (f_hz, rot_axis) = rotation(&est.pos, &est.vel, &est.acc, &cmd.arc_center, cmd.arc_radius);
+        let mut ctx = PointContext {
+            t_ns: t,
+            scale: s.pos,
+            command: cmd.pos,
+            est_pos: est.pos,
+            est_vel: est.vel,
+            est_acc: est.acc,
+            arc_center: if cmd.arc_radius > 0.0 { cmd.arc_center } else { Vec3::zeros() },
+            arc_radius: cmd.arc_radius,
+            f_hz,
+            rot_axis,
+            deflection_probe: defl_probe,
+            deflection: r * defl_probe,
+            machine_from_probe: r,
+            tip_shank: r * tip.shank_probe(),
+            tip_bent: r * tip.bent_probe(),
+            tip_radius: tip.radius_mm,
+            tip_id: p0.tip_id,
+            head_a1_deg: p0.head_a1_deg,
+            head_a2_deg: p0.head_a2_deg,
+            segment_id: cmd.segment_id,
+            temps: [0.0; MAX_SENSORS],
+            temps_valid: 0,
+        };
+        for slot in 0..n_sensors {
+            ctx.temps[slot] = self.held[slot].0;
+        }
+        ctx.temps_valid = self.held_valid;
+
+        // Judgement (only on consecutive scale samples).
+        if self.last_judged_t.is_none_or(|l| t - l > gap) {
+            self.judge.restart();
+        }
+        self.last_judged_t = Some(t);
+        let version = model.doc.version;
+        let action = model.doc.judgement.action;
+        let threshold = model.doc.judgement.threshold_mm_s2;
+        let (alarm_seq, stats) = (&mut self.alarm_seq, &mut self.stats);
+        self.judge.update(t, s.pos, est.acc, settled, &mut |tr| {
+            if tr.raised {
+                stats.alarms_raised += 1;
+            }
+            out.alarms.push(Alarm {
+                seq: *alarm_seq,
+                t_ns: t,
+                raised: tr.raised,
+                axis: tr.axis,
+                estimated_accel: tr.estimated,
+                measured_accel: tr.measured,
+                difference: tr.estimated - tr.measured,
+                threshold,
+                action,
+                calibration_version: version,
+            });
+            *alarm_seq += 1;
+        });
+        let alarm = self.judge.any_raised();
+        let suspend = alarm && action == AlarmAction::Suspend;
+
+        let point = synthesize(&ctx, &model.effects, suspend, model.doc.geometry.min_contact_deflection_mm);
+        let valid = settled && !alarm;
+        out.points.push(CorrectedPoint {
+            seq: self.point_seq,
+            t_ns: t,
+            sample_seq: s.seq,
+            surface: point.surface,
+            tip_center: point.tip_center,
+            normal: point.normal,
+            corrections: point.corrections,
+            calibration_version: version,
+            estimator_valid: valid,
+            segment_id: cmd.segment_id,
+            tip_id: p0.tip_id,
+        });
+        if self.record_context {
+            out.contexts.push(ctx);
+        }
+        self.point_seq += 1;
+        self.stats.points_out += 1;
+        if !valid {
+            self.stats.points_invalid += 1;
+        }
+        Ok(())
+    }
+}
+
+/// The geometric result of one point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Synthesis {
+    /// Surface point, mm.
+    pub surface: Vec3,
+    /// Tip centre, mm.
+    pub tip_center: Vec3,
+    /// Unit normal or zero.
+    pub normal: Vec3,
+    /// Per-effect corrections.
+    pub corrections: Vec<Vec3>,
+}
+
+/// Surface point = scales + Σ corrections + R·deflection + tip offset − radius·normal.
+pub fn synthesize(ctx: &PointContext, effects: &[BuiltEffect], suspend_dynamic: bool, min_contact: f64) -> Synthesis {
+    let mut total = Vec3::zeros();
+    let corrections: Vec<Vec3> = effects
+        .iter()
+        .map(|e| {
+            let c = if suspend_dynamic && e.dynamic { Vec3::zeros() } else { e.model.correction(ctx) };
+            total += c;
+            c
+        })
+        .collect();
+    let tip_center = ctx.scale + total + ctx.deflection + ctx.tip_offset();
+    let d = ctx.deflection.norm();
+    let normal = if d >= min_contact && d > 0.0 { ctx.deflection / d } else { Vec3::zeros() };
+    Synthesis { surface: tip_center - normal * ctx.tip_radius, tip_center, normal, corrections }
+}
+
+fn lerp_estimate(a: &Estimate, b: &Estimate, t: i64) -> Estimate {
+    let w = (t - a.cmd.t_ns) as f64 / (b.cmd.t_ns - a.cmd.t_ns) as f64;
+    let mut cmd = a.cmd;
+    cmd.t_ns = t;
+    cmd.pos = a.cmd.pos + (b.cmd.pos - a.cmd.pos) * w;
+    Estimate {
+        cmd,
+        pos: a.pos + (b.pos - a.pos) * w,
+        vel: a.vel + (b.vel - a.vel) * w,
+        acc: a.acc + (b.acc - a.acc) * w,
+    }
+}

@@ -1,0 +1,323 @@
+//! The library of physical effects. Each effect is its own module whose doc comment states
+//! its equation; every effect's correction is linear in its parameters,
+//! `correction = Σ θ_i · r_i(context)`, and exposes those regressors `r_i` so the model lab
+//! can fit it by least squares.
+//!
+//! A calibration document lists effects as [`EffectConfig`] (serde, human-editable, with
+//! parameters). [`EffectConfig::build`] validates one into a [`BuiltEffect`] ready for the hot
+//! path. Parameters go in and out of a config as a flat vector ([`EffectConfig::params`],
+//! [`EffectConfig::with_params`]) in the order of [`EffectConfig::param_names`].
+
+pub mod accel_deflection;
+pub mod custom;
+pub mod guide_straightness;
+pub mod probe_force;
+pub mod scale_thermal;
+pub mod servo_gain;
+pub mod servo_phase;
+pub mod stylus_thermal;
+
+use crate::sample::{PointContext, Vec3, MAX_SENSORS};
+use serde::{Deserialize, Serialize};
+
+/// An effect as written in a calibration document: `{"kind": "...", ...parameters}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum EffectConfig {
+    /// Structure deflection under acceleration, D = P(position)·A.
+    AccelDeflection(accel_deflection::Config),
+    /// Inter-axis phase lag on arcs.
+    ServoPhase(servo_phase::Config),
+    /// Per-axis amplitude response on arcs.
+    ServoGain(servo_gain::Config),
+    /// Stylus growth with temperature.
+    StylusThermal(stylus_thermal::Config),
+    /// Scale growth with temperature.
+    ScaleThermal(scale_thermal::Config),
+    /// Stylus bending with probing force.
+    ProbeForce(probe_force::Config),
+    /// Guide straightness and pitch along an axis.
+    GuideStraightness(guide_straightness::Config),
+    /// User-defined regressors.
+    Custom(custom::Config),
+}
+
+/// Names of the built-in kinds, as written in documents.
+pub const KINDS: [&str; 8] = [
+    "accel_deflection",
+    "servo_phase",
+    "servo_gain",
+    "stylus_thermal",
+    "scale_thermal",
+    "probe_force",
+    "guide_straightness",
+    "custom",
+];
+
+/// A validated effect, ready for the hot path.
+pub trait Effect: Send + Sync + std::fmt::Debug {
+    /// Number of parameters θ.
+    fn n_params(&self) -> usize;
+    /// Writes the regressors r_i (machine axes) for this context; `out.len() == n_params()`.
+    fn regressors(&self, ctx: &PointContext, out: &mut [Vec3]);
+    /// The correction Σ θ_i r_i with the effect's parameters, mm.
+    fn correction(&self, ctx: &PointContext) -> Vec3;
+}
+
+/// A built effect with its name and whether it is dynamic (suspended by alarms).
+#[derive(Debug)]
+pub struct BuiltEffect {
+    /// Effect id (its `id`, or its kind).
+    pub id: String,
+    /// Dynamic effects depend on the estimated motion and are left out while an estimator
+    /// alarm with action `suspend` is raised.
+    pub dynamic: bool,
+    /// The model.
+    pub model: Box<dyn Effect>,
+}
+
+/// Maps temperature sensor names to slots of [`PointContext::temps`].
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SensorTable {
+    names: Vec<String>,
+}
+
+impl SensorTable {
+    /// Slot of `name`, allocating one if new.
+    pub fn slot(&mut self, name: &str) -> Result<usize, String> {
+        if let Some(i) = self.names.iter().position(|n| n == name) {
+            return Ok(i);
+        }
+        if self.names.len() == MAX_SENSORS {
+            return Err(format!("more than {MAX_SENSORS} temperature sensors referenced"));
+        }
+        self.names.push(name.to_string());
+        Ok(self.names.len() - 1)
+    }
+    /// Slot of `name` if known.
+    pub fn find(&self, name: &str) -> Option<usize> {
+        self.names.iter().position(|n| n == name)
+    }
+    /// Sensor names by slot.
+    pub fn names(&self) -> &[String] {
+        &self.names
+    }
+}
+
+/// Reads a temperature slot, or 0 ΔT-neutral `reference` when missing (the corrector drops
+/// points whose required sensors are missing, so this only matters for the lab's probes).
+#[inline]
+pub(crate) fn temp(ctx: &PointContext, slot: usize, reference: f64) -> f64 {
+    if ctx.temps_valid & (1 << slot) != 0 {
+        ctx.temps[slot]
+    } else {
+        reference
+    }
+}
+
+impl EffectConfig {
+    /// The effect's kind as written in documents.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            EffectConfig::AccelDeflection(_) => "accel_deflection",
+            EffectConfig::ServoPhase(_) => "servo_phase",
+            EffectConfig::ServoGain(_) => "servo_gain",
+            EffectConfig::StylusThermal(_) => "stylus_thermal",
+            EffectConfig::ScaleThermal(_) => "scale_thermal",
+            EffectConfig::ProbeForce(_) => "probe_force",
+            EffectConfig::GuideStraightness(_) => "guide_straightness",
+            EffectConfig::Custom(_) => "custom",
+        }
+    }
+
+    /// The effect's id: its `id` field or its kind.
+    pub fn id(&self) -> String {
+        let id = match self {
+            EffectConfig::AccelDeflection(c) => c.id.clone(),
+            EffectConfig::ServoPhase(c) => c.id.clone(),
+            EffectConfig::ServoGain(c) => c.id.clone(),
+            EffectConfig::StylusThermal(c) => c.id.clone(),
+            EffectConfig::ScaleThermal(c) => c.id.clone(),
+            EffectConfig::ProbeForce(c) => c.id.clone(),
+            EffectConfig::GuideStraightness(c) => c.id.clone(),
+            EffectConfig::Custom(c) => Some(c.id.clone()),
+        };
+        id.unwrap_or_else(|| self.kind().to_string())
+    }
+
+    /// Dynamic effects depend on the estimated motion.
+    pub fn is_dynamic(&self) -> bool {
+        match self {
+            EffectConfig::AccelDeflection(_) | EffectConfig::ServoPhase(_) | EffectConfig::ServoGain(_) => true,
+            EffectConfig::Custom(c) => c.dynamic,
+            _ => false,
+        }
+    }
+
+    /// Validates and builds the hot-path model. Errors name the offending field, relative to
+    /// this effect (the caller prefixes `effects[i]`).
+    pub fn build(&self, sensors: &mut SensorTable) -> Result<BuiltEffect, String> {
+        let model: Box<dyn Effect> = match self {
+            EffectConfig::AccelDeflection(c) => Box::new(c.build()?),
+            EffectConfig::ServoPhase(c) => Box::new(c.build()?),
+            EffectConfig::ServoGain(c) => Box::new(c.build()?),
+            EffectConfig::StylusThermal(c) => Box::new(c.build(sensors)?),
+            EffectConfig::ScaleThermal(c) => Box::new(c.build(sensors)?),
+            EffectConfig::ProbeForce(c) => Box::new(c.build()?),
+            EffectConfig::GuideStraightness(c) => Box::new(c.build()?),
+            EffectConfig::Custom(c) => Box::new(c.build(sensors)?),
+        };
+        Ok(BuiltEffect { id: self.id(), dynamic: self.is_dynamic(), model })
+    }
+
+    /// The parameters as a flat vector (order of [`Self::param_names`]).
+    pub fn params(&self) -> Vec<f64> {
+        match self {
+            EffectConfig::AccelDeflection(c) => c.params(),
+            EffectConfig::ServoPhase(c) => c.params(),
+            EffectConfig::ServoGain(c) => c.params(),
+            EffectConfig::StylusThermal(c) => c.params(),
+            EffectConfig::ScaleThermal(c) => c.params(),
+            EffectConfig::ProbeForce(c) => c.params(),
+            EffectConfig::GuideStraightness(c) => c.params(),
+            EffectConfig::Custom(c) => c.coefficients.clone(),
+        }
+    }
+
+    /// Human-readable parameter names with units.
+    pub fn param_names(&self) -> Vec<String> {
+        match self {
+            EffectConfig::AccelDeflection(c) => c.param_names(),
+            EffectConfig::ServoPhase(c) => c.param_names(),
+            EffectConfig::ServoGain(c) => c.param_names(),
+            EffectConfig::StylusThermal(c) => c.param_names(),
+            EffectConfig::ScaleThermal(c) => c.param_names(),
+            EffectConfig::ProbeForce(c) => c.param_names(),
+            EffectConfig::GuideStraightness(c) => c.param_names(),
+            EffectConfig::Custom(c) => c.terms.iter().map(|t| format!("{}·[{}]", t.axis.name(), t.expr)).collect(),
+        }
+    }
+
+    /// The same structure with new parameter values (`p.len()` must equal the count).
+    pub fn with_params(&self, p: &[f64]) -> Result<EffectConfig, String> {
+        let n = self.params().len();
+        if p.len() != n {
+            return Err(format!("{} takes {n} parameters, got {}", self.kind(), p.len()));
+        }
+        let mut c = self.clone();
+        match &mut c {
+            EffectConfig::AccelDeflection(c) => c.set_params(p),
+            EffectConfig::ServoPhase(c) => c.set_params(p),
+            EffectConfig::ServoGain(c) => c.set_params(p),
+            EffectConfig::StylusThermal(c) => c.set_params(p),
+            EffectConfig::ScaleThermal(c) => c.set_params(p),
+            EffectConfig::ProbeForce(c) => c.set_params(p),
+            EffectConfig::GuideStraightness(c) => c.set_params(p),
+            EffectConfig::Custom(c) => c.coefficients = p.to_vec(),
+        }
+        Ok(c)
+    }
+}
+
+/// Position dependence of a coefficient: a polynomial in ξ = (p − origin)/scale.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PositionBasis {
+    /// 0 (constant), 1 (linear: 1, ξx, ξy, ξz) or 2 (adds ξx², ξy², ξz², ξxξy, ξxξz, ξyξz).
+    #[serde(default)]
+    pub order: u8,
+    /// Origin of ξ, mm.
+    #[serde(default)]
+    pub origin_mm: [f64; 3],
+    /// Length that makes ξ dimensionless (about half the travel), mm.
+    #[serde(default = "default_scale")]
+    pub scale_mm: f64,
+}
+
+fn default_scale() -> f64 {
+    500.0
+}
+
+impl Default for PositionBasis {
+    fn default() -> Self {
+        PositionBasis { order: 0, origin_mm: [0.0; 3], scale_mm: default_scale() }
+    }
+}
+
+/// Names of the monomials of order 2, in basis order.
+pub const MONOMIALS: [&str; 10] = ["1", "x", "y", "z", "x²", "y²", "z²", "xy", "xz", "yz"];
+
+impl PositionBasis {
+    /// Number of monomials.
+    pub fn len(&self) -> usize {
+        [1, 4, 10][self.order.min(2) as usize]
+    }
+    /// Never empty (the constant is always there).
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+    /// Checks order, origin and scale.
+    pub fn validate(&self, field: &str) -> Result<(), String> {
+        if self.order > 2 {
+            return Err(format!("{field}.order: must be 0, 1 or 2"));
+        }
+        if !self.origin_mm.iter().all(|v| v.is_finite()) {
+            return Err(format!("{field}.origin_mm: must be finite numbers"));
+        }
+        if !(self.scale_mm.is_finite() && self.scale_mm > 0.0) {
+            return Err(format!("{field}.scale_mm: must be a finite number > 0"));
+        }
+        Ok(())
+    }
+    /// Monomial values at `p`; returns how many were written.
+    #[inline]
+    pub fn eval(&self, p: &Vec3, out: &mut [f64; 10]) -> usize {
+        out[0] = 1.0;
+        if self.order == 0 {
+            return 1;
+        }
+        let k = 1.0 / self.scale_mm;
+        let (x, y, z) = ((p.x - self.origin_mm[0]) * k, (p.y - self.origin_mm[1]) * k, (p.z - self.origin_mm[2]) * k);
+        out[1] = x;
+        out[2] = y;
+        out[3] = z;
+        if self.order == 1 {
+            return 4;
+        }
+        out[4] = x * x;
+        out[5] = y * y;
+        out[6] = z * z;
+        out[7] = x * y;
+        out[8] = x * z;
+        out[9] = y * z;
+        10
+    }
+}
+
+/// Checks that every value is finite; names the field.
+pub(crate) fn check_finite(field: &str, v: &[f64]) -> Result<(), String> {
+    match v.iter().position(|x| !x.is_finite()) {
+        Some(i) => Err(format!("{field}[{i}]: must be a finite number")),
+        None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod testutil {
+    use super::*;
+
+    /// Asserts that correction == Σ θ r for a context.
+    pub fn assert_linear(e: &dyn Effect, cfg: &EffectConfig, ctx: &PointContext) {
+        let p = cfg.params();
+        assert_eq!(p.len(), e.n_params());
+        assert_eq!(cfg.param_names().len(), p.len());
+        let mut r = vec![Vec3::zeros(); p.len()];
+        e.regressors(ctx, &mut r);
+        let sum: Vec3 = r.iter().zip(p.iter()).map(|(r, t)| r * *t).sum();
+        let c = e.correction(ctx);
+        assert!((sum - c).norm() <= 1e-12 * (1.0 + c.norm()), "{sum:?} vs {c:?}");
+        // Round trip of the parameters.
+        let c2 = cfg.with_params(&p).unwrap();
+        assert_eq!(&c2, cfg);
+    }
+}

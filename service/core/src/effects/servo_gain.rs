@@ -1,0 +1,175 @@
+//! Per-axis amplitude response on arcs.
+//!
+//! Equation: on an arc, axis i reaches only |G_i|(f) = 1 − g_i(f) of its commanded excursion
+//! about the arc centre c, with g_i(f) = Σ_k α_{i,k}(p)·f^k (powers k from `powers`, each
+//! coefficient a polynomial in position); the correction is δ_i = g_i(f)·(s_i − c_i).
+//!
+//! Source idea: a servo axis driven sinusoidally (each axis sees a sine on a circle) follows
+//! with a frequency-dependent gain, so a circle scanned fast comes out smaller, and elliptic
+//! when the axes differ; the correction is applied about the commanded centre.
+
+use super::{check_finite, Effect, PositionBasis, MONOMIALS};
+use crate::sample::{PointContext, Vec3};
+use serde::{Deserialize, Serialize};
+
+/// Document form.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// Optional name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
+    /// Position dependence of the coefficients.
+    #[serde(default)]
+    pub position: PositionBasis,
+    /// Powers of f in the polynomial (default [1, 2]).
+    #[serde(default = "default_powers")]
+    pub powers: Vec<u32>,
+    /// α for X: monomial-major, then power (len = monomials × powers), 1/Hz^k.
+    pub x: Vec<f64>,
+    /// α for Y.
+    pub y: Vec<f64>,
+    /// α for Z.
+    pub z: Vec<f64>,
+}
+
+fn default_powers() -> Vec<u32> {
+    vec![1, 2]
+}
+
+/// Hot-path form.
+#[derive(Debug, Clone)]
+pub struct Model {
+    basis: PositionBasis,
+    powers: Vec<i32>,
+    alpha: [Vec<f64>; 3],
+}
+
+impl Config {
+    /// Zero-parameter model.
+    pub fn zeros(order: u8, powers: Vec<u32>) -> Config {
+        let position = PositionBasis { order, ..Default::default() };
+        let n = position.len() * powers.len();
+        Config { id: None, position, powers, x: vec![0.0; n], y: vec![0.0; n], z: vec![0.0; n] }
+    }
+    /// Validates.
+    pub fn build(&self) -> Result<Model, String> {
+        self.position.validate("position")?;
+        if self.powers.is_empty() || self.powers.iter().any(|p| *p > 4) {
+            return Err("powers: must list powers of f between 0 and 4".into());
+        }
+        let n = self.position.len() * self.powers.len();
+        for (name, v) in [("x", &self.x), ("y", &self.y), ("z", &self.z)] {
+            if v.len() != n {
+                return Err(format!("{name}: needs {n} coefficients (monomials × powers), got {}", v.len()));
+            }
+            check_finite(name, v)?;
+        }
+        Ok(Model {
+            basis: self.position,
+            powers: self.powers.iter().map(|p| *p as i32).collect(),
+            alpha: [self.x.clone(), self.y.clone(), self.z.clone()],
+        })
+    }
+    /// Flat parameters x, y, z.
+    pub fn params(&self) -> Vec<f64> {
+        self.x.iter().chain(&self.y).chain(&self.z).copied().collect()
+    }
+    /// Sets flat parameters.
+    pub fn set_params(&mut self, v: &[f64]) {
+        let n = self.x.len();
+        self.x.copy_from_slice(&v[..n]);
+        self.y.copy_from_slice(&v[n..2 * n]);
+        self.z.copy_from_slice(&v[2 * n..3 * n]);
+    }
+    /// Parameter names.
+    pub fn param_names(&self) -> Vec<String> {
+        let mut v = vec![];
+        for ax in ["x", "y", "z"] {
+            for m in MONOMIALS.iter().take(self.position.len()) {
+                for p in &self.powers {
+                    v.push(format!("α_{ax}·f^{p}·{m} (1/Hz^{p})"));
+                }
+            }
+        }
+        v
+    }
+}
+
+impl Effect for Model {
+    fn n_params(&self) -> usize {
+        3 * self.alpha[0].len()
+    }
+    fn regressors(&self, ctx: &PointContext, out: &mut [Vec3]) {
+        out.iter_mut().for_each(|r| *r = Vec3::zeros());
+        if ctx.arc_radius <= 0.0 {
+            return;
+        }
+        let mut mono = [0.0; 10];
+        let n = self.basis.eval(&ctx.scale, &mut mono);
+        let r = ctx.scale - ctx.arc_center;
+        let np = self.powers.len();
+        for i in 0..3 {
+            for (m, xi) in mono.iter().enumerate().take(n) {
+                for (k, p) in self.powers.iter().enumerate() {
+                    out[i * n * np + m * np + k][i] = xi * ctx.f_hz.powi(*p) * r[i];
+                }
+            }
+        }
+    }
+    #[inline]
+    fn correction(&self, ctx: &PointContext) -> Vec3 {
+        if ctx.arc_radius <= 0.0 {
+            return Vec3::zeros();
+        }
+        let mut mono = [0.0; 10];
+        let n = self.basis.eval(&ctx.scale, &mut mono);
+        let mut fp = [0.0; 5];
+        for (k, p) in self.powers.iter().enumerate() {
+            fp[k] = ctx.f_hz.powi(*p);
+        }
+        let np = self.powers.len();
+        let r = ctx.scale - ctx.arc_center;
+        let mut g = Vec3::zeros();
+        for i in 0..3 {
+            let a = &self.alpha[i];
+            let mut s = 0.0;
+            for m in 0..n {
+                let mut t = 0.0;
+                for k in 0..np {
+                    t += a[m * np + k] * fp[k];
+                }
+                s += mono[m] * t;
+            }
+            g[i] = s * r[i];
+        }
+        g
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::effects::{testutil::assert_linear, EffectConfig};
+
+    #[test]
+    fn hand_computed_gain_correction() {
+        let mut c = Config::zeros(0, vec![2]);
+        c.x = vec![1e-4]; // g_x(f) = 1e-4 f²
+        let m = c.build().unwrap();
+        let mut ctx = PointContext::at_rest(Vec3::new(124.0, 3.0, 0.0));
+        ctx.arc_center = Vec3::new(100.0, 0.0, 0.0);
+        ctx.arc_radius = 25.0;
+        ctx.f_hz = 3.0;
+        // δx = 9e-4 · 24 = 0.0216 mm, about the centre.
+        let d = m.correction(&ctx);
+        assert!((d - Vec3::new(0.0216, 0.0, 0.0)).norm() < 1e-15, "{d:?}");
+        assert_linear(&m, &EffectConfig::ServoGain(c.clone()), &ctx);
+        let mut c2 = Config::zeros(1, vec![1, 2]);
+        c2.y = vec![1e-3, 2e-4, 1e-5, 0.0, 3e-4, 0.0, 1e-6, 2e-6];
+        ctx.scale = Vec3::new(80.0, 20.0, 5.0);
+        assert_linear(&c2.build().unwrap(), &EffectConfig::ServoGain(c2), &ctx);
+        ctx.arc_radius = 0.0;
+        assert_eq!(m.correction(&ctx), Vec3::zeros());
+    }
+}

@@ -1,0 +1,194 @@
+//! The judgement stage: is the motion estimate still valid?
+//!
+//! Equation: a_meas = second difference of the scales (unequal spacing allowed),
+//! δa = LP(A_est) − LP(a_meas) per axis with the same low-pass LP on both (so they are
+//! compared at equal delay, A_est taken at the middle sample of the difference); an alarm is
+//! raised when |δa| > threshold for `min_duration`, and cleared when |δa| < clear_fraction ×
+//! threshold for `clear_duration` — one alarm per episode.
+//!
+//! Source idea: model-based fault detection — a residual between a model's prediction and a
+//! measurement, low-passed to the band where the measurement is trustworthy, with hysteresis
+//! against chattering.
+
+use crate::biquad::{Coefficients, State};
+use crate::sample::{Axis, Vec3};
+
+/// A change of alarm state on one axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Transition {
+    /// Axis.
+    pub axis: Axis,
+    /// Raised (true) or cleared.
+    pub raised: bool,
+    /// Filtered estimate, mm/s².
+    pub estimated: f64,
+    /// Filtered measurement, mm/s².
+    pub measured: f64,
+}
+
+#[derive(Debug, Clone, Default)]
+struct AxisState {
+    est: Vec<State>,
+    meas: Vec<State>,
+    raised: bool,
+    above: u32,
+    below: u32,
+}
+
+/// Judgement state of one machine.
+#[derive(Debug, Clone)]
+pub struct Judge {
+    sections: Vec<Coefficients>,
+    threshold: f64,
+    clear_level: f64,
+    raise_samples: u32,
+    clear_samples: u32,
+    /// Last three scale samples (t, s) and the estimated A at the last two.
+    hist: [(i64, Vec3); 3],
+    a_est: [Vec3; 3],
+    n_hist: usize,
+    axes: [AxisState; 3],
+    primed: bool,
+}
+
+impl Judge {
+    /// A judge with validated filter sections and limits.
+    pub fn new(sections: Vec<Coefficients>, threshold: f64, clear_fraction: f64, raise_samples: u32, clear_samples: u32) -> Judge {
+        Judge {
+            sections,
+            threshold,
+            clear_level: threshold * clear_fraction,
+            raise_samples,
+            clear_samples,
+            hist: [(0, Vec3::zeros()); 3],
+            a_est: [Vec3::zeros(); 3],
+            n_hist: 0,
+            axes: Default::default(),
+            primed: false,
+        }
+    }
+
+    /// Changes the limits (new calibration) keeping the filter history when the filter is
+    /// unchanged.
+    pub fn reconfigure(&mut self, sections: Vec<Coefficients>, threshold: f64, clear_fraction: f64, raise: u32, clear: u32) {
+        if sections != self.sections {
+            self.sections = sections;
+            self.restart();
+        }
+        self.threshold = threshold;
+        self.clear_level = threshold * clear_fraction;
+        self.raise_samples = raise;
+        self.clear_samples = clear;
+    }
+
+    /// Forgets the sample history (after a gap); alarm states are kept until data clear them.
+    pub fn restart(&mut self) {
+        self.n_hist = 0;
+        self.primed = false;
+    }
+
+    /// Whether any axis is raised.
+    pub fn any_raised(&self) -> bool {
+        self.axes.iter().any(|a| a.raised)
+    }
+
+    /// Feeds one scale sample and the estimated acceleration at the same time. `judge` is
+    /// false while the estimate is known to be settling (no raising then).
+    pub fn update(&mut self, t_ns: i64, scale: Vec3, a_est: Vec3, judge: bool, out: &mut impl FnMut(Transition)) {
+        self.hist = [self.hist[1], self.hist[2], (t_ns, scale)];
+        self.a_est = [self.a_est[1], self.a_est[2], a_est];
+        self.n_hist = (self.n_hist + 1).min(3);
+        if self.n_hist < 3 {
+            return;
+        }
+        let [(t0, s0), (t1, s1), (t2, s2)] = self.hist;
+        let (h1, h2) = ((t1 - t0) as f64 * 1e-9, (t2 - t1) as f64 * 1e-9);
+        if h1 <= 0.0 || h2 <= 0.0 {
+            self.restart();
+            return;
+        }
+        let a_meas = ((s2 - s1) / h2 - (s1 - s0) / h1) * (2.0 / (h1 + h2));
+        let a_mid = self.a_est[1];
+        if !self.primed {
+            for ax in self.axes.iter_mut().zip(0..3) {
+                let (st, i) = ax;
+                st.est = self.sections.iter().map(|c| c.steady(a_mid[i])).collect();
+                st.meas = self.sections.iter().map(|c| c.steady(a_mid[i])).collect();
+            }
+            self.primed = true;
+        }
+        for (i, st) in self.axes.iter_mut().enumerate() {
+            let mut e = a_mid[i];
+            let mut m = a_meas[i];
+            for (k, c) in self.sections.iter().enumerate() {
+                e = c.run(&mut st.est[k], e);
+                m = c.run(&mut st.meas[k], m);
+            }
+            let d = (e - m).abs();
+            if !st.raised {
+                st.above = if judge && d > self.threshold { st.above + 1 } else { 0 };
+                if st.above >= self.raise_samples {
+                    st.raised = true;
+                    st.below = 0;
+                    out(Transition { axis: Axis::ALL[i], raised: true, estimated: e, measured: m });
+                }
+            } else {
+                st.below = if d < self.clear_level { st.below + 1 } else { 0 };
+                if st.below >= self.clear_samples {
+                    st.raised = false;
+                    st.above = 0;
+                    out(Transition { axis: Axis::ALL[i], raised: false, estimated: e, measured: m });
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn step_disturbance_raises_once_and_clears_once() {
+        let fs = 1000.0;
+        let sections = Coefficients::butterworth(fs, 40.0, 4).unwrap();
+        let mut j = Judge::new(sections, 100.0, 0.5, 4, 50);
+        let mut events = vec![];
+        // The machine moves at constant acceleration 200 mm/s² along x and the estimate
+        // agrees; from sample 500 to 700 the real axis accelerates 600 mm/s² harder (a step
+        // disturbance), then agrees again.
+        let (mut x, mut v) = (0.0, 0.0);
+        let dt = 1.0 / fs;
+        for k in 0..2000 {
+            let a_true = 200.0 + if (500..700).contains(&k) { 600.0 } else { 0.0 };
+            v += a_true * dt;
+            x += v * dt;
+            j.update((k as i64) * 1_000_000, Vec3::new(x, 0.0, 0.0), Vec3::new(200.0, 0.0, 0.0), true, &mut |t| {
+                events.push((k, t))
+            });
+        }
+        assert_eq!(events.len(), 2, "{events:?}");
+        let (k_up, up) = events[0];
+        let (k_down, down) = events[1];
+        assert!(up.raised && up.axis == Axis::X && !down.raised);
+        assert!((500..530).contains(&k_up), "raised at {k_up}");
+        assert!((700..800).contains(&k_down), "cleared at {k_down}");
+        assert!(up.measured - up.estimated > 100.0);
+    }
+
+    #[test]
+    fn noise_alone_does_not_raise() {
+        let sections = Coefficients::butterworth(1000.0, 40.0, 4).unwrap();
+        let mut j = Judge::new(sections, 100.0, 0.5, 4, 50);
+        let mut n = 0;
+        // Deterministic pseudo-noise of 0.2 µm on a still axis (plus 0.1 µm quantisation).
+        let mut s: u64 = 12345;
+        for k in 0..20_000 {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let u = ((s >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * 0.35e-3;
+            let q = (u / 1e-4).round() * 1e-4;
+            j.update(k * 1_000_000, Vec3::new(q, 0.0, 0.0), Vec3::zeros(), true, &mut |_| n += 1);
+        }
+        assert_eq!(n, 0);
+    }
+}

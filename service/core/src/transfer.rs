@@ -1,0 +1,424 @@
+//! Nominal transfer-function models and their exact discretisation.
+//!
+//! Equation: G(s) = N(s)/D(s); the machine's nominal model per axis is G_N = G1(s)·G2(s)
+//! (G1 the axis servo, G2 the probe), realised in controllable canonical form
+//! ẋ = A x + B u, y = C x + D u and discretised at the sample period T for an input that is
+//! linear between samples (first-order hold):
+//! x[k+1] = Φ x[k] + Γ1 u[k] + Γ2 (u[k+1] − u[k]), with
+//! exp([[A·T, B·T, 0], [0, 0, 1], [0, 0, 0]]) = [[Φ, Γ1, Γ2], [0, 1, 1], [0, 0, 1]].
+//!
+//! Source idea: a commanded scan path is piecewise smooth and densely sampled, so the
+//! triangle-hold discretisation reproduces the continuous response at the sample instants
+//! exactly for ramps (and to O(T²) for curves), unlike zero-order hold. Coefficients are
+//! validated and kept apart from filter state (as in the `biquad` crate).
+
+use nalgebra::DMatrix;
+use serde::{Deserialize, Serialize};
+
+/// Highest model order the estimator supports (G1·G2 combined).
+pub const MAX_ORDER: usize = 8;
+
+/// A continuous-time transfer function of a calibration document.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum TransferFunction {
+    /// G(s) = 1: the axis follows the command exactly.
+    Unity,
+    /// G(s) = 1/(τ s + 1): a servo with one dominant time constant.
+    FirstOrder {
+        /// Time constant τ, s.
+        tau_s: f64,
+    },
+    /// G(s) = ωn²/(s² + 2ζωn s + ωn²), ωn = 2π·natural_freq_hz.
+    SecondOrder {
+        /// Natural frequency, Hz.
+        natural_freq_hz: f64,
+        /// Damping ratio ζ.
+        damping: f64,
+    },
+    /// G(s) = (num[0] sⁿ + … + num[n]) / (den[0] sᵐ + … + den[m]), highest power first;
+    /// proper (n ≤ m) with unit static gain.
+    Rational {
+        /// Numerator coefficients, highest power first.
+        num: Vec<f64>,
+        /// Denominator coefficients, highest power first.
+        den: Vec<f64>,
+    },
+}
+
+/// A polynomial ratio, highest power first, denominator monic after [`Rational::normalised`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rational {
+    /// Numerator, highest power first.
+    pub num: Vec<f64>,
+    /// Denominator, highest power first.
+    pub den: Vec<f64>,
+}
+
+/// Why a transfer function was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TransferError {
+    /// A coefficient is NaN or infinite, or a parameter is out of range.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl TransferFunction {
+    /// The numerator/denominator polynomials, after checking the parameters.
+    pub fn rational(&self) -> Result<Rational, TransferError> {
+        let bad = |m: &str| Err(TransferError::Invalid(m.to_string()));
+        match self {
+            TransferFunction::Unity => Ok(Rational { num: vec![1.0], den: vec![1.0] }),
+            TransferFunction::FirstOrder { tau_s } => {
+                if !(tau_s.is_finite() && *tau_s > 0.0) {
+                    return bad("tau_s must be a finite number > 0");
+                }
+                Ok(Rational { num: vec![1.0], den: vec![*tau_s, 1.0] })
+            }
+            TransferFunction::SecondOrder { natural_freq_hz, damping } => {
+                if !(natural_freq_hz.is_finite() && *natural_freq_hz > 0.0) {
+                    return bad("natural_freq_hz must be a finite number > 0");
+                }
+                if !(damping.is_finite() && *damping > 0.0) {
+                    return bad("damping must be a finite number > 0");
+                }
+                let wn = 2.0 * std::f64::consts::PI * natural_freq_hz;
+                Ok(Rational { num: vec![wn * wn], den: vec![1.0, 2.0 * damping * wn, wn * wn] })
+            }
+            TransferFunction::Rational { num, den } => {
+                if num.iter().chain(den.iter()).any(|c| !c.is_finite()) {
+                    return bad("coefficients must be finite numbers");
+                }
+                let num = trim(num);
+                let den = trim(den);
+                if den.is_empty() {
+                    return bad("den must have a non-zero coefficient");
+                }
+                if num.len() > den.len() {
+                    return bad("the model must be proper (num degree ≤ den degree)");
+                }
+                let r = Rational { num, den };
+                let dc_den = *r.den.last().unwrap();
+                let dc_num = r.num.last().copied().unwrap_or(0.0);
+                if dc_den == 0.0 || ((dc_num / dc_den) - 1.0).abs() > 1e-6 {
+                    return bad("static gain num(0)/den(0) must be 1 (a position servo follows a constant command)");
+                }
+                Ok(r)
+            }
+        }
+    }
+}
+
+fn trim(p: &[f64]) -> Vec<f64> {
+    let first = p.iter().position(|c| *c != 0.0).unwrap_or(p.len());
+    p[first..].to_vec()
+}
+
+impl Rational {
+    /// Product of two transfer functions.
+    pub fn mul(&self, o: &Rational) -> Rational {
+        Rational { num: polymul(&self.num, &o.num), den: polymul(&self.den, &o.den) }
+    }
+    /// Order (denominator degree).
+    pub fn order(&self) -> usize {
+        self.den.len().saturating_sub(1)
+    }
+}
+
+fn polymul(a: &[f64], b: &[f64]) -> Vec<f64> {
+    if a.is_empty() || b.is_empty() {
+        return vec![];
+    }
+    let mut r = vec![0.0; a.len() + b.len() - 1];
+    for (i, x) in a.iter().enumerate() {
+        for (j, y) in b.iter().enumerate() {
+            r[i + j] += x * y;
+        }
+    }
+    r
+}
+
+/// A discretised single-input single-output model: validated coefficients, no state.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Discrete {
+    /// State dimension n (0 for G = 1).
+    pub n: usize,
+    /// Φ, row-major n×n.
+    pub phi: [[f64; MAX_ORDER]; MAX_ORDER],
+    /// Γ1.
+    pub g1: [f64; MAX_ORDER],
+    /// Γ2.
+    pub g2: [f64; MAX_ORDER],
+    /// Output row C.
+    pub c: [f64; MAX_ORDER],
+    /// C·A, for the first derivative of the output.
+    pub ca: [f64; MAX_ORDER],
+    /// C·A², for the second derivative.
+    pub ca2: [f64; MAX_ORDER],
+    /// Steady state per unit constant input: x_ss = −A⁻¹B.
+    pub xss: [f64; MAX_ORDER],
+    /// Direct feedthrough D.
+    pub d: f64,
+    /// C·B (non-zero for relative degree 1).
+    pub cb: f64,
+    /// C·A·B.
+    pub cab: f64,
+    /// Samples for a disturbance of the state to decay to 1e-4.
+    pub settle_samples: u64,
+    /// Sample period, s.
+    pub period_s: f64,
+}
+
+/// Running state of a [`Discrete`] model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DiscreteState {
+    /// Model state.
+    pub x: [f64; MAX_ORDER],
+    /// Last input.
+    pub u: f64,
+    /// Input before the last.
+    pub u_prev: f64,
+}
+
+/// Output of one step: value and its first two time derivatives.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Derivs {
+    /// y.
+    pub y: f64,
+    /// ẏ.
+    pub dy: f64,
+    /// ÿ.
+    pub ddy: f64,
+}
+
+impl Discrete {
+    /// Realises and discretises `g` at period `period_s`.
+    pub fn new(g: &Rational, period_s: f64) -> Result<Discrete, TransferError> {
+        if !(period_s.is_finite() && period_s > 0.0) {
+            return Err(TransferError::Invalid("sample period must be > 0".into()));
+        }
+        let lead = g.den[0];
+        let den: Vec<f64> = g.den.iter().map(|c| c / lead).collect();
+        let n = den.len() - 1;
+        if n > MAX_ORDER {
+            return Err(TransferError::Invalid(format!(
+                "combined model order {n} exceeds the supported {MAX_ORDER}"
+            )));
+        }
+        let mut num = vec![0.0; n + 1 - g.num.len()];
+        num.extend(g.num.iter().map(|c| c / lead));
+        let b0 = num[0];
+        let mut out = Discrete {
+            n,
+            phi: [[0.0; MAX_ORDER]; MAX_ORDER],
+            g1: [0.0; MAX_ORDER],
+            g2: [0.0; MAX_ORDER],
+            c: [0.0; MAX_ORDER],
+            ca: [0.0; MAX_ORDER],
+            ca2: [0.0; MAX_ORDER],
+            xss: [0.0; MAX_ORDER],
+            d: b0,
+            cb: 0.0,
+            cab: 0.0,
+            settle_samples: 0,
+            period_s,
+        };
+        if n == 0 {
+            return Ok(out);
+        }
+        // Controllable canonical form.
+        let mut a = DMatrix::<f64>::zeros(n, n);
+        for i in 0..n - 1 {
+            a[(i, i + 1)] = 1.0;
+        }
+        for j in 0..n {
+            a[(n - 1, j)] = -den[n - j];
+        }
+        let mut b = DMatrix::<f64>::zeros(n, 1);
+        b[(n - 1, 0)] = 1.0;
+        let mut c = DMatrix::<f64>::zeros(1, n);
+        for j in 0..n {
+            c[(0, j)] = num[n - j] - den[n - j] * b0;
+        }
+        // Augmented exponential for first-order hold.
+        let mut m = DMatrix::<f64>::zeros(n + 2, n + 2);
+        m.view_mut((0, 0), (n, n)).copy_from(&(&a * period_s));
+        m.view_mut((0, n), (n, 1)).copy_from(&(&b * period_s));
+        m[(n, n + 1)] = 1.0;
+        let e = m.exp();
+        let ca = &c * &a;
+        let ca2 = &ca * &a;
+        let xss = a
+            .clone()
+            .lu()
+            .solve(&(-&b))
+            .ok_or_else(|| TransferError::Invalid("the model has a pole at s = 0".into()))?;
+        for i in 0..n {
+            for j in 0..n {
+                out.phi[i][j] = e[(i, j)];
+            }
+            out.g1[i] = e[(i, n)];
+            out.g2[i] = e[(i, n + 1)];
+            out.c[i] = c[(0, i)];
+            out.ca[i] = ca[(0, i)];
+            out.ca2[i] = ca2[(0, i)];
+            out.xss[i] = xss[(i, 0)];
+        }
+        out.cb = (&c * &b)[(0, 0)];
+        out.cab = (&ca * &b)[(0, 0)];
+        // Stability and settling from the discrete poles.
+        let phi = e.view((0, 0), (n, n)).into_owned();
+        let rho = phi.complex_eigenvalues().iter().map(|z| z.norm()).fold(0.0, f64::max);
+        if !(rho < 1.0) {
+            return Err(TransferError::Invalid(
+                "the model is not stable (a pole in the right half-plane or on the axis)".into(),
+            ));
+        }
+        let dc: f64 = (0..n).map(|i| out.c[i] * out.xss[i]).sum::<f64>() + out.d;
+        if (dc - 1.0).abs() > 1e-6 {
+            return Err(TransferError::Invalid(format!("static gain is {dc}, expected 1")));
+        }
+        out.settle_samples = ((1e-4f64).ln() / rho.max(1e-300).ln()).ceil().max(1.0) as u64;
+        Ok(out)
+    }
+
+    /// State at rest under the constant input `u`.
+    pub fn steady(&self, u: f64) -> DiscreteState {
+        let mut x = [0.0; MAX_ORDER];
+        for (xi, s) in x.iter_mut().zip(self.xss.iter()).take(self.n) {
+            *xi = s * u;
+        }
+        DiscreteState { x, u, u_prev: u }
+    }
+
+    /// Advances by one period to the input `u_next` and returns the output and its
+    /// derivatives at the new instant.
+    #[inline]
+    pub fn step(&self, s: &mut DiscreteState, u_next: f64) -> Derivs {
+        let n = self.n;
+        let du = u_next - s.u;
+        let mut x = [0.0; MAX_ORDER];
+        for (i, xi) in x.iter_mut().enumerate().take(n) {
+            let mut acc = self.g1[i] * s.u + self.g2[i] * du;
+            for j in 0..n {
+                acc += self.phi[i][j] * s.x[j];
+            }
+            *xi = acc;
+        }
+        s.x = x;
+        let slope = du / self.period_s;
+        let curv = (u_next - 2.0 * s.u + s.u_prev) / (self.period_s * self.period_s);
+        s.u_prev = s.u;
+        s.u = u_next;
+        self.output(s, slope, curv)
+    }
+
+    /// Output and derivatives of the current state for input slope and curvature.
+    #[inline]
+    pub fn output(&self, s: &DiscreteState, slope: f64, curv: f64) -> Derivs {
+        let (mut y, mut dy, mut ddy) = (self.d * s.u, self.cb * s.u + self.d * slope, 0.0);
+        ddy += self.cab * s.u + self.cb * slope + self.d * curv;
+        for i in 0..self.n {
+            y += self.c[i] * s.x[i];
+            dy += self.ca[i] * s.x[i];
+            ddy += self.ca2[i] * s.x[i];
+        }
+        Derivs { y, dy, ddy }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn first(tau: f64, t: f64) -> Discrete {
+        Discrete::new(&TransferFunction::FirstOrder { tau_s: tau }.rational().unwrap(), t).unwrap()
+    }
+
+    #[test]
+    fn first_order_step_response_is_exact() {
+        let (tau, t) = (0.012, 0.001);
+        let d = first(tau, t);
+        let mut s = d.steady(0.0);
+        // A step applied at k = 0 and held: the first-order-hold model sees a ramp over the
+        // first period, so compare from k = 1 with the response to that ramp-then-hold input:
+        // y(t) = 1 − (τ/T)(1 − e^{−T/τ}) e^{−(t−T)/τ} for t ≥ T.
+        let mut y = 0.0;
+        for k in 1..=100 {
+            y = d.step(&mut s, 1.0).y;
+            let tk = k as f64 * t;
+            let exact = 1.0 - (tau / t) * (1.0 - (-t / tau).exp()) * (-(tk - t) / tau).exp();
+            assert!((y - exact).abs() < 1e-12, "k={k} y={y} exact={exact}");
+        }
+        assert!((y - 1.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn first_order_ramp_response_lags_by_tau() {
+        // u(t) = v t from rest: y(t) = v (t − τ + τ e^{−t/τ}) exactly at every sample.
+        let (tau, t, v) = (0.01, 0.001, 50.0);
+        let d = first(tau, t);
+        let mut s = d.steady(0.0);
+        for k in 1..=200 {
+            let tk = k as f64 * t;
+            let o = d.step(&mut s, v * tk);
+            let exact = v * (tk - tau + tau * (-tk / tau).exp());
+            assert!((o.y - exact).abs() < 1e-10, "k={k}: {} vs {exact}", o.y);
+            let exact_dy = v * (1.0 - (-tk / tau).exp());
+            assert!((o.dy - exact_dy).abs() < 1e-9 * v.max(1.0), "k={k}: {} vs {exact_dy}", o.dy);
+        }
+        // After 20 τ the lag is v τ.
+        let tk = 200.0 * t;
+        let o = d.output(&s, v, 0.0);
+        assert!((v * tk - o.y - v * tau).abs() < 1e-6);
+    }
+
+    #[test]
+    fn second_order_derivatives_match_closed_form() {
+        // Step response of an underdamped second-order system and its derivatives.
+        let (fnat, zeta, t) = (25.0, 0.5, 0.0005);
+        let g = TransferFunction::SecondOrder { natural_freq_hz: fnat, damping: zeta };
+        let d = Discrete::new(&g.rational().unwrap(), t).unwrap();
+        let mut s = d.steady(0.0);
+        // Use a ramp input (exact under first-order hold): u = t.
+        let wn = 2.0 * std::f64::consts::PI * fnat;
+        let wd = wn * (1.0 - zeta * zeta).sqrt();
+        for k in 1..=400 {
+            let tk = k as f64 * t;
+            let o = d.step(&mut s, tk);
+            // Ramp response: y = t − 2ζ/ωn + e^{−ζωn t}(2ζ/ωn cos ωd t + (2ζ²−1)/ωd sin ωd t)
+            let e = (-zeta * wn * tk).exp();
+            let y = tk - 2.0 * zeta / wn
+                + e * (2.0 * zeta / wn * (wd * tk).cos() + (2.0 * zeta * zeta - 1.0) / wd * (wd * tk).sin());
+            // ÿ equals the impulse response h(t) = ωn²/ωd e^{−ζωn t} sin ωd t.
+            let h = wn * wn / wd * e * (wd * tk).sin();
+            assert!((o.y - y).abs() < 1e-10, "k={k}: {} vs {y}", o.y);
+            assert!((o.ddy - h).abs() < 1e-7 * wn, "k={k}: {} vs {h}", o.ddy);
+        }
+    }
+
+    #[test]
+    fn product_and_validation() {
+        let g1 = TransferFunction::FirstOrder { tau_s: 0.01 }.rational().unwrap();
+        let g2 = TransferFunction::FirstOrder { tau_s: 0.002 }.rational().unwrap();
+        let g = g1.mul(&g2);
+        assert_eq!(g.order(), 2);
+        let d = Discrete::new(&g, 0.001).unwrap();
+        assert_eq!(d.n, 2);
+        assert!(d.settle_samples > 50 && d.settle_samples < 200, "{}", d.settle_samples);
+        for bad in [
+            TransferFunction::FirstOrder { tau_s: -1.0 },
+            TransferFunction::FirstOrder { tau_s: f64::NAN },
+            TransferFunction::Rational { num: vec![2.0], den: vec![1.0, 1.0] },
+            TransferFunction::Rational { num: vec![1.0, 0.0, 1.0], den: vec![1.0, 1.0] },
+        ] {
+            assert!(bad.rational().is_err(), "{bad:?}");
+        }
+        // Unstable: s² − s + 1 (static gain 1) is refused at discretisation.
+        let unstable = TransferFunction::Rational { num: vec![1.0], den: vec![1.0, -1.0, 1.0] };
+        assert!(Discrete::new(&unstable.rational().unwrap(), 0.001).is_err());
+        let unity = Discrete::new(&TransferFunction::Unity.rational().unwrap(), 0.001).unwrap();
+        let mut s = unity.steady(3.0);
+        assert_eq!(unity.step(&mut s, 4.0).y, 4.0);
+    }
+}

@@ -1,0 +1,303 @@
+//! The corrector end to end on synthetic streams: synthesis on a ring, the stream join's
+//! handling of bad input, and bit-identical output for any interleaving of the streams.
+
+use proptest::prelude::*;
+use scancorr_core::effects::{accel_deflection, stylus_thermal, EffectConfig};
+use scancorr_core::*;
+use std::f64::consts::PI;
+
+const T_NS: i64 = 1_000_000;
+
+/// A probe scanning the inside of a ring gauge (radius `ring_r`) centred at `c`, starting
+/// with a dwell, spinning up and then at constant speed; the scales are the ideal positions
+/// (tip centre − stylus offset − deflection). Returns the four streams in time order.
+fn ring_streams(n: usize, ring_r: f64, tip_r: f64, defl: f64) -> [Vec<Sample>; 4] {
+    let c = Vec3::new(300.0, 200.0, -100.0);
+    let offset = Vec3::new(0.0, 0.0, -50.0);
+    let path_r = ring_r - tip_r;
+    let (mut cmd, mut sc, mut pr, mut tp) = (vec![], vec![], vec![], vec![]);
+    for k in 0..n {
+        let t = k as f64 * 1e-3;
+        // Dwell 50 ms, then speed ramps to 40 mm/s over 100 ms.
+        let tt = (t - 0.05).max(0.0);
+        let s = if tt < 0.1 { 200.0 * tt * tt } else { 40.0 * (tt - 0.05) };
+        let th = s / path_r;
+        let dir = Vec3::new(th.cos(), th.sin(), 0.0);
+        let tip_center = c + dir * path_r;
+        let d_machine = -dir * defl; // the wall pushes the tip towards the centre
+        // The command pushes past the wall by the deflection.
+        let commanded = tip_center - offset + dir * defl;
+        let scale = tip_center - offset - d_machine;
+        cmd.push(Sample::Command(CommandSample {
+            seq: k as u64,
+            t_ns: k as i64 * T_NS,
+            pos: commanded,
+            arc_center: c - offset,
+            arc_radius: path_r + defl,
+            segment_id: 1,
+        }));
+        sc.push(Sample::Scale(ScaleSample { seq: k as u64, t_ns: k as i64 * T_NS, pos: scale }));
+        pr.push(Sample::Probe(ProbeSample {
+            seq: k as u64,
+            t_ns: k as i64 * T_NS,
+            deflection: d_machine,
+            tip_id: 1,
+            head_a1_deg: 0.0,
+            head_a2_deg: 0.0,
+        }));
+        if k % 100 == 0 {
+            tp.push(Sample::Temperature(TemperatureSample {
+                seq: (k / 100) as u64,
+                t_ns: k as i64 * T_NS - 300 * T_NS,
+                sensor: "stylus".into(),
+                celsius: 20.5 + 1e-4 * k as f64,
+            }));
+        }
+    }
+    [cmd, sc, pr, tp]
+}
+
+fn calibration() -> Calibration {
+    let mut c = Calibration::example("m1");
+    let mut ad = accel_deflection::Config::zeros(1, false);
+    ad.p[0] = [[2e-6, 1e-7, 0.0], [0.0, 3e-6, 0.0], [0.0, 0.0, 1e-6]];
+    ad.p[1][0][0] = 1e-6;
+    c.effects.push(EffectConfig::AccelDeflection(ad));
+    c.effects.push(EffectConfig::StylusThermal(stylus_thermal::Config { alpha_shank_per_k: 11.5e-6, ..stylus_thermal::Config::zeros(false) }));
+    c
+}
+
+fn run(cal: &Calibration, samples: impl IntoIterator<Item = Sample>) -> (Output, Stats) {
+    let mut corr = Corrector::new(cal).unwrap();
+    let mut out = Output::default();
+    corr.push_all(samples, &mut out);
+    corr.flush(&mut out);
+    (out, corr.stats().clone())
+}
+
+fn time_ordered(streams: &[Vec<Sample>; 4]) -> Vec<Sample> {
+    let mut all: Vec<Sample> = streams.iter().flatten().cloned().collect();
+    all.sort_by_key(|s| (s.t_ns(), s.stream()));
+    all
+}
+
+#[test]
+fn ring_points_lie_on_the_ring_without_effects() {
+    let streams = ring_streams(1500, 25.0, 1.5, 0.3);
+    let cal = Calibration::example("m1");
+    let (out, stats) = run(&cal, time_ordered(&streams));
+    assert_eq!(stats.points_out, 1500);
+    assert_eq!(stats.dropped_total(), 0);
+    let c = Vec3::new(300.0, 200.0, -100.0);
+    for p in &out.points {
+        let r = (p.surface - c).norm();
+        assert!((r - 25.0).abs() < 1e-9, "seq {}: r = {r}", p.seq);
+        // The normal points from the wall into the ring (towards the centre).
+        assert!(p.normal.dot(&(c - p.surface).normalize()) > 0.999999);
+        assert!(p.corrections.is_empty());
+    }
+    // Points are numbered consecutively and name the calibration version.
+    assert!(out.points.windows(2).all(|w| w[1].seq == w[0].seq + 1));
+    assert!(out.points.iter().all(|p| p.calibration_version == 1));
+}
+
+#[test]
+fn effects_are_applied_and_reported_per_effect() {
+    let streams = ring_streams(1500, 25.0, 1.5, 0.3);
+    let cal = calibration();
+    let mut corr = Corrector::new(&cal).unwrap();
+    corr.record_context(true);
+    let mut out = Output::default();
+    corr.push_all(time_ordered(&streams), &mut out);
+    corr.flush(&mut out);
+    assert_eq!(corr.effect_ids(), vec!["accel_deflection", "stylus_thermal"]);
+    // Temperatures start 300 ms before the motion; the first point uses the reading at
+    // t − 200 ms, so every point is produced.
+    assert_eq!(out.points.len(), 1500, "{:?}", corr.stats());
+    let mut checked = 0;
+    for (p, ctx) in out.points.iter().zip(&out.contexts) {
+        let p_mat = nalgebra::Matrix3::new(2e-6, 1e-7, 0.0, 0.0, 3e-6, 0.0, 0.0, 0.0, 1e-6)
+            + nalgebra::Matrix3::new(1e-6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0) * (ctx.scale.x / 500.0);
+        let expect = p_mat * ctx.est_acc;
+        assert!((p.corrections[0] - expect).norm() < 1e-15);
+        let dt = ctx.temps[0] - 20.0;
+        assert!((p.corrections[1] - Vec3::new(0.0, 0.0, -50.0 * 11.5e-6 * dt)).norm() < 1e-15);
+        let total = p.corrections[0] + p.corrections[1];
+        let c = Vec3::new(300.0, 200.0, -100.0);
+        let uncorrected = p.surface - total;
+        assert!(((uncorrected - c).norm() - 25.0).abs() < 1e-9);
+        if ctx.est_acc.norm() > 10.0 {
+            checked += 1;
+        }
+    }
+    assert!(checked > 1000);
+}
+
+#[test]
+fn bad_input_is_counted_never_interpolated_across() {
+    let [cmd, sc, pr, tp] = ring_streams(1000, 25.0, 1.5, 0.3);
+    let mut samples: Vec<Sample> = vec![];
+    // Command gap: samples 400..410 missing → scale points 400..409 dropped (gap of 11 periods).
+    let cmd: Vec<Sample> = cmd.into_iter().filter(|s| !(400..410).contains(&(s.t_ns() / T_NS))).collect();
+    // Probe: one sample with NaN, one duplicate of sample 600.
+    let mut pr2 = vec![];
+    for s in pr {
+        let k = s.t_ns() / T_NS;
+        if k == 700 {
+            if let Sample::Probe(mut p) = s.clone() {
+                p.deflection.x = f64::NAN;
+                pr2.push(Sample::Probe(p));
+                continue;
+            }
+        }
+        pr2.push(s.clone());
+        if k == 600 {
+            pr2.push(s);
+        }
+    }
+    // Scale: one sample going back in time.
+    let mut sc2 = sc.clone();
+    if let Sample::Scale(mut s) = sc[800].clone() {
+        s.seq = 5000;
+        s.t_ns = 10 * T_NS;
+        sc2.insert(801, Sample::Scale(s));
+    }
+    for s in sc2.iter_mut().skip(802) {
+        if let Sample::Scale(x) = s {
+            x.seq += 5000;
+        }
+    }
+    samples.extend(cmd);
+    samples.extend(sc2);
+    samples.extend(pr2);
+    samples.extend(tp);
+    samples.sort_by_key(|s| (s.t_ns(), s.stream()));
+    let (out, st) = run(&Calibration::example("m1"), samples);
+    let dropped = |r: DropReason| st.dropped[r as usize];
+    assert_eq!(dropped(DropReason::CommandGap), 10, "{st:?}");
+    assert_eq!(dropped(DropReason::NonFinite), 1);
+    assert_eq!(dropped(DropReason::Duplicate), 1);
+    assert_eq!(dropped(DropReason::OutOfOrder), 1);
+    assert_eq!(st.seq_gaps[0], 1);
+    assert_eq!(st.seq_gaps[1], 1);
+    // Probe 700 missing: its neighbours 699 and 701 are 2 periods apart (< 2.5): interpolated.
+    assert_eq!(out.points.len(), 990);
+    assert!(out.points.iter().all(|p| !(400..410).contains(&(p.t_ns / T_NS))));
+    // After the command gap the estimator restarts: its points are flagged until settled.
+    let after: Vec<_> = out.points.iter().filter(|p| p.t_ns / T_NS >= 410).collect();
+    assert!(!after[0].estimator_valid);
+    assert!(after.last().unwrap().estimator_valid);
+    // Every surface point still on the ring (no interpolation across the gap).
+    let c = Vec3::new(300.0, 200.0, -100.0);
+    assert!(out.points.iter().all(|p| ((p.surface - c).norm() - 25.0).abs() < 1e-6));
+}
+
+#[test]
+fn missing_temperature_and_unknown_tip_are_drops() {
+    let [cmd, sc, mut pr, _] = ring_streams(300, 25.0, 1.5, 0.3);
+    let cal = calibration();
+    let all: Vec<Sample> = cmd.iter().chain(&sc).chain(&pr).cloned().collect();
+    let (out, st) = run(&cal, all);
+    assert_eq!(out.points.len(), 0);
+    assert_eq!(st.dropped[DropReason::TemperatureMissing as usize], 300);
+    for s in pr.iter_mut() {
+        if let Sample::Probe(p) = s {
+            p.tip_id = 9;
+        }
+    }
+    let all: Vec<Sample> = cmd.iter().chain(&sc).chain(&pr).cloned().collect();
+    let (_, st) = run(&Calibration::example("m1"), all);
+    assert_eq!(st.dropped[DropReason::UnknownTip as usize], 300);
+}
+
+#[test]
+fn calibration_switch_mid_stream_loses_nothing() {
+    let streams = ring_streams(1000, 25.0, 1.5, 0.3);
+    let samples = time_ordered(&streams);
+    let cal1 = Calibration::example("m1");
+    let mut cal2 = calibration();
+    cal2.version = 2;
+    cal2.parent_version = Some(1);
+    let mut corr = Corrector::new(&cal1).unwrap();
+    let mut out = Output::default();
+    let half = samples.len() / 2;
+    corr.push_all(samples[..half].iter().cloned(), &mut out);
+    let n1 = out.points.len();
+    corr.set_model(std::sync::Arc::new(cal2.build().unwrap()));
+    corr.push_all(samples[half..].iter().cloned(), &mut out);
+    corr.flush(&mut out);
+    // Temperatures are needed only from the switch on; the stream has them.
+    assert_eq!(out.points.len(), 1000, "{:?}", corr.stats());
+    assert!(out.points[..n1].iter().all(|p| p.calibration_version == 1));
+    assert!(out.points[n1..].iter().all(|p| p.calibration_version == 2 && p.corrections.len() == 2));
+    // Same nominal model: the estimator kept running, points stay valid.
+    assert!(out.points[n1..].iter().all(|p| p.estimator_valid));
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+    /// Any interleaving of the four streams gives bit-identical points and alarms.
+    #[test]
+    fn any_interleaving_gives_identical_output(choices in prop::collection::vec(0u8..4, 4000), n in 200usize..600) {
+        let streams = ring_streams(n, 25.0, 1.5, 0.3);
+        let cal = calibration();
+        let (reference, _) = run(&cal, time_ordered(&streams));
+        // Merge the streams in the order the choices say (each stream keeps its own order).
+        let mut idx = [0usize; 4];
+        let mut merged = vec![];
+        let mut ci = choices.iter().cycle();
+        while idx.iter().zip(streams.iter()).any(|(i, s)| *i < s.len()) {
+            let k = *ci.next().unwrap() as usize;
+            let k = (0..4).map(|d| (k + d) % 4).find(|k| idx[*k] < streams[*k].len()).unwrap();
+            merged.push(streams[k][idx[k]].clone());
+            idx[k] += 1;
+        }
+        let (out, _) = run(&cal, merged);
+        prop_assert_eq!(out.points.len(), reference.points.len());
+        for (a, b) in out.points.iter().zip(&reference.points) {
+            prop_assert_eq!(a, b);
+            prop_assert_eq!(a.surface.x.to_bits(), b.surface.x.to_bits());
+        }
+        prop_assert_eq!(out.alarms, reference.alarms);
+    }
+}
+
+#[test]
+fn judgement_raises_once_on_a_collision_and_clears() {
+    // The scales stop following the command for 30 ms (an obstruction) at 0.6 s.
+    let [cmd, mut sc, pr, tp] = ring_streams(1500, 25.0, 1.5, 0.3);
+    let mut held = None;
+    for s in sc.iter_mut() {
+        if let Sample::Scale(x) = s {
+            let k = x.t_ns / T_NS;
+            if (600..630).contains(&k) {
+                let h = *held.get_or_insert(x.pos);
+                x.pos = h;
+            }
+        }
+    }
+    let all: Vec<Sample> = cmd.into_iter().chain(sc).chain(pr).chain(tp).collect();
+    // These synthetic scales follow the command without lag: the nominal model says so too.
+    let mut cal = calibration();
+    cal.nominal.axes.x = scancorr_core::transfer::TransferFunction::Unity;
+    cal.nominal.axes.y = scancorr_core::transfer::TransferFunction::Unity;
+    cal.nominal.axes.z = scancorr_core::transfer::TransferFunction::Unity;
+    cal.nominal.probes.insert("sp25".into(), scancorr_core::transfer::TransferFunction::Unity);
+    let (out, st) = run(&cal, all);
+    // One episode: raised once on each axis that saw it, cleared once on each.
+    let raised: Vec<_> = out.alarms.iter().filter(|a| a.raised).collect();
+    let cleared: Vec<_> = out.alarms.iter().filter(|a| !a.raised).collect();
+    assert!(!raised.is_empty() && raised.len() <= 3, "{:?}", out.alarms);
+    assert_eq!(st.alarms_raised as usize, raised.len());
+    for axis in Axis::ALL {
+        assert!(raised.iter().filter(|a| a.axis == axis).count() <= 1);
+        assert_eq!(raised.iter().filter(|a| a.axis == axis).count(), cleared.iter().filter(|a| a.axis == axis).count());
+    }
+    let onset = raised[0].t_ns / T_NS;
+    assert!((600..650).contains(&onset), "raised at {onset} ms");
+    assert!(cleared.iter().all(|a| a.t_ns > raised[0].t_ns));
+    // Points during the episode are flagged.
+    assert!(out.points.iter().any(|p| !p.estimator_valid && p.t_ns / T_NS > 600));
+    let _ = PI;
+}
