@@ -260,12 +260,13 @@ impl Source {
         }
         self.buf.resize(n, 0);
         let r = self.file.read_exact(&mut self.buf);
-        self.pos = offset + if r.is_ok() { n as u64 } else { 0 };
-        if let Err(e) = r {
-            // Unknown position after a failed read.
-            self.pos = u64::MAX;
-            return Err(self.io(e));
-        }
+        // After a failed read the position is unknown: force a seek next time.
+        self.pos = if r.is_ok() {
+            offset + n as u64
+        } else {
+            u64::MAX
+        };
+        r.map_err(|e| self.io(e))?;
         Ok(&self.buf)
     }
 

@@ -152,10 +152,7 @@ fn killed_writer_leaves_a_readable_bag() {
     let bag = BagReader::open(&path).unwrap();
     let t = bag.truncation().expect("reported as truncated");
     assert!(t.readable_len < len, "{t:?}");
-    assert_eq!(
-        bag.messages().unwrap().map(|m| m.unwrap()).count(),
-        n_flushed
-    );
+    assert_eq!(read_all(&bag).len(), n_flushed);
     assert_eq!(
         bag.channel("m1", Stream::Scale).unwrap().sample_count,
         Some(20_000)
@@ -205,14 +202,14 @@ fn damaged_bytes_never_panic() {
         chunk_size: 4096,
         ..BagHeader::default()
     };
-    let written = write_sample_bag(&path, header, 4);
+    let written = write_sample_bag(&path, header, 1);
     let bytes = std::fs::read(&path).unwrap();
     let flip = tmp("flip");
     let mut rng = Rng(99);
     let (mut ok, mut err) = (0, 0);
     for i in 0..bytes.len() {
-        // Every byte of the header, the last chunk and the summary, every 7th elsewhere.
-        if i > 200 && i < bytes.len() - 3000 && i % 7 != 0 {
+        // Every byte of the header, the last chunk and the summary, every 37th elsewhere.
+        if i > 200 && i < bytes.len() - 3000 && i % 37 != 0 {
             continue;
         }
         let mut b = bytes.clone();

@@ -142,8 +142,9 @@ fn other_mcap_readers_see_standard_protobuf_channels() {
     let options = mcap::read::Options::ValidateChunkCrcs;
     let n = mcap::MessageStream::new_with_options(&bytes, options.into())
         .unwrap()
-        .map(|m| m.unwrap())
-        .count();
+        .collect::<mcap::McapResult<Vec<_>>>()
+        .unwrap()
+        .len();
     assert_eq!(n as u64, summary.stats.unwrap().message_count);
     let md: Vec<_> = summary
         .metadata_indexes
@@ -263,7 +264,7 @@ fn throughput() {
     );
     let t = std::time::Instant::now();
     let bag = BagReader::open(&path).unwrap();
-    let count = bag.messages().unwrap().map(|m| m.unwrap()).count();
+    let count = read_all(&bag).len();
     let dt = t.elapsed().as_secs_f64();
     println!(
         "read: {:.0} msg/s = {:.2} M samples/s",

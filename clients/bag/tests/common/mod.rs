@@ -136,9 +136,9 @@ pub struct Written {
 
 impl Written {
     pub fn matches(&self, m: &scancorr_bag::BagMessage) -> bool {
-        &*m.topic == self.topic
+        *m.topic == self.topic
             && m.stream == self.stream
-            && &*m.machine == self.machine
+            && *m.machine == self.machine
             && m.log_time == self.log_time
             && m.publish_time == self.publish_time
             && m.data == self.data

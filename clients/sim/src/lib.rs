@@ -1,0 +1,607 @@
+//! # scancorr-sim — a simulated scanning CMM with ground truth
+//!
+//! A gantry CMM with an analog scanning probe that follows scan programs and emits the four
+//! raw streams (command, scales, probe, temperatures). It models the physical machine its own
+//! way ([`machine`]): servo loops that are not the nominal model, a compliant structure with
+//! a resonance, arc lag and gain, stylus and scale expansion following a temperature history
+//! measured by noisy sensors, stylus bending with probing force, guide straightness and pitch,
+//! sensor noise and quantisation — and optionally effects outside the correction library
+//! (an encoder's cyclic error, backlash) and faults.
+//!
+//! Every effect can be switched and scaled; a hidden effect stays in the machine but is left
+//! out of the starting calibration. Ground truth (every true parameter, the true surfaces, the
+//! true calibration) is returned separately, never inside the samples.
+#![forbid(unsafe_code)]
+
+pub mod machine;
+pub mod program;
+pub mod rng;
+
+use machine::{head_rotation, profile, TrueMachine, V3};
+use program::{FeatureInfo, Path, Plan, ProgramInfo, SegmentInfo, SegmentKind};
+use rng::Rng;
+use scancorr_core::calib::Calibration;
+use scancorr_core::effects::{self as fx, EffectConfig};
+use scancorr_core::sample::*;
+use scancorr_core::transfer::TransferFunction;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Effects of the correction library the machine has (and the calibration can describe).
+pub const LIBRARY_EFFECTS: [&str; 7] = [
+    "accel_deflection",
+    "servo_phase",
+    "servo_gain",
+    "stylus_thermal",
+    "scale_thermal",
+    "probe_force",
+    "guide_straightness",
+];
+/// Effects outside the library (off unless switched on; never in a calibration).
+pub const EXTRA_EFFECTS: [&str; 2] = ["cyclic_error", "backlash"];
+
+/// Faults for the judgement stage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Fault {
+    /// The X and Y position loops lose half their gain (the real time constant changes).
+    ServoDrift,
+    /// The X and Y carriages are blocked for 30 ms.
+    Collision,
+    /// The X drive stops and the carriage coasts to rest.
+    Stall,
+}
+
+impl std::str::FromStr for Fault {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Fault, String> {
+        match s {
+            "servo-drift" => Ok(Fault::ServoDrift),
+            "collision" => Ok(Fault::Collision),
+            "stall" => Ok(Fault::Stall),
+            _ => Err(format!("unknown fault `{s}` (known: servo-drift, collision, stall)")),
+        }
+    }
+}
+
+/// What to simulate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Options {
+    /// Program: ring, ring-speeds, campaign, part.
+    pub program: String,
+    /// Where to place the program's artifact, mm.
+    pub position: Option<[f64; 3]>,
+    /// Machine id in the streams.
+    pub machine_id: String,
+    /// Picks the machine (its true parameters).
+    pub machine_seed: u64,
+    /// Picks the run's noise, temperatures and timing.
+    pub seed: u64,
+    /// Command, scale and probe rate, Hz.
+    pub rate_hz: f64,
+    /// Temperature rate, Hz.
+    pub temperature_rate_hz: f64,
+    /// Scale factor per effect (library effects default 1, extra effects 0).
+    pub effects: BTreeMap<String, f64>,
+    /// Effects kept in the machine but left out of the starting calibration.
+    pub hide: Vec<String>,
+    /// A fault.
+    pub fault: Option<Fault>,
+    /// Fault onset, s from the start (default: mid-way through the first fast scan).
+    pub fault_at_s: Option<f64>,
+    /// Repeat the program until this many minutes have passed.
+    pub minutes: Option<f64>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            program: "ring".into(),
+            position: None,
+            machine_id: "m1".into(),
+            machine_seed: 1,
+            seed: 1,
+            rate_hz: 1000.0,
+            temperature_rate_hz: 10.0,
+            effects: BTreeMap::new(),
+            hide: vec![],
+            fault: None,
+            fault_at_s: None,
+            minutes: None,
+        }
+    }
+}
+
+/// Why a simulation cannot run.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// Bad options.
+    #[error("{0}")]
+    Options(String),
+}
+
+/// Ground truth of a run: never inside the bag.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Truth {
+    /// The options of the run.
+    pub options: Options,
+    /// Effect scale factors in force.
+    pub effects: BTreeMap<String, f64>,
+    /// The true machine (after scaling effects).
+    pub machine: TrueMachine,
+    /// True surfaces of the features.
+    pub features: Vec<program::Feature>,
+    /// Fault onsets, ns.
+    pub faults: Vec<FaultTruth>,
+    /// Noise floor of a surface point along its normal (1σ), µm.
+    pub noise_floor_um: f64,
+    /// Temperature range of the run (min, max) per sensor, °C.
+    pub temperatures: BTreeMap<String, [f64; 2]>,
+    /// The calibration with every effect at its true parameters.
+    pub true_calibration: Calibration,
+}
+
+/// A fault's onset.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FaultTruth {
+    /// Which.
+    pub fault: Fault,
+    /// Onset, ns.
+    pub onset_t_ns: i64,
+}
+
+/// Everything a run produces besides its samples.
+#[derive(Debug, Clone)]
+pub struct RunResult {
+    /// Ground truth.
+    pub truth: Truth,
+    /// The starting calibration (hidden effects left out).
+    pub start_calibration: Calibration,
+    /// What the bag may say about the program (features, segments).
+    pub program: ProgramInfo,
+    /// Samples emitted per stream.
+    pub counts: [u64; 4],
+}
+
+/// Sensor names of the temperature stream.
+pub const SENSORS: [&str; 5] = ["stylus", "scale_x", "scale_y", "scale_z", "air"];
+
+fn effect_factors(o: &Options) -> Result<BTreeMap<String, f64>, SimError> {
+    let mut f: BTreeMap<String, f64> = LIBRARY_EFFECTS.iter().map(|e| (e.to_string(), 1.0)).collect();
+    f.extend(EXTRA_EFFECTS.iter().map(|e| (e.to_string(), 0.0)));
+    for (k, v) in &o.effects {
+        if !f.contains_key(k) {
+            return Err(SimError::Options(format!(
+                "unknown effect `{k}` (library: {}; outside the library: {})",
+                LIBRARY_EFFECTS.join(", "),
+                EXTRA_EFFECTS.join(", ")
+            )));
+        }
+        if !v.is_finite() || *v < 0.0 {
+            return Err(SimError::Options(format!("effect scale for `{k}` must be a finite number ≥ 0")));
+        }
+        f.insert(k.clone(), *v);
+    }
+    for h in &o.hide {
+        match f.get(h) {
+            None => return Err(SimError::Options(format!("--hide {h}: unknown effect"))),
+            Some(v) if *v == 0.0 => return Err(SimError::Options(format!("--hide {h}: the effect is switched off"))),
+            _ => {}
+        }
+    }
+    Ok(f)
+}
+
+fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
+    let mut m = TrueMachine::from_seed(seed);
+    let k = |n: &str| f[n];
+    m.compliance.iter_mut().flatten().flatten().for_each(|c| *c *= k("accel_deflection"));
+    m.arc_phase.iter_mut().flatten().for_each(|c| *c *= k("servo_phase"));
+    m.arc_gain_s2.iter_mut().for_each(|c| *c *= k("servo_gain"));
+    m.stylus_alpha *= k("stylus_thermal");
+    m.bent_alpha *= k("stylus_thermal");
+    m.scale_alpha.iter_mut().for_each(|c| *c *= k("scale_thermal"));
+    m.probe_k.iter_mut().for_each(|c| *c *= k("probe_force"));
+    for w in m.guide_y.iter_mut().chain(m.guide_z.iter_mut()).chain(m.guide_pitch.iter_mut()) {
+        w.amplitude *= k("guide_straightness");
+    }
+    m.cyclic.amplitude *= k("cyclic_error");
+    m.backlash_mm *= k("backlash");
+    m
+}
+
+/// The calibration describing `m` with library effects (those switched on, minus `hide`).
+pub fn calibration_for(m: &TrueMachine, machine_id: &str, f: &BTreeMap<String, f64>, hide: &[String], period: f64) -> Calibration {
+    let mut c = Calibration::example(machine_id);
+    c.sample_period_s = period;
+    let tp = 0.002;
+    let g1 = |i: usize| TransferFunction::FirstOrder { tau_s: 1.0 / m.servo[i].kp - tp };
+    c.nominal.axes.x = g1(0);
+    c.nominal.axes.y = g1(1);
+    c.nominal.axes.z = g1(2);
+    c.nominal.probes = [("sp25".to_string(), TransferFunction::FirstOrder { tau_s: tp })].into();
+    c.geometry.tips = m
+        .styli
+        .iter()
+        .map(|s| scancorr_core::stylus::TipGeometry {
+            id: s.id,
+            probe: s.probe.clone(),
+            l1_mm: s.l1_mm,
+            radius_mm: s.radius_mm,
+            l2_mm: s.l2_mm,
+            beta1_deg: s.beta1_deg,
+            l3_mm: 0.0,
+            beta2_deg: 0.0,
+        })
+        .collect();
+    let on = |n: &str| f.get(n).copied().unwrap_or(0.0) != 0.0 && !hide.iter().any(|h| h == n);
+    if on("accel_deflection") {
+        let mut e = fx::accel_deflection::Config::zeros(1, false);
+        for (k, p) in e.p.iter_mut().enumerate() {
+            for i in 0..3 {
+                for j in 0..3 {
+                    p[i][j] = -m.compliance[k][i][j];
+                }
+            }
+        }
+        c.effects.push(EffectConfig::AccelDeflection(e));
+    }
+    if on("servo_phase") {
+        let mut e = fx::servo_phase::Config::zeros(0);
+        e.y[0] = [0.0, m.arc_phase[0][0], m.arc_phase[0][1]];
+        e.z[0] = [0.0, m.arc_phase[1][0], m.arc_phase[1][1]];
+        c.effects.push(EffectConfig::ServoPhase(e));
+    }
+    if on("servo_gain") {
+        let mut e = fx::servo_gain::Config::zeros(0, vec![2]);
+        let w = (2.0 * std::f64::consts::PI).powi(2);
+        e.x = vec![m.arc_gain_s2[0] * w];
+        e.y = vec![m.arc_gain_s2[1] * w];
+        e.z = vec![m.arc_gain_s2[2] * w];
+        c.effects.push(EffectConfig::ServoGain(e));
+    }
+    if on("stylus_thermal") {
+        c.effects.push(EffectConfig::StylusThermal(fx::stylus_thermal::Config {
+            alpha_shank_per_k: m.stylus_alpha,
+            alpha_bent_per_k: Some(m.bent_alpha),
+            ..fx::stylus_thermal::Config::zeros(true)
+        }));
+    }
+    if on("scale_thermal") {
+        c.effects.push(EffectConfig::ScaleThermal(fx::scale_thermal::Config {
+            alpha_per_k: m.scale_alpha,
+            ..fx::scale_thermal::Config::zeros()
+        }));
+    }
+    if on("probe_force") {
+        c.effects.push(EffectConfig::ProbeForce(fx::probe_force::Config { id: None, k: m.probe_k }));
+    }
+    if on("guide_straightness") {
+        let mut e = fx::guide_straightness::Config::zeros(Axis::X, 0.0, 1000.0, 51, true);
+        let knots = e.knots_mm.clone();
+        let arm = V3::from(m.abbe_arm_mm);
+        for (j, x) in knots.iter().enumerate() {
+            let eps = profile(&m.guide_pitch, *x);
+            let fixed = V3::y().cross(&arm) * eps;
+            e.straightness.get_mut(&Axis::Y).unwrap()[j] = profile(&m.guide_y, *x) + fixed.y;
+            e.straightness.get_mut(&Axis::Z).unwrap()[j] = profile(&m.guide_z, *x) + fixed.z;
+            e.pitch_rad.as_mut().unwrap()[j] = eps;
+        }
+        c.effects.push(EffectConfig::GuideStraightness(e));
+    }
+    c.note = if hide.is_empty() {
+        "simulator: every effect at its true parameters".into()
+    } else {
+        format!("simulator starting calibration: {} left out", hide.join(", "))
+    };
+    c
+}
+
+/// Dynamic state of the three axes and the structure.
+#[derive(Debug, Clone, Copy, Default)]
+struct State {
+    x: [f64; 3],
+    v: [f64; 3],
+    a: [f64; 3],
+    d: [f64; 3],
+    dd: [f64; 3],
+}
+
+impl State {
+    fn axpy(&self, k: &State, h: f64) -> State {
+        let f = |a: [f64; 3], b: [f64; 3]| [a[0] + h * b[0], a[1] + h * b[1], a[2] + h * b[2]];
+        State { x: f(self.x, k.x), v: f(self.v, k.v), a: f(self.a, k.a), d: f(self.d, k.d), dd: f(self.dd, k.dd) }
+    }
+}
+
+struct Physics<'a> {
+    m: &'a TrueMachine,
+    kp_scale: [f64; 3],
+    blocked: [bool; 3],
+    stalled: [bool; 3],
+}
+
+impl Physics<'_> {
+    fn deriv(&self, s: &State, c: &V3) -> State {
+        let mut k = State::default();
+        for i in 0..3 {
+            let sv = &self.m.servo[i];
+            let a_target = if self.blocked[i] {
+                -s.v[i] / 0.0005
+            } else if self.stalled[i] {
+                -s.v[i] / 0.02
+            } else {
+                let vcmd = sv.kp * self.kp_scale[i] * (c[i] - s.x[i]);
+                (vcmd - s.v[i]) / sv.tau_v
+            };
+            k.x[i] = s.v[i];
+            k.v[i] = s.a[i];
+            k.a[i] = (a_target - s.a[i]) / sv.tau_i;
+        }
+        // Structure: δ̈ = ω²(−C(p)·a − δ) − 2ζω δ̇.
+        let cm = self.m.compliance_at(&V3::from(s.x));
+        let load = -(cm * V3::from(s.a));
+        for i in 0..3 {
+            let w = 2.0 * std::f64::consts::PI * self.m.structure_freq_hz[i];
+            k.d[i] = s.dd[i];
+            k.dd[i] = w * w * (load[i] - s.d[i]) - 2.0 * self.m.structure_damping * w * s.dd[i];
+        }
+        k
+    }
+    fn rk4(&self, s: &State, c0: &V3, c1: &V3, h: f64) -> State {
+        let cm = (c0 + c1) * 0.5;
+        let k1 = self.deriv(s, c0);
+        let k2 = self.deriv(&s.axpy(&k1, h / 2.0), &cm);
+        let k3 = self.deriv(&s.axpy(&k2, h / 2.0), &cm);
+        let k4 = self.deriv(&s.axpy(&k3, h), c1);
+        let mut out = *s;
+        let comb = |a: [f64; 3], b1: [f64; 3], b2: [f64; 3], b3: [f64; 3], b4: [f64; 3]| {
+            [0, 1, 2].map(|i| a[i] + h / 6.0 * (b1[i] + 2.0 * b2[i] + 2.0 * b3[i] + b4[i]))
+        };
+        out.x = comb(s.x, k1.x, k2.x, k3.x, k4.x);
+        out.v = comb(s.v, k1.v, k2.v, k3.v, k4.v);
+        out.a = comb(s.a, k1.a, k2.a, k3.a, k4.a);
+        out.d = comb(s.d, k1.d, k2.d, k3.d, k4.d);
+        out.dd = comb(s.dd, k1.dd, k2.dd, k3.dd, k4.dd);
+        out
+    }
+}
+
+fn quantise(x: f64, q: f64) -> f64 {
+    if q > 0.0 {
+        (x / q).round() * q
+    } else {
+        x
+    }
+}
+
+/// Runs a simulation, handing every sample (in time order) to `sink`.
+pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimError> {
+    if !(o.rate_hz.is_finite() && (10.0..=100_000.0).contains(&o.rate_hz)) {
+        return Err(SimError::Options("--rate must be between 10 and 100000 Hz".into()));
+    }
+    if !(o.temperature_rate_hz.is_finite() && o.temperature_rate_hz > 0.0 && o.temperature_rate_hz <= o.rate_hz) {
+        return Err(SimError::Options("temperature rate must be > 0 and at most the sample rate".into()));
+    }
+    if o.position.is_some_and(|p| p.iter().any(|v| !v.is_finite())) {
+        return Err(SimError::Options("--position must be three finite numbers".into()));
+    }
+    let factors = effect_factors(o)?;
+    let m = scaled_machine(o.machine_seed, &factors);
+    let plan: Plan = program::plan(&o.program, &m, o.position.map(V3::from)).map_err(SimError::Options)?;
+    let period = 1.0 / o.rate_hz;
+    let plan_d = plan.duration();
+    let reps = match o.minutes {
+        Some(min) if min.is_finite() && min > 0.0 => ((min * 60.0) / plan_d).ceil().max(1.0) as usize,
+        Some(_) => return Err(SimError::Options("--minutes must be > 0".into())),
+        None => 1,
+    };
+    let total = plan_d * reps as f64;
+    let n = (total / period).floor() as u64 + 1;
+    let seg_per_rep = plan.segments.len() as u32;
+
+    // Fault onset.
+    let fault_at = o.fault.map(|_| {
+        o.fault_at_s.unwrap_or_else(|| {
+            plan.segments
+                .iter()
+                .zip(&plan.starts)
+                .find(|(s, _)| s.kind == SegmentKind::Scan && s.speed >= 25.0)
+                .map(|(s, t0)| t0 + s.duration_s / 2.0)
+                .unwrap_or(plan_d / 2.0)
+        })
+    });
+
+    // Temperature history of this run.
+    let mut tr = Rng::new(o.seed, "thermal");
+    let t0_air = 20.0 + tr.range(0.2, 0.8);
+    let drift = tr.range(2.0, 3.0);
+    let wobble = tr.range(0.03, 0.08);
+    let scale_off = [tr.range(-0.3, 0.3), tr.range(-0.3, 0.3), tr.range(-0.3, 0.3)];
+    let air = |t: f64| t0_air + drift * t / total + wobble * (std::f64::consts::TAU * t / 240.0).sin();
+    let mut t_stylus = t0_air + 0.1;
+    let mut t_scale = [0, 1, 2].map(|i| t0_air - 0.2 + scale_off[i]);
+    let mut t_range: BTreeMap<String, [f64; 2]> = BTreeMap::new();
+
+    let mut noise = Rng::new(o.seed, "noise");
+    let nz = m.noise;
+    let mut st = State::default();
+    // Start at rest at the first command.
+    let c_first = plan.segments[0].at(0.0);
+    st.x = [c_first.x, c_first.y, c_first.z];
+    let mut backlash_dir = 1.0;
+    let t_every = ((o.rate_hz / o.temperature_rate_hz).round() as u64).max(1);
+    let mut tseq = 0u64;
+    let mut counts = [0u64; 4];
+    let substeps = 10;
+    let cmd_at = |k: u64| -> (V3, usize, usize) {
+        let t = k as f64 * period;
+        let rep = ((t / plan_d).floor() as usize).min(reps - 1);
+        let tt = t - rep as f64 * plan_d;
+        let si = plan.segment_at(tt);
+        let seg = &plan.segments[si];
+        (seg.at(tt - plan.starts[si]), si, rep)
+    };
+    let mut phys = Physics { m: &m, kp_scale: [1.0; 3], blocked: [false; 3], stalled: [false; 3] };
+    for k in 0..n {
+        let t = k as f64 * period;
+        let t_ns = (k as i64) * (1e9 / o.rate_hz).round() as i64;
+        let (c, si, rep) = cmd_at(k);
+        let seg = &plan.segments[si];
+        let seg_id = seg.id + rep as u32 * seg_per_rep;
+        let (arc_c, arc_r) = match seg.path {
+            Path::Arc { center, radius, .. } if seg.kind == SegmentKind::Scan => (center, radius),
+            _ => (V3::zeros(), 0.0),
+        };
+        // Faults.
+        if let (Some(f), Some(tf)) = (o.fault, fault_at) {
+            match f {
+                Fault::ServoDrift if t >= tf => phys.kp_scale = [0.5, 0.5, 1.0],
+                Fault::Collision => {
+                    let on = t >= tf && t < tf + 0.03;
+                    phys.blocked = [on, on, false];
+                }
+                Fault::Stall if t >= tf => phys.stalled = [true, false, false],
+                _ => {}
+            }
+        }
+        // Temperatures (true), first-order followers of the air.
+        let ta = air(t);
+        t_stylus += (ta - t_stylus) * period / 40.0;
+        for (i, ts) in t_scale.iter_mut().enumerate() {
+            *ts += (ta + scale_off[i] - *ts) * period / 120.0;
+        }
+
+        // --- outputs at t ---
+        let x = V3::from(st.x);
+        let v = V3::from(st.v);
+        let rot = head_rotation(seg.a1_deg, seg.a2_deg);
+        let stylus = m.stylus(seg.tip).expect("known tip");
+        let (shank, bent) = stylus.limbs();
+        let dts = t_stylus - 20.0;
+        let offset_true = rot * (shank * (1.0 + m.stylus_alpha * dts) + bent * (1.0 + m.bent_alpha * dts));
+        // Displacement e of the probe body relative to the carriage the scales measure.
+        let mut e = V3::from(st.d);
+        if arc_r > 0.0 {
+            let r = x - arc_c;
+            let r2 = r.norm_squared();
+            if r2 > 0.0 {
+                let w = r.cross(&v) / r2;
+                let wn = w.norm();
+                if wn > 0.0 {
+                    let f = wn / std::f64::consts::TAU;
+                    let lever = (w / wn).cross(&r);
+                    for (ax, ph) in [(1usize, m.arc_phase[0]), (2, m.arc_phase[1])] {
+                        e[ax] += (ph[0] * f + ph[1] * f * f) * lever[ax];
+                    }
+                    for ax in 0..3 {
+                        e[ax] += m.arc_gain_s2[ax] * (std::f64::consts::TAU * f).powi(2) * r[ax];
+                    }
+                }
+            }
+        }
+        let pitch = profile(&m.guide_pitch, x.x);
+        e += V3::new(0.0, profile(&m.guide_y, x.x), profile(&m.guide_z, x.x));
+        e += V3::y().cross(&(offset_true + V3::from(m.abbe_arm_mm))) * pitch;
+        if st.v[0] > 0.05 {
+            backlash_dir = 1.0;
+        } else if st.v[0] < -0.05 {
+            backlash_dir = -1.0;
+        }
+        e.x -= 0.5 * m.backlash_mm * backlash_dir;
+        let tip_free = x + e + offset_true;
+        let d_total = match (seg.kind, seg.feature) {
+            (SegmentKind::Scan | SegmentKind::Dwell, Some(fid)) => plan.features[fid as usize - 1].push(&tip_free, stylus.radius_mm),
+            _ => V3::zeros(),
+        };
+        let d_probe = rot.transpose() * d_total;
+        let mut defl = V3::zeros();
+        for i in 0..3 {
+            let dm = d_probe[i] / (1.0 + m.probe_k[i]) + nz.probe_sigma_mm * noise.normal();
+            defl[i] = quantise(dm, nz.probe_resolution_mm);
+        }
+        let mut scale = V3::zeros();
+        for i in 0..3 {
+            let mut s = x[i] / (1.0 + m.scale_alpha[i] * (t_scale[i] - 20.0));
+            if i == 0 {
+                s += m.cyclic.at(x[i]);
+            }
+            scale[i] = quantise(s + nz.scale_sigma_mm * noise.normal(), nz.scale_resolution_mm);
+        }
+        sink(Sample::Command(CommandSample {
+            seq: k,
+            t_ns,
+            pos: c,
+            arc_center: arc_c,
+            arc_radius: arc_r,
+            segment_id: seg_id,
+        }));
+        sink(Sample::Scale(ScaleSample { seq: k, t_ns, pos: scale }));
+        sink(Sample::Probe(ProbeSample {
+            seq: k,
+            t_ns,
+            deflection: defl,
+            tip_id: seg.tip,
+            head_a1_deg: seg.a1_deg,
+            head_a2_deg: seg.a2_deg,
+        }));
+        counts[0] += 1;
+        counts[1] += 1;
+        counts[2] += 1;
+        if k % t_every == 0 {
+            let vals = [t_stylus, t_scale[0], t_scale[1], t_scale[2], ta];
+            for (name, val) in SENSORS.iter().zip(vals) {
+                let r = t_range.entry(name.to_string()).or_insert([val, val]);
+                r[0] = r[0].min(val);
+                r[1] = r[1].max(val);
+                let reading = quantise(val + nz.temp_sigma_k * noise.normal(), nz.temp_resolution_k);
+                sink(Sample::Temperature(TemperatureSample { seq: tseq, t_ns, sensor: name.to_string(), celsius: reading }));
+                tseq += 1;
+                counts[3] += 1;
+            }
+        }
+        // --- advance to t + period ---
+        let (c_next, _, _) = cmd_at(k + 1);
+        let h = period / substeps as f64;
+        for j in 0..substeps {
+            let ca = c + (c_next - c) * (j as f64 / substeps as f64);
+            let cb = c + (c_next - c) * ((j + 1) as f64 / substeps as f64);
+            st = phys.rk4(&st, &ca, &cb, h);
+        }
+        if let Some(ts) = t_range.get_mut("stylus") {
+            let _ = ts;
+        }
+    }
+
+    let true_cal = calibration_for(&m, &o.machine_id, &factors, &[], period);
+    let mut start = calibration_for(&m, &o.machine_id, &factors, &o.hide, period);
+    start.version = 1;
+    let mut features: Vec<FeatureInfo> = vec![];
+    let mut segments: Vec<SegmentInfo> = vec![];
+    for rep in 0..reps {
+        let (f, s) = plan.info(rep as u32 * seg_per_rep, rep as f64 * plan_d);
+        if rep == 0 {
+            features = f;
+        }
+        segments.extend(s);
+    }
+    let faults = match (o.fault, fault_at) {
+        (Some(f), Some(t)) => vec![FaultTruth { fault: f, onset_t_ns: (t * 1e9).round() as i64 }],
+        _ => vec![],
+    };
+    Ok(RunResult {
+        truth: Truth {
+            options: o.clone(),
+            effects: factors,
+            noise_floor_um: m.noise.point_sigma_mm() * 1e3,
+            features: plan.features.clone(),
+            machine: m,
+            faults,
+            temperatures: t_range,
+            true_calibration: true_cal,
+        },
+        start_calibration: start,
+        program: ProgramInfo { program: plan.name.clone(), features, segments },
+        counts,
+    })
+}

@@ -1,0 +1,238 @@
+//! The true machine: its parameters (drawn from the machine seed) and its physics.
+//!
+//! The simulator models the machine its own way — a cascaded servo loop per axis (position
+//! gain, velocity loop, current loop) integrated with RK4 at ten sub-steps per sample, a
+//! compliant structure with its own resonance driven by the true carriage acceleration, an
+//! explicit contact between the stylus tip and the artifact's surface, thermal expansion by
+//! division (not by the first-order products the corrector uses) — and never calls the
+//! corrector's formulas. What it shares with the corrector is only the meaning of the
+//! calibration document, so that it can write the true calibration for comparison.
+
+use crate::rng::Rng;
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Vector in machine axes.
+pub type V3 = Vector3<f64>;
+
+/// A sinusoidal component of an error profile along a travel.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Wave {
+    /// Amplitude (mm or rad).
+    pub amplitude: f64,
+    /// Wavelength along the travel, mm.
+    pub wavelength_mm: f64,
+    /// Phase, rad.
+    pub phase: f64,
+}
+
+impl Wave {
+    /// Value at `s`.
+    pub fn at(&self, s: f64) -> f64 {
+        self.amplitude * (2.0 * std::f64::consts::PI * s / self.wavelength_mm + self.phase).sin()
+    }
+}
+
+/// Sum of waves.
+pub fn profile(w: &[Wave], s: f64) -> f64 {
+    w.iter().map(|w| w.at(s)).sum()
+}
+
+/// One axis's cascaded servo loop.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Servo {
+    /// Position-loop gain, 1/s.
+    pub kp: f64,
+    /// Velocity-loop time constant, s.
+    pub tau_v: f64,
+    /// Current-loop time constant, s.
+    pub tau_i: f64,
+}
+
+/// A stylus as built (lengths at 20 °C).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Stylus {
+    /// Tip id.
+    pub id: u32,
+    /// Probe type.
+    pub probe: String,
+    /// Shank length, mm.
+    pub l1_mm: f64,
+    /// Tip radius, mm.
+    pub radius_mm: f64,
+    /// Bent limb, mm.
+    pub l2_mm: f64,
+    /// Bend angle of the limb, degrees.
+    pub beta1_deg: f64,
+}
+
+impl Stylus {
+    /// Shank and bent limb in probe axes at 20 °C.
+    pub fn limbs(&self) -> (V3, V3) {
+        let b = self.beta1_deg.to_radians();
+        (V3::new(0.0, 0.0, -self.l1_mm), self.l2_mm * V3::new(b.sin(), 0.0, -b.cos()))
+    }
+}
+
+/// Sensor noise and resolution.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Noise {
+    /// Scale noise (1σ), mm.
+    pub scale_sigma_mm: f64,
+    /// Scale resolution, mm.
+    pub scale_resolution_mm: f64,
+    /// Probe noise (1σ, per probe axis), mm.
+    pub probe_sigma_mm: f64,
+    /// Probe resolution, mm.
+    pub probe_resolution_mm: f64,
+    /// Temperature sensor noise (1σ), K.
+    pub temp_sigma_k: f64,
+    /// Temperature resolution, K.
+    pub temp_resolution_k: f64,
+}
+
+impl Noise {
+    /// The noise floor of one surface point along its normal (1σ): scale and probe noise
+    /// with their quantisation, mm.
+    pub fn point_sigma_mm(&self) -> f64 {
+        let q = |r: f64| r * r / 12.0;
+        (self.scale_sigma_mm.powi(2) + q(self.scale_resolution_mm) + self.probe_sigma_mm.powi(2) + q(self.probe_resolution_mm)).sqrt()
+    }
+}
+
+/// Every true parameter of one machine.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrueMachine {
+    /// The seed it was drawn from.
+    pub machine_seed: u64,
+    /// Servo loops of x, y, z.
+    pub servo: [Servo; 3],
+    /// Structure compliance C(p) = C_1 + C_x ξx + C_y ξy + C_z ξz (ξ = p/500 mm), s²: the probe
+    /// body is displaced by −C(p)·a (quasi-statically) when the carriages accelerate by a.
+    pub compliance: [[[f64; 3]; 3]; 4],
+    /// Resonance of the structure per axis, Hz.
+    pub structure_freq_hz: [f64; 3],
+    /// Damping ratio of the structure.
+    pub structure_damping: f64,
+    /// Arc phase lag of y and z behind x: φ(f) = b1 f + b2 f², [b1 rad/Hz, b2 rad/Hz²].
+    pub arc_phase: [[f64; 2]; 2],
+    /// Arc gain per axis, derived from the structure: g_i(f) = γ_i (2πf)², γ in s².
+    pub arc_gain_s2: [f64; 3],
+    /// Stylus shank expansion, 1/K.
+    pub stylus_alpha: f64,
+    /// Bent-limb expansion, 1/K.
+    pub bent_alpha: f64,
+    /// Scale expansion per axis, 1/K (zero points at 0).
+    pub scale_alpha: [f64; 3],
+    /// Stylus bending per probe axis, mm per mm of deflection.
+    pub probe_k: [f64; 3],
+    /// X guide straightness towards y, mm.
+    pub guide_y: Vec<Wave>,
+    /// X guide straightness towards z, mm.
+    pub guide_z: Vec<Wave>,
+    /// X carriage pitch (rotation about y), rad.
+    pub guide_pitch: Vec<Wave>,
+    /// Distance from the x guide to the probe-head centre (the fixed Abbe arm), mm.
+    pub abbe_arm_mm: [f64; 3],
+    /// X encoder cyclic error (outside the library).
+    pub cyclic: Wave,
+    /// X backlash at reversal (outside the library), mm.
+    pub backlash_mm: f64,
+    /// Styli.
+    pub styli: Vec<Stylus>,
+    /// Sensor noise.
+    pub noise: Noise,
+}
+
+fn jitter(r: &mut Rng, x: f64, rel: f64) -> f64 {
+    x * (1.0 + rel * (2.0 * r.uniform() - 1.0))
+}
+
+impl TrueMachine {
+    /// The machine of seed `seed`: plausible parameters for a mid-size bridge CMM.
+    pub fn from_seed(seed: u64) -> TrueMachine {
+        let mut r = Rng::new(seed, "machine");
+        let servo = [
+            Servo { kp: jitter(&mut r, 85.0, 0.1), tau_v: jitter(&mut r, 0.0022, 0.15), tau_i: jitter(&mut r, 0.0004, 0.2) },
+            Servo { kp: jitter(&mut r, 70.0, 0.1), tau_v: jitter(&mut r, 0.0025, 0.15), tau_i: jitter(&mut r, 0.0004, 0.2) },
+            Servo { kp: jitter(&mut r, 95.0, 0.1), tau_v: jitter(&mut r, 0.0018, 0.15), tau_i: jitter(&mut r, 0.0004, 0.2) },
+        ];
+        // Compliance: the bridge and ram bend more with the ram extended (low z) and the
+        // carriage far along the bridge (high y); cross-coupling x→z (nodding).
+        let mut c = [[[0.0; 3]; 3]; 4];
+        c[0] = [
+            [jitter(&mut r, 4.0e-6, 0.2), jitter(&mut r, 0.3e-6, 0.5), 0.0],
+            [jitter(&mut r, 0.2e-6, 0.5), jitter(&mut r, 5.0e-6, 0.2), 0.0],
+            [jitter(&mut r, 0.8e-6, 0.4), 0.0, jitter(&mut r, 1.5e-6, 0.2)],
+        ];
+        c[2] = [[0.0; 3], [0.0, jitter(&mut r, 1.2e-6, 0.3), 0.0], [0.0; 3]];
+        c[3] = [[jitter(&mut r, -1.5e-6, 0.3), 0.0, 0.0], [0.0, jitter(&mut r, -1.0e-6, 0.3), 0.0], [0.0; 3]];
+        let waves = |r: &mut Rng, amp: f64| {
+            (0..3)
+                .map(|_| Wave {
+                    amplitude: amp * r.range(0.4, 1.0) * if r.uniform() < 0.5 { -1.0 } else { 1.0 },
+                    wavelength_mm: r.range(250.0, 900.0),
+                    phase: r.range(0.0, std::f64::consts::TAU),
+                })
+                .collect::<Vec<_>>()
+        };
+        let guide_y = waves(&mut r, 1.5e-3);
+        let guide_z = waves(&mut r, 1.0e-3);
+        let guide_pitch = waves(&mut r, 6e-6);
+        TrueMachine {
+            machine_seed: seed,
+            servo,
+            compliance: c,
+            structure_freq_hz: [jitter(&mut r, 32.0, 0.1), jitter(&mut r, 28.0, 0.1), jitter(&mut r, 45.0, 0.1)],
+            structure_damping: 0.35,
+            arc_phase: [[jitter(&mut r, 3.0e-4, 0.3), jitter(&mut r, 4.0e-5, 0.3)], [jitter(&mut r, 1.0e-4, 0.3), 0.0]],
+            arc_gain_s2: [jitter(&mut r, 2.0e-6, 0.3), jitter(&mut r, -1.5e-6, 0.3), 0.0],
+            stylus_alpha: jitter(&mut r, 11.5e-6, 0.1),
+            bent_alpha: jitter(&mut r, 23.0e-6, 0.1),
+            scale_alpha: [jitter(&mut r, 10.5e-6, 0.1), jitter(&mut r, 10.5e-6, 0.1), jitter(&mut r, 8.0e-6, 0.1)],
+            probe_k: [jitter(&mut r, 0.012, 0.3), jitter(&mut r, 0.018, 0.3), jitter(&mut r, 0.006, 0.3)],
+            guide_y,
+            guide_z,
+            guide_pitch,
+            abbe_arm_mm: [0.0, 0.0, -180.0],
+            cyclic: Wave { amplitude: jitter(&mut r, 0.8e-3, 0.2), wavelength_mm: 4.0, phase: r.range(0.0, std::f64::consts::TAU) },
+            backlash_mm: jitter(&mut r, 1.2e-3, 0.2),
+            styli: vec![
+                Stylus { id: 1, probe: "sp25".into(), l1_mm: 50.0, radius_mm: 1.5, l2_mm: 0.0, beta1_deg: 0.0 },
+                Stylus { id: 2, probe: "sp25".into(), l1_mm: 40.0, radius_mm: 1.0, l2_mm: 30.0, beta1_deg: 90.0 },
+            ],
+            noise: Noise {
+                scale_sigma_mm: 0.06e-3,
+                scale_resolution_mm: 0.05e-3,
+                probe_sigma_mm: 0.08e-3,
+                probe_resolution_mm: 0.02e-3,
+                temp_sigma_k: 0.005,
+                temp_resolution_k: 0.01,
+            },
+        }
+    }
+
+    /// Structure compliance at position p, s².
+    pub fn compliance_at(&self, p: &V3) -> Matrix3<f64> {
+        let xi = [1.0, p.x / 500.0, p.y / 500.0, p.z / 500.0];
+        let mut m = Matrix3::zeros();
+        for (k, w) in xi.iter().enumerate() {
+            m += Matrix3::from_fn(|i, j| self.compliance[k][i][j]) * *w;
+        }
+        m
+    }
+
+    /// The stylus of a tip id.
+    pub fn stylus(&self, id: u32) -> Option<&Stylus> {
+        self.styli.iter().find(|s| s.id == id)
+    }
+}
+
+/// Rotation of the articulating head, probe axes → machine axes: swivel A1 about z, then tilt
+/// A2 about the swivelled x axis (the convention of the calibration document).
+pub fn head_rotation(a1_deg: f64, a2_deg: f64) -> Matrix3<f64> {
+    let (a1, a2) = (a1_deg.to_radians(), a2_deg.to_radians());
+    let rz = nalgebra::Rotation3::from_axis_angle(&V3::z_axis(), a1);
+    let rx = nalgebra::Rotation3::from_axis_angle(&V3::x_axis(), a2);
+    (rz * rx).into_inner()
+}

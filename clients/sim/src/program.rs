@@ -1,0 +1,606 @@
+//! Scan programs: the artifacts on the table and the moves the controller commands.
+//!
+//! Everything is planned in carriage coordinates (the point the scales measure): a scan's
+//! carriage path is its tip-centre path minus the nominal stylus offset, pushed into the
+//! surface by the nominal probe deflection.
+
+use crate::machine::{head_rotation, Stylus, TrueMachine, V3};
+use serde::{Deserialize, Serialize};
+use std::f64::consts::{PI, TAU};
+
+/// How the surface of a feature meets the probe.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FeatureKind {
+    /// Inside of a circle (ring gauge, bore): material outside the radius.
+    Bore,
+    /// Outside of a sphere or circle (master sphere, boss): material inside.
+    Boss,
+    /// A plane face; `normal` points out of the material towards the probe.
+    Face,
+}
+
+/// One artifact feature on the table, with its true geometry.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Feature {
+    /// Id (segments refer to it).
+    pub id: u32,
+    /// What the artifact is: `ring`, `sphere`, `straightedge`, `part`.
+    pub artifact: String,
+    /// Bore, boss or face.
+    pub kind: FeatureKind,
+    /// True centre (bore, boss) or a point of the face, mm.
+    pub center: [f64; 3],
+    /// True radius (bore, boss), mm.
+    pub radius_mm: f64,
+    /// Nominal (drawing) diameter, mm.
+    pub nominal_diameter_mm: f64,
+    /// Calibration certificate's diameter (ring, sphere), mm.
+    pub certificate_diameter_mm: Option<f64>,
+    /// Face normal (out of the material).
+    pub normal: [f64; 3],
+    /// Form deviation: (harmonic or wavelength_mm, amplitude mm, phase rad).
+    pub form: Vec<[f64; 3]>,
+}
+
+impl Feature {
+    fn c(&self) -> V3 {
+        V3::from(self.center)
+    }
+    /// Form deviation at angle θ (circles) or position s along the face.
+    pub fn form_at(&self, s: f64) -> f64 {
+        match self.kind {
+            FeatureKind::Face => self.form.iter().map(|f| f[1] * (TAU * s / f[0] + f[2]).sin()).sum(),
+            _ => self.form.iter().map(|f| f[1] * (f[0] * s + f[2]).sin()).sum(),
+        }
+    }
+    /// The tip displacement the surface imposes on a free tip at `tip` with radius `r`
+    /// (zero when not touching).
+    pub fn push(&self, tip: &V3, r: f64) -> V3 {
+        match self.kind {
+            FeatureKind::Bore => {
+                let d = tip - self.c();
+                let dxy = V3::new(d.x, d.y, 0.0);
+                let dist = dxy.norm();
+                if dist == 0.0 {
+                    return V3::zeros();
+                }
+                let th = d.y.atan2(d.x);
+                let limit = self.radius_mm + self.form_at(th) - r;
+                if dist > limit {
+                    -dxy / dist * (dist - limit)
+                } else {
+                    V3::zeros()
+                }
+            }
+            FeatureKind::Boss => {
+                let d = tip - self.c();
+                let dist = d.norm();
+                if dist == 0.0 {
+                    return V3::zeros();
+                }
+                let th = d.y.atan2(d.x);
+                let limit = self.radius_mm + self.form_at(th) + r;
+                if dist < limit {
+                    d / dist * (limit - dist)
+                } else {
+                    V3::zeros()
+                }
+            }
+            FeatureKind::Face => {
+                let n = V3::from(self.normal);
+                let along = n.cross(&V3::z()).normalize();
+                let s = (tip - self.c()).dot(&along);
+                let h = (tip - self.c()).dot(&n) - self.form_at(s) - r;
+                if h < 0.0 {
+                    -n * h
+                } else {
+                    V3::zeros()
+                }
+            }
+        }
+    }
+}
+
+/// A carriage path.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Path {
+    /// Straight line.
+    Line {
+        /// Start.
+        from: V3,
+        /// End.
+        to: V3,
+    },
+    /// Horizontal arc: centre, radius, start angle, signed sweep (CCW > 0).
+    Arc {
+        /// Centre (carriage coordinates).
+        center: V3,
+        /// Radius.
+        radius: f64,
+        /// Start angle, rad.
+        start: f64,
+        /// Signed sweep, rad.
+        sweep: f64,
+    },
+    /// Standing still.
+    Dwell {
+        /// Where.
+        at: V3,
+        /// How long, s.
+        seconds: f64,
+    },
+}
+
+impl Path {
+    fn length(&self) -> f64 {
+        match self {
+            Path::Line { from, to } => (to - from).norm(),
+            Path::Arc { radius, sweep, .. } => radius * sweep.abs(),
+            Path::Dwell { .. } => 0.0,
+        }
+    }
+    fn at(&self, s: f64) -> V3 {
+        match *self {
+            Path::Line { from, to } => {
+                let l = (to - from).norm();
+                if l == 0.0 {
+                    from
+                } else {
+                    from + (to - from) * (s / l)
+                }
+            }
+            Path::Arc { center, radius, start, sweep } => {
+                let th = start + sweep.signum() * s / radius;
+                center + V3::new(radius * th.cos(), radius * th.sin(), 0.0)
+            }
+            Path::Dwell { at, .. } => at,
+        }
+    }
+    /// Start point.
+    pub fn start(&self) -> V3 {
+        self.at(0.0)
+    }
+    /// End point.
+    pub fn end(&self) -> V3 {
+        self.at(self.length())
+    }
+}
+
+/// What a segment is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SegmentKind {
+    /// Measuring: the probe is in contact with a feature.
+    Scan,
+    /// Positioning: not in contact.
+    Move,
+    /// Standing in contact before or after a scan.
+    Dwell,
+}
+
+/// One planned segment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Segment {
+    /// Segment id in the command stream.
+    pub id: u32,
+    /// Kind.
+    pub kind: SegmentKind,
+    /// Carriage path.
+    pub path: Path,
+    /// Cruise speed, mm/s.
+    pub speed: f64,
+    /// Speed ramp duration at each end, s.
+    pub ramp_s: f64,
+    /// Feature in contact (scans and dwells).
+    pub feature: Option<u32>,
+    /// Nominal probe deflection, mm.
+    pub deflection_mm: f64,
+    /// Active tip and head angles.
+    pub tip: u32,
+    /// Head A1, degrees.
+    pub a1_deg: f64,
+    /// Head A2, degrees.
+    pub a2_deg: f64,
+    /// Duration, s (filled by planning).
+    pub duration_s: f64,
+}
+
+impl Segment {
+    fn plan(&mut self) {
+        self.duration_s = match self.path {
+            Path::Dwell { seconds, .. } => seconds,
+            _ => {
+                let l = self.path.length();
+                // A full speed ramp covers v·ramp/2 at each end; shorten the speed if needed.
+                if l < self.speed * self.ramp_s {
+                    self.speed = l / self.ramp_s;
+                }
+                if self.speed <= 0.0 {
+                    0.0
+                } else {
+                    l / self.speed + self.ramp_s
+                }
+            }
+        };
+    }
+    /// Distance along the path at time `t` since the start (smooth speed ramps:
+    /// v(t) = v/2·(1 − cos(πt/ramp))).
+    fn s_at(&self, t: f64) -> f64 {
+        let (v, tr, d) = (self.speed, self.ramp_s, self.duration_s);
+        if matches!(self.path, Path::Dwell { .. }) || v == 0.0 {
+            return 0.0;
+        }
+        let t = t.clamp(0.0, d);
+        let ramp = |t: f64| 0.5 * v * (t - tr / PI * (PI * t / tr).sin());
+        if t < tr {
+            ramp(t)
+        } else if t <= d - tr {
+            v * tr / 2.0 + v * (t - tr)
+        } else {
+            self.path.length() - ramp(d - t)
+        }
+    }
+    /// Carriage command at time `t` since the segment start.
+    pub fn at(&self, t: f64) -> V3 {
+        self.path.at(self.s_at(t))
+    }
+}
+
+/// Program description written to the bag (what the lab needs to know about the scans).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProgramInfo {
+    /// Program name.
+    pub program: String,
+    /// Features with their nominal and certified geometry (the true geometry is only in the
+    /// truth file).
+    pub features: Vec<FeatureInfo>,
+    /// Segments.
+    pub segments: Vec<SegmentInfo>,
+}
+
+/// What the measuring person knows about a feature.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeatureInfo {
+    /// Id.
+    pub id: u32,
+    /// Artifact: ring, sphere, straightedge, part.
+    pub artifact: String,
+    /// Bore, boss, face.
+    pub kind: FeatureKind,
+    /// Nominal position, mm.
+    pub nominal_center: [f64; 3],
+    /// Nominal diameter, mm (0 for faces).
+    pub nominal_diameter_mm: f64,
+    /// Certified diameter, mm.
+    pub certificate_diameter_mm: Option<f64>,
+    /// Face normal.
+    pub normal: [f64; 3],
+}
+
+/// What was scanned in a segment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SegmentInfo {
+    /// Segment id.
+    pub id: u32,
+    /// Kind.
+    pub kind: SegmentKind,
+    /// Feature.
+    pub feature: Option<u32>,
+    /// Speed, mm/s.
+    pub speed: f64,
+    /// +1 CCW, −1 CW, 0 lines.
+    pub direction: i32,
+    /// Tip.
+    pub tip: u32,
+    /// Head angles.
+    pub a1_deg: f64,
+    /// Head angles.
+    pub a2_deg: f64,
+    /// Nominal deflection.
+    pub deflection_mm: f64,
+    /// Start and end time, s from the run start.
+    pub t0_s: f64,
+    /// End.
+    pub t1_s: f64,
+}
+
+/// A planned program: features and segments with start times.
+#[derive(Debug, Clone)]
+pub struct Plan {
+    /// Program name.
+    pub name: String,
+    /// Features.
+    pub features: Vec<Feature>,
+    /// Segments in order.
+    pub segments: Vec<Segment>,
+    /// Start time of each segment, s.
+    pub starts: Vec<f64>,
+}
+
+/// Programs the simulator knows.
+pub const PROGRAMS: [&str; 4] = ["ring", "ring-speeds", "campaign", "part"];
+
+struct Builder<'a> {
+    m: &'a TrueMachine,
+    features: Vec<Feature>,
+    segs: Vec<Segment>,
+    carriage: V3,
+    tip: u32,
+    a1: f64,
+    a2: f64,
+}
+
+impl<'a> Builder<'a> {
+    fn stylus(&self, tip: u32) -> &Stylus {
+        self.m.stylus(tip).expect("program uses known tips")
+    }
+    fn offset(&self, tip: u32, a1: f64, a2: f64) -> V3 {
+        let (s, b) = self.stylus(tip).limbs();
+        head_rotation(a1, a2) * (s + b)
+    }
+    fn push(&mut self, kind: SegmentKind, path: Path, speed: f64, ramp: f64, feature: Option<u32>, defl: f64) {
+        let mut s = Segment {
+            id: self.segs.len() as u32 + 1,
+            kind,
+            path,
+            speed,
+            ramp_s: ramp,
+            feature,
+            deflection_mm: defl,
+            tip: self.tip,
+            a1_deg: self.a1,
+            a2_deg: self.a2,
+            duration_s: 0.0,
+        };
+        s.plan();
+        self.carriage = s.path.end();
+        self.segs.push(s);
+    }
+    fn move_to(&mut self, to: V3) {
+        if (to - self.carriage).norm() > 1e-9 {
+            self.push(SegmentKind::Move, Path::Line { from: self.carriage, to }, 120.0, 0.3, None, 0.0);
+        }
+    }
+    fn set_tip(&mut self, tip: u32, a1: f64, a2: f64) {
+        self.tip = tip;
+        self.a1 = a1;
+        self.a2 = a2;
+    }
+    fn feature(&mut self, mut f: Feature) -> u32 {
+        f.id = self.features.len() as u32 + 1;
+        let id = f.id;
+        self.features.push(f);
+        id
+    }
+    /// A circle scan of a bore or boss: one turn plus the ramps, dwell before and after.
+    fn circle(&mut self, fid: u32, speed: f64, dir: f64, defl: f64, start: f64) {
+        let f = self.features[fid as usize - 1].clone();
+        let r_tip = self.stylus(self.tip).radius_mm;
+        let off = self.offset(self.tip, self.a1, self.a2);
+        let path_r = match f.kind {
+            FeatureKind::Bore => f.radius_mm - r_tip + defl,
+            _ => f.radius_mm + r_tip - defl,
+        };
+        let nominal_r = match f.kind {
+            FeatureKind::Bore => f.nominal_diameter_mm / 2.0 - r_tip + defl,
+            _ => f.nominal_diameter_mm / 2.0 + r_tip - defl,
+        };
+        let _ = path_r;
+        let center = f.c() - off;
+        let ramp = (speed / 300.0).max(0.25);
+        let sweep = dir * (TAU + speed * ramp / nominal_r);
+        let path = Path::Arc { center, radius: nominal_r, start, sweep };
+        self.move_to(path.start());
+        self.push(SegmentKind::Dwell, Path::Dwell { at: path.start(), seconds: 0.25 }, 0.0, 0.0, Some(fid), defl);
+        self.push(SegmentKind::Scan, path, speed, ramp, Some(fid), defl);
+        self.push(SegmentKind::Dwell, Path::Dwell { at: self.carriage, seconds: 0.15 }, 0.0, 0.0, Some(fid), defl);
+    }
+    /// A line along a face from `s0` to `s1` (positions along the face).
+    fn face_line(&mut self, fid: u32, s0: f64, s1: f64, speed: f64, defl: f64) {
+        let f = self.features[fid as usize - 1].clone();
+        let n = V3::from(f.normal);
+        let along = n.cross(&V3::z()).normalize();
+        let r_tip = self.stylus(self.tip).radius_mm;
+        let off = self.offset(self.tip, self.a1, self.a2);
+        let base = f.c() + n * (r_tip - defl) - off;
+        let path = Path::Line { from: base + along * s0, to: base + along * s1 };
+        self.move_to(path.start());
+        self.push(SegmentKind::Dwell, Path::Dwell { at: path.start(), seconds: 0.25 }, 0.0, 0.0, Some(fid), defl);
+        self.push(SegmentKind::Scan, path, speed, 0.4, Some(fid), defl);
+        self.push(SegmentKind::Dwell, Path::Dwell { at: self.carriage, seconds: 0.15 }, 0.0, 0.0, Some(fid), defl);
+    }
+}
+
+fn ring_feature(at: V3, form_seed: f64) -> Feature {
+    Feature {
+        id: 0,
+        artifact: "ring".into(),
+        kind: FeatureKind::Bore,
+        center: at.into(),
+        radius_mm: 50.0012 / 2.0,
+        nominal_diameter_mm: 50.0,
+        certificate_diameter_mm: Some(50.0012),
+        normal: [0.0; 3],
+        form: vec![[2.0, 0.02e-3, form_seed], [3.0, 0.015e-3, 2.0 * form_seed], [5.0, 0.01e-3, 0.3]],
+    }
+}
+
+/// Plans a program. `position` places the program's main artifact.
+pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, String> {
+    let home = V3::new(500.0, 400.0, -100.0);
+    let mut b = Builder { m, features: vec![], segs: vec![], carriage: home, tip: 1, a1: 0.0, a2: 0.0 };
+    b.push(SegmentKind::Move, Path::Dwell { at: home, seconds: 0.5 }, 0.0, 0.0, None, 0.0);
+    match name {
+        "ring" => {
+            let f = b.feature(ring_feature(position.unwrap_or(V3::new(400.0, 300.0, -250.0)), 0.7));
+            b.circle(f, 30.0, 1.0, 0.3, 0.0);
+            b.circle(f, 30.0, -1.0, 0.3, PI);
+        }
+        "ring-speeds" => {
+            let f = b.feature(ring_feature(position.unwrap_or(V3::new(550.0, 300.0, -250.0)), 1.3));
+            for v in [10.0, 25.0, 50.0, 80.0] {
+                b.circle(f, v, 1.0, 0.3, 0.0);
+                b.circle(f, v, -1.0, 0.3, PI);
+            }
+        }
+        "campaign" => {
+            let places = [V3::new(250.0, 200.0, -300.0), V3::new(720.0, 560.0, -150.0), V3::new(420.0, 420.0, -420.0)];
+            let base = position.unwrap_or(V3::zeros());
+            for (i, p) in places.iter().enumerate() {
+                let f = b.feature(ring_feature(p + base, 0.4 + i as f64));
+                for v in [10.0, 30.0, 60.0, 90.0] {
+                    b.circle(f, v, 1.0, 0.3, 0.0);
+                    b.circle(f, v, -1.0, 0.3, PI);
+                }
+                if i == 0 {
+                    // Several probe deflections: extrapolation to zero deflection.
+                    for d in [0.1, 0.5] {
+                        b.circle(f, 30.0, 1.0, d, 0.0);
+                        b.circle(f, 30.0, -1.0, d, PI);
+                    }
+                }
+            }
+            // Master sphere, equator, two styli and two head angles.
+            let sphere = b.feature(Feature {
+                id: 0,
+                artifact: "sphere".into(),
+                kind: FeatureKind::Boss,
+                center: (V3::new(620.0, 220.0, -360.0) + base).into(),
+                radius_mm: 25.0004 / 2.0,
+                nominal_diameter_mm: 25.0,
+                certificate_diameter_mm: Some(25.0004),
+                normal: [0.0; 3],
+                form: vec![[2.0, 0.01e-3, 0.2]],
+            });
+            for (tip, a1) in [(1u32, 0.0), (2, 0.0), (2, 90.0)] {
+                b.set_tip(tip, a1, 0.0);
+                b.circle(sphere, 30.0, 1.0, 0.3, 0.0);
+                b.circle(sphere, 60.0, -1.0, 0.3, PI);
+            }
+            // Straightedge along X, pressed from −y; two styli (the bent one shifts the probe
+            // 30 mm along x: shifted-probe separation of guide and straightedge form).
+            let se = b.feature(Feature {
+                id: 0,
+                artifact: "straightedge".into(),
+                kind: FeatureKind::Face,
+                center: (V3::new(500.0, 680.0, -260.0) + base).into(),
+                radius_mm: 0.0,
+                nominal_diameter_mm: 0.0,
+                certificate_diameter_mm: None,
+                normal: [0.0, -1.0, 0.0],
+                form: vec![[300.0, 0.3e-3, 0.5], [170.0, 0.15e-3, 1.1]],
+            });
+            for (tip, a1) in [(1u32, 0.0), (2, 0.0)] {
+                b.set_tip(tip, a1, 0.0);
+                b.face_line(se, 380.0, -380.0, 50.0, 0.3);
+                b.face_line(se, -380.0, 380.0, 50.0, 0.3);
+            }
+            b.set_tip(1, 0.0, 0.0);
+        }
+        "part" => {
+            let base = position.unwrap_or(V3::new(450.0, 350.0, -280.0));
+            let bore = b.feature(Feature {
+                id: 0,
+                artifact: "part".into(),
+                kind: FeatureKind::Bore,
+                center: (base + V3::new(-60.0, 0.0, 0.0)).into(),
+                radius_mm: 15.0,
+                nominal_diameter_mm: 30.0,
+                certificate_diameter_mm: None,
+                normal: [0.0; 3],
+                form: vec![[3.0, 0.8e-3, 0.1]],
+            });
+            let boss = b.feature(Feature {
+                id: 0,
+                artifact: "part".into(),
+                kind: FeatureKind::Boss,
+                center: (base + V3::new(70.0, 20.0, 0.0)).into(),
+                radius_mm: 20.0,
+                nominal_diameter_mm: 40.0,
+                certificate_diameter_mm: None,
+                normal: [0.0; 3],
+                form: vec![[2.0, 1.0e-3, 0.4]],
+            });
+            let face = b.feature(Feature {
+                id: 0,
+                artifact: "part".into(),
+                kind: FeatureKind::Face,
+                center: (base + V3::new(0.0, -80.0, 0.0)).into(),
+                radius_mm: 0.0,
+                nominal_diameter_mm: 0.0,
+                certificate_diameter_mm: None,
+                normal: [0.0, -1.0, 0.0],
+                form: vec![[120.0, 1.5e-3, 0.0]],
+            });
+            for v in [40.0, 70.0] {
+                b.circle(bore, v, 1.0, 0.3, 0.0);
+                b.circle(boss, v, -1.0, 0.3, PI / 2.0);
+                b.face_line(face, 120.0, -120.0, v, 0.3);
+            }
+        }
+        other => return Err(format!("unknown program `{other}` (known: {})", PROGRAMS.join(", "))),
+    }
+    b.move_to(home);
+    let mut starts = vec![];
+    let mut t = 0.0;
+    for s in &b.segs {
+        starts.push(t);
+        t += s.duration_s;
+    }
+    Ok(Plan { name: name.to_string(), features: b.features, segments: b.segs, starts })
+}
+
+impl Plan {
+    /// Total duration, s.
+    pub fn duration(&self) -> f64 {
+        self.starts.last().copied().unwrap_or(0.0) + self.segments.last().map(|s| s.duration_s).unwrap_or(0.0)
+    }
+
+    /// The segment active at `t` (the last one after the end).
+    pub fn segment_at(&self, t: f64) -> usize {
+        match self.starts.partition_point(|s| *s <= t) {
+            0 => 0,
+            i => i - 1,
+        }
+    }
+
+    /// What the lab may know about the program.
+    pub fn info(&self, id_offset: u32, t_offset: f64) -> (Vec<FeatureInfo>, Vec<SegmentInfo>) {
+        let features = self
+            .features
+            .iter()
+            .map(|f| FeatureInfo {
+                id: f.id,
+                artifact: f.artifact.clone(),
+                kind: f.kind,
+                nominal_center: f.center.map(|c| (c * 10.0).round() / 10.0),
+                nominal_diameter_mm: f.nominal_diameter_mm,
+                certificate_diameter_mm: f.certificate_diameter_mm,
+                normal: f.normal,
+            })
+            .collect();
+        let segments = self
+            .segments
+            .iter()
+            .zip(&self.starts)
+            .map(|(s, t0)| SegmentInfo {
+                id: s.id + id_offset,
+                kind: s.kind,
+                feature: s.feature,
+                speed: s.speed,
+                direction: match s.path {
+                    Path::Arc { sweep, .. } => sweep.signum() as i32,
+                    _ => 0,
+                },
+                tip: s.tip,
+                a1_deg: s.a1_deg,
+                a2_deg: s.a2_deg,
+                deflection_mm: s.deflection_mm,
+                t0_s: t0 + t_offset,
+                t1_s: t0 + t_offset + s.duration_s,
+            })
+            .collect();
+        (features, segments)
+    }
+}
