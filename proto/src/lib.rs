@@ -12,6 +12,7 @@ pub mod v1 {
     include!(concat!(env!("OUT_DIR"), "/scancorr.v1.rs"));
 }
 
+pub use prost;
 pub use prost::Message;
 
 /// The encoded `google.protobuf.FileDescriptorSet` of `scancorr/v1/scancorr.proto`
@@ -44,7 +45,12 @@ pub enum Stream {
 
 impl Stream {
     /// The four raw input streams.
-    pub const RAW: [Stream; 4] = [Stream::Command, Stream::Scale, Stream::Probe, Stream::Temperature];
+    pub const RAW: [Stream; 4] = [
+        Stream::Command,
+        Stream::Scale,
+        Stream::Probe,
+        Stream::Temperature,
+    ];
     /// The two output streams.
     pub const OUTPUT: [Stream; 2] = [Stream::Points, Stream::Alarms];
 
@@ -108,11 +114,16 @@ mod tests {
     #[test]
     fn descriptor_set_names_every_stream_message() {
         let fds = prost_types_lite::decode_file_names(FILE_DESCRIPTOR_SET);
-        assert!(fds.iter().any(|n| n == "scancorr/v1/scancorr.proto"), "{fds:?}");
+        assert!(
+            fds.iter().any(|n| n == "scancorr/v1/scancorr.proto"),
+            "{fds:?}"
+        );
         for s in Stream::RAW.iter().chain(Stream::OUTPUT.iter()) {
             let short = s.message_name().rsplit('.').next().unwrap();
             assert!(
-                FILE_DESCRIPTOR_SET.windows(short.len()).any(|w| w == short.as_bytes()),
+                FILE_DESCRIPTOR_SET
+                    .windows(short.len())
+                    .any(|w| w == short.as_bytes()),
                 "{short} missing from descriptor set"
             );
         }
@@ -144,7 +155,14 @@ mod tests {
     #[test]
     fn batch_roundtrip() {
         let b = v1::ScaleBatch {
-            samples: vec![v1::ScaleSample { machine_id: "m1".into(), seq: 7, t_ns: 1_000_000, x: 1.5, y: -2.0, z: 3.25 }],
+            samples: vec![v1::ScaleSample {
+                machine_id: "m1".into(),
+                seq: 7,
+                t_ns: 1_000_000,
+                x: 1.5,
+                y: -2.0,
+                z: 3.25,
+            }],
         };
         let bytes = b.encode_to_vec();
         assert_eq!(v1::ScaleBatch::decode(bytes.as_slice()).unwrap(), b);

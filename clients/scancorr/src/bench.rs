@@ -29,7 +29,10 @@ pub fn core(points: usize, repeat: usize, json: bool) -> Result<()> {
         rates.push(n as f64 / dt);
         produced = total;
     }
-    anyhow::ensure!(produced > 0, "the benchmark input produced no points: the benchmark would measure nothing");
+    anyhow::ensure!(
+        produced > 0,
+        "the benchmark input produced no points: the benchmark would measure nothing"
+    );
     rates.sort_by(|a, b| a.total_cmp(b));
     let best = *rates.last().unwrap();
     let median = rates[rates.len() / 2];
@@ -51,9 +54,19 @@ pub fn core(points: usize, repeat: usize, json: bool) -> Result<()> {
             })
         );
     } else {
-        println!("core: {n} samples ({produced} points, {} effects), {} runs, one thread", cal.effects.len(), rates.len());
-        println!("  samples/s  median {:.3e}  best {:.3e}  (target ≥ 5e6)", median, best);
-        println!("  points/s   median {:.3e}  ({per_point_ns:.0} ns per point)", median * produced as f64 / n as f64);
+        println!(
+            "core: {n} samples ({produced} points, {} effects), {} runs, one thread",
+            cal.effects.len(),
+            rates.len()
+        );
+        println!(
+            "  samples/s  median {:.3e}  best {:.3e}  (target ≥ 5e6)",
+            median, best
+        );
+        println!(
+            "  points/s   median {:.3e}  ({per_point_ns:.0} ns per point)",
+            median * produced as f64 / n as f64
+        );
     }
     Ok(())
 }

@@ -42,7 +42,13 @@ pub fn run(json: bool) -> Result<()> {
         return Ok(());
     }
     println!("scancorr demo — a synthetic ring-gauge scan (Ø50 mm, 4 speeds) through the core");
-    println!("  samples in {}  points out {}  dropped {:?}  alarms {}", st.samples(), st.points_out, st.dropped_by_name(), st.alarms_raised);
+    println!(
+        "  samples in {}  points out {}  dropped {:?}  alarms {}",
+        st.samples(),
+        st.points_out,
+        st.dropped_by_name(),
+        st.alarms_raised
+    );
     println!("  uncorrected points lie on the ring: RMS {rms:.4} µm (ideal synthetic scales)");
     println!("  largest correction per effect of the example calibration (µm):");
     for (i, m) in ids.iter().zip(&max_corr) {

@@ -6,6 +6,8 @@
 
 mod bench;
 mod demo;
+mod offline;
+mod simcmd;
 mod synth;
 
 use anyhow::{Context, Result};
@@ -14,7 +16,11 @@ use scancorr_core::Calibration;
 use std::path::PathBuf;
 
 #[derive(Parser)]
-#[command(name = "scancorr", version, about = "Real-time correction of scanning CMM measurements")]
+#[command(
+    name = "scancorr",
+    version,
+    about = "Real-time correction of scanning CMM measurements"
+)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -34,6 +40,81 @@ enum Cmd {
     /// Calibration documents.
     #[command(subcommand)]
     Calib(CalibCmd),
+    /// Simulate a CMM scanning a program; write a bag, the ground truth and a calibration.
+    Sim(SimCli),
+    /// Correct a bag offline through the core; write points and alarms to a bag.
+    Correct {
+        /// Input bag (MCAP).
+        #[arg(long)]
+        bag: PathBuf,
+        /// Calibration document (JSON).
+        #[arg(long)]
+        calib: PathBuf,
+        /// Output bag for corrected points and alarms.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the summary as JSON (`samples`, `points`, `dropped`, `alarms`).
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(clap::Args)]
+struct SimCli {
+    /// Scan program: ring, ring-speeds, campaign, part.
+    #[arg(long, default_value = "ring")]
+    program: String,
+    /// Seed of the run (noise, temperatures).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Seed of the machine (its true parameters).
+    #[arg(long, default_value_t = 1)]
+    machine_seed: u64,
+    /// Machine id in the streams.
+    #[arg(long, default_value = "m1")]
+    machine: String,
+    /// Output bag.
+    #[arg(long)]
+    out: PathBuf,
+    /// Ground truth (JSON): every true parameter, the true surfaces, the true calibration.
+    #[arg(long)]
+    truth: Option<PathBuf>,
+    /// Starting calibration (JSON): the true model without the hidden effects.
+    #[arg(long)]
+    calib_out: Option<PathBuf>,
+    /// Place the program's artifact at x,y,z (mm).
+    #[arg(long, allow_hyphen_values = true)]
+    position: Option<String>,
+    /// Keep EFFECT in the machine but leave it out of the starting calibration (repeatable).
+    #[arg(long)]
+    hide: Vec<String>,
+    /// Scale an effect: EFFECT=FACTOR (0 switches it off; repeatable).
+    #[arg(long)]
+    effect: Vec<String>,
+    /// Switch on an effect outside the library: cyclic_error, backlash (repeatable).
+    #[arg(long = "with")]
+    with: Vec<String>,
+    /// Inject a fault: servo-drift, collision, stall.
+    #[arg(long)]
+    fault: Option<String>,
+    /// Fault onset, s (default: mid-way through the first fast scan).
+    #[arg(long)]
+    fault_at: Option<f64>,
+    /// Repeat the program until this many minutes have passed.
+    #[arg(long)]
+    minutes: Option<f64>,
+    /// Command, scale and probe rate, Hz.
+    #[arg(long, default_value_t = 1000.0)]
+    rate: f64,
+    /// Samples per message.
+    #[arg(long, default_value_t = 100)]
+    batch: usize,
+    /// Key-expression prefix.
+    #[arg(long, default_value = scancorr_proto::DEFAULT_PREFIX)]
+    prefix: String,
+    /// Print a JSON summary.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Subcommand)]
@@ -87,10 +168,16 @@ fn main() -> std::process::ExitCode {
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Demo { json } => demo::run(json),
-        Cmd::Bench(BenchCmd::Core { json, points, repeat }) => bench::core(points, repeat, json),
+        Cmd::Bench(BenchCmd::Core {
+            json,
+            points,
+            repeat,
+        }) => bench::core(points, repeat, json),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
-            let text = std::fs::read_to_string(&file).with_context(|| format!("reading {}", file.display()))?;
-            let cal = Calibration::from_json(&text).with_context(|| format!("{}", file.display()))?;
+            let text = std::fs::read_to_string(&file)
+                .with_context(|| format!("reading {}", file.display()))?;
+            let cal =
+                Calibration::from_json(&text).with_context(|| format!("{}", file.display()))?;
             cal.build().with_context(|| format!("{}", file.display()))?;
             if let Some(m) = machine {
                 cal.check_machine(&m)?;
@@ -104,8 +191,83 @@ fn run(cli: Cli) -> Result<()> {
             );
             Ok(())
         }
-        Cmd::Calib(CalibCmd::Example { machine, all_effects }) => {
-            let cal = if all_effects { synth::all_effects_calibration(&machine) } else { Calibration::example(&machine) };
+        Cmd::Sim(a) => {
+            let mut effects = std::collections::BTreeMap::new();
+            for e in &a.effect {
+                let (k, v) = simcmd::parse_effect(e)?;
+                effects.insert(k, v);
+            }
+            for e in &a.with {
+                effects.insert(e.clone(), 1.0);
+            }
+            let options = scancorr_sim::Options {
+                program: a.program,
+                position: a
+                    .position
+                    .as_deref()
+                    .map(simcmd::parse_position)
+                    .transpose()?,
+                machine_id: a.machine,
+                machine_seed: a.machine_seed,
+                seed: a.seed,
+                rate_hz: a.rate,
+                effects,
+                hide: a.hide,
+                fault: a.fault.as_deref().map(simcmd::parse_fault).transpose()?,
+                fault_at_s: a.fault_at,
+                minutes: a.minutes,
+                ..Default::default()
+            };
+            simcmd::run(simcmd::SimArgs {
+                options,
+                out: a.out,
+                truth: a.truth,
+                calib_out: a.calib_out,
+                batch: a.batch,
+                prefix: a.prefix,
+                json: a.json,
+            })
+        }
+        Cmd::Correct {
+            bag,
+            calib,
+            out,
+            json,
+        } => {
+            let cal = offline::load_calibration(&calib)?;
+            let (s, warnings) = offline::correct(&bag, &cal, out.as_deref())?;
+            for w in warnings {
+                eprintln!("warning: {w}");
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&s)?);
+            } else {
+                println!(
+                    "{}: machine {}, calibration v{}: {} samples → {} points ({} flagged), {} alarm(s), dropped {:?}{} in {:.2} s ({:.2e} samples/s)",
+                    bag.display(),
+                    s.machine,
+                    s.calibration_version,
+                    s.samples,
+                    s.points,
+                    s.points_flagged,
+                    s.alarms,
+                    s.dropped,
+                    if s.bad_messages > 0 { format!(", {} malformed message(s)", s.bad_messages) } else { String::new() },
+                    s.seconds,
+                    s.samples_per_s
+                );
+            }
+            Ok(())
+        }
+        Cmd::Calib(CalibCmd::Example {
+            machine,
+            all_effects,
+        }) => {
+            let cal = if all_effects {
+                synth::all_effects_calibration(&machine)
+            } else {
+                Calibration::example(&machine)
+            };
             println!("{}", cal.to_json());
             Ok(())
         }

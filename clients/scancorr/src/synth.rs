@@ -19,15 +19,21 @@ pub fn all_effects_calibration(machine: &str) -> Calibration {
     let mut sg = servo_gain::Config::zeros(1, vec![1, 2]);
     sg.x[1] = 1e-5;
     c.effects.push(EffectConfig::ServoGain(sg));
-    c.effects.push(EffectConfig::StylusThermal(stylus_thermal::Config {
-        alpha_shank_per_k: 11.5e-6,
-        ..stylus_thermal::Config::zeros(false)
-    }));
-    c.effects.push(EffectConfig::ScaleThermal(scale_thermal::Config {
-        alpha_per_k: [10e-6, 10e-6, 10e-6],
-        ..scale_thermal::Config::zeros()
-    }));
-    c.effects.push(EffectConfig::ProbeForce(probe_force::Config { id: None, k: [0.01, 0.01, 0.005] }));
+    c.effects
+        .push(EffectConfig::StylusThermal(stylus_thermal::Config {
+            alpha_shank_per_k: 11.5e-6,
+            ..stylus_thermal::Config::zeros(false)
+        }));
+    c.effects
+        .push(EffectConfig::ScaleThermal(scale_thermal::Config {
+            alpha_per_k: [10e-6, 10e-6, 10e-6],
+            ..scale_thermal::Config::zeros()
+        }));
+    c.effects
+        .push(EffectConfig::ProbeForce(probe_force::Config {
+            id: None,
+            k: [0.01, 0.01, 0.005],
+        }));
     let mut gs = guide_straightness::Config::zeros(Axis::X, 0.0, 1000.0, 11, true);
     gs.straightness.values_mut().for_each(|v| v[5] = 1e-3);
     c.effects.push(EffectConfig::GuideStraightness(gs));
@@ -35,8 +41,14 @@ pub fn all_effects_calibration(machine: &str) -> Calibration {
         id: "x_cyclic".into(),
         dynamic: false,
         terms: vec![
-            custom::Term { axis: Axis::X, expr: "sin(2*pi*x/4)".into() },
-            custom::Term { axis: Axis::X, expr: "cos(2*pi*x/4)".into() },
+            custom::Term {
+                axis: Axis::X,
+                expr: "sin(2*pi*x/4)".into(),
+            },
+            custom::Term {
+                axis: Axis::X,
+                expr: "cos(2*pi*x/4)".into(),
+            },
         ],
         coefficients: vec![2e-4, -1e-4],
     }));
@@ -74,7 +86,11 @@ pub fn ring_scan(n: usize) -> Vec<Sample> {
             arc_radius: path_r + defl,
             segment_id: seg as u32,
         }));
-        out.push(Sample::Scale(ScaleSample { seq: k as u64, t_ns, pos: tip - offset + dir * defl }));
+        out.push(Sample::Scale(ScaleSample {
+            seq: k as u64,
+            t_ns,
+            pos: tip - offset + dir * defl,
+        }));
         out.push(Sample::Probe(ProbeSample {
             seq: k as u64,
             t_ns,

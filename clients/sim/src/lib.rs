@@ -59,7 +59,9 @@ impl std::str::FromStr for Fault {
             "servo-drift" => Ok(Fault::ServoDrift),
             "collision" => Ok(Fault::Collision),
             "stall" => Ok(Fault::Stall),
-            _ => Err(format!("unknown fault `{s}` (known: servo-drift, collision, stall)")),
+            _ => Err(format!(
+                "unknown fault `{s}` (known: servo-drift, collision, stall)"
+            )),
         }
     }
 }
@@ -167,7 +169,10 @@ pub struct RunResult {
 pub const SENSORS: [&str; 5] = ["stylus", "scale_x", "scale_y", "scale_z", "air"];
 
 fn effect_factors(o: &Options) -> Result<BTreeMap<String, f64>, SimError> {
-    let mut f: BTreeMap<String, f64> = LIBRARY_EFFECTS.iter().map(|e| (e.to_string(), 1.0)).collect();
+    let mut f: BTreeMap<String, f64> = LIBRARY_EFFECTS
+        .iter()
+        .map(|e| (e.to_string(), 1.0))
+        .collect();
     f.extend(EXTRA_EFFECTS.iter().map(|e| (e.to_string(), 0.0)));
     for (k, v) in &o.effects {
         if !f.contains_key(k) {
@@ -178,14 +183,20 @@ fn effect_factors(o: &Options) -> Result<BTreeMap<String, f64>, SimError> {
             )));
         }
         if !v.is_finite() || *v < 0.0 {
-            return Err(SimError::Options(format!("effect scale for `{k}` must be a finite number ≥ 0")));
+            return Err(SimError::Options(format!(
+                "effect scale for `{k}` must be a finite number ≥ 0"
+            )));
         }
         f.insert(k.clone(), *v);
     }
     for h in &o.hide {
         match f.get(h) {
             None => return Err(SimError::Options(format!("--hide {h}: unknown effect"))),
-            Some(v) if *v == 0.0 => return Err(SimError::Options(format!("--hide {h}: the effect is switched off"))),
+            Some(v) if *v == 0.0 => {
+                return Err(SimError::Options(format!(
+                    "--hide {h}: the effect is switched off"
+                )))
+            }
             _ => {}
         }
     }
@@ -195,14 +206,28 @@ fn effect_factors(o: &Options) -> Result<BTreeMap<String, f64>, SimError> {
 fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
     let mut m = TrueMachine::from_seed(seed);
     let k = |n: &str| f[n];
-    m.compliance.iter_mut().flatten().flatten().for_each(|c| *c *= k("accel_deflection"));
-    m.arc_phase.iter_mut().flatten().for_each(|c| *c *= k("servo_phase"));
+    m.compliance
+        .iter_mut()
+        .flatten()
+        .flatten()
+        .for_each(|c| *c *= k("accel_deflection"));
+    m.arc_phase
+        .iter_mut()
+        .flatten()
+        .for_each(|c| *c *= k("servo_phase"));
     m.arc_gain_s2.iter_mut().for_each(|c| *c *= k("servo_gain"));
     m.stylus_alpha *= k("stylus_thermal");
     m.bent_alpha *= k("stylus_thermal");
-    m.scale_alpha.iter_mut().for_each(|c| *c *= k("scale_thermal"));
+    m.scale_alpha
+        .iter_mut()
+        .for_each(|c| *c *= k("scale_thermal"));
     m.probe_k.iter_mut().for_each(|c| *c *= k("probe_force"));
-    for w in m.guide_y.iter_mut().chain(m.guide_z.iter_mut()).chain(m.guide_pitch.iter_mut()) {
+    for w in m
+        .guide_y
+        .iter_mut()
+        .chain(m.guide_z.iter_mut())
+        .chain(m.guide_pitch.iter_mut())
+    {
         w.amplitude *= k("guide_straightness");
     }
     m.cyclic.amplitude *= k("cyclic_error");
@@ -211,15 +236,27 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
 }
 
 /// The calibration describing `m` with library effects (those switched on, minus `hide`).
-pub fn calibration_for(m: &TrueMachine, machine_id: &str, f: &BTreeMap<String, f64>, hide: &[String], period: f64) -> Calibration {
+pub fn calibration_for(
+    m: &TrueMachine,
+    machine_id: &str,
+    f: &BTreeMap<String, f64>,
+    hide: &[String],
+    period: f64,
+) -> Calibration {
     let mut c = Calibration::example(machine_id);
     c.sample_period_s = period;
     let tp = 0.002;
-    let g1 = |i: usize| TransferFunction::FirstOrder { tau_s: 1.0 / m.servo[i].kp - tp };
+    let g1 = |i: usize| TransferFunction::FirstOrder {
+        tau_s: 1.0 / m.servo[i].kp - tp,
+    };
     c.nominal.axes.x = g1(0);
     c.nominal.axes.y = g1(1);
     c.nominal.axes.z = g1(2);
-    c.nominal.probes = [("sp25".to_string(), TransferFunction::FirstOrder { tau_s: tp })].into();
+    c.nominal.probes = [(
+        "sp25".to_string(),
+        TransferFunction::FirstOrder { tau_s: tp },
+    )]
+    .into();
     c.geometry.tips = m
         .styli
         .iter()
@@ -261,20 +298,26 @@ pub fn calibration_for(m: &TrueMachine, machine_id: &str, f: &BTreeMap<String, f
         c.effects.push(EffectConfig::ServoGain(e));
     }
     if on("stylus_thermal") {
-        c.effects.push(EffectConfig::StylusThermal(fx::stylus_thermal::Config {
-            alpha_shank_per_k: m.stylus_alpha,
-            alpha_bent_per_k: Some(m.bent_alpha),
-            ..fx::stylus_thermal::Config::zeros(true)
-        }));
+        c.effects
+            .push(EffectConfig::StylusThermal(fx::stylus_thermal::Config {
+                alpha_shank_per_k: m.stylus_alpha,
+                alpha_bent_per_k: Some(m.bent_alpha),
+                ..fx::stylus_thermal::Config::zeros(true)
+            }));
     }
     if on("scale_thermal") {
-        c.effects.push(EffectConfig::ScaleThermal(fx::scale_thermal::Config {
-            alpha_per_k: m.scale_alpha,
-            ..fx::scale_thermal::Config::zeros()
-        }));
+        c.effects
+            .push(EffectConfig::ScaleThermal(fx::scale_thermal::Config {
+                alpha_per_k: m.scale_alpha,
+                ..fx::scale_thermal::Config::zeros()
+            }));
     }
     if on("probe_force") {
-        c.effects.push(EffectConfig::ProbeForce(fx::probe_force::Config { id: None, k: m.probe_k }));
+        c.effects
+            .push(EffectConfig::ProbeForce(fx::probe_force::Config {
+                id: None,
+                k: m.probe_k,
+            }));
     }
     if on("guide_straightness") {
         let mut e = fx::guide_straightness::Config::zeros(Axis::X, 0.0, 1000.0, 51, true);
@@ -292,7 +335,10 @@ pub fn calibration_for(m: &TrueMachine, machine_id: &str, f: &BTreeMap<String, f
     c.note = if hide.is_empty() {
         "simulator: every effect at its true parameters".into()
     } else {
-        format!("simulator starting calibration: {} left out", hide.join(", "))
+        format!(
+            "simulator starting calibration: {} left out",
+            hide.join(", ")
+        )
     };
     c
 }
@@ -310,7 +356,13 @@ struct State {
 impl State {
     fn axpy(&self, k: &State, h: f64) -> State {
         let f = |a: [f64; 3], b: [f64; 3]| [a[0] + h * b[0], a[1] + h * b[1], a[2] + h * b[2]];
-        State { x: f(self.x, k.x), v: f(self.v, k.v), a: f(self.a, k.a), d: f(self.d, k.d), dd: f(self.dd, k.dd) }
+        State {
+            x: f(self.x, k.x),
+            v: f(self.v, k.v),
+            a: f(self.a, k.a),
+            d: f(self.d, k.d),
+            dd: f(self.dd, k.dd),
+        }
     }
 }
 
@@ -329,7 +381,8 @@ impl Physics<'_> {
             let a_target = if self.blocked[i] {
                 -s.v[i] / 0.0005
             } else if self.stalled[i] {
-                -s.v[i] / 0.02
+                // The drive trips and the axis brake stops the carriage.
+                -s.v[i] / 0.005
             } else {
                 let vcmd = sv.kp * self.kp_scale[i] * (c[i] - s.x[i]);
                 (vcmd - s.v[i]) / sv.tau_v
@@ -378,21 +431,33 @@ fn quantise(x: f64, q: f64) -> f64 {
 /// Runs a simulation, handing every sample (in time order) to `sink`.
 pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimError> {
     if !(o.rate_hz.is_finite() && (10.0..=100_000.0).contains(&o.rate_hz)) {
-        return Err(SimError::Options("--rate must be between 10 and 100000 Hz".into()));
+        return Err(SimError::Options(
+            "--rate must be between 10 and 100000 Hz".into(),
+        ));
     }
-    if !(o.temperature_rate_hz.is_finite() && o.temperature_rate_hz > 0.0 && o.temperature_rate_hz <= o.rate_hz) {
-        return Err(SimError::Options("temperature rate must be > 0 and at most the sample rate".into()));
+    if !(o.temperature_rate_hz.is_finite()
+        && o.temperature_rate_hz > 0.0
+        && o.temperature_rate_hz <= o.rate_hz)
+    {
+        return Err(SimError::Options(
+            "temperature rate must be > 0 and at most the sample rate".into(),
+        ));
     }
     if o.position.is_some_and(|p| p.iter().any(|v| !v.is_finite())) {
-        return Err(SimError::Options("--position must be three finite numbers".into()));
+        return Err(SimError::Options(
+            "--position must be three finite numbers".into(),
+        ));
     }
     let factors = effect_factors(o)?;
     let m = scaled_machine(o.machine_seed, &factors);
-    let plan: Plan = program::plan(&o.program, &m, o.position.map(V3::from)).map_err(SimError::Options)?;
+    let plan: Plan =
+        program::plan(&o.program, &m, o.position.map(V3::from)).map_err(SimError::Options)?;
     let period = 1.0 / o.rate_hz;
     let plan_d = plan.duration();
     let reps = match o.minutes {
-        Some(min) if min.is_finite() && min > 0.0 => ((min * 60.0) / plan_d).ceil().max(1.0) as usize,
+        Some(min) if min.is_finite() && min > 0.0 => {
+            ((min * 60.0) / plan_d).ceil().max(1.0) as usize
+        }
         Some(_) => return Err(SimError::Options("--minutes must be > 0".into())),
         None => 1,
     };
@@ -400,14 +465,27 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
     let n = (total / period).floor() as u64 + 1;
     let seg_per_rep = plan.segments.len() as u32;
 
-    // Fault onset.
+    // Fault onset: by default in the first fast scan, where the X axis moves fastest
+    // (a fault of a standing axis would show no dynamics to detect).
     let fault_at = o.fault.map(|_| {
         o.fault_at_s.unwrap_or_else(|| {
             plan.segments
                 .iter()
                 .zip(&plan.starts)
-                .find(|(s, _)| s.kind == SegmentKind::Scan && s.speed >= 25.0)
-                .map(|(s, t0)| t0 + s.duration_s / 2.0)
+                .find(|(s, _)| s.kind == SegmentKind::Scan && s.speed >= 40.0)
+                .map(|(s, t0)| {
+                    let (a, b) = (s.ramp_s, (s.duration_s - s.ramp_s).max(s.ramp_s));
+                    let mut best = (a, 0.0);
+                    let mut t = a;
+                    while t < b {
+                        let vx = ((s.at(t + 1e-3) - s.at(t)) / 1e-3).x.abs();
+                        if vx > best.1 {
+                            best = (t, vx);
+                        }
+                        t += 1e-3;
+                    }
+                    t0 + best.0
+                })
                 .unwrap_or(plan_d / 2.0)
         })
     });
@@ -417,8 +495,13 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
     let t0_air = 20.0 + tr.range(0.2, 0.8);
     let drift = tr.range(2.0, 3.0);
     let wobble = tr.range(0.03, 0.08);
-    let scale_off = [tr.range(-0.3, 0.3), tr.range(-0.3, 0.3), tr.range(-0.3, 0.3)];
-    let air = |t: f64| t0_air + drift * t / total + wobble * (std::f64::consts::TAU * t / 240.0).sin();
+    let scale_off = [
+        tr.range(-0.3, 0.3),
+        tr.range(-0.3, 0.3),
+        tr.range(-0.3, 0.3),
+    ];
+    let air =
+        |t: f64| t0_air + drift * t / total + wobble * (std::f64::consts::TAU * t / 240.0).sin();
     let mut t_stylus = t0_air + 0.1;
     let mut t_scale = [0, 1, 2].map(|i| t0_air - 0.2 + scale_off[i]);
     let mut t_range: BTreeMap<String, [f64; 2]> = BTreeMap::new();
@@ -442,7 +525,12 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         let seg = &plan.segments[si];
         (seg.at(tt - plan.starts[si]), si, rep)
     };
-    let mut phys = Physics { m: &m, kp_scale: [1.0; 3], blocked: [false; 3], stalled: [false; 3] };
+    let mut phys = Physics {
+        m: &m,
+        kp_scale: [1.0; 3],
+        blocked: [false; 3],
+        stalled: [false; 3],
+    };
     for k in 0..n {
         let t = k as f64 * period;
         let t_ns = (k as i64) * (1e9 / o.rate_hz).round() as i64;
@@ -479,7 +567,8 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         let stylus = m.stylus(seg.tip).expect("known tip");
         let (shank, bent) = stylus.limbs();
         let dts = t_stylus - 20.0;
-        let offset_true = rot * (shank * (1.0 + m.stylus_alpha * dts) + bent * (1.0 + m.bent_alpha * dts));
+        let offset_true =
+            rot * (shank * (1.0 + m.stylus_alpha * dts) + bent * (1.0 + m.bent_alpha * dts));
         // Displacement e of the probe body relative to the carriage the scales measure.
         let mut e = V3::from(st.d);
         if arc_r > 0.0 {
@@ -511,7 +600,9 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         e.x -= 0.5 * m.backlash_mm * backlash_dir;
         let tip_free = x + e + offset_true;
         let d_total = match (seg.kind, seg.feature) {
-            (SegmentKind::Scan | SegmentKind::Dwell, Some(fid)) => plan.features[fid as usize - 1].push(&tip_free, stylus.radius_mm),
+            (SegmentKind::Scan | SegmentKind::Dwell, Some(fid)) => {
+                plan.features[fid as usize - 1].push(&tip_free, stylus.radius_mm)
+            }
             _ => V3::zeros(),
         };
         let d_probe = rot.transpose() * d_total;
@@ -526,7 +617,10 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             if i == 0 {
                 s += m.cyclic.at(x[i]);
             }
-            scale[i] = quantise(s + nz.scale_sigma_mm * noise.normal(), nz.scale_resolution_mm);
+            scale[i] = quantise(
+                s + nz.scale_sigma_mm * noise.normal(),
+                nz.scale_resolution_mm,
+            );
         }
         sink(Sample::Command(CommandSample {
             seq: k,
@@ -536,7 +630,11 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             arc_radius: arc_r,
             segment_id: seg_id,
         }));
-        sink(Sample::Scale(ScaleSample { seq: k, t_ns, pos: scale }));
+        sink(Sample::Scale(ScaleSample {
+            seq: k,
+            t_ns,
+            pos: scale,
+        }));
         sink(Sample::Probe(ProbeSample {
             seq: k,
             t_ns,
@@ -554,8 +652,14 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
                 let r = t_range.entry(name.to_string()).or_insert([val, val]);
                 r[0] = r[0].min(val);
                 r[1] = r[1].max(val);
-                let reading = quantise(val + nz.temp_sigma_k * noise.normal(), nz.temp_resolution_k);
-                sink(Sample::Temperature(TemperatureSample { seq: tseq, t_ns, sensor: name.to_string(), celsius: reading }));
+                let reading =
+                    quantise(val + nz.temp_sigma_k * noise.normal(), nz.temp_resolution_k);
+                sink(Sample::Temperature(TemperatureSample {
+                    seq: tseq,
+                    t_ns,
+                    sensor: name.to_string(),
+                    celsius: reading,
+                }));
                 tseq += 1;
                 counts[3] += 1;
             }
@@ -586,7 +690,10 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         segments.extend(s);
     }
     let faults = match (o.fault, fault_at) {
-        (Some(f), Some(t)) => vec![FaultTruth { fault: f, onset_t_ns: (t * 1e9).round() as i64 }],
+        (Some(f), Some(t)) => vec![FaultTruth {
+            fault: f,
+            onset_t_ns: (t * 1e9).round() as i64,
+        }],
         _ => vec![],
     };
     Ok(RunResult {
@@ -601,7 +708,11 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             true_calibration: true_cal,
         },
         start_calibration: start,
-        program: ProgramInfo { program: plan.name.clone(), features, segments },
+        program: ProgramInfo {
+            program: plan.name.clone(),
+            features,
+            segments,
+        },
         counts,
     })
 }

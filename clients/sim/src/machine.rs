@@ -70,7 +70,10 @@ impl Stylus {
     /// Shank and bent limb in probe axes at 20 °C.
     pub fn limbs(&self) -> (V3, V3) {
         let b = self.beta1_deg.to_radians();
-        (V3::new(0.0, 0.0, -self.l1_mm), self.l2_mm * V3::new(b.sin(), 0.0, -b.cos()))
+        (
+            V3::new(0.0, 0.0, -self.l1_mm),
+            self.l2_mm * V3::new(b.sin(), 0.0, -b.cos()),
+        )
     }
 }
 
@@ -96,7 +99,11 @@ impl Noise {
     /// with their quantisation, mm.
     pub fn point_sigma_mm(&self) -> f64 {
         let q = |r: f64| r * r / 12.0;
-        (self.scale_sigma_mm.powi(2) + q(self.scale_resolution_mm) + self.probe_sigma_mm.powi(2) + q(self.probe_resolution_mm)).sqrt()
+        (self.scale_sigma_mm.powi(2)
+            + q(self.scale_resolution_mm)
+            + self.probe_sigma_mm.powi(2)
+            + q(self.probe_resolution_mm))
+        .sqrt()
     }
 }
 
@@ -132,7 +139,8 @@ pub struct TrueMachine {
     pub guide_z: Vec<Wave>,
     /// X carriage pitch (rotation about y), rad.
     pub guide_pitch: Vec<Wave>,
-    /// Distance from the x guide to the probe-head centre (the fixed Abbe arm), mm.
+    /// Distance from the x guide to the probe-head centre (the fixed Abbe arm), mm. Zero on
+    /// this machine: the head sits in line with the guide, the stylus is the whole lever.
     pub abbe_arm_mm: [f64; 3],
     /// X encoder cyclic error (outside the library).
     pub cyclic: Wave,
@@ -153,20 +161,48 @@ impl TrueMachine {
     pub fn from_seed(seed: u64) -> TrueMachine {
         let mut r = Rng::new(seed, "machine");
         let servo = [
-            Servo { kp: jitter(&mut r, 85.0, 0.1), tau_v: jitter(&mut r, 0.0022, 0.15), tau_i: jitter(&mut r, 0.0004, 0.2) },
-            Servo { kp: jitter(&mut r, 70.0, 0.1), tau_v: jitter(&mut r, 0.0025, 0.15), tau_i: jitter(&mut r, 0.0004, 0.2) },
-            Servo { kp: jitter(&mut r, 95.0, 0.1), tau_v: jitter(&mut r, 0.0018, 0.15), tau_i: jitter(&mut r, 0.0004, 0.2) },
+            Servo {
+                kp: jitter(&mut r, 85.0, 0.1),
+                tau_v: jitter(&mut r, 0.0022, 0.15),
+                tau_i: jitter(&mut r, 0.0004, 0.2),
+            },
+            Servo {
+                kp: jitter(&mut r, 70.0, 0.1),
+                tau_v: jitter(&mut r, 0.0025, 0.15),
+                tau_i: jitter(&mut r, 0.0004, 0.2),
+            },
+            Servo {
+                kp: jitter(&mut r, 95.0, 0.1),
+                tau_v: jitter(&mut r, 0.0018, 0.15),
+                tau_i: jitter(&mut r, 0.0004, 0.2),
+            },
         ];
         // Compliance: the bridge and ram bend more with the ram extended (low z) and the
         // carriage far along the bridge (high y); cross-coupling x→z (nodding).
         let mut c = [[[0.0; 3]; 3]; 4];
         c[0] = [
-            [jitter(&mut r, 4.0e-6, 0.2), jitter(&mut r, 0.3e-6, 0.5), 0.0],
-            [jitter(&mut r, 0.2e-6, 0.5), jitter(&mut r, 5.0e-6, 0.2), 0.0],
-            [jitter(&mut r, 0.8e-6, 0.4), 0.0, jitter(&mut r, 1.5e-6, 0.2)],
+            [
+                jitter(&mut r, 4.0e-6, 0.2),
+                jitter(&mut r, 0.3e-6, 0.5),
+                0.0,
+            ],
+            [
+                jitter(&mut r, 0.2e-6, 0.5),
+                jitter(&mut r, 5.0e-6, 0.2),
+                0.0,
+            ],
+            [
+                jitter(&mut r, 0.8e-6, 0.4),
+                0.0,
+                jitter(&mut r, 1.5e-6, 0.2),
+            ],
         ];
         c[2] = [[0.0; 3], [0.0, jitter(&mut r, 1.2e-6, 0.3), 0.0], [0.0; 3]];
-        c[3] = [[jitter(&mut r, -1.5e-6, 0.3), 0.0, 0.0], [0.0, jitter(&mut r, -1.0e-6, 0.3), 0.0], [0.0; 3]];
+        c[3] = [
+            [jitter(&mut r, -1.5e-6, 0.3), 0.0, 0.0],
+            [0.0, jitter(&mut r, -1.0e-6, 0.3), 0.0],
+            [0.0; 3],
+        ];
         let waves = |r: &mut Rng, amp: f64| {
             (0..3)
                 .map(|_| Wave {
@@ -183,23 +219,60 @@ impl TrueMachine {
             machine_seed: seed,
             servo,
             compliance: c,
-            structure_freq_hz: [jitter(&mut r, 32.0, 0.1), jitter(&mut r, 28.0, 0.1), jitter(&mut r, 45.0, 0.1)],
+            structure_freq_hz: [
+                jitter(&mut r, 32.0, 0.1),
+                jitter(&mut r, 28.0, 0.1),
+                jitter(&mut r, 45.0, 0.1),
+            ],
             structure_damping: 0.35,
-            arc_phase: [[jitter(&mut r, 3.0e-4, 0.3), jitter(&mut r, 4.0e-5, 0.3)], [jitter(&mut r, 1.0e-4, 0.3), 0.0]],
-            arc_gain_s2: [jitter(&mut r, 2.0e-6, 0.3), jitter(&mut r, -1.5e-6, 0.3), 0.0],
+            arc_phase: [
+                [jitter(&mut r, 3.0e-4, 0.3), jitter(&mut r, 4.0e-5, 0.3)],
+                [jitter(&mut r, 1.0e-4, 0.3), 0.0],
+            ],
+            arc_gain_s2: [
+                jitter(&mut r, 6.0e-6, 0.2),
+                jitter(&mut r, -4.0e-6, 0.2),
+                0.0,
+            ],
             stylus_alpha: jitter(&mut r, 11.5e-6, 0.1),
             bent_alpha: jitter(&mut r, 23.0e-6, 0.1),
-            scale_alpha: [jitter(&mut r, 10.5e-6, 0.1), jitter(&mut r, 10.5e-6, 0.1), jitter(&mut r, 8.0e-6, 0.1)],
-            probe_k: [jitter(&mut r, 0.012, 0.3), jitter(&mut r, 0.018, 0.3), jitter(&mut r, 0.006, 0.3)],
+            scale_alpha: [
+                jitter(&mut r, 10.5e-6, 0.1),
+                jitter(&mut r, 10.5e-6, 0.1),
+                jitter(&mut r, 8.0e-6, 0.1),
+            ],
+            probe_k: [
+                jitter(&mut r, 0.012, 0.3),
+                jitter(&mut r, 0.018, 0.3),
+                jitter(&mut r, 0.006, 0.3),
+            ],
             guide_y,
             guide_z,
             guide_pitch,
-            abbe_arm_mm: [0.0, 0.0, -180.0],
-            cyclic: Wave { amplitude: jitter(&mut r, 0.8e-3, 0.2), wavelength_mm: 4.0, phase: r.range(0.0, std::f64::consts::TAU) },
+            abbe_arm_mm: [0.0, 0.0, 0.0],
+            cyclic: Wave {
+                amplitude: jitter(&mut r, 0.8e-3, 0.2),
+                wavelength_mm: 4.0,
+                phase: r.range(0.0, std::f64::consts::TAU),
+            },
             backlash_mm: jitter(&mut r, 1.2e-3, 0.2),
             styli: vec![
-                Stylus { id: 1, probe: "sp25".into(), l1_mm: 50.0, radius_mm: 1.5, l2_mm: 0.0, beta1_deg: 0.0 },
-                Stylus { id: 2, probe: "sp25".into(), l1_mm: 40.0, radius_mm: 1.0, l2_mm: 30.0, beta1_deg: 90.0 },
+                Stylus {
+                    id: 1,
+                    probe: "sp25".into(),
+                    l1_mm: 50.0,
+                    radius_mm: 1.5,
+                    l2_mm: 0.0,
+                    beta1_deg: 0.0,
+                },
+                Stylus {
+                    id: 2,
+                    probe: "sp25".into(),
+                    l1_mm: 40.0,
+                    radius_mm: 1.0,
+                    l2_mm: 30.0,
+                    beta1_deg: 90.0,
+                },
             ],
             noise: Noise {
                 scale_sigma_mm: 0.06e-3,

@@ -50,8 +50,16 @@ impl Feature {
     /// Form deviation at angle θ (circles) or position s along the face.
     pub fn form_at(&self, s: f64) -> f64 {
         match self.kind {
-            FeatureKind::Face => self.form.iter().map(|f| f[1] * (TAU * s / f[0] + f[2]).sin()).sum(),
-            _ => self.form.iter().map(|f| f[1] * (f[0] * s + f[2]).sin()).sum(),
+            FeatureKind::Face => self
+                .form
+                .iter()
+                .map(|f| f[1] * (TAU * s / f[0] + f[2]).sin())
+                .sum(),
+            _ => self
+                .form
+                .iter()
+                .map(|f| f[1] * (f[0] * s + f[2]).sin())
+                .sum(),
         }
     }
     /// The tip displacement the surface imposes on a free tip at `tip` with radius `r`
@@ -150,7 +158,12 @@ impl Path {
                     from + (to - from) * (s / l)
                 }
             }
-            Path::Arc { center, radius, start, sweep } => {
+            Path::Arc {
+                center,
+                radius,
+                start,
+                sweep,
+            } => {
                 let th = start + sweep.signum() * s / radius;
                 center + V3::new(radius * th.cos(), radius * th.sin(), 0.0)
             }
@@ -339,7 +352,15 @@ impl<'a> Builder<'a> {
         let (s, b) = self.stylus(tip).limbs();
         head_rotation(a1, a2) * (s + b)
     }
-    fn push(&mut self, kind: SegmentKind, path: Path, speed: f64, ramp: f64, feature: Option<u32>, defl: f64) {
+    fn push(
+        &mut self,
+        kind: SegmentKind,
+        path: Path,
+        speed: f64,
+        ramp: f64,
+        feature: Option<u32>,
+        defl: f64,
+    ) {
         let mut s = Segment {
             id: self.segs.len() as u32 + 1,
             kind,
@@ -359,7 +380,17 @@ impl<'a> Builder<'a> {
     }
     fn move_to(&mut self, to: V3) {
         if (to - self.carriage).norm() > 1e-9 {
-            self.push(SegmentKind::Move, Path::Line { from: self.carriage, to }, 120.0, 0.3, None, 0.0);
+            self.push(
+                SegmentKind::Move,
+                Path::Line {
+                    from: self.carriage,
+                    to,
+                },
+                120.0,
+                0.3,
+                None,
+                0.0,
+            );
         }
     }
     fn set_tip(&mut self, tip: u32, a1: f64, a2: f64) {
@@ -390,11 +421,36 @@ impl<'a> Builder<'a> {
         let center = f.c() - off;
         let ramp = (speed / 300.0).max(0.25);
         let sweep = dir * (TAU + speed * ramp / nominal_r);
-        let path = Path::Arc { center, radius: nominal_r, start, sweep };
+        let path = Path::Arc {
+            center,
+            radius: nominal_r,
+            start,
+            sweep,
+        };
         self.move_to(path.start());
-        self.push(SegmentKind::Dwell, Path::Dwell { at: path.start(), seconds: 0.25 }, 0.0, 0.0, Some(fid), defl);
+        self.push(
+            SegmentKind::Dwell,
+            Path::Dwell {
+                at: path.start(),
+                seconds: 0.25,
+            },
+            0.0,
+            0.0,
+            Some(fid),
+            defl,
+        );
         self.push(SegmentKind::Scan, path, speed, ramp, Some(fid), defl);
-        self.push(SegmentKind::Dwell, Path::Dwell { at: self.carriage, seconds: 0.15 }, 0.0, 0.0, Some(fid), defl);
+        self.push(
+            SegmentKind::Dwell,
+            Path::Dwell {
+                at: self.carriage,
+                seconds: 0.15,
+            },
+            0.0,
+            0.0,
+            Some(fid),
+            defl,
+        );
     }
     /// A line along a face from `s0` to `s1` (positions along the face).
     fn face_line(&mut self, fid: u32, s0: f64, s1: f64, speed: f64, defl: f64) {
@@ -404,11 +460,34 @@ impl<'a> Builder<'a> {
         let r_tip = self.stylus(self.tip).radius_mm;
         let off = self.offset(self.tip, self.a1, self.a2);
         let base = f.c() + n * (r_tip - defl) - off;
-        let path = Path::Line { from: base + along * s0, to: base + along * s1 };
+        let path = Path::Line {
+            from: base + along * s0,
+            to: base + along * s1,
+        };
         self.move_to(path.start());
-        self.push(SegmentKind::Dwell, Path::Dwell { at: path.start(), seconds: 0.25 }, 0.0, 0.0, Some(fid), defl);
+        self.push(
+            SegmentKind::Dwell,
+            Path::Dwell {
+                at: path.start(),
+                seconds: 0.25,
+            },
+            0.0,
+            0.0,
+            Some(fid),
+            defl,
+        );
         self.push(SegmentKind::Scan, path, speed, 0.4, Some(fid), defl);
-        self.push(SegmentKind::Dwell, Path::Dwell { at: self.carriage, seconds: 0.15 }, 0.0, 0.0, Some(fid), defl);
+        self.push(
+            SegmentKind::Dwell,
+            Path::Dwell {
+                at: self.carriage,
+                seconds: 0.15,
+            },
+            0.0,
+            0.0,
+            Some(fid),
+            defl,
+        );
     }
 }
 
@@ -422,30 +501,62 @@ fn ring_feature(at: V3, form_seed: f64) -> Feature {
         nominal_diameter_mm: 50.0,
         certificate_diameter_mm: Some(50.0012),
         normal: [0.0; 3],
-        form: vec![[2.0, 0.02e-3, form_seed], [3.0, 0.015e-3, 2.0 * form_seed], [5.0, 0.01e-3, 0.3]],
+        form: vec![
+            [2.0, 0.02e-3, form_seed],
+            [3.0, 0.015e-3, 2.0 * form_seed],
+            [5.0, 0.01e-3, 0.3],
+        ],
     }
 }
 
 /// Plans a program. `position` places the program's main artifact.
 pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, String> {
     let home = V3::new(500.0, 400.0, -100.0);
-    let mut b = Builder { m, features: vec![], segs: vec![], carriage: home, tip: 1, a1: 0.0, a2: 0.0 };
-    b.push(SegmentKind::Move, Path::Dwell { at: home, seconds: 0.5 }, 0.0, 0.0, None, 0.0);
+    let mut b = Builder {
+        m,
+        features: vec![],
+        segs: vec![],
+        carriage: home,
+        tip: 1,
+        a1: 0.0,
+        a2: 0.0,
+    };
+    b.push(
+        SegmentKind::Move,
+        Path::Dwell {
+            at: home,
+            seconds: 0.5,
+        },
+        0.0,
+        0.0,
+        None,
+        0.0,
+    );
     match name {
         "ring" => {
-            let f = b.feature(ring_feature(position.unwrap_or(V3::new(400.0, 300.0, -250.0)), 0.7));
+            let f = b.feature(ring_feature(
+                position.unwrap_or(V3::new(400.0, 300.0, -250.0)),
+                0.7,
+            ));
             b.circle(f, 30.0, 1.0, 0.3, 0.0);
             b.circle(f, 30.0, -1.0, 0.3, PI);
         }
         "ring-speeds" => {
-            let f = b.feature(ring_feature(position.unwrap_or(V3::new(550.0, 300.0, -250.0)), 1.3));
+            let f = b.feature(ring_feature(
+                position.unwrap_or(V3::new(550.0, 300.0, -250.0)),
+                1.3,
+            ));
             for v in [10.0, 25.0, 50.0, 80.0] {
                 b.circle(f, v, 1.0, 0.3, 0.0);
                 b.circle(f, v, -1.0, 0.3, PI);
             }
         }
         "campaign" => {
-            let places = [V3::new(250.0, 200.0, -300.0), V3::new(720.0, 560.0, -150.0), V3::new(420.0, 420.0, -420.0)];
+            let places = [
+                V3::new(250.0, 200.0, -300.0),
+                V3::new(720.0, 560.0, -150.0),
+                V3::new(420.0, 420.0, -420.0),
+            ];
             let base = position.unwrap_or(V3::zeros());
             for (i, p) in places.iter().enumerate() {
                 let f = b.feature(ring_feature(p + base, 0.4 + i as f64));
@@ -539,7 +650,12 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 b.face_line(face, 120.0, -120.0, v, 0.3);
             }
         }
-        other => return Err(format!("unknown program `{other}` (known: {})", PROGRAMS.join(", "))),
+        other => {
+            return Err(format!(
+                "unknown program `{other}` (known: {})",
+                PROGRAMS.join(", ")
+            ))
+        }
     }
     b.move_to(home);
     let mut starts = vec![];
@@ -548,13 +664,19 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
         starts.push(t);
         t += s.duration_s;
     }
-    Ok(Plan { name: name.to_string(), features: b.features, segments: b.segs, starts })
+    Ok(Plan {
+        name: name.to_string(),
+        features: b.features,
+        segments: b.segs,
+        starts,
+    })
 }
 
 impl Plan {
     /// Total duration, s.
     pub fn duration(&self) -> f64 {
-        self.starts.last().copied().unwrap_or(0.0) + self.segments.last().map(|s| s.duration_s).unwrap_or(0.0)
+        self.starts.last().copied().unwrap_or(0.0)
+            + self.segments.last().map(|s| s.duration_s).unwrap_or(0.0)
     }
 
     /// The segment active at `t` (the last one after the end).

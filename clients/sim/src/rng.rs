@@ -16,7 +16,10 @@ impl Rng {
         for b in stream.bytes() {
             h = (h ^ b as u64).wrapping_mul(0x100000001b3);
         }
-        Rng { state: seed ^ h.rotate_left(17), spare: None }
+        Rng {
+            state: seed ^ h.rotate_left(17),
+            spare: None,
+        }
     }
     /// Next 64 random bits.
     pub fn next_u64(&mut self) -> u64 {
@@ -66,6 +69,9 @@ mod tests {
         let xs: Vec<f64> = (0..n).map(|_| a.normal()).collect();
         let mean = xs.iter().sum::<f64>() / n as f64;
         let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64;
-        assert!(mean.abs() < 0.01 && (var - 1.0).abs() < 0.02, "{mean} {var}");
+        assert!(
+            mean.abs() < 0.01 && (var - 1.0).abs() < 0.02,
+            "{mean} {var}"
+        );
     }
 }

@@ -25,7 +25,13 @@ impl Coefficients {
     /// A low-pass section with cutoff `fc` and quality `q` at sampling rate `fs`.
     /// `None` unless 0 < fc < fs/2 and q > 0.
     pub fn lowpass(fs: f64, fc: f64, q: f64) -> Option<Coefficients> {
-        if !(fs.is_finite() && fc.is_finite() && q.is_finite() && fc > 0.0 && fc < fs / 2.0 && q > 0.0) {
+        if !(fs.is_finite()
+            && fc.is_finite()
+            && q.is_finite()
+            && fc > 0.0
+            && fc < fs / 2.0
+            && q > 0.0)
+        {
             return None;
         }
         let w0 = 2.0 * std::f64::consts::PI * fc / fs;
@@ -58,7 +64,10 @@ impl Coefficients {
     pub fn steady(&self, x: f64) -> State {
         // DF2T at rest: y = x; s2 = b2 x − a2 y; s1 = b1 x − a1 y + s2.
         let s2 = self.b2 * x - self.a2 * x;
-        State { s1: self.b1 * x - self.a1 * x + s2, s2 }
+        State {
+            s1: self.b1 * x - self.a1 * x + s2,
+            s2,
+        }
     }
 
     /// Filters one sample.
@@ -79,7 +88,9 @@ mod tests {
     fn butterworth_has_unit_dc_gain_and_attenuates() {
         let c = Coefficients::butterworth(1000.0, 40.0, 4).unwrap();
         let mut st: Vec<State> = c.iter().map(|c| c.steady(0.0)).collect();
-        let run = |st: &mut Vec<State>, x: f64| c.iter().zip(st.iter_mut()).fold(x, |v, (c, s)| c.run(s, v));
+        let run = |st: &mut Vec<State>, x: f64| {
+            c.iter().zip(st.iter_mut()).fold(x, |v, (c, s)| c.run(s, v))
+        };
         let mut y = 0.0;
         for _ in 0..2000 {
             y = run(&mut st, 1.0);
@@ -88,7 +99,10 @@ mod tests {
         // 200 Hz sine: 4th-order Butterworth at 40 Hz attenuates by (40/200)^4 ≈ 1.6e-3 (bilinear: less).
         let mut peak: f64 = 0.0;
         for k in 0..4000 {
-            let v = run(&mut st, 1.0 + (2.0 * std::f64::consts::PI * 200.0 * k as f64 / 1000.0).sin());
+            let v = run(
+                &mut st,
+                1.0 + (2.0 * std::f64::consts::PI * 200.0 * k as f64 / 1000.0).sin(),
+            );
             if k > 2000 {
                 peak = peak.max((v - 1.0).abs());
             }

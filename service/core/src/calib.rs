@@ -137,7 +137,12 @@ pub struct Join {
 
 impl Default for Join {
     fn default() -> Self {
-        Join { max_gap_periods: 2.5, temperature_delay_s: 0.2, temperature_max_age_s: 5.0, max_pending: 20_000 }
+        Join {
+            max_gap_periods: 2.5,
+            temperature_delay_s: 0.2,
+            temperature_max_age_s: 5.0,
+            max_pending: 20_000,
+        }
     }
 }
 
@@ -171,7 +176,10 @@ pub enum CalibError {
 }
 
 fn invalid(field: impl Into<String>, reason: impl Into<String>) -> CalibError {
-    CalibError::Invalid { field: field.into(), reason: reason.into() }
+    CalibError::Invalid {
+        field: field.into(),
+        reason: reason.into(),
+    }
 }
 
 /// The built, runnable form of a calibration.
@@ -208,7 +216,10 @@ impl Calibration {
         let de = &mut serde_json::Deserializer::from_str(text);
         serde_path_to_error::deserialize(de).map_err(|e| {
             let path = e.path().to_string();
-            CalibError::Parse { path, msg: e.into_inner().to_string() }
+            CalibError::Parse {
+                path,
+                msg: e.into_inner().to_string(),
+            }
         })
     }
 
@@ -229,7 +240,10 @@ impl Calibration {
         if self.machine_id == machine {
             Ok(())
         } else {
-            Err(CalibError::WrongMachine { document: self.machine_id.clone(), expected: machine.to_string() })
+            Err(CalibError::WrongMachine {
+                document: self.machine_id.clone(),
+                expected: machine.to_string(),
+            })
         }
     }
 
@@ -240,15 +254,28 @@ impl Calibration {
         }
         let t = self.sample_period_s;
         if !(t.is_finite() && t > 0.0 && t < 1.0) {
-            return Err(invalid("sample_period_s", "must be a finite number between 0 and 1 s"));
+            return Err(invalid(
+                "sample_period_s",
+                "must be a finite number between 0 and 1 s",
+            ));
         }
         // Nominal models: G1 per axis × G2 per probe type.
         let mut g1 = vec![];
-        for (name, tf) in [("x", &self.nominal.axes.x), ("y", &self.nominal.axes.y), ("z", &self.nominal.axes.z)] {
-            g1.push(tf.rational().map_err(|e| invalid(format!("nominal.axes.{name}"), e.to_string()))?);
+        for (name, tf) in [
+            ("x", &self.nominal.axes.x),
+            ("y", &self.nominal.axes.y),
+            ("z", &self.nominal.axes.z),
+        ] {
+            g1.push(
+                tf.rational()
+                    .map_err(|e| invalid(format!("nominal.axes.{name}"), e.to_string()))?,
+            );
         }
         if self.nominal.probes.is_empty() {
-            return Err(invalid("nominal.probes", "at least one probe type is needed"));
+            return Err(invalid(
+                "nominal.probes",
+                "at least one probe type is needed",
+            ));
         }
         let mut nominal = BTreeMap::new();
         for (probe, tf) in &self.nominal.probes {
@@ -256,10 +283,12 @@ impl Calibration {
             let g2 = tf.rational().map_err(|e| invalid(&field, e.to_string()))?;
             let mut d = vec![];
             for (i, g) in g1.iter().enumerate() {
-                d.push(
-                    Discrete::new(&g.mul(&g2), t)
-                        .map_err(|e| invalid(format!("nominal (axis {} × {field})", ["x", "y", "z"][i]), e.to_string()))?,
-                );
+                d.push(Discrete::new(&g.mul(&g2), t).map_err(|e| {
+                    invalid(
+                        format!("nominal (axis {} × {field})", ["x", "y", "z"][i]),
+                        e.to_string(),
+                    )
+                })?);
             }
             let arr: [Discrete; 3] = d.try_into().expect("three axes");
             nominal.insert(probe.clone(), Arc::new(arr));
@@ -279,12 +308,18 @@ impl Calibration {
                 ));
             }
             if tips.insert(tip.id, tip.clone()).is_some() {
-                return Err(invalid(format!("{field}.id"), format!("tip id {} appears twice", tip.id)));
+                return Err(invalid(
+                    format!("{field}.id"),
+                    format!("tip id {} appears twice", tip.id),
+                ));
             }
         }
         let mc = self.geometry.min_contact_deflection_mm;
         if !(mc.is_finite() && mc >= 0.0) {
-            return Err(invalid("geometry.min_contact_deflection_mm", "must be a finite number ≥ 0"));
+            return Err(invalid(
+                "geometry.min_contact_deflection_mm",
+                "must be a finite number ≥ 0",
+            ));
         }
         // Effects.
         let mut sensors = SensorTable::default();
@@ -293,13 +328,18 @@ impl Calibration {
         for (i, e) in self.effects.iter().enumerate() {
             let b = e.build(&mut sensors).map_err(|r| {
                 let (f, reason) = match r.split_once(": ") {
-                    Some((f, rest)) if !f.contains(' ') => (format!("effects[{i}].{f}"), rest.to_string()),
+                    Some((f, rest)) if !f.contains(' ') => {
+                        (format!("effects[{i}].{f}"), rest.to_string())
+                    }
                     _ => (format!("effects[{i}]"), r.clone()),
                 };
                 invalid(f, reason)
             })?;
             if !ids.insert(b.id.clone()) {
-                return Err(invalid(format!("effects[{i}]"), format!("effect id `{}` appears twice; give one an `id`", b.id)));
+                return Err(invalid(
+                    format!("effects[{i}]"),
+                    format!("effect id `{}` appears twice; give one an `id`", b.id),
+                ));
             }
             effects.push(b);
         }
@@ -313,14 +353,20 @@ impl Calibration {
             ("filter_cutoff_hz", j.filter_cutoff_hz),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(invalid(format!("judgement.{n}"), "must be a finite number ≥ 0"));
+                return Err(invalid(
+                    format!("judgement.{n}"),
+                    "must be a finite number ≥ 0",
+                ));
             }
         }
         if j.threshold_mm_s2 <= 0.0 {
             return Err(invalid("judgement.threshold_mm_s2", "must be > 0"));
         }
         if j.clear_fraction > 1.0 {
-            return Err(invalid("judgement.clear_fraction", "must be between 0 and 1"));
+            return Err(invalid(
+                "judgement.clear_fraction",
+                "must be between 0 and 1",
+            ));
         }
         let filter = biquad::Coefficients::butterworth(1.0 / t, j.filter_cutoff_hz, j.filter_order).ok_or_else(|| {
             invalid(
@@ -331,9 +377,15 @@ impl Calibration {
         // Join.
         let jn = &self.join;
         if !(jn.max_gap_periods.is_finite() && jn.max_gap_periods >= 1.0) {
-            return Err(invalid("join.max_gap_periods", "must be a finite number ≥ 1"));
+            return Err(invalid(
+                "join.max_gap_periods",
+                "must be a finite number ≥ 1",
+            ));
         }
-        for (n, v) in [("temperature_delay_s", jn.temperature_delay_s), ("temperature_max_age_s", jn.temperature_max_age_s)] {
+        for (n, v) in [
+            ("temperature_delay_s", jn.temperature_delay_s),
+            ("temperature_max_age_s", jn.temperature_max_age_s),
+        ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(invalid(format!("join.{n}"), "must be a finite number ≥ 0"));
             }
@@ -373,7 +425,11 @@ impl Calibration {
                     y: TransferFunction::FirstOrder { tau_s: 0.015 },
                     z: TransferFunction::FirstOrder { tau_s: 0.010 },
                 },
-                probes: [("sp25".to_string(), TransferFunction::FirstOrder { tau_s: 0.002 })].into(),
+                probes: [(
+                    "sp25".to_string(),
+                    TransferFunction::FirstOrder { tau_s: 0.002 },
+                )]
+                .into(),
             },
             geometry: Geometry {
                 tips: vec![TipGeometry {
@@ -402,8 +458,13 @@ mod tests {
 
     fn doc() -> serde_json::Value {
         let mut c = Calibration::example("m1");
-        c.effects.push(EffectConfig::AccelDeflection(accel_deflection::Config::zeros(1, false)));
-        c.effects.push(EffectConfig::StylusThermal(stylus_thermal::Config::zeros(false)));
+        c.effects.push(EffectConfig::AccelDeflection(
+            accel_deflection::Config::zeros(1, false),
+        ));
+        c.effects
+            .push(EffectConfig::StylusThermal(stylus_thermal::Config::zeros(
+                false,
+            )));
         serde_json::to_value(&c).unwrap()
     }
 
@@ -433,7 +494,10 @@ mod tests {
         let mut v = doc();
         v["effects"][0]["kind"] = "gravity_waves".into();
         let e = err(v);
-        assert!(e.contains("effects[0]") && e.contains("gravity_waves"), "{e}");
+        assert!(
+            e.contains("effects[0]") && e.contains("gravity_waves"),
+            "{e}"
+        );
 
         let mut v = doc();
         v["effects"][0].as_object_mut().unwrap().remove("p");
@@ -463,7 +527,9 @@ mod tests {
         assert!(e.contains("effects[0].p"), "{e}");
 
         // Non-finite numbers cannot be written in JSON; an overflowing literal is refused.
-        let text = doc().to_string().replace("\"sample_period_s\":0.001", "\"sample_period_s\":1e999");
+        let text = doc()
+            .to_string()
+            .replace("\"sample_period_s\":0.001", "\"sample_period_s\":1e999");
         let e = Calibration::from_json(&text).unwrap_err().to_string();
         assert!(e.contains("sample_period_s"), "{e}");
         assert!(Calibration::example("m1").check_machine("m2").is_err());

@@ -111,7 +111,11 @@ impl Stats {
     }
     /// Non-zero drop counts by name.
     pub fn dropped_by_name(&self) -> Vec<(&'static str, u64)> {
-        DropReason::ALL.iter().filter(|r| self.dropped[**r as usize] > 0).map(|r| (r.name(), self.dropped[*r as usize])).collect()
+        DropReason::ALL
+            .iter()
+            .filter(|r| self.dropped[**r as usize] > 0)
+            .map(|r| (r.name(), self.dropped[*r as usize]))
+            .collect()
     }
     /// Adds another corrector's counts.
     pub fn add(&mut self, o: &Stats) {
@@ -253,24 +257,42 @@ impl Corrector {
 
     /// Latest accepted t_ns per stream (command, scale, probe, temperature).
     pub fn watermarks(&self) -> [Option<i64>; 4] {
-        [self.intake[0].last_t, self.intake[1].last_t, self.intake[2].last_t, self.intake[3].last_t]
+        [
+            self.intake[0].last_t,
+            self.intake[1].last_t,
+            self.intake[2].last_t,
+            self.intake[3].last_t,
+        ]
     }
 
     /// Samples waiting per stream.
     pub fn pending(&self) -> [usize; 4] {
-        [self.cmd_q.len(), self.scale_q.len(), self.probe_q.len(), self.temp_q.len()]
+        [
+            self.cmd_q.len(),
+            self.scale_q.len(),
+            self.probe_q.len(),
+            self.temp_q.len(),
+        ]
     }
 
     /// Switches to a new calibration at this sample boundary. Nothing buffered is lost; the
     /// estimator keeps running when the nominal model is unchanged and restarts (points
     /// flagged invalid while it settles) when it changed.
     pub fn set_model(&mut self, model: Arc<Model>) {
-        if model.doc.nominal != self.model.doc.nominal || model.doc.sample_period_s != self.model.doc.sample_period_s {
+        if model.doc.nominal != self.model.doc.nominal
+            || model.doc.sample_period_s != self.model.doc.sample_period_s
+        {
             self.estimator = None;
             self.probe_type.clear();
         }
         let j = &model.doc.judgement;
-        self.judge.reconfigure(model.filter.clone(), j.threshold_mm_s2, j.clear_fraction, model.raise_samples, model.clear_samples);
+        self.judge.reconfigure(
+            model.filter.clone(),
+            j.threshold_mm_s2,
+            j.clear_fraction,
+            model.raise_samples,
+            model.clear_samples,
+        );
         // Temperature slots may differ: re-resolve the held values by name.
         self.held_valid = 0;
         for (i, name) in model.sensors.names().iter().enumerate() {
@@ -313,7 +335,12 @@ impl Corrector {
                 }
                 Sample::Temperature(t) => {
                     let slot = self.model.sensors.find(&t.sensor);
-                    self.temp_q.push_back(PendingTemp { t_ns: t.t_ns, slot, celsius: t.celsius, sensor: t.sensor });
+                    self.temp_q.push_back(PendingTemp {
+                        t_ns: t.t_ns,
+                        slot,
+                        celsius: t.celsius,
+                        sensor: t.sensor,
+                    });
                     if self.temp_q.len() > max {
                         let p = self.temp_q.pop_front().expect("non-empty");
                         self.hold(&p);
@@ -347,13 +374,20 @@ impl Corrector {
             Sample::Command(c) => (
                 c.seq,
                 c.t_ns,
-                c.pos.iter().chain(c.arc_center.iter()).all(|v| v.is_finite()) && c.arc_radius.is_finite() && c.arc_radius >= 0.0,
+                c.pos
+                    .iter()
+                    .chain(c.arc_center.iter())
+                    .all(|v| v.is_finite())
+                    && c.arc_radius.is_finite()
+                    && c.arc_radius >= 0.0,
             ),
             Sample::Scale(c) => (c.seq, c.t_ns, c.pos.iter().all(|v| v.is_finite())),
             Sample::Probe(c) => (
                 c.seq,
                 c.t_ns,
-                c.deflection.iter().all(|v| v.is_finite()) && c.head_a1_deg.is_finite() && c.head_a2_deg.is_finite(),
+                c.deflection.iter().all(|v| v.is_finite())
+                    && c.head_a1_deg.is_finite()
+                    && c.head_a2_deg.is_finite(),
             ),
             Sample::Temperature(c) => (c.seq, c.t_ns, c.celsius.is_finite()),
         };
@@ -367,7 +401,11 @@ impl Corrector {
             return false;
         }
         // Temperatures of several sensors may share a time stamp; other streams may not.
-        let back = if k == StreamId::Temperature as usize { st.last_t.is_some_and(|l| t < l) } else { st.last_t.is_some_and(|l| t <= l) };
+        let back = if k == StreamId::Temperature as usize {
+            st.last_t.is_some_and(|l| t < l)
+        } else {
+            st.last_t.is_some_and(|l| t <= l)
+        };
         if back {
             self.stats.dropped[DropReason::OutOfOrder as usize] += 1;
             return false;
@@ -398,7 +436,8 @@ impl Corrector {
                 let wm = self.watermarks();
                 let ready = wm[0].is_some_and(|w| w >= s.t_ns)
                     && wm[2].is_some_and(|w| w >= s.t_ns)
-                    && (!needs_temp || wm[3].is_some_and(|w| w >= s.t_ns - self.model.temperature_delay_ns));
+                    && (!needs_temp
+                        || wm[3].is_some_and(|w| w >= s.t_ns - self.model.temperature_delay_ns));
                 if !ready {
                     break;
                 }
@@ -413,8 +452,12 @@ impl Corrector {
     /// Steps the estimator through the commands up to the first at or after `t`.
     fn advance_estimator(&mut self, t: i64) {
         while self.e1.is_none_or(|e| e.cmd.t_ns < t) {
-            let Some(c) = self.cmd_q.pop_front() else { break };
-            let gap = self.e1.is_some_and(|e| c.t_ns - e.cmd.t_ns > self.model.max_gap_ns);
+            let Some(c) = self.cmd_q.pop_front() else {
+                break;
+            };
+            let gap = self
+                .e1
+                .is_some_and(|e| c.t_ns - e.cmd.t_ns > self.model.max_gap_ns);
             let est = match self.estimator.as_mut() {
                 Some(est) if !gap => est.step(&c),
                 Some(est) => est.restart(&c),
@@ -453,7 +496,10 @@ impl Corrector {
         } else if e1.cmd.t_ns < t {
             return Err(DropReason::NoCommand);
         } else {
-            let e0 = self.e0.filter(|e| e.cmd.t_ns <= t).ok_or(DropReason::NoCommand)?;
+            let e0 = self
+                .e0
+                .filter(|e| e.cmd.t_ns <= t)
+                .ok_or(DropReason::NoCommand)?;
             if e1.cmd.t_ns - e0.cmd.t_ns > gap {
                 return Err(DropReason::CommandGap);
             }
@@ -505,7 +551,13 @@ impl Corrector {
 
         let r = machine_from_probe(p0.head_a1_deg, p0.head_a2_deg);
         let cmd = &est.cmd;
-        let (f_hz, rot_axis) = rotation(&est.pos, &est.vel, &est.acc, &cmd.arc_center, cmd.arc_radius);
+        let (f_hz, rot_axis) = rotation(
+            &est.pos,
+            &est.vel,
+            &est.acc,
+            &cmd.arc_center,
+            cmd.arc_radius,
+        );
         let mut ctx = PointContext {
             t_ns: t,
             scale: s.pos,
@@ -513,7 +565,11 @@ impl Corrector {
             est_pos: est.pos,
             est_vel: est.vel,
             est_acc: est.acc,
-            arc_center: if cmd.arc_radius > 0.0 { cmd.arc_center } else { Vec3::zeros() },
+            arc_center: if cmd.arc_radius > 0.0 {
+                cmd.arc_center
+            } else {
+                Vec3::zeros()
+            },
             arc_radius: cmd.arc_radius,
             f_hz,
             rot_axis,
@@ -565,7 +621,12 @@ impl Corrector {
         let alarm = self.judge.any_raised();
         let suspend = alarm && action == AlarmAction::Suspend;
 
-        let point = synthesize(&ctx, &model.effects, suspend, model.doc.geometry.min_contact_deflection_mm);
+        let point = synthesize(
+            &ctx,
+            &model.effects,
+            suspend,
+            model.doc.geometry.min_contact_deflection_mm,
+        );
         let valid = settled && !alarm;
         out.points.push(CorrectedPoint {
             seq: self.point_seq,
@@ -606,20 +667,38 @@ pub struct Synthesis {
 }
 
 /// Surface point = scales + Σ corrections + R·deflection + tip offset − radius·normal.
-pub fn synthesize(ctx: &PointContext, effects: &[BuiltEffect], suspend_dynamic: bool, min_contact: f64) -> Synthesis {
+pub fn synthesize(
+    ctx: &PointContext,
+    effects: &[BuiltEffect],
+    suspend_dynamic: bool,
+    min_contact: f64,
+) -> Synthesis {
     let mut total = Vec3::zeros();
     let corrections: Vec<Vec3> = effects
         .iter()
         .map(|e| {
-            let c = if suspend_dynamic && e.dynamic { Vec3::zeros() } else { e.model.correction(ctx) };
+            let c = if suspend_dynamic && e.dynamic {
+                Vec3::zeros()
+            } else {
+                e.model.correction(ctx)
+            };
             total += c;
             c
         })
         .collect();
     let tip_center = ctx.scale + total + ctx.deflection + ctx.tip_offset();
     let d = ctx.deflection.norm();
-    let normal = if d >= min_contact && d > 0.0 { ctx.deflection / d } else { Vec3::zeros() };
-    Synthesis { surface: tip_center - normal * ctx.tip_radius, tip_center, normal, corrections }
+    let normal = if d >= min_contact && d > 0.0 {
+        ctx.deflection / d
+    } else {
+        Vec3::zeros()
+    };
+    Synthesis {
+        surface: tip_center - normal * ctx.tip_radius,
+        tip_center,
+        normal,
+        corrections,
+    }
 }
 
 fn lerp_estimate(a: &Estimate, b: &Estimate, t: i64) -> Estimate {

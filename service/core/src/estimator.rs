@@ -48,8 +48,17 @@ pub struct Estimator {
 impl Estimator {
     /// A new estimator for the per-axis models.
     pub fn new(model: Arc<[Discrete; 3]>) -> Estimator {
-        let state = [model[0].steady(0.0), model[1].steady(0.0), model[2].steady(0.0)];
-        Estimator { model, state, steps: 0, started: false }
+        let state = [
+            model[0].steady(0.0),
+            model[1].steady(0.0),
+            model[2].steady(0.0),
+        ];
+        Estimator {
+            model,
+            state,
+            steps: 0,
+            started: false,
+        }
     }
 
     /// The models in use.
@@ -64,7 +73,12 @@ impl Estimator {
         }
         self.steps = 0;
         self.started = true;
-        Estimate { cmd: *c, pos: c.pos, vel: Vec3::zeros(), acc: Vec3::zeros() }
+        Estimate {
+            cmd: *c,
+            pos: c.pos,
+            vel: Vec3::zeros(),
+            acc: Vec3::zeros(),
+        }
     }
 
     /// Swaps the models and restarts at `c`.
@@ -79,7 +93,12 @@ impl Estimator {
         if !self.started {
             return self.restart(c);
         }
-        let mut e = Estimate { cmd: *c, pos: Vec3::zeros(), vel: Vec3::zeros(), acc: Vec3::zeros() };
+        let mut e = Estimate {
+            cmd: *c,
+            pos: Vec3::zeros(),
+            vel: Vec3::zeros(),
+            acc: Vec3::zeros(),
+        };
         for i in 0..3 {
             let d = self.model[i].step(&mut self.state[i], c.pos[i]);
             e.pos[i] = d.y;
@@ -92,7 +111,12 @@ impl Estimator {
 
     /// True once a restart's transient has decayed.
     pub fn settled(&self) -> bool {
-        let need = self.model.iter().map(|m| m.settle_samples).max().unwrap_or(0);
+        let need = self
+            .model
+            .iter()
+            .map(|m| m.settle_samples)
+            .max()
+            .unwrap_or(0);
         self.steps >= need
     }
 }
@@ -124,13 +148,24 @@ mod tests {
         let g = TransferFunction::FirstOrder { tau_s: tau }
             .rational()
             .unwrap()
-            .mul(&TransferFunction::FirstOrder { tau_s: tau_p }.rational().unwrap());
+            .mul(
+                &TransferFunction::FirstOrder { tau_s: tau_p }
+                    .rational()
+                    .unwrap(),
+            );
         let d = Discrete::new(&g, t).unwrap();
         Arc::new([d.clone(), d.clone(), d])
     }
 
     fn cmd(t: f64, p: Vec3, c: Vec3, r: f64) -> CommandSample {
-        CommandSample { seq: 0, t_ns: (t * 1e9) as i64, pos: p, arc_center: c, arc_radius: r, segment_id: 0 }
+        CommandSample {
+            seq: 0,
+            t_ns: (t * 1e9) as i64,
+            pos: p,
+            arc_center: c,
+            arc_radius: r,
+            segment_id: 0,
+        }
     }
 
     #[test]
@@ -155,8 +190,16 @@ mod tests {
         // is biased by about T²/(12·τ·τp) relative (0.35 % here), see the module doc.
         let a = e.acc.norm();
         let bias = t * t / (12.0 * tau * taup);
-        assert!((a / (w * w * r * g) - (1.0 - bias)).abs() < 5e-4, "{a} vs {}", w * w * r * g);
-        assert!((a - v * v / r).abs() < 5e-3 * a, "|A| = {a}, v²/R = {}", v * v / r);
+        assert!(
+            (a / (w * w * r * g) - (1.0 - bias)).abs() < 5e-4,
+            "{a} vs {}",
+            w * w * r * g
+        );
+        assert!(
+            (a - v * v / r).abs() < 5e-3 * a,
+            "|A| = {a}, v²/R = {}",
+            v * v / r
+        );
         // A points at the centre.
         let radial = (c0 - e.pos).normalize();
         assert!(e.acc.normalize().dot(&radial) > 0.9999);
@@ -175,7 +218,13 @@ mod tests {
         let (r, vmax, ramp) = (20.0, 60.0, 0.1);
         let c0 = Vec3::zeros();
         let mut est = Estimator::new(model(tau, taup, t));
-        let s = |tt: f64| if tt < ramp { 0.5 * vmax / ramp * tt * tt } else { vmax * (tt - ramp / 2.0) };
+        let s = |tt: f64| {
+            if tt < ramp {
+                0.5 * vmax / ramp * tt * tt
+            } else {
+                vmax * (tt - ramp / 2.0)
+            }
+        };
         let pos = |tt: f64| {
             let th = s(tt.max(0.0)) / r;
             Vec3::new(r * th.cos(), r * th.sin(), 0.0)
@@ -196,9 +245,13 @@ mod tests {
         // a step of 600 mm/s²: a(t) = 600·(1 − (τ e^{−t/τ} − τp e^{−t/τp})/(τ − τp)).
         // (the path curvature adds only a radial part at these small angles).
         for (tt, e) in &at[10..] {
-            let exact = 600.0 * (1.0 - (tau * (-tt / tau).exp() - taup * (-tt / taup).exp()) / (tau - taup));
+            let exact = 600.0
+                * (1.0 - (tau * (-tt / tau).exp() - taup * (-tt / taup).exp()) / (tau - taup));
             let a_t = e.acc.dot(&(Vec3::z().cross(&(e.pos - c0)).normalize()));
-            assert!((a_t - exact).abs() < 0.02 * 600.0, "t={tt}: {a_t} vs {exact}");
+            assert!(
+                (a_t - exact).abs() < 0.02 * 600.0,
+                "t={tt}: {a_t} vs {exact}"
+            );
         }
     }
 }

@@ -94,7 +94,10 @@ struct Parser<'a> {
 
 impl<'a> Parser<'a> {
     fn err<T>(&self, msg: impl Into<String>) -> Result<T, ExprError> {
-        Err(ExprError { pos: self.pos, msg: msg.into() })
+        Err(ExprError {
+            pos: self.pos,
+            msg: msg.into(),
+        })
     }
     fn ws(&mut self) {
         while self.pos < self.s.len() && self.s[self.pos].is_ascii_whitespace() {
@@ -173,13 +176,18 @@ impl<'a> Parser<'a> {
             }
             Some(c) if c.is_ascii_digit() || c == b'.' => {
                 let start = self.pos;
-                while self.pos < self.s.len() && (self.s[self.pos].is_ascii_digit() || self.s[self.pos] == b'.') {
+                while self.pos < self.s.len()
+                    && (self.s[self.pos].is_ascii_digit() || self.s[self.pos] == b'.')
+                {
                     self.pos += 1;
                 }
-                if self.pos < self.s.len() && (self.s[self.pos] == b'e' || self.s[self.pos] == b'E') {
+                if self.pos < self.s.len() && (self.s[self.pos] == b'e' || self.s[self.pos] == b'E')
+                {
                     let save = self.pos;
                     self.pos += 1;
-                    if self.pos < self.s.len() && (self.s[self.pos] == b'+' || self.s[self.pos] == b'-') {
+                    if self.pos < self.s.len()
+                        && (self.s[self.pos] == b'+' || self.s[self.pos] == b'-')
+                    {
                         self.pos += 1;
                     }
                     if self.pos < self.s.len() && self.s[self.pos].is_ascii_digit() {
@@ -196,15 +204,22 @@ impl<'a> Parser<'a> {
                         self.ops.push(Op::Num(v));
                         Ok(())
                     }
-                    Err(_) => Err(ExprError { pos: start, msg: format!("bad number '{text}'") }),
+                    Err(_) => Err(ExprError {
+                        pos: start,
+                        msg: format!("bad number '{text}'"),
+                    }),
                 }
             }
             Some(c) if c.is_ascii_alphabetic() || c == b'_' => {
                 let start = self.pos;
-                while self.pos < self.s.len() && (self.s[self.pos].is_ascii_alphanumeric() || self.s[self.pos] == b'_') {
+                while self.pos < self.s.len()
+                    && (self.s[self.pos].is_ascii_alphanumeric() || self.s[self.pos] == b'_')
+                {
                     self.pos += 1;
                 }
-                let name = std::str::from_utf8(&self.s[start..self.pos]).unwrap_or("").to_string();
+                let name = std::str::from_utf8(&self.s[start..self.pos])
+                    .unwrap_or("")
+                    .to_string();
                 if self.eat(b'(') {
                     self.expr()?;
                     let two = self.eat(b',');
@@ -217,8 +232,18 @@ impl<'a> Parser<'a> {
                     match (two, func1(&name), func2(&name)) {
                         (false, Some(f), _) => self.ops.push(Op::F1(f)),
                         (true, _, Some(f)) => self.ops.push(Op::F2(f)),
-                        (_, None, None) => return Err(ExprError { pos: start, msg: format!("unknown function '{name}'") }),
-                        _ => return Err(ExprError { pos: start, msg: format!("wrong number of arguments to '{name}'") }),
+                        (_, None, None) => {
+                            return Err(ExprError {
+                                pos: start,
+                                msg: format!("unknown function '{name}'"),
+                            })
+                        }
+                        _ => {
+                            return Err(ExprError {
+                                pos: start,
+                                msg: format!("wrong number of arguments to '{name}'"),
+                            })
+                        }
                     }
                     return Ok(());
                 }
@@ -246,7 +271,12 @@ impl<'a> Parser<'a> {
 impl Expr {
     /// Parses and compiles.
     pub fn parse(src: &str) -> Result<Expr, ExprError> {
-        let mut p = Parser { s: src.as_bytes(), pos: 0, ops: vec![], vars: vec![] };
+        let mut p = Parser {
+            s: src.as_bytes(),
+            pos: 0,
+            ops: vec![],
+            vars: vec![],
+        };
         p.expr()?;
         if p.peek().is_some() {
             return p.err("unexpected text after the expression");
@@ -261,7 +291,11 @@ impl Expr {
             }
             max = max.max(d);
         }
-        Ok(Expr { ops: p.ops, depth: max, vars: p.vars })
+        Ok(Expr {
+            ops: p.ops,
+            depth: max,
+            vars: p.vars,
+        })
     }
 
     /// Evaluates with variable values by slot (`vars[i]` for `self.vars[i]`).
@@ -312,7 +346,11 @@ mod tests {
 
     fn ev(s: &str, vars: &[(&str, f64)]) -> f64 {
         let e = Expr::parse(s).unwrap();
-        let v: Vec<f64> = e.vars.iter().map(|n| vars.iter().find(|(k, _)| k == n).unwrap().1).collect();
+        let v: Vec<f64> = e
+            .vars
+            .iter()
+            .map(|n| vars.iter().find(|(k, _)| k == n).unwrap().1)
+            .collect();
         e.eval(&v)
     }
 

@@ -53,7 +53,13 @@ pub struct Judge {
 
 impl Judge {
     /// A judge with validated filter sections and limits.
-    pub fn new(sections: Vec<Coefficients>, threshold: f64, clear_fraction: f64, raise_samples: u32, clear_samples: u32) -> Judge {
+    pub fn new(
+        sections: Vec<Coefficients>,
+        threshold: f64,
+        clear_fraction: f64,
+        raise_samples: u32,
+        clear_samples: u32,
+    ) -> Judge {
         Judge {
             sections,
             threshold,
@@ -70,7 +76,14 @@ impl Judge {
 
     /// Changes the limits (new calibration) keeping the filter history when the filter is
     /// unchanged.
-    pub fn reconfigure(&mut self, sections: Vec<Coefficients>, threshold: f64, clear_fraction: f64, raise: u32, clear: u32) {
+    pub fn reconfigure(
+        &mut self,
+        sections: Vec<Coefficients>,
+        threshold: f64,
+        clear_fraction: f64,
+        raise: u32,
+        clear: u32,
+    ) {
         if sections != self.sections {
             self.sections = sections;
             self.restart();
@@ -94,7 +107,14 @@ impl Judge {
 
     /// Feeds one scale sample and the estimated acceleration at the same time. `judge` is
     /// false while the estimate is known to be settling (no raising then).
-    pub fn update(&mut self, t_ns: i64, scale: Vec3, a_est: Vec3, judge: bool, out: &mut impl FnMut(Transition)) {
+    pub fn update(
+        &mut self,
+        t_ns: i64,
+        scale: Vec3,
+        a_est: Vec3,
+        judge: bool,
+        out: &mut impl FnMut(Transition),
+    ) {
         self.hist = [self.hist[1], self.hist[2], (t_ns, scale)];
         self.a_est = [self.a_est[1], self.a_est[2], a_est];
         self.n_hist = (self.n_hist + 1).min(3);
@@ -126,18 +146,36 @@ impl Judge {
             }
             let d = (e - m).abs();
             if !st.raised {
-                st.above = if judge && d > self.threshold { st.above + 1 } else { 0 };
+                st.above = if judge && d > self.threshold {
+                    st.above + 1
+                } else {
+                    0
+                };
                 if st.above >= self.raise_samples {
                     st.raised = true;
                     st.below = 0;
-                    out(Transition { axis: Axis::ALL[i], raised: true, estimated: e, measured: m });
+                    out(Transition {
+                        axis: Axis::ALL[i],
+                        raised: true,
+                        estimated: e,
+                        measured: m,
+                    });
                 }
             } else {
-                st.below = if d < self.clear_level { st.below + 1 } else { 0 };
+                st.below = if d < self.clear_level {
+                    st.below + 1
+                } else {
+                    0
+                };
                 if st.below >= self.clear_samples {
                     st.raised = false;
                     st.above = 0;
-                    out(Transition { axis: Axis::ALL[i], raised: false, estimated: e, measured: m });
+                    out(Transition {
+                        axis: Axis::ALL[i],
+                        raised: false,
+                        estimated: e,
+                        measured: m,
+                    });
                 }
             }
         }
@@ -163,9 +201,13 @@ mod tests {
             let a_true = 200.0 + if (500..700).contains(&k) { 600.0 } else { 0.0 };
             v += a_true * dt;
             x += v * dt;
-            j.update((k as i64) * 1_000_000, Vec3::new(x, 0.0, 0.0), Vec3::new(200.0, 0.0, 0.0), true, &mut |t| {
-                events.push((k, t))
-            });
+            j.update(
+                (k as i64) * 1_000_000,
+                Vec3::new(x, 0.0, 0.0),
+                Vec3::new(200.0, 0.0, 0.0),
+                true,
+                &mut |t| events.push((k, t)),
+            );
         }
         assert_eq!(events.len(), 2, "{events:?}");
         let (k_up, up) = events[0];
@@ -184,10 +226,18 @@ mod tests {
         // Deterministic pseudo-noise of 0.2 µm on a still axis (plus 0.1 µm quantisation).
         let mut s: u64 = 12345;
         for k in 0..20_000 {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let u = ((s >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * 0.35e-3;
             let q = (u / 1e-4).round() * 1e-4;
-            j.update(k * 1_000_000, Vec3::new(q, 0.0, 0.0), Vec3::zeros(), true, &mut |_| n += 1);
+            j.update(
+                k * 1_000_000,
+                Vec3::new(q, 0.0, 0.0),
+                Vec3::zeros(),
+                true,
+                &mut |_| n += 1,
+            );
         }
         assert_eq!(n, 0);
     }

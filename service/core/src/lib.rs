@@ -31,6 +31,7 @@ pub mod judge;
 pub mod sample;
 pub mod stylus;
 pub mod transfer;
+pub mod wire;
 
 pub use calib::{CalibError, Calibration};
 pub use corrector::{Corrector, DropReason, Output, Stats};

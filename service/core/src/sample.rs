@@ -148,8 +148,12 @@ pub enum StreamId {
 
 impl StreamId {
     /// All four, in index order.
-    pub const ALL: [StreamId; 4] =
-        [StreamId::Command, StreamId::Scale, StreamId::Probe, StreamId::Temperature];
+    pub const ALL: [StreamId; 4] = [
+        StreamId::Command,
+        StreamId::Scale,
+        StreamId::Probe,
+        StreamId::Temperature,
+    ];
     /// Lower-case name.
     pub fn name(self) -> &'static str {
         ["command", "scale", "probe", "temperature"][self as usize]

@@ -47,7 +47,8 @@ impl TipGeometry {
     /// Bent part of the offset in probe axes.
     pub fn bent_probe(&self) -> Vec3 {
         let (b1, b2) = (self.beta1_deg.to_radians(), self.beta2_deg.to_radians());
-        self.l2_mm * Vec3::new(b1.sin(), 0.0, -b1.cos()) + self.l3_mm * Vec3::new(0.0, b2.sin(), -b2.cos())
+        self.l2_mm * Vec3::new(b1.sin(), 0.0, -b1.cos())
+            + self.l3_mm * Vec3::new(0.0, b2.sin(), -b2.cos())
     }
     /// Checks every number; `field` prefixes the message.
     pub fn validate(&self, field: &str) -> Result<(), String> {
@@ -109,7 +110,11 @@ mod tests {
         let r = machine_from_probe(0.0, 90.0);
         assert!((r * tip.shank_probe() - Vec3::new(0.0, 50.0, 0.0)).norm() < 1e-12);
         // 45° bend: l2 (sin45, 0, −cos45).
-        let t45 = TipGeometry { beta1_deg: 45.0, l1_mm: 0.0, ..tip };
+        let t45 = TipGeometry {
+            beta1_deg: 45.0,
+            l1_mm: 0.0,
+            ..tip
+        };
         let h = 20.0 / 2f64.sqrt();
         assert!((t45.bent_probe() - Vec3::new(h, 0.0, -h)).norm() < 1e-12);
     }

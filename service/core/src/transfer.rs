@@ -68,14 +68,23 @@ impl TransferFunction {
     pub fn rational(&self) -> Result<Rational, TransferError> {
         let bad = |m: &str| Err(TransferError::Invalid(m.to_string()));
         match self {
-            TransferFunction::Unity => Ok(Rational { num: vec![1.0], den: vec![1.0] }),
+            TransferFunction::Unity => Ok(Rational {
+                num: vec![1.0],
+                den: vec![1.0],
+            }),
             TransferFunction::FirstOrder { tau_s } => {
                 if !(tau_s.is_finite() && *tau_s > 0.0) {
                     return bad("tau_s must be a finite number > 0");
                 }
-                Ok(Rational { num: vec![1.0], den: vec![*tau_s, 1.0] })
+                Ok(Rational {
+                    num: vec![1.0],
+                    den: vec![*tau_s, 1.0],
+                })
             }
-            TransferFunction::SecondOrder { natural_freq_hz, damping } => {
+            TransferFunction::SecondOrder {
+                natural_freq_hz,
+                damping,
+            } => {
                 if !(natural_freq_hz.is_finite() && *natural_freq_hz > 0.0) {
                     return bad("natural_freq_hz must be a finite number > 0");
                 }
@@ -83,7 +92,10 @@ impl TransferFunction {
                     return bad("damping must be a finite number > 0");
                 }
                 let wn = 2.0 * std::f64::consts::PI * natural_freq_hz;
-                Ok(Rational { num: vec![wn * wn], den: vec![1.0, 2.0 * damping * wn, wn * wn] })
+                Ok(Rational {
+                    num: vec![wn * wn],
+                    den: vec![1.0, 2.0 * damping * wn, wn * wn],
+                })
             }
             TransferFunction::Rational { num, den } => {
                 if num.iter().chain(den.iter()).any(|c| !c.is_finite()) {
@@ -117,7 +129,10 @@ fn trim(p: &[f64]) -> Vec<f64> {
 impl Rational {
     /// Product of two transfer functions.
     pub fn mul(&self, o: &Rational) -> Rational {
-        Rational { num: polymul(&self.num, &o.num), den: polymul(&self.den, &o.den) }
+        Rational {
+            num: polymul(&self.num, &o.num),
+            den: polymul(&self.den, &o.den),
+        }
     }
     /// Order (denominator degree).
     pub fn order(&self) -> usize {
@@ -268,7 +283,11 @@ impl Discrete {
         out.cab = (&ca * &b)[(0, 0)];
         // Stability and settling from the discrete poles.
         let phi = e.view((0, 0), (n, n)).into_owned();
-        let rho = phi.complex_eigenvalues().iter().map(|z| z.norm()).fold(0.0, f64::max);
+        let rho = phi
+            .complex_eigenvalues()
+            .iter()
+            .map(|z| z.norm())
+            .fold(0.0, f64::max);
         if !(rho < 1.0) {
             return Err(TransferError::Invalid(
                 "the model is not stable (a pole in the right half-plane or on the axis)".into(),
@@ -276,7 +295,9 @@ impl Discrete {
         }
         let dc: f64 = (0..n).map(|i| out.c[i] * out.xss[i]).sum::<f64>() + out.d;
         if (dc - 1.0).abs() > 1e-6 {
-            return Err(TransferError::Invalid(format!("static gain is {dc}, expected 1")));
+            return Err(TransferError::Invalid(format!(
+                "static gain is {dc}, expected 1"
+            )));
         }
         out.settle_samples = ((1e-4f64).ln() / rho.max(1e-300).ln()).ceil().max(1.0) as u64;
         Ok(out)
@@ -332,7 +353,13 @@ mod tests {
     use super::*;
 
     fn first(tau: f64, t: f64) -> Discrete {
-        Discrete::new(&TransferFunction::FirstOrder { tau_s: tau }.rational().unwrap(), t).unwrap()
+        Discrete::new(
+            &TransferFunction::FirstOrder { tau_s: tau }
+                .rational()
+                .unwrap(),
+            t,
+        )
+        .unwrap()
     }
 
     #[test]
@@ -365,7 +392,11 @@ mod tests {
             let exact = v * (tk - tau + tau * (-tk / tau).exp());
             assert!((o.y - exact).abs() < 1e-10, "k={k}: {} vs {exact}", o.y);
             let exact_dy = v * (1.0 - (-tk / tau).exp());
-            assert!((o.dy - exact_dy).abs() < 1e-9 * v.max(1.0), "k={k}: {} vs {exact_dy}", o.dy);
+            assert!(
+                (o.dy - exact_dy).abs() < 1e-9 * v.max(1.0),
+                "k={k}: {} vs {exact_dy}",
+                o.dy
+            );
         }
         // After 20 τ the lag is v τ.
         let tk = 200.0 * t;
@@ -377,7 +408,10 @@ mod tests {
     fn second_order_derivatives_match_closed_form() {
         // Step response of an underdamped second-order system and its derivatives.
         let (fnat, zeta, t) = (25.0, 0.5, 0.0005);
-        let g = TransferFunction::SecondOrder { natural_freq_hz: fnat, damping: zeta };
+        let g = TransferFunction::SecondOrder {
+            natural_freq_hz: fnat,
+            damping: zeta,
+        };
         let d = Discrete::new(&g.rational().unwrap(), t).unwrap();
         let mut s = d.steady(0.0);
         // Use a ramp input (exact under first-order hold): u = t.
@@ -389,7 +423,8 @@ mod tests {
             // Ramp response: y = t − 2ζ/ωn + e^{−ζωn t}(2ζ/ωn cos ωd t + (2ζ²−1)/ωd sin ωd t)
             let e = (-zeta * wn * tk).exp();
             let y = tk - 2.0 * zeta / wn
-                + e * (2.0 * zeta / wn * (wd * tk).cos() + (2.0 * zeta * zeta - 1.0) / wd * (wd * tk).sin());
+                + e * (2.0 * zeta / wn * (wd * tk).cos()
+                    + (2.0 * zeta * zeta - 1.0) / wd * (wd * tk).sin());
             // ÿ equals the impulse response h(t) = ωn²/ωd e^{−ζωn t} sin ωd t.
             let h = wn * wn / wd * e * (wd * tk).sin();
             assert!((o.y - y).abs() < 1e-10, "k={k}: {} vs {y}", o.y);
@@ -399,23 +434,40 @@ mod tests {
 
     #[test]
     fn product_and_validation() {
-        let g1 = TransferFunction::FirstOrder { tau_s: 0.01 }.rational().unwrap();
-        let g2 = TransferFunction::FirstOrder { tau_s: 0.002 }.rational().unwrap();
+        let g1 = TransferFunction::FirstOrder { tau_s: 0.01 }
+            .rational()
+            .unwrap();
+        let g2 = TransferFunction::FirstOrder { tau_s: 0.002 }
+            .rational()
+            .unwrap();
         let g = g1.mul(&g2);
         assert_eq!(g.order(), 2);
         let d = Discrete::new(&g, 0.001).unwrap();
         assert_eq!(d.n, 2);
-        assert!(d.settle_samples > 50 && d.settle_samples < 200, "{}", d.settle_samples);
+        assert!(
+            d.settle_samples > 50 && d.settle_samples < 200,
+            "{}",
+            d.settle_samples
+        );
         for bad in [
             TransferFunction::FirstOrder { tau_s: -1.0 },
             TransferFunction::FirstOrder { tau_s: f64::NAN },
-            TransferFunction::Rational { num: vec![2.0], den: vec![1.0, 1.0] },
-            TransferFunction::Rational { num: vec![1.0, 0.0, 1.0], den: vec![1.0, 1.0] },
+            TransferFunction::Rational {
+                num: vec![2.0],
+                den: vec![1.0, 1.0],
+            },
+            TransferFunction::Rational {
+                num: vec![1.0, 0.0, 1.0],
+                den: vec![1.0, 1.0],
+            },
         ] {
             assert!(bad.rational().is_err(), "{bad:?}");
         }
         // Unstable: s² − s + 1 (static gain 1) is refused at discretisation.
-        let unstable = TransferFunction::Rational { num: vec![1.0], den: vec![1.0, -1.0, 1.0] };
+        let unstable = TransferFunction::Rational {
+            num: vec![1.0],
+            den: vec![1.0, -1.0, 1.0],
+        };
         assert!(Discrete::new(&unstable.rational().unwrap(), 0.001).is_err());
         let unity = Discrete::new(&TransferFunction::Unity.rational().unwrap(), 0.001).unwrap();
         let mut s = unity.steady(3.0);

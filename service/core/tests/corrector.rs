@@ -20,12 +20,16 @@ fn ring_streams(n: usize, ring_r: f64, tip_r: f64, defl: f64) -> [Vec<Sample>; 4
         let t = k as f64 * 1e-3;
         // Dwell 50 ms, then speed ramps to 40 mm/s over 100 ms.
         let tt = (t - 0.05).max(0.0);
-        let s = if tt < 0.1 { 200.0 * tt * tt } else { 40.0 * (tt - 0.05) };
+        let s = if tt < 0.1 {
+            200.0 * tt * tt
+        } else {
+            40.0 * (tt - 0.05)
+        };
         let th = s / path_r;
         let dir = Vec3::new(th.cos(), th.sin(), 0.0);
         let tip_center = c + dir * path_r;
         let d_machine = -dir * defl; // the wall pushes the tip towards the centre
-        // The command pushes past the wall by the deflection.
+                                     // The command pushes past the wall by the deflection.
         let commanded = tip_center - offset + dir * defl;
         let scale = tip_center - offset - d_machine;
         cmd.push(Sample::Command(CommandSample {
@@ -36,7 +40,11 @@ fn ring_streams(n: usize, ring_r: f64, tip_r: f64, defl: f64) -> [Vec<Sample>; 4
             arc_radius: path_r + defl,
             segment_id: 1,
         }));
-        sc.push(Sample::Scale(ScaleSample { seq: k as u64, t_ns: k as i64 * T_NS, pos: scale }));
+        sc.push(Sample::Scale(ScaleSample {
+            seq: k as u64,
+            t_ns: k as i64 * T_NS,
+            pos: scale,
+        }));
         pr.push(Sample::Probe(ProbeSample {
             seq: k as u64,
             t_ns: k as i64 * T_NS,
@@ -63,7 +71,11 @@ fn calibration() -> Calibration {
     ad.p[0] = [[2e-6, 1e-7, 0.0], [0.0, 3e-6, 0.0], [0.0, 0.0, 1e-6]];
     ad.p[1][0][0] = 1e-6;
     c.effects.push(EffectConfig::AccelDeflection(ad));
-    c.effects.push(EffectConfig::StylusThermal(stylus_thermal::Config { alpha_shank_per_k: 11.5e-6, ..stylus_thermal::Config::zeros(false) }));
+    c.effects
+        .push(EffectConfig::StylusThermal(stylus_thermal::Config {
+            alpha_shank_per_k: 11.5e-6,
+            ..stylus_thermal::Config::zeros(false)
+        }));
     c
 }
 
@@ -110,14 +122,18 @@ fn effects_are_applied_and_reported_per_effect() {
     let mut out = Output::default();
     corr.push_all(time_ordered(&streams), &mut out);
     corr.flush(&mut out);
-    assert_eq!(corr.effect_ids(), vec!["accel_deflection", "stylus_thermal"]);
+    assert_eq!(
+        corr.effect_ids(),
+        vec!["accel_deflection", "stylus_thermal"]
+    );
     // Temperatures start 300 ms before the motion; the first point uses the reading at
     // t − 200 ms, so every point is produced.
     assert_eq!(out.points.len(), 1500, "{:?}", corr.stats());
     let mut checked = 0;
     for (p, ctx) in out.points.iter().zip(&out.contexts) {
         let p_mat = nalgebra::Matrix3::new(2e-6, 1e-7, 0.0, 0.0, 3e-6, 0.0, 0.0, 0.0, 1e-6)
-            + nalgebra::Matrix3::new(1e-6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0) * (ctx.scale.x / 500.0);
+            + nalgebra::Matrix3::new(1e-6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+                * (ctx.scale.x / 500.0);
         let expect = p_mat * ctx.est_acc;
         assert!((p.corrections[0] - expect).norm() < 1e-15);
         let dt = ctx.temps[0] - 20.0;
@@ -138,7 +154,10 @@ fn bad_input_is_counted_never_interpolated_across() {
     let [cmd, sc, pr, tp] = ring_streams(1000, 25.0, 1.5, 0.3);
     let mut samples: Vec<Sample> = vec![];
     // Command gap: samples 400..410 missing → scale points 400..409 dropped (gap of 11 periods).
-    let cmd: Vec<Sample> = cmd.into_iter().filter(|s| !(400..410).contains(&(s.t_ns() / T_NS))).collect();
+    let cmd: Vec<Sample> = cmd
+        .into_iter()
+        .filter(|s| !(400..410).contains(&(s.t_ns() / T_NS)))
+        .collect();
     // Probe: one sample with NaN, one duplicate of sample 600.
     let mut pr2 = vec![];
     for s in pr {
@@ -182,14 +201,20 @@ fn bad_input_is_counted_never_interpolated_across() {
     assert_eq!(st.seq_gaps[1], 1);
     // Probe 700 missing: its neighbours 699 and 701 are 2 periods apart (< 2.5): interpolated.
     assert_eq!(out.points.len(), 990);
-    assert!(out.points.iter().all(|p| !(400..410).contains(&(p.t_ns / T_NS))));
+    assert!(out
+        .points
+        .iter()
+        .all(|p| !(400..410).contains(&(p.t_ns / T_NS))));
     // After the command gap the estimator restarts: its points are flagged until settled.
     let after: Vec<_> = out.points.iter().filter(|p| p.t_ns / T_NS >= 410).collect();
     assert!(!after[0].estimator_valid);
     assert!(after.last().unwrap().estimator_valid);
     // Every surface point still on the ring (no interpolation across the gap).
     let c = Vec3::new(300.0, 200.0, -100.0);
-    assert!(out.points.iter().all(|p| ((p.surface - c).norm() - 25.0).abs() < 1e-6));
+    assert!(out
+        .points
+        .iter()
+        .all(|p| ((p.surface - c).norm() - 25.0).abs() < 1e-6));
 }
 
 #[test]
@@ -229,7 +254,9 @@ fn calibration_switch_mid_stream_loses_nothing() {
     // Temperatures are needed only from the switch on; the stream has them.
     assert_eq!(out.points.len(), 1000, "{:?}", corr.stats());
     assert!(out.points[..n1].iter().all(|p| p.calibration_version == 1));
-    assert!(out.points[n1..].iter().all(|p| p.calibration_version == 2 && p.corrections.len() == 2));
+    assert!(out.points[n1..]
+        .iter()
+        .all(|p| p.calibration_version == 2 && p.corrections.len() == 2));
     // Same nominal model: the estimator kept running, points stay valid.
     assert!(out.points[n1..].iter().all(|p| p.estimator_valid));
 }
@@ -283,7 +310,10 @@ fn judgement_raises_once_on_a_collision_and_clears() {
     cal.nominal.axes.x = scancorr_core::transfer::TransferFunction::Unity;
     cal.nominal.axes.y = scancorr_core::transfer::TransferFunction::Unity;
     cal.nominal.axes.z = scancorr_core::transfer::TransferFunction::Unity;
-    cal.nominal.probes.insert("sp25".into(), scancorr_core::transfer::TransferFunction::Unity);
+    cal.nominal.probes.insert(
+        "sp25".into(),
+        scancorr_core::transfer::TransferFunction::Unity,
+    );
     let (out, st) = run(&cal, all);
     // One episode: raised once on each axis that saw it, cleared once on each.
     let raised: Vec<_> = out.alarms.iter().filter(|a| a.raised).collect();
@@ -292,12 +322,18 @@ fn judgement_raises_once_on_a_collision_and_clears() {
     assert_eq!(st.alarms_raised as usize, raised.len());
     for axis in Axis::ALL {
         assert!(raised.iter().filter(|a| a.axis == axis).count() <= 1);
-        assert_eq!(raised.iter().filter(|a| a.axis == axis).count(), cleared.iter().filter(|a| a.axis == axis).count());
+        assert_eq!(
+            raised.iter().filter(|a| a.axis == axis).count(),
+            cleared.iter().filter(|a| a.axis == axis).count()
+        );
     }
     let onset = raised[0].t_ns / T_NS;
     assert!((600..650).contains(&onset), "raised at {onset} ms");
     assert!(cleared.iter().all(|a| a.t_ns > raised[0].t_ns));
     // Points during the episode are flagged.
-    assert!(out.points.iter().any(|p| !p.estimator_valid && p.t_ns / T_NS > 600));
+    assert!(out
+        .points
+        .iter()
+        .any(|p| !p.estimator_valid && p.t_ns / T_NS > 600));
     let _ = PI;
 }

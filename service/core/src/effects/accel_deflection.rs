@@ -41,8 +41,16 @@ pub struct Model {
 impl Config {
     /// A zero-parameter model of the given structure.
     pub fn zeros(order: u8, diagonal: bool) -> Config {
-        let position = PositionBasis { order, ..Default::default() };
-        Config { id: None, position, diagonal, p: vec![[[0.0; 3]; 3]; position.len()] }
+        let position = PositionBasis {
+            order,
+            ..Default::default()
+        };
+        Config {
+            id: None,
+            position,
+            diagonal,
+            p: vec![[[0.0; 3]; 3]; position.len()],
+        }
     }
 
     /// Validates.
@@ -67,8 +75,16 @@ impl Config {
                 }
             }
         }
-        let p = self.p.iter().map(|m| nalgebra::Matrix3::from_fn(|i, j| m[i][j])).collect();
-        Ok(Model { basis: self.position, diagonal: self.diagonal, p })
+        let p = self
+            .p
+            .iter()
+            .map(|m| nalgebra::Matrix3::from_fn(|i, j| m[i][j]))
+            .collect();
+        Ok(Model {
+            basis: self.position,
+            diagonal: self.diagonal,
+            p,
+        })
     }
 
     fn index(&self) -> Vec<(usize, usize, usize)> {
@@ -86,7 +102,10 @@ impl Config {
     }
     /// Flat parameters.
     pub fn params(&self) -> Vec<f64> {
-        self.index().into_iter().map(|(m, i, j)| self.p[m][i][j]).collect()
+        self.index()
+            .into_iter()
+            .map(|(m, i, j)| self.p[m][i][j])
+            .collect()
     }
     /// Sets flat parameters.
     pub fn set_params(&mut self, v: &[f64]) {

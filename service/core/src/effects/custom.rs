@@ -31,7 +31,10 @@ pub const SIGNALS: [(&str, &str); 29] = [
     ("az", "estimated acceleration z, mm/s²"),
     ("acc", "estimated acceleration magnitude, mm/s²"),
     ("f", "rotation frequency on arcs, Hz"),
-    ("wz", "z component of the unit rotation axis (+1 CCW, −1 CW seen from +z)"),
+    (
+        "wz",
+        "z component of the unit rotation axis (+1 CCW, −1 CW seen from +z)",
+    ),
     ("cx", "arc centre x, mm"),
     ("cy", "arc centre y, mm"),
     ("cz", "arc centre z, mm"),
@@ -110,7 +113,11 @@ impl Config {
                 let s = if let Some(k) = SIGNALS.iter().position(|(n, _)| n == v) {
                     Sig::Builtin(k)
                 } else if let Some(sensor) = v.strip_prefix("T_") {
-                    Sig::Temp(sensors.slot(sensor).map_err(|e| format!("terms[{i}].expr: {e}"))?)
+                    Sig::Temp(
+                        sensors
+                            .slot(sensor)
+                            .map_err(|e| format!("terms[{i}].expr: {e}"))?,
+                    )
                 } else {
                     let known: Vec<&str> = SIGNALS.iter().map(|(n, _)| *n).collect();
                     return Err(format!(
@@ -122,7 +129,10 @@ impl Config {
             }
             terms.push((t.axis.index(), e, sigs));
         }
-        Ok(Model { terms, coef: self.coefficients.clone() })
+        Ok(Model {
+            terms,
+            coef: self.coefficients.clone(),
+        })
     }
 }
 
@@ -207,9 +217,18 @@ mod tests {
             id: "x_cyclic".into(),
             dynamic: false,
             terms: vec![
-                Term { axis: Axis::X, expr: "sin(2*pi*x/4)".into() },
-                Term { axis: Axis::X, expr: "cos(2*pi*x/4)".into() },
-                Term { axis: Axis::Y, expr: "sign(vy) * (T_air - 20)".into() },
+                Term {
+                    axis: Axis::X,
+                    expr: "sin(2*pi*x/4)".into(),
+                },
+                Term {
+                    axis: Axis::X,
+                    expr: "cos(2*pi*x/4)".into(),
+                },
+                Term {
+                    axis: Axis::Y,
+                    expr: "sign(vy) * (T_air - 20)".into(),
+                },
             ],
             coefficients: vec![1e-3, 2e-3, 5e-4],
         };
@@ -224,7 +243,14 @@ mod tests {
         let d = m.correction(&ctx);
         assert!((d - Vec3::new(1e-3, -1e-3, 0.0)).norm() < 1e-15, "{d:?}");
         assert_linear(&m, &EffectConfig::Custom(c.clone()), &ctx);
-        let bad = Config { terms: vec![Term { axis: Axis::X, expr: "sin(q)".into() }], coefficients: vec![0.0], ..c };
+        let bad = Config {
+            terms: vec![Term {
+                axis: Axis::X,
+                expr: "sin(q)".into(),
+            }],
+            coefficients: vec![0.0],
+            ..c
+        };
         let e = bad.build(&mut sensors).unwrap_err();
         assert!(e.contains("terms[0].expr") && e.contains("'q'"), "{e}");
     }

@@ -53,9 +53,22 @@ impl Config {
     /// the two perpendicular axes and (optionally) pitch.
     pub fn zeros(axis: Axis, lo: f64, hi: f64, n: usize, pitch: bool) -> Config {
         let n = n.max(2);
-        let knots_mm = (0..n).map(|j| lo + (hi - lo) * j as f64 / (n - 1) as f64).collect();
-        let straightness = Axis::ALL.iter().filter(|b| **b != axis).map(|b| (*b, vec![0.0; n])).collect();
-        Config { id: None, axis, knots_mm, straightness, pitch_rad: pitch.then(|| vec![0.0; n]), pitch_about: None }
+        let knots_mm = (0..n)
+            .map(|j| lo + (hi - lo) * j as f64 / (n - 1) as f64)
+            .collect();
+        let straightness = Axis::ALL
+            .iter()
+            .filter(|b| **b != axis)
+            .map(|b| (*b, vec![0.0; n]))
+            .collect();
+        Config {
+            id: None,
+            axis,
+            knots_mm,
+            straightness,
+            pitch_rad: pitch.then(|| vec![0.0; n]),
+            pitch_about: None,
+        }
     }
     fn pitch_axis(&self) -> Axis {
         self.pitch_about.unwrap_or(match self.axis {
@@ -77,10 +90,18 @@ impl Config {
         let mut straight = vec![];
         for (b, v) in &self.straightness {
             if *b == self.axis {
-                return Err(format!("straightness.{}: must be perpendicular to the axis {}", b.name(), self.axis.name()));
+                return Err(format!(
+                    "straightness.{}: must be perpendicular to the axis {}",
+                    b.name(),
+                    self.axis.name()
+                ));
             }
             if v.len() != n {
-                return Err(format!("straightness.{}: needs one value per knot ({n}), got {}", b.name(), v.len()));
+                return Err(format!(
+                    "straightness.{}: needs one value per knot ({n}), got {}",
+                    b.name(),
+                    v.len()
+                ));
             }
             check_finite(&format!("straightness.{}", b.name()), v)?;
             straight.push((b.index(), v.clone()));
@@ -89,20 +110,35 @@ impl Config {
             None => None,
             Some(v) => {
                 if v.len() != n {
-                    return Err(format!("pitch_rad: needs one value per knot ({n}), got {}", v.len()));
+                    return Err(format!(
+                        "pitch_rad: needs one value per knot ({n}), got {}",
+                        v.len()
+                    ));
                 }
                 check_finite("pitch_rad", v)?;
                 Some((self.pitch_axis().unit(), v.clone()))
             }
         };
         if straight.is_empty() && pitch.is_none() {
-            return Err("straightness: give straightness towards a perpendicular axis or pitch_rad".into());
+            return Err(
+                "straightness: give straightness towards a perpendicular axis or pitch_rad".into(),
+            );
         }
-        Ok(Model { axis: self.axis.index(), knots: self.knots_mm.clone(), straight, pitch })
+        Ok(Model {
+            axis: self.axis.index(),
+            knots: self.knots_mm.clone(),
+            straight,
+            pitch,
+        })
     }
     /// Flat parameters: straightness tables in axis order, then pitch.
     pub fn params(&self) -> Vec<f64> {
-        self.straightness.values().flatten().chain(self.pitch_rad.iter().flatten()).copied().collect()
+        self.straightness
+            .values()
+            .flatten()
+            .chain(self.pitch_rad.iter().flatten())
+            .copied()
+            .collect()
     }
     /// Sets flat parameters.
     pub fn set_params(&mut self, v: &[f64]) {
@@ -119,10 +155,18 @@ impl Config {
         let mut v = vec![];
         let a = self.axis.name();
         for b in self.straightness.keys() {
-            v.extend(self.knots_mm.iter().map(|k| format!("straightness {a}→{} at {a}={k} (mm)", b.name())));
+            v.extend(
+                self.knots_mm
+                    .iter()
+                    .map(|k| format!("straightness {a}→{} at {a}={k} (mm)", b.name())),
+            );
         }
         if self.pitch_rad.is_some() {
-            v.extend(self.knots_mm.iter().map(|k| format!("pitch at {a}={k} (rad)")));
+            v.extend(
+                self.knots_mm
+                    .iter()
+                    .map(|k| format!("pitch at {a}={k} (rad)")),
+            );
         }
         v
     }
@@ -187,7 +231,8 @@ mod tests {
     #[test]
     fn hand_computed_straightness_and_abbe() {
         let mut c = Config::zeros(Axis::X, 0.0, 400.0, 5, true); // knots 0,100,…,400
-        c.straightness.insert(Axis::Y, vec![0.0, 1e-3, 2e-3, 0.0, 0.0]);
+        c.straightness
+            .insert(Axis::Y, vec![0.0, 1e-3, 2e-3, 0.0, 0.0]);
         c.straightness.remove(&Axis::Z);
         c.pitch_rad = Some(vec![0.0, 0.0, 1e-5, 3e-5, 0.0]);
         let m = c.build().unwrap();
@@ -201,7 +246,10 @@ mod tests {
         assert_eq!(m.correction(&ctx), Vec3::zeros());
         ctx.scale.x = 400.0;
         assert_linear(&m, &EffectConfig::GuideStraightness(c), &ctx);
-        let bad = Config { knots_mm: vec![0.0, 0.0], ..Config::zeros(Axis::Y, 0.0, 1.0, 2, false) };
+        let bad = Config {
+            knots_mm: vec![0.0, 0.0],
+            ..Config::zeros(Axis::Y, 0.0, 1.0, 2, false)
+        };
         assert!(bad.build().unwrap_err().contains("increasing"));
     }
 }

@@ -89,7 +89,9 @@ impl SensorTable {
             return Ok(i);
         }
         if self.names.len() == MAX_SENSORS {
-            return Err(format!("more than {MAX_SENSORS} temperature sensors referenced"));
+            return Err(format!(
+                "more than {MAX_SENSORS} temperature sensors referenced"
+            ));
         }
         self.names.push(name.to_string());
         Ok(self.names.len() - 1)
@@ -148,7 +150,9 @@ impl EffectConfig {
     /// Dynamic effects depend on the estimated motion.
     pub fn is_dynamic(&self) -> bool {
         match self {
-            EffectConfig::AccelDeflection(_) | EffectConfig::ServoPhase(_) | EffectConfig::ServoGain(_) => true,
+            EffectConfig::AccelDeflection(_)
+            | EffectConfig::ServoPhase(_)
+            | EffectConfig::ServoGain(_) => true,
             EffectConfig::Custom(c) => c.dynamic,
             _ => false,
         }
@@ -167,7 +171,11 @@ impl EffectConfig {
             EffectConfig::GuideStraightness(c) => Box::new(c.build()?),
             EffectConfig::Custom(c) => Box::new(c.build(sensors)?),
         };
-        Ok(BuiltEffect { id: self.id(), dynamic: self.is_dynamic(), model })
+        Ok(BuiltEffect {
+            id: self.id(),
+            dynamic: self.is_dynamic(),
+            model,
+        })
     }
 
     /// The parameters as a flat vector (order of [`Self::param_names`]).
@@ -194,7 +202,11 @@ impl EffectConfig {
             EffectConfig::ScaleThermal(c) => c.param_names(),
             EffectConfig::ProbeForce(c) => c.param_names(),
             EffectConfig::GuideStraightness(c) => c.param_names(),
-            EffectConfig::Custom(c) => c.terms.iter().map(|t| format!("{}·[{}]", t.axis.name(), t.expr)).collect(),
+            EffectConfig::Custom(c) => c
+                .terms
+                .iter()
+                .map(|t| format!("{}·[{}]", t.axis.name(), t.expr))
+                .collect(),
         }
     }
 
@@ -202,7 +214,11 @@ impl EffectConfig {
     pub fn with_params(&self, p: &[f64]) -> Result<EffectConfig, String> {
         let n = self.params().len();
         if p.len() != n {
-            return Err(format!("{} takes {n} parameters, got {}", self.kind(), p.len()));
+            return Err(format!(
+                "{} takes {n} parameters, got {}",
+                self.kind(),
+                p.len()
+            ));
         }
         let mut c = self.clone();
         match &mut c {
@@ -240,7 +256,11 @@ fn default_scale() -> f64 {
 
 impl Default for PositionBasis {
     fn default() -> Self {
-        PositionBasis { order: 0, origin_mm: [0.0; 3], scale_mm: default_scale() }
+        PositionBasis {
+            order: 0,
+            origin_mm: [0.0; 3],
+            scale_mm: default_scale(),
+        }
     }
 }
 
@@ -277,7 +297,11 @@ impl PositionBasis {
             return 1;
         }
         let k = 1.0 / self.scale_mm;
-        let (x, y, z) = ((p.x - self.origin_mm[0]) * k, (p.y - self.origin_mm[1]) * k, (p.z - self.origin_mm[2]) * k);
+        let (x, y, z) = (
+            (p.x - self.origin_mm[0]) * k,
+            (p.y - self.origin_mm[1]) * k,
+            (p.z - self.origin_mm[2]) * k,
+        );
         out[1] = x;
         out[2] = y;
         out[3] = z;
@@ -315,7 +339,10 @@ pub(crate) mod testutil {
         e.regressors(ctx, &mut r);
         let sum: Vec3 = r.iter().zip(p.iter()).map(|(r, t)| r * *t).sum();
         let c = e.correction(ctx);
-        assert!((sum - c).norm() <= 1e-12 * (1.0 + c.norm()), "{sum:?} vs {c:?}");
+        assert!(
+            (sum - c).norm() <= 1e-12 * (1.0 + c.norm()),
+            "{sum:?} vs {c:?}"
+        );
         // Round trip of the parameters.
         let c2 = cfg.with_params(&p).unwrap();
         assert_eq!(&c2, cfg);

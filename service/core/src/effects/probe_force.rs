@@ -32,7 +32,10 @@ pub struct Model {
 impl Config {
     /// Zero-parameter model.
     pub fn zeros() -> Config {
-        Config { id: None, k: [0.0; 3] }
+        Config {
+            id: None,
+            k: [0.0; 3],
+        }
     }
     /// Validates.
     pub fn build(&self) -> Result<Model, String> {
@@ -49,7 +52,10 @@ impl Config {
     }
     /// Parameter names.
     pub fn param_names(&self) -> Vec<String> {
-        ["u", "v", "w"].iter().map(|a| format!("k_{a} (mm/mm)")).collect()
+        ["u", "v", "w"]
+            .iter()
+            .map(|a| format!("k_{a} (mm/mm)"))
+            .collect()
     }
 }
 
@@ -76,12 +82,15 @@ mod tests {
 
     #[test]
     fn hand_computed_force_correction() {
-        let c = Config { id: None, k: [0.02, 0.03, 0.0] };
+        let c = Config {
+            id: None,
+            k: [0.02, 0.03, 0.0],
+        };
         let m = c.build().unwrap();
         let mut ctx = PointContext::at_rest(Vec3::zeros());
         ctx.deflection_probe = Vec3::new(0.3, -0.1, 0.0);
         ctx.machine_from_probe = machine_from_probe(90.0, 0.0); // probe u → machine y, v → −x
-        // k⊙d = (0.006, −0.003, 0) → machine (0.003, 0.006, 0).
+                                                                // k⊙d = (0.006, −0.003, 0) → machine (0.003, 0.006, 0).
         let d = m.correction(&ctx);
         assert!((d - Vec3::new(0.003, 0.006, 0.0)).norm() < 1e-15, "{d:?}");
         assert_linear(&m, &EffectConfig::ProbeForce(c), &ctx);

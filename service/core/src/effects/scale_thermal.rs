@@ -69,7 +69,12 @@ impl Config {
         for (i, s) in self.sensors.iter().enumerate() {
             slots[i] = sensors.slot(s).map_err(|e| format!("sensors[{i}]: {e}"))?;
         }
-        Ok(Model { alpha: self.alpha_per_k, t_ref: self.reference_temp_c, slots, origin: self.origin_mm.into() })
+        Ok(Model {
+            alpha: self.alpha_per_k,
+            t_ref: self.reference_temp_c,
+            slots,
+            origin: self.origin_mm.into(),
+        })
     }
     /// Flat parameters.
     pub fn params(&self) -> Vec<f64> {
@@ -81,7 +86,10 @@ impl Config {
     }
     /// Parameter names.
     pub fn param_names(&self) -> Vec<String> {
-        ["x", "y", "z"].iter().map(|a| format!("alpha_{a} (1/K)")).collect()
+        ["x", "y", "z"]
+            .iter()
+            .map(|a| format!("alpha_{a} (1/K)"))
+            .collect()
     }
 }
 
@@ -99,7 +107,9 @@ impl Effect for Model {
     #[inline]
     fn correction(&self, ctx: &PointContext) -> Vec3 {
         Vec3::from_fn(|i, _| {
-            self.alpha[i] * (temp(ctx, self.slots[i], self.t_ref) - self.t_ref) * (ctx.scale[i] - self.origin[i])
+            self.alpha[i]
+                * (temp(ctx, self.slots[i], self.t_ref) - self.t_ref)
+                * (ctx.scale[i] - self.origin[i])
         })
     }
 }
@@ -112,7 +122,10 @@ mod tests {
     #[test]
     fn hand_computed_scale_expansion() {
         let mut sensors = SensorTable::default();
-        let c = Config { alpha_per_k: [10e-6, 11e-6, 0.0], ..Config::zeros() };
+        let c = Config {
+            alpha_per_k: [10e-6, 11e-6, 0.0],
+            ..Config::zeros()
+        };
         let m = c.build(&mut sensors).unwrap();
         let mut ctx = PointContext::at_rest(Vec3::new(400.0, -100.0, 50.0));
         ctx.temps[0] = 22.0;

@@ -48,9 +48,19 @@ pub struct Model {
 impl Config {
     /// Zero-parameter model.
     pub fn zeros(order: u8, powers: Vec<u32>) -> Config {
-        let position = PositionBasis { order, ..Default::default() };
+        let position = PositionBasis {
+            order,
+            ..Default::default()
+        };
         let n = position.len() * powers.len();
-        Config { id: None, position, powers, x: vec![0.0; n], y: vec![0.0; n], z: vec![0.0; n] }
+        Config {
+            id: None,
+            position,
+            powers,
+            x: vec![0.0; n],
+            y: vec![0.0; n],
+            z: vec![0.0; n],
+        }
     }
     /// Validates.
     pub fn build(&self) -> Result<Model, String> {
@@ -61,7 +71,10 @@ impl Config {
         let n = self.position.len() * self.powers.len();
         for (name, v) in [("x", &self.x), ("y", &self.y), ("z", &self.z)] {
             if v.len() != n {
-                return Err(format!("{name}: needs {n} coefficients (monomials × powers), got {}", v.len()));
+                return Err(format!(
+                    "{name}: needs {n} coefficients (monomials × powers), got {}",
+                    v.len()
+                ));
             }
             check_finite(name, v)?;
         }
@@ -73,7 +86,12 @@ impl Config {
     }
     /// Flat parameters x, y, z.
     pub fn params(&self) -> Vec<f64> {
-        self.x.iter().chain(&self.y).chain(&self.z).copied().collect()
+        self.x
+            .iter()
+            .chain(&self.y)
+            .chain(&self.z)
+            .copied()
+            .collect()
     }
     /// Sets flat parameters.
     pub fn set_params(&mut self, v: &[f64]) {

@@ -41,31 +41,55 @@ pub struct Model {
 impl Config {
     /// Zero-parameter model.
     pub fn zeros(order: u8) -> Config {
-        let position = PositionBasis { order, ..Default::default() };
-        Config { id: None, position, y: vec![[0.0; 3]; position.len()], z: vec![[0.0; 3]; position.len()] }
+        let position = PositionBasis {
+            order,
+            ..Default::default()
+        };
+        Config {
+            id: None,
+            position,
+            y: vec![[0.0; 3]; position.len()],
+            z: vec![[0.0; 3]; position.len()],
+        }
     }
     /// Validates.
     pub fn build(&self) -> Result<Model, String> {
         self.position.validate("position")?;
         for (name, v) in [("y", &self.y), ("z", &self.z)] {
             if v.len() != self.position.len() {
-                return Err(format!("{name}: needs {} coefficient triples, got {}", self.position.len(), v.len()));
+                return Err(format!(
+                    "{name}: needs {} coefficient triples, got {}",
+                    self.position.len(),
+                    v.len()
+                ));
             }
             for (m, b) in v.iter().enumerate() {
                 check_finite(&format!("{name}[{m}]"), b)?;
             }
         }
-        Ok(Model { basis: self.position, y: self.y.clone(), z: self.z.clone() })
+        Ok(Model {
+            basis: self.position,
+            y: self.y.clone(),
+            z: self.z.clone(),
+        })
     }
     /// Flat parameters: y then z, monomial-major, b0..b2.
     pub fn params(&self) -> Vec<f64> {
-        self.y.iter().chain(self.z.iter()).flat_map(|b| b.iter().copied()).collect()
+        self.y
+            .iter()
+            .chain(self.z.iter())
+            .flat_map(|b| b.iter().copied())
+            .collect()
     }
     /// Sets flat parameters.
     pub fn set_params(&mut self, v: &[f64]) {
         let n = self.y.len();
         for (k, x) in v.iter().enumerate() {
-            let (arr, idx) = if k < 3 * n { (&mut self.y, k) } else { (&mut self.z, k - 3 * n) };
+            let (arr, idx) = if k < 3 * n {
+                (&mut self.y, k)
+            } else {
+                (&mut self.z, k - 3 * n)
+            };
             arr[idx / 3][idx % 3] = *x;
         }
     }
@@ -113,7 +137,9 @@ impl Effect for Model {
     }
     #[inline]
     fn correction(&self, ctx: &PointContext) -> Vec3 {
-        let Some(l) = lever(ctx) else { return Vec3::zeros() };
+        let Some(l) = lever(ctx) else {
+            return Vec3::zeros();
+        };
         let mut mono = [0.0; 10];
         let n = self.basis.eval(&ctx.scale, &mut mono);
         let f = ctx.f_hz;

@@ -69,12 +69,21 @@ impl Config {
                 return Err(format!("{n}: must be a finite number"));
             }
         }
-        let slot = sensors.slot(&self.sensor).map_err(|e| format!("sensor: {e}"))?;
-        Ok(Model { a_s: self.alpha_shank_per_k, a_b: self.alpha_bent_per_k, t_ref: self.reference_temp_c, slot })
+        let slot = sensors
+            .slot(&self.sensor)
+            .map_err(|e| format!("sensor: {e}"))?;
+        Ok(Model {
+            a_s: self.alpha_shank_per_k,
+            a_b: self.alpha_bent_per_k,
+            t_ref: self.reference_temp_c,
+            slot,
+        })
     }
     /// Flat parameters.
     pub fn params(&self) -> Vec<f64> {
-        std::iter::once(self.alpha_shank_per_k).chain(self.alpha_bent_per_k).collect()
+        std::iter::once(self.alpha_shank_per_k)
+            .chain(self.alpha_bent_per_k)
+            .collect()
     }
     /// Sets flat parameters.
     pub fn set_params(&mut self, v: &[f64]) {
@@ -134,7 +143,11 @@ mod tests {
         };
         let r = machine_from_probe(90.0, 0.0);
         let mut sensors = SensorTable::default();
-        let c = Config { alpha_shank_per_k: 11.5e-6, alpha_bent_per_k: Some(23e-6), ..Config::zeros(true) };
+        let c = Config {
+            alpha_shank_per_k: 11.5e-6,
+            alpha_bent_per_k: Some(23e-6),
+            ..Config::zeros(true)
+        };
         let m = c.build(&mut sensors).unwrap();
         let mut ctx = PointContext::at_rest(Vec3::zeros());
         ctx.tip_shank = r * tip.shank_probe();
@@ -143,9 +156,15 @@ mod tests {
         ctx.temps_valid = 1;
         // ΔT = 3 K: shank 50·11.5e-6·3 = 1.725e-3 down, bent 20·23e-6·3 = 1.38e-3 along +y.
         let d = m.correction(&ctx);
-        assert!((d - Vec3::new(0.0, 1.38e-3, -1.725e-3)).norm() < 1e-15, "{d:?}");
+        assert!(
+            (d - Vec3::new(0.0, 1.38e-3, -1.725e-3)).norm() < 1e-15,
+            "{d:?}"
+        );
         assert_linear(&m, &EffectConfig::StylusThermal(c), &ctx);
-        let single = Config { alpha_shank_per_k: 1e-5, ..Config::zeros(false) };
+        let single = Config {
+            alpha_shank_per_k: 1e-5,
+            ..Config::zeros(false)
+        };
         let ms = single.build(&mut sensors).unwrap();
         assert!((ms.correction(&ctx) - Vec3::new(0.0, 20.0, -50.0) * 3e-5).norm() < 1e-15);
         assert_linear(&ms, &EffectConfig::StylusThermal(single), &ctx);

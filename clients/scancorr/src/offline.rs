@@ -1,0 +1,306 @@
+//! Bags in, the core, bags out: the offline path shared by `correct`, the lab and the tests.
+
+use anyhow::{bail, Context, Result};
+use scancorr_bag::{BagHeader, BagReader, BagWriter, Stream};
+use scancorr_core::wire;
+use scancorr_core::{Calibration, Corrector, Output, Sample, Stats};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Raw samples of one machine read from a bag, in the bag's (receive) order.
+pub struct BagInput {
+    /// The machine.
+    pub machine: String,
+    /// Samples with the log time of the message that carried them.
+    pub samples: Vec<(u64, Sample)>,
+    /// Metadata records (name, entries) in file order.
+    pub metadata: Vec<(String, BTreeMap<String, String>)>,
+    /// Messages that could not be decoded (malformed or empty).
+    pub bad_messages: u64,
+    /// Samples naming another machine inside this machine's channels.
+    pub foreign_samples: u64,
+    /// Warnings for the user (truncation, unknown channels).
+    pub warnings: Vec<String>,
+}
+
+/// Opens a bag and checks it holds the raw streams of `machine` (or of its only machine).
+pub fn open(path: &Path, machine: Option<&str>) -> Result<(BagReader, String, Vec<String>)> {
+    let reader =
+        BagReader::open(path).with_context(|| format!("reading bag {}", path.display()))?;
+    let mut warnings = vec![];
+    if let Some(t) = reader.truncation() {
+        warnings.push(format!(
+            "{}: the bag is cut short ({}); reading the {} of {} bytes that form complete chunks",
+            path.display(),
+            t.reason,
+            t.readable_len,
+            t.file_len
+        ));
+    }
+    for u in reader.unknown_channels() {
+        warnings.push(format!(
+            "{}: skipping channel `{}` (not a scancorr stream)",
+            path.display(),
+            u.topic
+        ));
+    }
+    let machines: Vec<String> = reader
+        .machines()
+        .into_iter()
+        .map(|s| s.to_string())
+        .collect();
+    let machine = match machine {
+        Some(m) => {
+            if !machines.iter().any(|x| x == m) {
+                bail!(
+                    "{}: no streams of machine `{m}` in this bag (it holds: {})",
+                    path.display(),
+                    list(&machines)
+                );
+            }
+            m.to_string()
+        }
+        None => match machines.as_slice() {
+            [one] => one.clone(),
+            [] => bail!("{}: the bag has no scancorr streams", path.display()),
+            many => bail!(
+                "{}: the bag holds several machines ({}); name one",
+                path.display(),
+                many.join(", ")
+            ),
+        },
+    };
+    for s in [Stream::Command, Stream::Scale, Stream::Probe] {
+        if reader.channel(&machine, s).is_none() {
+            bail!(
+                "{}: missing channel `{}` for machine `{machine}`",
+                path.display(),
+                s.key(reader.prefix(), &machine)
+            );
+        }
+    }
+    Ok((reader, machine, warnings))
+}
+
+fn list(v: &[String]) -> String {
+    if v.is_empty() {
+        "none".into()
+    } else {
+        v.join(", ")
+    }
+}
+
+/// Reads every raw sample of `machine` from a bag.
+pub fn read(path: &Path, machine: Option<&str>) -> Result<BagInput> {
+    let (reader, machine, warnings) = open(path, machine)?;
+    let mut input = BagInput {
+        machine: machine.clone(),
+        samples: vec![],
+        metadata: reader
+            .metadata()
+            .iter()
+            .map(|m| (m.name.clone(), m.entries.clone()))
+            .collect(),
+        bad_messages: 0,
+        foreign_samples: 0,
+        warnings,
+    };
+    for msg in reader.messages()? {
+        let msg = msg.with_context(|| format!("reading {}", path.display()))?;
+        if &*msg.machine != machine.as_str() {
+            continue;
+        }
+        let Some(stream) = wire::stream_id(msg.stream) else {
+            continue;
+        };
+        match wire::decode(stream, &msg.data) {
+            Ok(d) => {
+                for (m, s) in d.samples {
+                    if m == machine {
+                        input.samples.push((msg.log_time, s));
+                    } else {
+                        input.foreign_samples += 1;
+                    }
+                }
+            }
+            Err(_) => input.bad_messages += 1,
+        }
+    }
+    Ok(input)
+}
+
+/// Summary of an offline correction.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Summary {
+    pub machine: String,
+    pub calibration_version: u64,
+    pub samples: u64,
+    pub points: u64,
+    pub points_flagged: u64,
+    pub dropped: BTreeMap<String, u64>,
+    pub alarms: u64,
+    pub bad_messages: u64,
+    pub seconds: f64,
+    pub samples_per_s: f64,
+}
+
+fn summary(
+    machine: &str,
+    cal: &Calibration,
+    st: &Stats,
+    bad: u64,
+    foreign: u64,
+    secs: f64,
+) -> Summary {
+    let mut dropped: BTreeMap<String, u64> = st
+        .dropped_by_name()
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+    if foreign > 0 {
+        dropped.insert("wrong_machine".into(), foreign);
+    }
+    Summary {
+        machine: machine.to_string(),
+        calibration_version: cal.version,
+        samples: st.samples() + foreign,
+        points: st.points_out,
+        points_flagged: st.points_invalid,
+        dropped,
+        alarms: st.alarms_raised,
+        bad_messages: bad,
+        seconds: secs,
+        samples_per_s: (st.samples() + foreign) as f64 / secs.max(1e-9),
+    }
+}
+
+/// Loads and validates a calibration file.
+pub fn load_calibration(path: &Path) -> Result<Calibration> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("reading calibration {}", path.display()))?;
+    let cal =
+        Calibration::from_json(&text).with_context(|| format!("calibration {}", path.display()))?;
+    cal.build()
+        .with_context(|| format!("calibration {}", path.display()))?;
+    Ok(cal)
+}
+
+/// `scancorr correct`: streams a bag through the core and writes points and alarms to `out`.
+pub fn correct(
+    bag: &Path,
+    cal: &Calibration,
+    out: Option<&Path>,
+) -> Result<(Summary, Vec<String>)> {
+    let t0 = std::time::Instant::now();
+    let (reader, machine, warnings) = open(bag, Some(&cal.machine_id)).map_err(|e| {
+        // Name the mismatch plainly when the bag is simply of another machine.
+        match BagReader::open(bag) {
+            Ok(r) if !r.machines().contains(&cal.machine_id.as_str()) => anyhow::anyhow!(
+                "the calibration is for machine `{}`, but {} holds machine(s) {}",
+                cal.machine_id,
+                bag.display(),
+                list(
+                    &r.machines()
+                        .iter()
+                        .map(|s| s.to_string())
+                        .collect::<Vec<_>>()
+                )
+            ),
+            _ => e,
+        }
+    })?;
+    if !cal.build()?.sensors.names().is_empty()
+        && reader.channel(&machine, Stream::Temperature).is_none()
+    {
+        bail!(
+            "{}: the calibration needs temperature sensors ({}) but the bag has no `{}` channel",
+            bag.display(),
+            cal.build()?.sensors.names().join(", "),
+            Stream::Temperature.key(reader.prefix(), &machine)
+        );
+    }
+    let prefix = reader.prefix().to_string();
+    let mut writer = match out {
+        Some(p) => Some(
+            BagWriter::create(p, BagHeader::default())
+                .with_context(|| format!("creating {}", p.display()))?,
+        ),
+        None => None,
+    };
+    let mut corr = Corrector::new(cal)?;
+    let ids = corr.effect_ids();
+    let mut output = Output::default();
+    let (mut bad, mut foreign) = (0u64, 0u64);
+    let emit = |w: &mut Option<BagWriter>, output: &mut Output, log_time: u64| -> Result<()> {
+        if let Some(w) = w.as_mut() {
+            if !output.points.is_empty() {
+                let batch = scancorr_proto::v1::CorrectedPointBatch {
+                    points: output
+                        .points
+                        .iter()
+                        .map(|p| wire::point(p, &machine, &ids))
+                        .collect(),
+                };
+                w.write_msg(&machine, &prefix, log_time, &batch)?;
+            }
+            for a in &output.alarms {
+                w.write_msg(&machine, &prefix, log_time, &wire::alarm(a, &machine))?;
+            }
+        }
+        output.clear();
+        Ok(())
+    };
+    let mut last_log = 0;
+    for msg in reader.messages()? {
+        let msg = msg.with_context(|| format!("reading {}", bag.display()))?;
+        if &*msg.machine != machine.as_str() {
+            continue;
+        }
+        let Some(stream) = wire::stream_id(msg.stream) else {
+            continue;
+        };
+        last_log = msg.log_time;
+        match wire::decode(stream, &msg.data) {
+            Ok(d) => {
+                for (m, s) in d.samples {
+                    if m == machine {
+                        corr.push(s, &mut output);
+                    } else {
+                        foreign += 1;
+                    }
+                }
+            }
+            Err(_) => bad += 1,
+        }
+        if output.points.len() >= 100 || !output.alarms.is_empty() {
+            emit(&mut writer, &mut output, msg.log_time)?;
+        }
+    }
+    corr.flush(&mut output);
+    emit(&mut writer, &mut output, last_log)?;
+    if let Some(mut w) = writer {
+        for m in reader.metadata() {
+            if m.name == scancorr_bag::ARTIFACT_METADATA {
+                if let Ok(a) = scancorr_bag::Artifact::from_metadata(&m.entries) {
+                    w.write_artifact(&a)?;
+                }
+            } else {
+                w.write_metadata(&m.name, &m.entries)?;
+            }
+        }
+        w.write_metadata(
+            "scancorr.correction",
+            &[
+                ("calibration_version".to_string(), cal.version.to_string()),
+                ("source_bag".to_string(), bag.display().to_string()),
+            ]
+            .into(),
+        )?;
+        w.finish()?;
+    }
+    let secs = t0.elapsed().as_secs_f64();
+    Ok((
+        summary(&machine, cal, corr.stats(), bad, foreign, secs),
+        warnings,
+    ))
+}

@@ -1,0 +1,209 @@
+//! `scancorr sim`: the simulator writing a bag, its ground truth and its starting calibration.
+
+use anyhow::{bail, Context, Result};
+use scancorr_bag::{Artifact, ArtifactKind, BagHeader, BagWriter, Stream};
+use scancorr_core::sample::{Sample, StreamId};
+use scancorr_core::wire::Batcher;
+use scancorr_sim::{Fault, Options};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Arguments of `scancorr sim` (see `main.rs` for the flags).
+pub struct SimArgs {
+    pub options: Options,
+    pub out: PathBuf,
+    pub truth: Option<PathBuf>,
+    pub calib_out: Option<PathBuf>,
+    pub batch: usize,
+    pub prefix: String,
+    pub json: bool,
+}
+
+/// Parses `x,y,z`.
+pub fn parse_position(s: &str) -> Result<[f64; 3]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("--position {s}: expected x,y,z in mm"))?;
+    match v.as_slice() {
+        [x, y, z] if v.iter().all(|a| a.is_finite()) => Ok([*x, *y, *z]),
+        _ => bail!("--position {s}: expected three finite numbers x,y,z in mm"),
+    }
+}
+
+/// Parses `EFFECT=SCALE` or `EFFECT`.
+pub fn parse_effect(s: &str) -> Result<(String, f64)> {
+    match s.split_once('=') {
+        Some((k, v)) => Ok((
+            k.to_string(),
+            v.parse()
+                .with_context(|| format!("--effect {s}: scale must be a number"))?,
+        )),
+        None => Ok((s.to_string(), 1.0)),
+    }
+}
+
+/// Parses a fault name.
+pub fn parse_fault(s: &str) -> Result<Fault> {
+    s.parse::<Fault>().map_err(anyhow::Error::msg)
+}
+
+fn stream_of(s: StreamId) -> Stream {
+    match s {
+        StreamId::Command => Stream::Command,
+        StreamId::Scale => Stream::Scale,
+        StreamId::Probe => Stream::Probe,
+        StreamId::Temperature => Stream::Temperature,
+    }
+}
+
+/// Runs the simulator into a bag.
+pub fn run(a: SimArgs) -> Result<()> {
+    let machine = a.options.machine_id.clone();
+    let mut w = BagWriter::create(&a.out, BagHeader::default())
+        .with_context(|| format!("creating {}", a.out.display()))?;
+    let mut b = Batcher::new(&machine, a.batch);
+    let mut err: Option<anyhow::Error> = None;
+    let latency_ns = 1_000_000; // transmission: the bag's log time is the receive time
+    let write = |w: &mut BagWriter, b: &mut Batcher, s: StreamId| -> Result<()> {
+        if let Some((bytes, t0, t1)) = b.take(s) {
+            w.write(
+                stream_of(s),
+                &machine,
+                &a.prefix,
+                (t1 + latency_ns).max(0) as u64,
+                t0.max(0) as u64,
+                &bytes,
+            )?;
+        }
+        Ok(())
+    };
+    let t_start = std::time::Instant::now();
+    let res = scancorr_sim::run(&a.options, |s: Sample| {
+        if err.is_some() {
+            return;
+        }
+        let full = b.push(&s);
+        // Temperatures go out once per reading instant (all sensors of that instant).
+        let flush_temp = matches!(&s, Sample::Temperature(t) if t.sensor == scancorr_sim::SENSORS[scancorr_sim::SENSORS.len() - 1]);
+        let r = (|| -> Result<()> {
+            if let Some(st) = full {
+                write(&mut w, &mut b, st)?;
+            }
+            if flush_temp {
+                write(&mut w, &mut b, StreamId::Temperature)?;
+            }
+            Ok(())
+        })();
+        if let Err(e) = r {
+            err = Some(e);
+        }
+    })?;
+    if let Some(e) = err {
+        return Err(e.context(format!("writing {}", a.out.display())));
+    }
+    for s in StreamId::ALL {
+        write(&mut w, &mut b, s)?;
+    }
+    // What the bag may say: the run, the program (features and segments), the artifact.
+    let o = &a.options;
+    let run_meta: BTreeMap<String, String> = [
+        ("program", o.program.clone()),
+        ("machine_id", machine.clone()),
+        ("seed", o.seed.to_string()),
+        ("machine_seed", o.machine_seed.to_string()),
+        ("rate_hz", o.rate_hz.to_string()),
+        ("source", "scancorr sim".to_string()),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    w.write_metadata(scancorr_bag::RUN_METADATA, &run_meta)?;
+    let program_json = serde_json::to_string(&res.program)?;
+    w.write_metadata(
+        "scancorr.program",
+        &[("json".to_string(), program_json)].into(),
+    )?;
+    for f in &res.program.features {
+        let kind = match f.artifact.as_str() {
+            "ring" => ArtifactKind::Ring,
+            "sphere" => ArtifactKind::Sphere,
+            "straightedge" => ArtifactKind::Straightedge,
+            _ => ArtifactKind::Part,
+        };
+        let mut art = Artifact::new(kind);
+        if f.nominal_diameter_mm > 0.0 {
+            art.diameter_mm = Some(f.nominal_diameter_mm);
+        }
+        art.certificate_mm = f.certificate_diameter_mm;
+        art.center_x_mm = Some(f.nominal_center[0]);
+        art.center_y_mm = Some(f.nominal_center[1]);
+        art.center_z_mm = Some(f.nominal_center[2]);
+        art.extra.insert("feature_id".into(), f.id.to_string());
+        art.extra.insert(
+            "feature_kind".into(),
+            serde_json::to_value(f.kind)?
+                .as_str()
+                .unwrap_or("")
+                .to_string(),
+        );
+        w.write_artifact(&art)?;
+    }
+    w.finish()
+        .with_context(|| format!("finishing {}", a.out.display()))?;
+    write_json(a.truth.as_deref(), &res.truth)?;
+    if let Some(p) = &a.calib_out {
+        std::fs::write(p, res.start_calibration.to_json())
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    let secs = t_start.elapsed().as_secs_f64();
+    let total: u64 = res.counts.iter().sum();
+    if a.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "out": a.out,
+                "machine": machine,
+                "program": o.program,
+                "samples": {"command": res.counts[0], "scale": res.counts[1], "probe": res.counts[2], "temperature": res.counts[3]},
+                "duration_s": res.counts[1] as f64 / o.rate_hz,
+                "noise_floor_um": res.truth.noise_floor_um,
+                "hidden": o.hide,
+                "faults": res.truth.faults,
+            })
+        );
+    } else {
+        eprintln!(
+            "simulated {} on machine {} (machine seed {}, seed {}): {:.1} s of scanning, {total} samples → {} in {secs:.1} s",
+            o.program,
+            machine,
+            o.machine_seed,
+            o.seed,
+            res.counts[1] as f64 / o.rate_hz,
+            a.out.display()
+        );
+        if !o.hide.is_empty() {
+            eprintln!(
+                "  hidden from the starting calibration: {}",
+                o.hide.join(", ")
+            );
+        }
+        for f in &res.truth.faults {
+            eprintln!(
+                "  fault {:?} at {:.3} s",
+                f.fault,
+                f.onset_t_ns as f64 * 1e-9
+            );
+        }
+    }
+    Ok(())
+}
+
+fn write_json<T: serde::Serialize>(path: Option<&Path>, v: &T) -> Result<()> {
+    if let Some(p) = path {
+        std::fs::write(p, serde_json::to_string_pretty(v)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
+}

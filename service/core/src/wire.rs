@@ -1,0 +1,396 @@
+//! Conversion between the wire contract (`scancorr.v1`) and the core's types.
+//!
+//! Pure functions: bytes or prost messages in, core samples out, and back. The live service,
+//! the bag tools and the simulator all convert here, so a point means the same everywhere.
+
+use crate::corrector::Corrector;
+use crate::sample::*;
+use scancorr_proto::v1;
+use scancorr_proto::Message;
+
+/// Why a payload could not be turned into samples.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum WireError {
+    /// The bytes are not the expected protobuf message.
+    #[error("malformed {message}: {reason}")]
+    Malformed {
+        /// Expected message.
+        message: &'static str,
+        /// Decoder's complaint.
+        reason: String,
+    },
+    /// A batch with no samples.
+    #[error("empty {0}")]
+    Empty(&'static str),
+}
+
+/// Decoded samples of one raw message with the machine id each named.
+#[derive(Debug, Default, Clone)]
+pub struct Decoded {
+    /// (machine id, sample) in batch order.
+    pub samples: Vec<(String, Sample)>,
+}
+
+fn v(x: f64, y: f64, z: f64) -> Vec3 {
+    Vec3::new(x, y, z)
+}
+
+/// Core sample of a wire command.
+pub fn command(s: &v1::CommandSample) -> Sample {
+    Sample::Command(CommandSample {
+        seq: s.seq,
+        t_ns: s.t_ns,
+        pos: v(s.x, s.y, s.z),
+        arc_center: v(s.arc_cx, s.arc_cy, s.arc_cz),
+        arc_radius: s.arc_radius,
+        segment_id: s.segment_id,
+    })
+}
+
+/// Core sample of a wire scale reading.
+pub fn scale(s: &v1::ScaleSample) -> Sample {
+    Sample::Scale(ScaleSample {
+        seq: s.seq,
+        t_ns: s.t_ns,
+        pos: v(s.x, s.y, s.z),
+    })
+}
+
+/// Core sample of a wire probe reading.
+pub fn probe(s: &v1::ProbeSample) -> Sample {
+    Sample::Probe(ProbeSample {
+        seq: s.seq,
+        t_ns: s.t_ns,
+        deflection: v(s.u, s.v, s.w),
+        tip_id: s.tip_id,
+        head_a1_deg: s.head_a1_deg,
+        head_a2_deg: s.head_a2_deg,
+    })
+}
+
+/// Core sample of a wire temperature.
+pub fn temperature(s: &v1::TemperatureSample) -> Sample {
+    Sample::Temperature(TemperatureSample {
+        seq: s.seq,
+        t_ns: s.t_ns,
+        sensor: s.sensor.clone(),
+        celsius: s.celsius,
+    })
+}
+
+/// Decodes a raw payload of `stream` into samples.
+pub fn decode(stream: StreamId, bytes: &[u8]) -> Result<Decoded, WireError> {
+    let malformed = |message, e: scancorr_proto::prost::DecodeError| WireError::Malformed {
+        message,
+        reason: e.to_string(),
+    };
+    let mut out = Decoded::default();
+    match stream {
+        StreamId::Command => {
+            let b = v1::CommandBatch::decode(bytes).map_err(|e| malformed("CommandBatch", e))?;
+            out.samples = b
+                .samples
+                .iter()
+                .map(|s| (s.machine_id.clone(), command(s)))
+                .collect();
+        }
+        StreamId::Scale => {
+            let b = v1::ScaleBatch::decode(bytes).map_err(|e| malformed("ScaleBatch", e))?;
+            out.samples = b
+                .samples
+                .iter()
+                .map(|s| (s.machine_id.clone(), scale(s)))
+                .collect();
+        }
+        StreamId::Probe => {
+            let b = v1::ProbeBatch::decode(bytes).map_err(|e| malformed("ProbeBatch", e))?;
+            out.samples = b
+                .samples
+                .iter()
+                .map(|s| (s.machine_id.clone(), probe(s)))
+                .collect();
+        }
+        StreamId::Temperature => {
+            let b = v1::TemperatureBatch::decode(bytes)
+                .map_err(|e| malformed("TemperatureBatch", e))?;
+            out.samples = b
+                .samples
+                .iter()
+                .map(|s| (s.machine_id.clone(), temperature(s)))
+                .collect();
+        }
+    }
+    if out.samples.is_empty() {
+        return Err(WireError::Empty(match stream {
+            StreamId::Command => "CommandBatch",
+            StreamId::Scale => "ScaleBatch",
+            StreamId::Probe => "ProbeBatch",
+            StreamId::Temperature => "TemperatureBatch",
+        }));
+    }
+    Ok(out)
+}
+
+/// The core stream of a raw wire stream.
+pub fn stream_id(s: scancorr_proto::Stream) -> Option<StreamId> {
+    use scancorr_proto::Stream as S;
+    match s {
+        S::Command => Some(StreamId::Command),
+        S::Scale => Some(StreamId::Scale),
+        S::Probe => Some(StreamId::Probe),
+        S::Temperature => Some(StreamId::Temperature),
+        _ => None,
+    }
+}
+
+fn v3(p: &Vec3) -> Option<v1::Vec3> {
+    Some(v1::Vec3 {
+        x: p.x,
+        y: p.y,
+        z: p.z,
+    })
+}
+
+/// Wire form of a corrected point; `effect_ids` from [`Corrector::effect_ids`].
+pub fn point(p: &CorrectedPoint, machine: &str, effect_ids: &[String]) -> v1::CorrectedPoint {
+    v1::CorrectedPoint {
+        machine_id: machine.to_string(),
+        seq: p.seq,
+        t_ns: p.t_ns,
+        sample_seq: p.sample_seq,
+        surface: v3(&p.surface),
+        tip_center: v3(&p.tip_center),
+        normal: v3(&p.normal),
+        corrections: p
+            .corrections
+            .iter()
+            .zip(effect_ids)
+            .map(|(c, id)| v1::Correction {
+                effect: id.clone(),
+                dx: c.x,
+                dy: c.y,
+                dz: c.z,
+            })
+            .collect(),
+        calibration_version: p.calibration_version,
+        estimator_valid: p.estimator_valid,
+        segment_id: p.segment_id,
+        tip_id: p.tip_id,
+    }
+}
+
+/// Wire form of an alarm.
+pub fn alarm(a: &Alarm, machine: &str) -> v1::EstimatorAlarm {
+    v1::EstimatorAlarm {
+        machine_id: machine.to_string(),
+        seq: a.seq,
+        t_ns: a.t_ns,
+        raised: a.raised,
+        axis: match a.axis {
+            Axis::X => v1::Axis::X,
+            Axis::Y => v1::Axis::Y,
+            Axis::Z => v1::Axis::Z,
+        } as i32,
+        estimated_accel: a.estimated_accel,
+        measured_accel: a.measured_accel,
+        difference: a.difference,
+        threshold: a.threshold,
+        action: match a.action {
+            AlarmAction::Flag => v1::AlarmAction::Flag,
+            AlarmAction::Suspend => v1::AlarmAction::Suspend,
+        } as i32,
+        calibration_version: a.calibration_version,
+    }
+}
+
+/// Wire form of a batch of points of one corrector.
+pub fn points(ps: &[CorrectedPoint], machine: &str, corr: &Corrector) -> v1::CorrectedPointBatch {
+    let ids = corr.effect_ids();
+    v1::CorrectedPointBatch {
+        points: ps.iter().map(|p| point(p, machine, &ids)).collect(),
+    }
+}
+
+/// Accumulates core samples of one machine into wire batches of up to `size` samples.
+#[derive(Debug)]
+pub struct Batcher {
+    machine: String,
+    size: usize,
+    /// Pending commands.
+    pub command: v1::CommandBatch,
+    /// Pending scale readings.
+    pub scale: v1::ScaleBatch,
+    /// Pending probe readings.
+    pub probe: v1::ProbeBatch,
+    /// Pending temperatures.
+    pub temperature: v1::TemperatureBatch,
+}
+
+impl Batcher {
+    /// A batcher for `machine`.
+    pub fn new(machine: &str, size: usize) -> Batcher {
+        Batcher {
+            machine: machine.to_string(),
+            size: size.max(1),
+            command: Default::default(),
+            scale: Default::default(),
+            probe: Default::default(),
+            temperature: Default::default(),
+        }
+    }
+
+    /// Adds a sample; returns the stream whose batch just became full.
+    pub fn push(&mut self, s: &Sample) -> Option<StreamId> {
+        let m = self.machine.clone();
+        match s {
+            Sample::Command(c) => {
+                self.command.samples.push(v1::CommandSample {
+                    machine_id: m,
+                    seq: c.seq,
+                    t_ns: c.t_ns,
+                    x: c.pos.x,
+                    y: c.pos.y,
+                    z: c.pos.z,
+                    arc_cx: c.arc_center.x,
+                    arc_cy: c.arc_center.y,
+                    arc_cz: c.arc_center.z,
+                    arc_radius: c.arc_radius,
+                    segment_id: c.segment_id,
+                });
+                (self.command.samples.len() >= self.size).then_some(StreamId::Command)
+            }
+            Sample::Scale(c) => {
+                self.scale.samples.push(v1::ScaleSample {
+                    machine_id: m,
+                    seq: c.seq,
+                    t_ns: c.t_ns,
+                    x: c.pos.x,
+                    y: c.pos.y,
+                    z: c.pos.z,
+                });
+                (self.scale.samples.len() >= self.size).then_some(StreamId::Scale)
+            }
+            Sample::Probe(c) => {
+                self.probe.samples.push(v1::ProbeSample {
+                    machine_id: m,
+                    seq: c.seq,
+                    t_ns: c.t_ns,
+                    u: c.deflection.x,
+                    v: c.deflection.y,
+                    w: c.deflection.z,
+                    tip_id: c.tip_id,
+                    head_a1_deg: c.head_a1_deg,
+                    head_a2_deg: c.head_a2_deg,
+                });
+                (self.probe.samples.len() >= self.size).then_some(StreamId::Probe)
+            }
+            Sample::Temperature(c) => {
+                self.temperature.samples.push(v1::TemperatureSample {
+                    machine_id: m,
+                    seq: c.seq,
+                    t_ns: c.t_ns,
+                    sensor: c.sensor.clone(),
+                    celsius: c.celsius,
+                });
+                (self.temperature.samples.len() >= self.size).then_some(StreamId::Temperature)
+            }
+        }
+    }
+
+    /// Takes the pending batch of `stream` encoded (None when empty).
+    pub fn take(&mut self, stream: StreamId) -> Option<(Vec<u8>, i64, i64)> {
+        fn t<M: Message + Default>(
+            b: &mut M,
+            first_last: (i64, i64),
+            empty: bool,
+        ) -> Option<(Vec<u8>, i64, i64)> {
+            if empty {
+                return None;
+            }
+            let bytes = b.encode_to_vec();
+            *b = M::default();
+            Some((bytes, first_last.0, first_last.1))
+        }
+        match stream {
+            StreamId::Command => {
+                let fl = ends(self.command.samples.iter().map(|s| s.t_ns));
+                let empty = self.command.samples.is_empty();
+                t(&mut self.command, fl, empty)
+            }
+            StreamId::Scale => {
+                let fl = ends(self.scale.samples.iter().map(|s| s.t_ns));
+                let empty = self.scale.samples.is_empty();
+                t(&mut self.scale, fl, empty)
+            }
+            StreamId::Probe => {
+                let fl = ends(self.probe.samples.iter().map(|s| s.t_ns));
+                let empty = self.probe.samples.is_empty();
+                t(&mut self.probe, fl, empty)
+            }
+            StreamId::Temperature => {
+                let fl = ends(self.temperature.samples.iter().map(|s| s.t_ns));
+                let empty = self.temperature.samples.is_empty();
+                t(&mut self.temperature, fl, empty)
+            }
+        }
+    }
+}
+
+fn ends(mut it: impl Iterator<Item = i64>) -> (i64, i64) {
+    let first = it.next().unwrap_or(0);
+    (first, it.last().unwrap_or(first))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn samples_round_trip_through_the_wire() {
+        let samples = vec![
+            Sample::Command(CommandSample {
+                seq: 1,
+                t_ns: 5,
+                pos: Vec3::new(1.0, 2.0, 3.0),
+                arc_center: Vec3::new(0.5, 0.0, 3.0),
+                arc_radius: 2.0,
+                segment_id: 7,
+            }),
+            Sample::Scale(ScaleSample {
+                seq: 1,
+                t_ns: 5,
+                pos: Vec3::new(1.0, 2.0, 3.5),
+            }),
+            Sample::Probe(ProbeSample {
+                seq: 1,
+                t_ns: 5,
+                deflection: Vec3::new(0.1, -0.2, 0.0),
+                tip_id: 2,
+                head_a1_deg: 90.0,
+                head_a2_deg: 15.0,
+            }),
+            Sample::Temperature(TemperatureSample {
+                seq: 1,
+                t_ns: 5,
+                sensor: "air".into(),
+                celsius: 20.25,
+            }),
+        ];
+        let mut b = Batcher::new("m1", 1);
+        for s in &samples {
+            let stream = b.push(s).unwrap();
+            let (bytes, t0, t1) = b.take(stream).unwrap();
+            assert_eq!((t0, t1), (5, 5));
+            let d = decode(stream, &bytes).unwrap();
+            assert_eq!(d.samples, vec![("m1".to_string(), s.clone())]);
+        }
+        assert!(matches!(
+            decode(StreamId::Scale, &[0xff, 0xff, 0xff]),
+            Err(WireError::Malformed { .. })
+        ));
+        assert!(matches!(
+            decode(StreamId::Scale, &[]),
+            Err(WireError::Empty(_))
+        ));
+    }
+}
