@@ -131,6 +131,16 @@ enum BenchCmd {
         #[arg(long, default_value_t = 5)]
         repeat: usize,
     },
+    /// `scancorr correct` end to end on a simulated campaign bag: read, decode, correct,
+    /// encode, write.
+    Correct {
+        /// Print JSON (`samples_per_s`, …).
+        #[arg(long)]
+        json: bool,
+        /// Repetitions (the best and the median are reported).
+        #[arg(long, default_value_t = 3)]
+        repeat: usize,
+    },
 }
 
 #[derive(Subcommand)]
@@ -173,6 +183,7 @@ fn run(cli: Cli) -> Result<()> {
             points,
             repeat,
         }) => bench::core(points, repeat, json),
+        Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
             let text = std::fs::read_to_string(&file)
                 .with_context(|| format!("reading {}", file.display()))?;

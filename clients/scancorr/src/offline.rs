@@ -113,18 +113,14 @@ pub fn read(path: &Path, machine: Option<&str>) -> Result<BagInput> {
         let Some(stream) = wire::stream_id(msg.stream) else {
             continue;
         };
-        match wire::decode(stream, &msg.data) {
-            Ok(d) => {
-                for (m, s) in d.samples {
-                    if m == machine {
-                        input.samples.push((msg.log_time, s));
-                    } else {
-                        input.foreign_samples += 1;
-                    }
-                }
-            }
+        let mut batch = vec![];
+        match wire::decode_machine(stream, &msg.data, &machine, &mut batch) {
+            Ok(f) => input.foreign_samples += f,
             Err(_) => input.bad_messages += 1,
         }
+        input
+            .samples
+            .extend(batch.into_iter().map(|s| (msg.log_time, s)));
     }
     Ok(input)
 }
@@ -185,7 +181,17 @@ pub fn load_calibration(path: &Path) -> Result<Calibration> {
     Ok(cal)
 }
 
+/// What the corrector thread hands the writer thread.
+enum ToWriter {
+    Output {
+        points: Vec<scancorr_core::CorrectedPoint>,
+        alarms: Vec<scancorr_core::Alarm>,
+        log_time: u64,
+    },
+}
+
 /// `scancorr correct`: streams a bag through the core and writes points and alarms to `out`.
+/// Reading, decoding and correcting run on this thread; encoding and writing on another.
 pub fn correct(
     bag: &Path,
     cal: &Calibration,
@@ -209,46 +215,73 @@ pub fn correct(
             _ => e,
         }
     })?;
-    if !cal.build()?.sensors.names().is_empty()
-        && reader.channel(&machine, Stream::Temperature).is_none()
+    let model = std::sync::Arc::new(cal.build()?);
+    if !model.sensors.names().is_empty() && reader.channel(&machine, Stream::Temperature).is_none()
     {
         bail!(
             "{}: the calibration needs temperature sensors ({}) but the bag has no `{}` channel",
             bag.display(),
-            cal.build()?.sensors.names().join(", "),
+            model.sensors.names().join(", "),
             Stream::Temperature.key(reader.prefix(), &machine)
         );
     }
     let prefix = reader.prefix().to_string();
-    let mut writer = match out {
+    let mut corr = Corrector::with_model(model);
+    let ids = corr.effect_ids();
+    // Corrected points are written at the corrector's pace: lz4 keeps up where zstd would be
+    // the bottleneck.
+    let writer = match out {
         Some(p) => Some(
-            BagWriter::create(p, BagHeader::default())
-                .with_context(|| format!("creating {}", p.display()))?,
+            BagWriter::create(
+                p,
+                BagHeader {
+                    compression: scancorr_bag::Compression::Lz4,
+                    ..BagHeader::default()
+                },
+            )
+            .with_context(|| format!("creating {}", p.display()))?,
         ),
         None => None,
     };
-    let mut corr = Corrector::new(cal)?;
-    let ids = corr.effect_ids();
+    let (tx, rx) = std::sync::mpsc::sync_channel::<ToWriter>(256);
+    let writer_thread = writer.map(|mut w| {
+        let (machine, prefix, ids) = (machine.clone(), prefix.clone(), ids.clone());
+        std::thread::spawn(move || -> Result<BagWriter> {
+            for msg in rx {
+                let ToWriter::Output {
+                    points,
+                    alarms,
+                    log_time,
+                } = msg;
+                if !points.is_empty() {
+                    let batch = scancorr_proto::v1::CorrectedPointBatch {
+                        points: points
+                            .iter()
+                            .map(|p| wire::point(p, &machine, &ids))
+                            .collect(),
+                    };
+                    w.write_msg(&machine, &prefix, log_time, &batch)?;
+                }
+                for a in &alarms {
+                    w.write_msg(&machine, &prefix, log_time, &wire::alarm(a, &machine))?;
+                }
+            }
+            Ok(w)
+        })
+    });
     let mut output = Output::default();
     let (mut bad, mut foreign) = (0u64, 0u64);
-    let emit = |w: &mut Option<BagWriter>, output: &mut Output, log_time: u64| -> Result<()> {
-        if let Some(w) = w.as_mut() {
-            if !output.points.is_empty() {
-                let batch = scancorr_proto::v1::CorrectedPointBatch {
-                    points: output
-                        .points
-                        .iter()
-                        .map(|p| wire::point(p, &machine, &ids))
-                        .collect(),
-                };
-                w.write_msg(&machine, &prefix, log_time, &batch)?;
-            }
-            for a in &output.alarms {
-                w.write_msg(&machine, &prefix, log_time, &wire::alarm(a, &machine))?;
-            }
+    let mut samples = Vec::with_capacity(128);
+    let mut send = |output: &mut Output, log_time: u64| {
+        if writer_thread.is_some() && (!output.points.is_empty() || !output.alarms.is_empty()) {
+            // A closed channel means the writer failed; its error is reported at the join.
+            let _ = tx.send(ToWriter::Output {
+                points: std::mem::take(&mut output.points),
+                alarms: std::mem::take(&mut output.alarms),
+                log_time,
+            });
         }
         output.clear();
-        Ok(())
     };
     let mut last_log = 0;
     for msg in reader.messages()? {
@@ -260,25 +293,26 @@ pub fn correct(
             continue;
         };
         last_log = msg.log_time;
-        match wire::decode(stream, &msg.data) {
-            Ok(d) => {
-                for (m, s) in d.samples {
-                    if m == machine {
-                        corr.push(s, &mut output);
-                    } else {
-                        foreign += 1;
-                    }
-                }
-            }
+        samples.clear();
+        match wire::decode_machine(stream, &msg.data, &machine, &mut samples) {
+            Ok(f) => foreign += f,
             Err(_) => bad += 1,
         }
+        for s in samples.drain(..) {
+            corr.push(s, &mut output);
+        }
         if output.points.len() >= 100 || !output.alarms.is_empty() {
-            emit(&mut writer, &mut output, msg.log_time)?;
+            send(&mut output, msg.log_time);
         }
     }
     corr.flush(&mut output);
-    emit(&mut writer, &mut output, last_log)?;
-    if let Some(mut w) = writer {
+    send(&mut output, last_log);
+    drop(send);
+    drop(tx);
+    if let Some(h) = writer_thread {
+        let mut w = h
+            .join()
+            .map_err(|_| anyhow::anyhow!("the writer thread panicked"))??;
         for m in reader.metadata() {
             if m.name == scancorr_bag::ARTIFACT_METADATA {
                 if let Ok(a) = scancorr_bag::Artifact::from_metadata(&m.entries) {

@@ -80,55 +80,69 @@ pub fn temperature(s: &v1::TemperatureSample) -> Sample {
 
 /// Decodes a raw payload of `stream` into samples.
 pub fn decode(stream: StreamId, bytes: &[u8]) -> Result<Decoded, WireError> {
+    let mut out = Decoded::default();
+    decode_with(stream, bytes, |m, s| out.samples.push((m.to_string(), s)))?;
+    Ok(out)
+}
+
+/// Decodes a raw payload of one machine: samples naming `machine` are appended to `out`, the
+/// number of samples naming another machine is returned.
+pub fn decode_machine(
+    stream: StreamId,
+    bytes: &[u8],
+    machine: &str,
+    out: &mut Vec<Sample>,
+) -> Result<u64, WireError> {
+    let mut foreign = 0;
+    decode_with(stream, bytes, |m, s| {
+        if m == machine {
+            out.push(s)
+        } else {
+            foreign += 1
+        }
+    })?;
+    Ok(foreign)
+}
+
+/// Decodes a raw payload and hands each (machine id, sample) to `f`, in batch order.
+pub fn decode_with(
+    stream: StreamId,
+    bytes: &[u8],
+    mut f: impl FnMut(&str, Sample),
+) -> Result<usize, WireError> {
     let malformed = |message, e: scancorr_proto::prost::DecodeError| WireError::Malformed {
         message,
         reason: e.to_string(),
     };
-    let mut out = Decoded::default();
-    match stream {
+    let (n, name) = match stream {
         StreamId::Command => {
             let b = v1::CommandBatch::decode(bytes).map_err(|e| malformed("CommandBatch", e))?;
-            out.samples = b
-                .samples
-                .iter()
-                .map(|s| (s.machine_id.clone(), command(s)))
-                .collect();
+            b.samples.iter().for_each(|s| f(&s.machine_id, command(s)));
+            (b.samples.len(), "CommandBatch")
         }
         StreamId::Scale => {
             let b = v1::ScaleBatch::decode(bytes).map_err(|e| malformed("ScaleBatch", e))?;
-            out.samples = b
-                .samples
-                .iter()
-                .map(|s| (s.machine_id.clone(), scale(s)))
-                .collect();
+            b.samples.iter().for_each(|s| f(&s.machine_id, scale(s)));
+            (b.samples.len(), "ScaleBatch")
         }
         StreamId::Probe => {
             let b = v1::ProbeBatch::decode(bytes).map_err(|e| malformed("ProbeBatch", e))?;
-            out.samples = b
-                .samples
-                .iter()
-                .map(|s| (s.machine_id.clone(), probe(s)))
-                .collect();
+            b.samples.iter().for_each(|s| f(&s.machine_id, probe(s)));
+            (b.samples.len(), "ProbeBatch")
         }
         StreamId::Temperature => {
             let b = v1::TemperatureBatch::decode(bytes)
                 .map_err(|e| malformed("TemperatureBatch", e))?;
-            out.samples = b
-                .samples
+            b.samples
                 .iter()
-                .map(|s| (s.machine_id.clone(), temperature(s)))
-                .collect();
+                .for_each(|s| f(&s.machine_id, temperature(s)));
+            (b.samples.len(), "TemperatureBatch")
         }
+    };
+    if n == 0 {
+        return Err(WireError::Empty(name));
     }
-    if out.samples.is_empty() {
-        return Err(WireError::Empty(match stream {
-            StreamId::Command => "CommandBatch",
-            StreamId::Scale => "ScaleBatch",
-            StreamId::Probe => "ProbeBatch",
-            StreamId::Temperature => "TemperatureBatch",
-        }));
-    }
-    Ok(out)
+    Ok(n)
 }
 
 /// The core stream of a raw wire stream.
