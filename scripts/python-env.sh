@@ -48,8 +48,10 @@ fi
 
 if [ ! -x "$py" ]; then
     echo "python-env.sh: creating $venv with $base ($base_id)" >&2
-    "$base" -m venv "$venv" >&2 ||
+    if ! "$base" -m venv "$venv" >&2; then
+        rm -rf "$venv"
         die "'$base -m venv' failed: install the venv module (e.g. apt-get install python3-venv)"
+    fi
 fi
 
 if [ "$(cat "$stamp" 2>/dev/null || true)" != "$want" ]; then

@@ -95,7 +95,11 @@ fn scancorr() -> &'static Path {
                 .env("CARGO_TARGET_DIR", target_dir())
                 .current_dir(workspace()),
         );
-        assert!(bin.is_file(), "cargo built scancorr-cli but {} is missing", bin.display());
+        assert!(
+            bin.is_file(),
+            "cargo built scancorr-cli but {} is missing",
+            bin.display()
+        );
         bin
     })
 }
@@ -117,7 +121,10 @@ fn python() -> &'static Path {
         );
         let stdout = String::from_utf8_lossy(&out.stdout);
         let py = PathBuf::from(stdout.lines().last().unwrap_or("").trim());
-        assert!(py.is_file(), "scripts/python-env.sh printed no interpreter path:\n{stdout}");
+        assert!(
+            py.is_file(),
+            "scripts/python-env.sh printed no interpreter path:\n{stdout}"
+        );
         py
     })
 }
@@ -193,17 +200,29 @@ fn check_channel(read: &Value, topic: &str, schema: &str) -> u64 {
     assert!(
         t.is_object(),
         "no channel {topic}; the reader found {:?}",
-        read["topics"].as_object().map(|o| o.keys().collect::<Vec<_>>())
+        read["topics"]
+            .as_object()
+            .map(|o| o.keys().collect::<Vec<_>>())
     );
     assert_eq!(t["schema"], schema, "{topic}: {t}");
     assert_eq!(t["schema_encoding"], "protobuf", "{topic}: {t}");
     assert_eq!(t["message_encoding"], "protobuf", "{topic}: {t}");
     assert_eq!(t["machine"], "m1", "{topic}: {t}");
     let samples = u64_of(&t["samples"], &format!("{topic} samples"));
-    assert!(samples > 0 && u64_of(&t["messages"], topic) > 0, "{topic}: {t}");
+    assert!(
+        samples > 0 && u64_of(&t["messages"], topic) > 0,
+        "{topic}: {t}"
+    );
     // The reader already checked seq is consecutive; the span agrees with the count.
-    let (first, last) = (u64_of(&t["first_seq"], topic), u64_of(&t["last_seq"], topic));
-    assert_eq!(last - first + 1, samples, "{topic}: seq span vs samples: {t}");
+    let (first, last) = (
+        u64_of(&t["first_seq"], topic),
+        u64_of(&t["last_seq"], topic),
+    );
+    assert_eq!(
+        last - first + 1,
+        samples,
+        "{topic}: seq span vs samples: {t}"
+    );
     assert!(
         t["first_t_ns"].as_i64().unwrap() <= t["last_t_ns"].as_i64().unwrap(),
         "{topic}: {t}"
@@ -218,7 +237,9 @@ fn metadata<'a>(read: &'a Value, name: &str) -> &'a [Value] {
         .unwrap_or_else(|| {
             panic!(
                 "no metadata record {name}; the bag has {:?}",
-                read["metadata"].as_object().map(|o| o.keys().collect::<Vec<_>>())
+                read["metadata"]
+                    .as_object()
+                    .map(|o| o.keys().collect::<Vec<_>>())
             )
         })
 }
@@ -226,11 +247,23 @@ fn metadata<'a>(read: &'a Value, name: &str) -> &'a [Value] {
 #[test]
 fn an_independent_reader_finds_the_raw_channels_and_the_corrected_points() {
     let tmp = TempDir::new("ring");
-    let (raw, calib, corrected) = (tmp.path("r.mcap"), tmp.path("start.json"), tmp.path("o.mcap"));
+    let (raw, calib, corrected) = (
+        tmp.path("r.mcap"),
+        tmp.path("start.json"),
+        tmp.path("o.mcap"),
+    );
     let s = |p: &PathBuf| p.to_str().unwrap().to_owned();
 
     let sim = scancorr_json(&[
-        "sim", "--program", "ring", "--seed", "3", "--out", &s(&raw), "--calib-out", &s(&calib),
+        "sim",
+        "--program",
+        "ring",
+        "--seed",
+        "3",
+        "--out",
+        &s(&raw),
+        "--calib-out",
+        &s(&calib),
         "--json",
     ]);
     assert_eq!(sim["machine"], "m1", "{sim}");
@@ -241,11 +274,18 @@ fn an_independent_reader_finds_the_raw_channels_and_the_corrected_points() {
     topics.sort();
     let mut want: Vec<String> = RAW.iter().map(|(s, _)| format!("cmm/m1/raw/{s}")).collect();
     want.sort();
-    assert_eq!(topics, want.iter().collect::<Vec<_>>(), "the sim bag holds the raw channels only");
+    assert_eq!(
+        topics,
+        want.iter().collect::<Vec<_>>(),
+        "the sim bag holds the raw channels only"
+    );
     for (stream, schema) in RAW {
         let n = check_channel(&read, &format!("cmm/m1/raw/{stream}"), schema);
         let reported = u64_of(&sim["samples"][stream], &format!("sim samples.{stream}"));
-        assert_eq!(n, reported, "{stream}: samples in the bag vs reported by scancorr sim");
+        assert_eq!(
+            n, reported,
+            "{stream}: samples in the bag vs reported by scancorr sim"
+        );
     }
 
     let runs = metadata(&read, "scancorr.run");
@@ -260,19 +300,36 @@ fn an_independent_reader_finds_the_raw_channels_and_the_corrected_points() {
             a["kind"] == "ring"
                 && a.as_object().unwrap().iter().any(|(k, v)| {
                     k.starts_with("certificate")
-                        && v.as_str().and_then(|v| v.parse::<f64>().ok()).is_some_and(|c| c > 0.0)
+                        && v.as_str()
+                            .and_then(|v| v.parse::<f64>().ok())
+                            .is_some_and(|c| c > 0.0)
                 })
         }),
         "no ring artifact with a certificate: {artifacts:?}"
     );
 
     let cor = scancorr_json(&[
-        "correct", "--bag", &s(&raw), "--calib", &s(&calib), "--out", &s(&corrected), "--json",
+        "correct",
+        "--bag",
+        &s(&raw),
+        "--calib",
+        &s(&calib),
+        "--out",
+        &s(&corrected),
+        "--json",
     ]);
     let read = read_bag(&corrected);
     eprintln!("corrected bag: {}", read["topics"]);
-    let points = check_channel(&read, "cmm/m1/corrected/points", "scancorr.v1.CorrectedPointBatch");
-    assert_eq!(points, u64_of(&cor["points"], "correct points"), "points in the bag vs reported: {cor}");
+    let points = check_channel(
+        &read,
+        "cmm/m1/corrected/points",
+        "scancorr.v1.CorrectedPointBatch",
+    );
+    assert_eq!(
+        points,
+        u64_of(&cor["points"], "correct points"),
+        "points in the bag vs reported: {cor}"
+    );
     assert!(points > 10_000, "{cor}");
     if let Some(t) = read["topics"].get("cmm/m1/alarms/estimator") {
         assert_eq!(t["schema"], "scancorr.v1.EstimatorAlarm", "{t}");
@@ -282,22 +339,54 @@ fn an_independent_reader_finds_the_raw_channels_and_the_corrected_points() {
 #[test]
 fn an_independent_reader_decodes_the_estimator_alarms() {
     let tmp = TempDir::new("fault");
-    let (raw, calib, corrected) = (tmp.path("f.mcap"), tmp.path("start.json"), tmp.path("o.mcap"));
+    let (raw, calib, corrected) = (
+        tmp.path("f.mcap"),
+        tmp.path("start.json"),
+        tmp.path("o.mcap"),
+    );
     let s = |p: &PathBuf| p.to_str().unwrap().to_owned();
     scancorr_json(&[
-        "sim", "--program", "ring", "--seed", "3", "--fault", "collision", "--out", &s(&raw),
-        "--calib-out", &s(&calib), "--json",
+        "sim",
+        "--program",
+        "ring",
+        "--seed",
+        "3",
+        "--fault",
+        "collision",
+        "--out",
+        &s(&raw),
+        "--calib-out",
+        &s(&calib),
+        "--json",
     ]);
     let cor = scancorr_json(&[
-        "correct", "--bag", &s(&raw), "--calib", &s(&calib), "--out", &s(&corrected), "--json",
+        "correct",
+        "--bag",
+        &s(&raw),
+        "--calib",
+        &s(&calib),
+        "--out",
+        &s(&corrected),
+        "--json",
     ]);
     let raised = u64_of(&cor["alarms"], "correct alarms");
     assert!(raised > 0, "a collision raises the estimator alarm: {cor}");
     let read = read_bag(&corrected);
     eprintln!("corrected bag: {}", read["topics"]);
-    let points = check_channel(&read, "cmm/m1/corrected/points", "scancorr.v1.CorrectedPointBatch");
+    let points = check_channel(
+        &read,
+        "cmm/m1/corrected/points",
+        "scancorr.v1.CorrectedPointBatch",
+    );
     assert_eq!(points, u64_of(&cor["points"], "correct points"), "{cor}");
     // One message per alarm raised or cleared: at least the raisings `correct` counted.
-    let alarms = check_channel(&read, "cmm/m1/alarms/estimator", "scancorr.v1.EstimatorAlarm");
-    assert!(alarms >= raised, "{alarms} alarm messages, {raised} raised: {cor}");
+    let alarms = check_channel(
+        &read,
+        "cmm/m1/alarms/estimator",
+        "scancorr.v1.EstimatorAlarm",
+    );
+    assert!(
+        alarms >= raised,
+        "{alarms} alarm messages, {raised} raised: {cor}"
+    );
 }

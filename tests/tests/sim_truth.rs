@@ -222,3 +222,50 @@ fn debug_each_effect_alone() {
         );
     }
 }
+
+#[test]
+#[ignore]
+fn debug_worst_points() {
+    let r = simulate(&Options {
+        program: "ring-speeds".into(),
+        ..Default::default()
+    });
+    let out = correct(&r, &r.res.truth.true_calibration);
+    let segs = &r.res.program.segments;
+    let feats = &r.res.truth.features;
+    let mut v = vec![];
+    for (p, ctx) in out.points.iter().zip(&out.contexts) {
+        let Some(seg) = segs.iter().find(|s| s.id == p.segment_id) else {
+            continue;
+        };
+        if seg.kind != SegmentKind::Scan || !p.estimator_valid {
+            continue;
+        }
+        let f = &feats[seg.feature.unwrap() as usize - 1];
+        let c = nalgebra::Vector3::from(f.center);
+        let rel = p.surface - c;
+        let th = rel.y.atan2(rel.x);
+        let dev = (rel.x.hypot(rel.y) - (f.radius_mm + f.form_at(th))) * 1e3;
+        v.push((
+            dev.abs(),
+            dev,
+            seg.id,
+            seg.speed,
+            seg.tip,
+            seg.a1_deg,
+            (ctx.t_ns as f64 * 1e-9 - seg.t0_s),
+            ctx.est_acc.norm(),
+            ctx.f_hz,
+        ));
+    }
+    v.sort_by(|a, b| b.0.total_cmp(&a.0));
+    for x in v.iter().take(25) {
+        eprintln!("{:?}", x);
+    }
+    let n = v.len() as f64;
+    for tip in [1u32, 2] {
+        let d: Vec<f64> = v.iter().filter(|x| x.4 == tip).map(|x| x.1).collect();
+        eprintln!("tip {tip}: {} points RMS {:.3}", d.len(), rms(&d));
+    }
+    let _ = n;
+}

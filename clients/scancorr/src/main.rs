@@ -6,7 +6,10 @@
 
 mod bench;
 mod demo;
+mod labcmd;
 mod offline;
+mod report;
+mod shapecmd;
 mod simcmd;
 mod synth;
 
@@ -40,6 +43,12 @@ enum Cmd {
     /// Calibration documents.
     #[command(subcommand)]
     Calib(CalibCmd),
+    /// Least-squares geometry fits (the ones the lab uses).
+    #[command(subcommand)]
+    Shape(ShapeCmd),
+    /// The model lab: compare, diagnose, add, fit, history.
+    #[command(subcommand)]
+    Lab(labcmd::LabCmd),
     /// Simulate a CMM scanning a program; write a bag, the ground truth and a calibration.
     Sim(SimCli),
     /// Correct a bag offline through the core; write points and alarms to a bag.
@@ -115,6 +124,23 @@ struct SimCli {
     /// Print a JSON summary.
     #[arg(long)]
     json: bool,
+}
+
+#[derive(Subcommand)]
+enum ShapeCmd {
+    /// Orthogonal-distance least-squares fit of points (ASCII x y z rows; a first line with
+    /// only the point count is accepted).
+    Fit {
+        /// circle, sphere, line or plane.
+        #[arg(long)]
+        kind: String,
+        /// The points file.
+        #[arg(long)]
+        points: PathBuf,
+        /// Print JSON (`center`, `normal`, `diameter`, `rms`).
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 #[derive(Subcommand)]
@@ -202,6 +228,8 @@ fn run(cli: Cli) -> Result<()> {
             );
             Ok(())
         }
+        Cmd::Lab(c) => labcmd::run(c),
+        Cmd::Shape(ShapeCmd::Fit { kind, points, json }) => shapecmd::run(&kind, &points, json),
         Cmd::Sim(a) => {
             let mut effects = std::collections::BTreeMap::new();
             for e in &a.effect {

@@ -272,7 +272,7 @@ pub fn correct(
     let mut output = Output::default();
     let (mut bad, mut foreign) = (0u64, 0u64);
     let mut samples = Vec::with_capacity(128);
-    let mut send = |output: &mut Output, log_time: u64| {
+    let send = |output: &mut Output, log_time: u64| {
         if writer_thread.is_some() && (!output.points.is_empty() || !output.alarms.is_empty()) {
             // A closed channel means the writer failed; its error is reported at the join.
             let _ = tx.send(ToWriter::Output {
@@ -307,7 +307,7 @@ pub fn correct(
     }
     corr.flush(&mut output);
     send(&mut output, last_log);
-    drop(send);
+
     drop(tx);
     if let Some(h) = writer_thread {
         let mut w = h

@@ -182,25 +182,25 @@ impl TrueMachine {
         let mut c = [[[0.0; 3]; 3]; 4];
         c[0] = [
             [
-                jitter(&mut r, 4.0e-6, 0.2),
-                jitter(&mut r, 0.3e-6, 0.5),
+                jitter(&mut r, 10.0e-6, 0.2),
+                jitter(&mut r, 0.8e-6, 0.5),
                 0.0,
             ],
             [
                 jitter(&mut r, 0.2e-6, 0.5),
-                jitter(&mut r, 5.0e-6, 0.2),
+                jitter(&mut r, 12.0e-6, 0.2),
                 0.0,
             ],
             [
-                jitter(&mut r, 0.8e-6, 0.4),
+                jitter(&mut r, 2.0e-6, 0.4),
                 0.0,
-                jitter(&mut r, 1.5e-6, 0.2),
+                jitter(&mut r, 4.0e-6, 0.2),
             ],
         ];
-        c[2] = [[0.0; 3], [0.0, jitter(&mut r, 1.2e-6, 0.3), 0.0], [0.0; 3]];
+        c[2] = [[0.0; 3], [0.0, jitter(&mut r, 3.0e-6, 0.3), 0.0], [0.0; 3]];
         c[3] = [
-            [jitter(&mut r, -1.5e-6, 0.3), 0.0, 0.0],
-            [0.0, jitter(&mut r, -1.0e-6, 0.3), 0.0],
+            [jitter(&mut r, -4.0e-6, 0.3), 0.0, 0.0],
+            [0.0, jitter(&mut r, -2.5e-6, 0.3), 0.0],
             [0.0; 3],
         ];
         let waves = |r: &mut Rng, amp: f64| {
@@ -212,26 +212,26 @@ impl TrueMachine {
                 })
                 .collect::<Vec<_>>()
         };
-        let guide_y = waves(&mut r, 1.5e-3);
-        let guide_z = waves(&mut r, 1.0e-3);
-        let guide_pitch = waves(&mut r, 6e-6);
+        let guide_y = waves(&mut r, 3.0e-3);
+        let guide_z = waves(&mut r, 2.0e-3);
+        let guide_pitch = waves(&mut r, 12e-6);
         TrueMachine {
             machine_seed: seed,
             servo,
             compliance: c,
             structure_freq_hz: [
-                jitter(&mut r, 32.0, 0.1),
-                jitter(&mut r, 28.0, 0.1),
+                jitter(&mut r, 48.0, 0.1),
+                jitter(&mut r, 42.0, 0.1),
                 jitter(&mut r, 45.0, 0.1),
             ],
-            structure_damping: 0.35,
+            structure_damping: 0.5,
             arc_phase: [
-                [jitter(&mut r, 3.0e-4, 0.3), jitter(&mut r, 4.0e-5, 0.3)],
-                [jitter(&mut r, 1.0e-4, 0.3), 0.0],
+                [jitter(&mut r, 6.0e-4, 0.3), jitter(&mut r, 8.0e-5, 0.3)],
+                [jitter(&mut r, 2.0e-4, 0.3), 0.0],
             ],
             arc_gain_s2: [
-                jitter(&mut r, 6.0e-6, 0.2),
-                jitter(&mut r, -4.0e-6, 0.2),
+                jitter(&mut r, 18.0e-6, 0.2),
+                jitter(&mut r, -12.0e-6, 0.2),
                 0.0,
             ],
             stylus_alpha: jitter(&mut r, 11.5e-6, 0.1),
@@ -251,11 +251,11 @@ impl TrueMachine {
             guide_pitch,
             abbe_arm_mm: [0.0, 0.0, 0.0],
             cyclic: Wave {
-                amplitude: jitter(&mut r, 0.8e-3, 0.2),
+                amplitude: jitter(&mut r, 2.0e-3, 0.2),
                 wavelength_mm: 4.0,
                 phase: r.range(0.0, std::f64::consts::TAU),
             },
-            backlash_mm: jitter(&mut r, 1.2e-3, 0.2),
+            backlash_mm: jitter(&mut r, 3.0e-3, 0.2),
             styli: vec![
                 Stylus {
                     id: 1,
@@ -279,8 +279,8 @@ impl TrueMachine {
                 scale_resolution_mm: 0.05e-3,
                 probe_sigma_mm: 0.08e-3,
                 probe_resolution_mm: 0.02e-3,
-                temp_sigma_k: 0.005,
-                temp_resolution_k: 0.01,
+                temp_sigma_k: 0.002,
+                temp_resolution_k: 0.001,
             },
         }
     }

@@ -419,7 +419,7 @@ impl<'a> Builder<'a> {
         };
         let _ = path_r;
         let center = f.c() - off;
-        let ramp = (speed / 300.0).max(0.25);
+        let ramp = (speed / 150.0).max(0.4);
         let sweep = dir * (TAU + speed * ramp / nominal_r);
         let path = Path::Arc {
             center,
@@ -550,6 +550,12 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 b.circle(f, v, 1.0, 0.3, 0.0);
                 b.circle(f, v, -1.0, 0.3, PI);
             }
+            // The bent stylus at two head angles: its offset's growth and the Abbe lever show.
+            for a1 in [0.0, 90.0] {
+                b.set_tip(2, a1, 0.0);
+                b.circle(f, 30.0, 1.0, 0.3, 0.0);
+            }
+            b.set_tip(1, 0.0, 0.0);
         }
         "campaign" => {
             let places = [

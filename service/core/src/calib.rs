@@ -45,6 +45,10 @@ pub struct Calibration {
     /// Stream-join settings.
     #[serde(default)]
     pub join: Join,
+    /// Figures the model lab measured for this version (e.g. `heldout_rms_um`), so the history
+    /// of versions can show the error falling without re-reading the data.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub metrics: BTreeMap<String, f64>,
 }
 
 /// Nominal model: G_N = G1(axis)·G2(probe type).
@@ -252,6 +256,9 @@ impl Calibration {
         if self.machine_id.trim().is_empty() {
             return Err(invalid("machine_id", "must not be empty"));
         }
+        if let Some((k, _)) = self.metrics.iter().find(|(_, v)| !v.is_finite()) {
+            return Err(invalid(format!("metrics.{k}"), "must be a finite number"));
+        }
         let t = self.sample_period_s;
         if !(t.is_finite() && t > 0.0 && t < 1.0) {
             return Err(invalid(
@@ -447,6 +454,7 @@ impl Calibration {
             effects: vec![],
             judgement: Judgement::default(),
             join: Join::default(),
+            metrics: BTreeMap::new(),
         }
     }
 }

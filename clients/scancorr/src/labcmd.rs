@@ -1,0 +1,683 @@
+//! `scancorr lab …`: the model lab's I/O — reading bags and calibrations, printing, writing
+//! new calibration versions and reports. The logic is `scancorr_core::lab`.
+
+use crate::offline;
+use crate::report;
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use scancorr_core::effects::{custom, EffectConfig};
+use scancorr_core::lab::analysis::{self, Comparison, Diagnosis};
+use scancorr_core::lab::dataset::{self, BagData, BuildOptions, Dataset};
+use scancorr_core::lab::program::{parse_artifact, ProgramSpec};
+use scancorr_core::sample::Axis;
+use scancorr_core::Calibration;
+use std::path::{Path, PathBuf};
+
+#[derive(Subcommand)]
+pub enum LabCmd {
+    /// Compare the model with measurements of known artifacts: deviation and where it fails.
+    Compare {
+        #[command(flatten)]
+        data: DataArgs,
+        /// Also correct with this calibration and show it as "before" in the report.
+        #[arg(long)]
+        before: Option<PathBuf>,
+        /// Print JSON (`rms_um`, `pv_um`, `noise_floor_um`, `failures`, …).
+        #[arg(long)]
+        json: bool,
+        /// Write a self-contained HTML report.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Rank the effects missing from the model by the residual they explain on held-out data.
+    Diagnose {
+        #[command(flatten)]
+        data: DataArgs,
+        /// Print JSON (`candidates`, `confounded`, `unexplained`).
+        #[arg(long)]
+        json: bool,
+        /// Write a self-contained HTML report.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Add an effect (built-in, with variant, or custom), fit it, write a new version.
+    Add {
+        /// Effect: a library kind (`accel_deflection`), a variant (`accel_deflection:full,order=1`)
+        /// or `custom` with --term.
+        effect: String,
+        #[command(flatten)]
+        data: DataArgs,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Refit every effect of the model, not only the new one.
+        #[arg(long)]
+        refit_all: bool,
+        /// Custom effect term AXIS:EXPR, e.g. 'x:sin(2*pi*x/4)' (repeatable).
+        #[arg(long = "term")]
+        terms: Vec<String>,
+        /// Name of a custom effect.
+        #[arg(long)]
+        name: Option<String>,
+        /// Print JSON (`rms_before_um`, `rms_after_um`, `heldout_rms_before_um`, `heldout_rms_after_um`).
+        #[arg(long)]
+        json: bool,
+        /// Write a self-contained HTML report (before/after).
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Refit an unchanged model: the nominal model's time constants, then every effect.
+    Fit {
+        #[command(flatten)]
+        data: DataArgs,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The error fall across calibration versions.
+    History {
+        /// Folder of calibration documents (*.json).
+        #[arg(long)]
+        calib_dir: Option<PathBuf>,
+        /// The machine's versions in the service's store (needs a running scancorrd).
+        #[arg(long)]
+        machine: Option<String>,
+        /// Re-evaluate every version on these bags (otherwise the figures recorded by the lab).
+        #[arg(long)]
+        bag: Vec<PathBuf>,
+        /// Artifact for bags without a program record.
+        #[arg(long)]
+        artifact: Option<String>,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+        /// Write a self-contained HTML report.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+}
+
+#[derive(Args)]
+pub struct DataArgs {
+    /// Bags to fit (MCAP).
+    #[arg(long, required = true)]
+    bag: Vec<PathBuf>,
+    /// The calibration to start from.
+    #[arg(long)]
+    calib: PathBuf,
+    /// Held-out bags (otherwise every other scan of each artifact is held out).
+    #[arg(long)]
+    validate: Vec<PathBuf>,
+    /// The artifact, for bags that do not say: ring:d=50.0012, sphere:d=25.0004, straightedge.
+    #[arg(long)]
+    artifact: Option<String>,
+    /// Keep every N-th point of a scan.
+    #[arg(long, default_value_t = 4)]
+    stride: usize,
+}
+
+const SENSORS: [&str; 5] = ["stylus", "scale_x", "scale_y", "scale_z", "air"];
+
+/// Loads bags for the lab.
+pub fn load_bags(paths: &[PathBuf], validation: &[PathBuf], machine: &str) -> Result<Vec<BagData>> {
+    let mut out = vec![];
+    for (p, v) in paths
+        .iter()
+        .map(|p| (p, false))
+        .chain(validation.iter().map(|p| (p, true)))
+    {
+        let input = offline::read(p, Some(machine))?;
+        for w in &input.warnings {
+            eprintln!("warning: {w}");
+        }
+        let program = input
+            .metadata
+            .iter()
+            .find(|(n, _)| n == "scancorr.program")
+            .and_then(|(_, m)| m.get("json"))
+            .map(|j| serde_json::from_str::<ProgramSpec>(j))
+            .transpose()
+            .with_context(|| {
+                format!("{}: the scancorr.program record is not valid", p.display())
+            })?;
+        out.push(BagData {
+            name: p.display().to_string(),
+            samples: input.samples.into_iter().map(|(_, s)| s).collect(),
+            program,
+            validation: v,
+        });
+    }
+    Ok(out)
+}
+
+struct Loaded {
+    bags: Vec<BagData>,
+    cal: Calibration,
+    opts: BuildOptions,
+}
+
+fn load(d: &DataArgs) -> Result<Loaded> {
+    let cal = offline::load_calibration(&d.calib)?;
+    let bags = load_bags(&d.bag, &d.validate, &cal.machine_id)?;
+    let artifact = d
+        .artifact
+        .as_deref()
+        .map(parse_artifact)
+        .transpose()
+        .map_err(|e| anyhow::anyhow!("--artifact: {e}"))?;
+    let opts = BuildOptions {
+        stride: d.stride.max(1),
+        holdout_by_segment: true,
+        artifact,
+        sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
+    };
+    Ok(Loaded { bags, cal, opts })
+}
+
+fn dataset_for(l: &Loaded, cal: &Calibration) -> Result<Dataset> {
+    Ok(dataset::build(&l.bags, cal, &l.opts)?)
+}
+
+fn now_rfc3339() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0) as i64;
+    let days = secs.div_euclid(86_400);
+    let rem = secs.rem_euclid(86_400);
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + (m <= 2) as i64;
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+fn um(x: f64) -> String {
+    format!("{x:.3}")
+}
+
+/// Runs a lab command.
+pub fn run(cmd: LabCmd) -> Result<()> {
+    match cmd {
+        LabCmd::Compare {
+            data,
+            before,
+            json,
+            report,
+        } => {
+            let l = load(&data)?;
+            let ds = dataset_for(&l, &l.cal)?;
+            let cmp = analysis::compare(&ds)?;
+            let before = match before {
+                Some(p) => {
+                    let c = offline::load_calibration(&p)?;
+                    let dsb = dataset_for(&l, &c)?;
+                    let cb = analysis::compare(&dsb)?;
+                    Some((dsb, cb))
+                }
+                None => None,
+            };
+            if json {
+                println!("{}", serde_json::to_string_pretty(&cmp)?);
+            } else {
+                print_compare(&cmp, &l.cal);
+            }
+            if let Some(p) = report {
+                let html = report::compare(&l.cal, &ds, &cmp, before.as_ref().map(|(d, c)| (d, c)));
+                std::fs::write(&p, html).with_context(|| format!("writing {}", p.display()))?;
+                eprintln!("report: {}", p.display());
+            }
+            Ok(())
+        }
+        LabCmd::Diagnose { data, json, report } => {
+            let l = load(&data)?;
+            let ds = dataset_for(&l, &l.cal)?;
+            let dg = analysis::diagnose(&ds)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&dg)?);
+            } else {
+                print_diagnosis(&dg);
+            }
+            if let Some(p) = report {
+                let cmp = analysis::compare(&ds)?;
+                std::fs::write(&p, report::diagnose(&l.cal, &ds, &cmp, &dg))
+                    .with_context(|| format!("writing {}", p.display()))?;
+                eprintln!("report: {}", p.display());
+            }
+            Ok(())
+        }
+        LabCmd::Add {
+            effect,
+            data,
+            out,
+            refit_all,
+            terms,
+            name,
+            json,
+            report,
+        } => {
+            let l = load(&data)?;
+            let ds = dataset_for(&l, &l.cal)?;
+            let prep = analysis::prepare(&ds)?;
+            // Candidate configurations of the new effect.
+            let variants: Vec<(String, EffectConfig)> = if effect == "custom" {
+                if terms.is_empty() {
+                    bail!("a custom effect needs terms: --term 'x:sin(2*pi*x/4)' --term 'x:cos(2*pi*x/4)'");
+                }
+                let mut ts = vec![];
+                for t in &terms {
+                    let (a, e) = t
+                        .split_once(':')
+                        .with_context(|| format!("--term {t}: expected AXIS:EXPR"))?;
+                    let axis = match a.trim() {
+                        "x" => Axis::X,
+                        "y" => Axis::Y,
+                        "z" => Axis::Z,
+                        o => bail!("--term {t}: axis `{o}` (x, y or z)"),
+                    };
+                    ts.push(custom::Term {
+                        axis,
+                        expr: e.trim().to_string(),
+                    });
+                }
+                let id = name.clone().unwrap_or_else(|| "custom".into());
+                let n = ts.len();
+                vec![(
+                    id.clone(),
+                    EffectConfig::Custom(custom::Config {
+                        id,
+                        dynamic: false,
+                        terms: ts,
+                        coefficients: vec![0.0; n],
+                    }),
+                )]
+            } else if effect.contains(':') {
+                vec![(effect.clone(), analysis::candidate(&effect, &ds)?)]
+            } else {
+                let all: Vec<_> = analysis::library_candidates(&ds)
+                    .into_iter()
+                    .filter(|(n, _)| n.split(':').next() == Some(effect.as_str()))
+                    .collect();
+                if all.is_empty() {
+                    analysis::candidate(&effect, &ds)?; // names the problem (unknown effect)
+                    bail!("`{effect}` is already in the model (use `lab fit` to refit it)");
+                }
+                all
+            };
+            if l.cal
+                .effects
+                .iter()
+                .any(|e| variants.iter().any(|(_, v)| v.id() == e.id()))
+            {
+                bail!("an effect with id `{}` is already in the model; give the new one another --name", variants[0].1.id());
+            }
+            let mut best: Option<(String, analysis::FitOutcome)> = None;
+            for (vname, cfg) in &variants {
+                let mut configs: Vec<EffectConfig> = if refit_all {
+                    l.cal.effects.clone()
+                } else {
+                    vec![]
+                };
+                configs.push(cfg.clone());
+                let o = analysis::fit_effects(&ds, &prep, &configs)?;
+                let better = match &best {
+                    None => true,
+                    Some((_, b)) => {
+                        let score = |o: &analysis::FitOutcome| {
+                            o.heldout_rms_after_um * (1.0 + 0.002 * o.k as f64)
+                        };
+                        score(&o) < score(b)
+                    }
+                };
+                if better {
+                    best = Some((vname.clone(), o));
+                }
+            }
+            let (vname, o) = best.expect("at least one variant");
+            let mut new = l.cal.clone();
+            if refit_all {
+                new.effects = o.configs.clone();
+            } else {
+                new.effects
+                    .push(o.configs.last().expect("the new effect").clone());
+            }
+            new.parent_version = Some(l.cal.version);
+            new.version = l.cal.version + 1;
+            new.created = now_rfc3339();
+            // Measure, don't extrapolate: correct again with the new version.
+            let ds_after = dataset_for(&l, &new)?;
+            let after = analysis::prepare(&ds_after)?;
+            new.note = format!(
+                "lab add {vname}{}: held-out RMS {} → {} µm (fit {} → {} µm)",
+                if refit_all { " (refit all)" } else { "" },
+                um(prep.rms_held_um),
+                um(after.rms_held_um),
+                um(prep.rms_fit_um),
+                um(after.rms_fit_um)
+            );
+            new.metrics = [
+                ("rms_um".to_string(), after.rms_fit_um),
+                ("heldout_rms_um".to_string(), after.rms_held_um),
+                ("noise_floor_um".to_string(), ds.noise_floor_um),
+            ]
+            .into();
+            new.build().context("the fitted calibration")?;
+            std::fs::write(&out, new.to_json())
+                .with_context(|| format!("writing {}", out.display()))?;
+            let summary = serde_json::json!({
+                "effect": vname,
+                "version": new.version,
+                "parent_version": l.cal.version,
+                "rms_before_um": prep.rms_fit_um,
+                "rms_after_um": after.rms_fit_um,
+                "heldout_rms_before_um": prep.rms_held_um,
+                "heldout_rms_after_um": after.rms_held_um,
+                "noise_floor_um": ds.noise_floor_um,
+                "params": o.params.last(),
+                "unidentifiable": o.unidentifiable,
+                "out": out,
+            });
+            if json {
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            } else {
+                println!(
+                    "added {vname} → {} (version {}, parent {})",
+                    out.display(),
+                    new.version,
+                    l.cal.version
+                );
+                println!(
+                    "  RMS on fit data   {:>8} → {:>8} µm",
+                    um(prep.rms_fit_um),
+                    um(after.rms_fit_um)
+                );
+                println!(
+                    "  RMS held out      {:>8} → {:>8} µm   (noise floor {} µm)",
+                    um(prep.rms_held_um),
+                    um(after.rms_held_um),
+                    um(ds.noise_floor_um)
+                );
+                for p in o.params.last().into_iter().flatten().take(12) {
+                    match p.sigma {
+                        Some(s) => println!("    {:<44} {:>12.4e} ± {:.1e}", p.name, p.value, s),
+                        None => println!(
+                            "    {:<44} {:>12.4e} (not determined by this data)",
+                            p.name, p.value
+                        ),
+                    }
+                }
+                if !o.unidentifiable.is_empty() {
+                    println!(
+                        "  {} parameter(s) not determined by this data (kept at 0)",
+                        o.unidentifiable.len()
+                    );
+                }
+            }
+            if let Some(p) = report {
+                let cmp_b = analysis::compare(&ds)?;
+                let cmp_a = analysis::compare(&ds_after)?;
+                std::fs::write(
+                    &p,
+                    report::add(&l.cal, &new, &ds, &cmp_b, &ds_after, &cmp_a),
+                )
+                .with_context(|| format!("writing {}", p.display()))?;
+                eprintln!("report: {}", p.display());
+            }
+            Ok(())
+        }
+        LabCmd::Fit { data, out, json } => {
+            let l = load(&data)?;
+            let raw: Vec<Vec<scancorr_core::Sample>> = l
+                .bags
+                .iter()
+                .filter(|b| !b.validation)
+                .map(|b| b.samples.clone())
+                .collect();
+            let (mut new, axes) = scancorr_core::lab::nominal::fit_nominal(&raw, &l.cal)?;
+            let ds0 = dataset_for(&l, &l.cal)?;
+            let p0 = analysis::prepare(&ds0)?;
+            let ds = dataset_for(&l, &new)?;
+            let prep = analysis::prepare(&ds)?;
+            let mut unident = vec![];
+            if !new.effects.is_empty() {
+                let o = analysis::fit_effects(&ds, &prep, &new.effects)?;
+                new.effects = o.configs;
+                unident = o.unidentifiable;
+            }
+            new.parent_version = Some(l.cal.version);
+            new.version = l.cal.version + 1;
+            new.created = now_rfc3339();
+            let ds_after = dataset_for(&l, &new)?;
+            let after = analysis::prepare(&ds_after)?;
+            new.note = format!(
+                "lab fit: held-out RMS {} → {} µm",
+                um(p0.rms_held_um),
+                um(after.rms_held_um)
+            );
+            new.metrics = [
+                ("rms_um".to_string(), after.rms_fit_um),
+                ("heldout_rms_um".to_string(), after.rms_held_um),
+                ("noise_floor_um".to_string(), ds.noise_floor_um),
+            ]
+            .into();
+            std::fs::write(&out, new.to_json())
+                .with_context(|| format!("writing {}", out.display()))?;
+            let s = serde_json::json!({
+                "version": new.version,
+                "nominal": axes,
+                "rms_before_um": p0.rms_fit_um,
+                "rms_after_um": after.rms_fit_um,
+                "heldout_rms_before_um": p0.rms_held_um,
+                "heldout_rms_after_um": after.rms_held_um,
+                "unidentifiable": unident,
+            });
+            if json {
+                println!("{}", serde_json::to_string_pretty(&s)?);
+            } else {
+                println!("refit → {} (version {})", out.display(), new.version);
+                for a in &axes {
+                    println!(
+                        "  axis {}: τ {:.5} → {:.5} s, tracking RMS {:.2} → {:.2} µm",
+                        a.axis, a.tau_before_s, a.tau_after_s, a.rms_before_um, a.rms_after_um
+                    );
+                }
+                println!(
+                    "  RMS fit {} → {} µm, held out {} → {} µm",
+                    um(p0.rms_fit_um),
+                    um(after.rms_fit_um),
+                    um(p0.rms_held_um),
+                    um(after.rms_held_um)
+                );
+            }
+            Ok(())
+        }
+        LabCmd::History {
+            calib_dir,
+            machine,
+            bag,
+            artifact,
+            json,
+            report,
+        } => {
+            if machine.is_some() {
+                bail!("--machine reads the versions from a running scancorrd, which this build does not include yet; export them to a folder and use --calib-dir");
+            }
+            let dir =
+                calib_dir.context("give --calib-dir DIR (a folder of calibration versions)")?;
+            let mut cals = vec![];
+            for e in
+                std::fs::read_dir(&dir).with_context(|| format!("reading {}", dir.display()))?
+            {
+                let p = e?.path();
+                if p.extension().is_some_and(|x| x == "json") {
+                    if let Ok(c) = offline::load_calibration(&p) {
+                        cals.push((p, c));
+                    }
+                }
+            }
+            if cals.is_empty() {
+                bail!("{}: no calibration documents (*.json)", dir.display());
+            }
+            cals.sort_by_key(|(_, c)| (c.machine_id.clone(), c.version));
+            let mut rows = vec![];
+            let bags = if bag.is_empty() {
+                vec![]
+            } else {
+                load_bags(&bag, &[], &cals[0].1.machine_id)?
+            };
+            let art = artifact
+                .as_deref()
+                .map(parse_artifact)
+                .transpose()
+                .map_err(|e| anyhow::anyhow!("--artifact: {e}"))?;
+            for (p, c) in &cals {
+                let (rms, held) = if bags.is_empty() {
+                    (
+                        c.metrics.get("rms_um").copied(),
+                        c.metrics.get("heldout_rms_um").copied(),
+                    )
+                } else {
+                    let opts = BuildOptions {
+                        artifact: art.clone(),
+                        sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
+                        ..Default::default()
+                    };
+                    let ds = dataset::build(&bags, c, &opts)?;
+                    let pr = analysis::prepare(&ds)?;
+                    (Some(pr.rms_fit_um), Some(pr.rms_held_um))
+                };
+                rows.push(report::HistoryRow {
+                    file: p
+                        .file_name()
+                        .map(|f| f.to_string_lossy().to_string())
+                        .unwrap_or_default(),
+                    version: c.version,
+                    parent: c.parent_version,
+                    effects: c.effects.iter().map(|e| e.id()).collect(),
+                    note: c.note.clone(),
+                    rms_um: rms,
+                    heldout_rms_um: held,
+                });
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&rows)?);
+            } else {
+                print!("{}", report::history_text(&rows));
+            }
+            if let Some(p) = report {
+                std::fs::write(&p, report::history(&rows))
+                    .with_context(|| format!("writing {}", p.display()))?;
+                eprintln!("report: {}", p.display());
+            }
+            Ok(())
+        }
+    }
+}
+
+fn print_compare(c: &Comparison, cal: &Calibration) {
+    println!(
+        "calibration v{} ({} effects): {} points",
+        cal.version,
+        cal.effects.len(),
+        c.points
+    );
+    println!(
+        "  deviation RMS {} µm, peak-to-valley {} µm, noise floor {} µm",
+        um(c.rms_um),
+        um(c.pv_um),
+        um(c.noise_floor_um)
+    );
+    if c.failures.is_empty() {
+        println!("  no bin stands out (every bin within 1.3 × the RMS or 2 × the noise floor)");
+    } else {
+        println!("  where it fails (bins standing out):");
+        for b in c.failures.iter().take(10) {
+            println!(
+                "    {:<22} {:<28} RMS {:>7} µm  mean {:>7} µm  ({} points)",
+                b.feature,
+                b.bin,
+                um(b.rms_um),
+                um(b.mean_um),
+                b.n
+            );
+        }
+    }
+    for h in &c.harmonics {
+        let a: Vec<String> = h
+            .amplitude_um
+            .iter()
+            .enumerate()
+            .map(|(k, a)| format!("{}θ {:.3}", k + 1, a))
+            .collect();
+        println!(
+            "  {} {} harmonics (µm): {}",
+            h.artifact,
+            h.feature + 1,
+            a.join("  ")
+        );
+    }
+}
+
+fn print_diagnosis(d: &Diagnosis) {
+    println!(
+        "residual RMS {} µm (held out {} µm), noise floor {} µm, {} fit / {} held-out points",
+        um(d.rms_um),
+        um(d.heldout_rms_um),
+        um(d.noise_floor_um),
+        d.points[0],
+        d.points[1]
+    );
+    println!(
+        "  {:<34} {:>9} {:>4} {:>11} {:>11} {:>9}",
+        "candidate", "explained", "sig", "held-out µm", "fit µm", "ΔBIC"
+    );
+    for c in d.candidates.iter().take(12) {
+        println!(
+            "  {:<34} {:>8.1}% {:>4} {:>5}→{:<5} {:>5}→{:<5} {:>9.0}",
+            c.effect,
+            c.explained * 100.0,
+            if c.significant { "yes" } else { "no" },
+            format!("{:.3}", c.heldout_rms_before_um),
+            format!("{:.3}", c.heldout_rms_after_um),
+            format!("{:.3}", c.rms_before_um),
+            format!("{:.3}", c.rms_after_um),
+            c.delta_bic
+        );
+    }
+    if !d.candidates.iter().any(|c| c.significant) {
+        println!("  no candidate is significant (none removes half the noise floor from held-out data and pays for its parameters)");
+    }
+    for s in &d.skipped {
+        println!("  not tested: {s}");
+    }
+    for c in &d.confounded {
+        println!("  confounded: {} and {} (each reproduces {:.0} % / {:.0} % of the other) — to separate them:", c.effects[0], c.effects[1], c.r2[0] * 100.0, c.r2[1] * 100.0);
+        for s in &c.separate_by {
+            println!("    · {s}");
+        }
+    }
+    for s in &d.unexplained {
+        let what = match s.period_mm {
+            Some(p) => format!("a period of {p:.3} mm along {}", s.axis),
+            None => format!("the sign of the {} velocity (reversal)", s.axis),
+        };
+        println!("  unexplained: {what}, amplitude {:.3} µm, {:.0} % of the residual → lab add custom {}", s.amplitude_um, s.explained * 100.0, s.custom_terms.iter().map(|t| format!("--term '{t}'")).collect::<Vec<_>>().join(" "));
+    }
+}
+
+#[allow(dead_code)]
+fn _unused(_: &Path) {}

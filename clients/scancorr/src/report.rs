@@ -1,0 +1,393 @@
+//! Self-contained HTML reports (inline SVG, no scripts, no network): polar deviation plots,
+//! residual breakdowns with failing bins highlighted, the candidate ranking, the error fall.
+
+use scancorr_core::lab::analysis::{Comparison, Diagnosis};
+use scancorr_core::lab::dataset::Dataset;
+use scancorr_core::lab::program::FeatureKind;
+use scancorr_core::Calibration;
+use serde::Serialize;
+use std::fmt::Write;
+
+/// One calibration version in the history.
+#[derive(Debug, Clone, Serialize)]
+pub struct HistoryRow {
+    pub file: String,
+    pub version: u64,
+    pub parent: Option<u64>,
+    pub effects: Vec<String>,
+    pub note: String,
+    pub rms_um: Option<f64>,
+    pub heldout_rms_um: Option<f64>,
+}
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+fn page(title: &str, body: &str) -> String {
+    format!(
+        "<!doctype html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>{t}</title><style>\
+body{{font-family:system-ui,sans-serif;margin:2em;max-width:1100px;color:#222}}\
+h1{{font-size:1.4em}}h2{{font-size:1.15em;margin-top:2em;border-bottom:1px solid #ccc}}\
+figure{{display:inline-block;margin:0.5em;vertical-align:top}}figcaption{{font-size:0.85em;color:#555;max-width:420px}}\
+table{{border-collapse:collapse;font-size:0.9em}}td,th{{border:1px solid #ddd;padding:3px 8px;text-align:right}}\
+td:first-child,th:first-child{{text-align:left}}.fail{{color:#b00;font-weight:bold}}.muted{{color:#777}}\
+</style></head><body><h1>{t}</h1>{body}</body></html>",
+        t = esc(title)
+    )
+}
+
+/// Polar deviation plot of circle feature `fi`: deviation magnified around a reference circle.
+fn polar(
+    ds: &Dataset,
+    res: &[f64],
+    fi: usize,
+    title: &str,
+    before: Option<(&Dataset, &[f64])>,
+) -> String {
+    let collect = |ds: &Dataset, res: &[f64]| -> Vec<(f64, f64)> {
+        let c = ds.features[fi].1.nominal_center;
+        // Mean deviation per degree of angle.
+        let mut bins = vec![(0.0, 0usize); 360];
+        for (i, p) in ds.points.iter().enumerate() {
+            if p.feature != fi {
+                continue;
+            }
+            let th = (p.surface.y - c[1])
+                .atan2(p.surface.x - c[0])
+                .to_degrees()
+                .rem_euclid(360.0);
+            let b = &mut bins[(th as usize).min(359)];
+            b.0 += res[i];
+            b.1 += 1;
+        }
+        bins.iter()
+            .enumerate()
+            .filter(|(_, b)| b.1 > 0)
+            .map(|(d, b)| ((d as f64 + 0.5).to_radians(), b.0 / b.1 as f64))
+            .collect()
+    };
+    let after = collect(ds, res);
+    let bef = before.map(|(d, r)| collect(d, r));
+    let maxdev = after
+        .iter()
+        .chain(bef.iter().flatten())
+        .map(|(_, e)| e.abs())
+        .fold(0.1f64, f64::max);
+    let (w, r0, span) = (320.0, 90.0, 60.0);
+    let k = span / maxdev;
+    let path = |v: &[(f64, f64)]| -> String {
+        let mut s = String::new();
+        for (j, (th, e)) in v.iter().enumerate() {
+            let r = r0 + e * k;
+            let _ = write!(
+                s,
+                "{}{:.1},{:.1} ",
+                if j == 0 { "M" } else { "L" },
+                w / 2.0 + r * th.cos(),
+                w / 2.0 - r * th.sin()
+            );
+        }
+        s + "Z"
+    };
+    let mut svg = format!("<svg data-plot=\"polar\" xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{w}\" viewBox=\"0 0 {w} {w}\">");
+    for (rr, dash) in [(r0, ""), (r0 + span, "4 3"), (r0 - span, "4 3")] {
+        let _ = write!(svg, "<circle cx=\"{c}\" cy=\"{c}\" r=\"{rr}\" fill=\"none\" stroke=\"#bbb\" stroke-dasharray=\"{dash}\"/>", c = w / 2.0);
+    }
+    if let Some(b) = &bef {
+        let _ = write!(
+            svg,
+            "<path d=\"{}\" fill=\"none\" stroke=\"#d55\" stroke-width=\"1.2\"/>",
+            path(b)
+        );
+    }
+    let _ = write!(
+        svg,
+        "<path d=\"{}\" fill=\"none\" stroke=\"#2266cc\" stroke-width=\"1.5\"/>",
+        path(&after)
+    );
+    let _ = write!(
+        svg,
+        "<text x=\"6\" y=\"14\" font-size=\"11\">±{:.2} µm at dashed circles</text></svg>",
+        maxdev
+    );
+    let legend = if bef.is_some() {
+        " <span style=\"color:#d55\">before</span> / <span style=\"color:#2266cc\">after</span>"
+    } else {
+        ""
+    };
+    format!("<figure>{svg}<figcaption>{}{legend}: deviation from the fitted circle (certified size), mean per degree</figcaption></figure>", esc(title))
+}
+
+/// Horizontal bar chart.
+fn bars(
+    kind: &str,
+    rows: &[(String, f64, bool)],
+    unit: &str,
+    reference: Option<(f64, &str)>,
+) -> String {
+    let h = 22.0 * rows.len() as f64 + 30.0;
+    let max = rows
+        .iter()
+        .map(|r| r.1)
+        .chain(reference.map(|r| r.0))
+        .fold(1e-9f64, f64::max);
+    let (x0, wbar) = (230.0, 300.0);
+    let mut svg = format!("<svg data-plot=\"{kind}\" xmlns=\"http://www.w3.org/2000/svg\" width=\"620\" height=\"{h}\">");
+    for (i, (label, v, hot)) in rows.iter().enumerate() {
+        let y = 10.0 + 22.0 * i as f64;
+        let _ = write!(
+            svg,
+            "<text x=\"{}\" y=\"{}\" font-size=\"11\" text-anchor=\"end\">{}</text><rect x=\"{x0}\" y=\"{y}\" width=\"{:.1}\" height=\"16\" fill=\"{}\" data-failing=\"{hot}\"/><text x=\"{:.1}\" y=\"{}\" font-size=\"11\">{v:.3} {unit}</text>",
+            x0 - 6.0,
+            y + 12.0,
+            esc(label),
+            (v / max * wbar).max(0.5),
+            if *hot { "#cc3333" } else { "#6a8fc8" },
+            x0 + (v / max * wbar).max(0.5) + 4.0,
+            y + 12.0
+        );
+    }
+    if let Some((r, name)) = reference {
+        let x = x0 + r / max * wbar;
+        let _ = write!(svg, "<line x1=\"{x:.1}\" x2=\"{x:.1}\" y1=\"4\" y2=\"{}\" stroke=\"#393\" stroke-dasharray=\"4 3\"/><text x=\"{:.1}\" y=\"{}\" font-size=\"10\" fill=\"#393\">{}</text>", h - 14.0, x + 3.0, h - 4.0, esc(name));
+    }
+    svg + "</svg>"
+}
+
+fn breakdown(cmp: &Comparison) -> String {
+    let mut s = String::new();
+    let mut features: Vec<&str> = cmp.bins.iter().map(|b| b.feature.as_str()).collect();
+    features.dedup();
+    for f in features {
+        let rows: Vec<(String, f64, bool)> = cmp
+            .bins
+            .iter()
+            .filter(|b| b.feature == f)
+            .map(|b| (b.bin.clone(), b.rms_um, b.failing))
+            .collect();
+        let _ = write!(
+            s,
+            "<figure>{}<figcaption>Residual RMS by {} (red: stands out)</figcaption></figure>",
+            bars(
+                "residual",
+                &rows,
+                "µm",
+                Some((cmp.noise_floor_um, "noise floor"))
+            ),
+            esc(f)
+        );
+    }
+    s
+}
+
+fn summary(cal: &Calibration, cmp: &Comparison) -> String {
+    let mut s = format!(
+        "<p>Calibration <b>v{}</b> of machine <b>{}</b> ({} effect(s): {}). {} points.</p><table><tr><th>figure</th><th>µm</th></tr><tr><td>deviation RMS</td><td>{:.3}</td></tr><tr><td>peak-to-valley</td><td>{:.3}</td></tr><tr><td>noise floor</td><td>{:.3}</td></tr></table>",
+        cal.version,
+        esc(&cal.machine_id),
+        cal.effects.len(),
+        esc(&cal.effects.iter().map(|e| e.id()).collect::<Vec<_>>().join(", ")),
+        cmp.points,
+        cmp.rms_um,
+        cmp.pv_um,
+        cmp.noise_floor_um
+    );
+    if !cmp.failures.is_empty() {
+        s += "<h2>Where it fails</h2><table><tr><th>feature</th><th>bin</th><th>points</th><th>RMS µm</th><th>mean µm</th></tr>";
+        for b in cmp.failures.iter().take(15) {
+            let _ = write!(s, "<tr class=\"fail\"><td>{}</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td></tr>", esc(&b.feature), esc(&b.bin), b.n, b.rms_um, b.mean_um);
+        }
+        s += "</table>";
+    }
+    s
+}
+
+fn polars(ds: &Dataset, cmp: &Comparison, before: Option<(&Dataset, &Comparison)>) -> String {
+    let mut s = String::from("<h2>Deviation of each circle</h2>");
+    for (fi, (_, f)) in ds.features.iter().enumerate() {
+        if f.kind == FeatureKind::Face || !ds.points.iter().any(|p| p.feature == fi) {
+            continue;
+        }
+        let title = format!(
+            "{} {} (Ø{})",
+            f.artifact,
+            fi + 1,
+            f.certificate_diameter_mm.unwrap_or(f.nominal_diameter_mm)
+        );
+        s += &polar(
+            ds,
+            &cmp.residual_um,
+            fi,
+            &title,
+            before.map(|(d, c)| (d, c.residual_um.as_slice())),
+        );
+    }
+    s
+}
+
+/// `lab compare --report`.
+pub fn compare(
+    cal: &Calibration,
+    ds: &Dataset,
+    cmp: &Comparison,
+    before: Option<(&Dataset, &Comparison)>,
+) -> String {
+    let mut body = summary(cal, cmp);
+    if let Some((_, b)) = before {
+        body += &format!(
+            "<p>Before: deviation RMS {:.3} µm → now {:.3} µm.</p>",
+            b.rms_um, cmp.rms_um
+        );
+    }
+    body += &polars(ds, cmp, before);
+    body += "<h2>Residual against each feature</h2>";
+    body += &breakdown(cmp);
+    page("scancorr lab — compare", &body)
+}
+
+/// `lab diagnose --report`.
+pub fn diagnose(cal: &Calibration, ds: &Dataset, cmp: &Comparison, d: &Diagnosis) -> String {
+    let mut body = summary(cal, cmp);
+    body += "<h2>Candidate effects, ranked by held-out residual explained</h2>";
+    let rows: Vec<(String, f64, bool)> = d
+        .candidates
+        .iter()
+        .take(15)
+        .map(|c| (c.effect.clone(), c.explained * 100.0, c.significant))
+        .collect();
+    body += &format!("<figure>{}<figcaption>Explained fraction of the held-out residual (red: significant)</figcaption></figure>", bars("ranking", &rows, "%", None));
+    body += "<table><tr><th>candidate</th><th>explained</th><th>significant</th><th>held-out µm</th><th>fit µm</th><th>ΔBIC</th><th>parameters</th></tr>";
+    for c in d.candidates.iter().take(15) {
+        let _ = write!(
+            body,
+            "<tr><td>{}</td><td>{:.1} %</td><td>{}</td><td>{:.3} → {:.3}</td><td>{:.3} → {:.3}</td><td>{:.0}</td><td>{}</td></tr>",
+            esc(&c.effect),
+            c.explained * 100.0,
+            if c.significant { "yes" } else { "no" },
+            c.heldout_rms_before_um,
+            c.heldout_rms_after_um,
+            c.rms_before_um,
+            c.rms_after_um,
+            c.delta_bic,
+            c.k
+        );
+    }
+    body += "</table>";
+    for c in &d.confounded {
+        let _ = write!(
+            body,
+            "<p><b>Confounded:</b> {} and {}. To separate them:<ul>",
+            esc(&c.effects[0]),
+            esc(&c.effects[1])
+        );
+        for s in &c.separate_by {
+            let _ = write!(body, "<li>{}</li>", esc(s));
+        }
+        body += "</ul></p>";
+    }
+    for s in &d.unexplained {
+        let _ = write!(body, "<p><b>Unexplained structure:</b> {} along {} ({:.3} µm, {:.0} % of the residual). Start a custom effect with <code>{}</code>.</p>", esc(&s.kind), esc(&s.axis), s.amplitude_um, s.explained * 100.0, esc(&s.custom_terms.join(" ")));
+    }
+    body += &polars(ds, cmp, None);
+    body += "<h2>Residual against each feature</h2>";
+    body += &breakdown(cmp);
+    page("scancorr lab — diagnose", &body)
+}
+
+/// `lab add --report`: before/after.
+pub fn add(
+    old: &Calibration,
+    new: &Calibration,
+    dsb: &Dataset,
+    cb: &Comparison,
+    dsa: &Dataset,
+    ca: &Comparison,
+) -> String {
+    let mut body = format!("<p>{}</p>", esc(&new.note));
+    let rows = vec![
+        (format!("v{} before", old.version), cb.rms_um, false),
+        (format!("v{} after", new.version), ca.rms_um, false),
+    ];
+    body += &format!(
+        "<figure>{}<figcaption>Error fall: deviation RMS</figcaption></figure>",
+        bars(
+            "error-fall",
+            &rows,
+            "µm",
+            Some((ca.noise_floor_um, "noise floor"))
+        )
+    );
+    body += &polars(dsa, ca, Some((dsb, cb)));
+    body += "<h2>Residual against each feature (after)</h2>";
+    body += &breakdown(ca);
+    page("scancorr lab — add", &body)
+}
+
+/// `lab history` as text.
+pub fn history_text(rows: &[HistoryRow]) -> String {
+    let mut s = String::new();
+    let max = rows
+        .iter()
+        .filter_map(|r| r.heldout_rms_um.or(r.rms_um))
+        .fold(1e-9f64, f64::max);
+    let _ = writeln!(
+        s,
+        "{:>4} {:>6}  {:>10} {:>10}  {:<40} effects",
+        "v", "parent", "RMS µm", "held µm", "error fall (held out)"
+    );
+    for r in rows {
+        let v = r.heldout_rms_um.or(r.rms_um);
+        let bar = v
+            .map(|v| "█".repeat(((v / max) * 40.0).round() as usize))
+            .unwrap_or_default();
+        let f = |x: Option<f64>| x.map(|v| format!("{v:.3}")).unwrap_or_else(|| "—".into());
+        let _ = writeln!(
+            s,
+            "{:>4} {:>6}  {:>10} {:>10}  {:<40} {}",
+            r.version,
+            r.parent
+                .map(|p| p.to_string())
+                .unwrap_or_else(|| "—".into()),
+            f(r.rms_um),
+            f(r.heldout_rms_um),
+            bar,
+            r.effects.join(" + ")
+        );
+    }
+    s
+}
+
+/// `lab history --report`.
+pub fn history(rows: &[HistoryRow]) -> String {
+    let bars_rows: Vec<(String, f64, bool)> = rows
+        .iter()
+        .filter_map(|r| {
+            r.heldout_rms_um.or(r.rms_um).map(|v| {
+                (
+                    format!(
+                        "v{} {}",
+                        r.version,
+                        r.effects
+                            .last()
+                            .cloned()
+                            .unwrap_or_else(|| "nominal".into())
+                    ),
+                    v,
+                    false,
+                )
+            })
+        })
+        .collect();
+    let mut body = format!("<figure>{}<figcaption>Error fall across calibration versions (held-out RMS where recorded)</figcaption></figure>", bars("error-fall", &bars_rows, "µm", None));
+    body += "<table><tr><th>version</th><th>parent</th><th>RMS µm</th><th>held-out µm</th><th>effects</th><th>note</th></tr>";
+    for r in rows {
+        let f = |x: Option<f64>| x.map(|v| format!("{v:.3}")).unwrap_or_else(|| "—".into());
+        let _ = write!(body, "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"muted\">{}</td></tr>", r.version, r.parent.map(|p| p.to_string()).unwrap_or_default(), f(r.rms_um), f(r.heldout_rms_um), esc(&r.effects.join(" + ")), esc(&r.note));
+    }
+    body += "</table>";
+    page("scancorr lab — history", &body)
+}

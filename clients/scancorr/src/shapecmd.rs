@@ -1,0 +1,174 @@
+//! `scancorr shape fit --kind circle|sphere|line|plane --points FILE [--json]`: an
+//! orthogonal-distance least-squares fit of a geometric feature to an ASCII point file
+//! (`x y z` rows, whitespace or comma separated, `#` comments, optional point count on the
+//! first line).
+
+use anyhow::{Context, Result};
+use scancorr_core::shape::{fit_circle, fit_line, fit_plane, fit_sphere, parse_points, ShapeKind};
+use scancorr_core::Vec3;
+use serde::Serialize;
+use std::path::Path;
+
+/// The fit result common to all kinds, as printed.
+struct Summary {
+    kind: ShapeKind,
+    points: usize,
+    /// Centre (circle, sphere) or centroid (line, plane), mm.
+    center: Vec3,
+    /// Circle-plane normal, line direction or plane normal; none for a sphere.
+    normal: Option<Vec3>,
+    /// Diameter (circle, sphere), mm.
+    diameter: Option<f64>,
+    rms: f64,
+    max_abs_residual: f64,
+}
+
+/// Runs `scancorr shape fit`: reads `points_file`, fits a feature of `kind` and prints the
+/// result, as JSON when `json` is set.
+pub fn run(kind: &str, points_file: &Path, json: bool) -> Result<()> {
+    let kind: ShapeKind = kind.parse()?;
+    let text = std::fs::read_to_string(points_file)
+        .with_context(|| format!("cannot read the point file {}", points_file.display()))?;
+    let points =
+        parse_points(&text).with_context(|| format!("point file {}", points_file.display()))?;
+    let summary =
+        fit(kind, &points).with_context(|| format!("{kind} fit of {}", points_file.display()))?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&to_json(&summary))?);
+    } else {
+        print_human(&summary, points_file);
+    }
+    Ok(())
+}
+
+fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
+    let n = points.len();
+    Ok(match kind {
+        ShapeKind::Circle => {
+            let f = fit_circle(points)?;
+            Summary {
+                kind,
+                points: n,
+                center: f.center,
+                normal: Some(f.normal),
+                diameter: Some(f.diameter),
+                rms: f.rms,
+                max_abs_residual: f.max_abs_residual(),
+            }
+        }
+        ShapeKind::Sphere => {
+            let f = fit_sphere(points)?;
+            Summary {
+                kind,
+                points: n,
+                center: f.center,
+                normal: None,
+                diameter: Some(f.diameter),
+                rms: f.rms,
+                max_abs_residual: f.max_abs_residual(),
+            }
+        }
+        ShapeKind::Line => {
+            let f = fit_line(points)?;
+            Summary {
+                kind,
+                points: n,
+                center: f.centroid,
+                normal: Some(f.direction),
+                diameter: None,
+                rms: f.rms,
+                max_abs_residual: f.max_abs_residual(),
+            }
+        }
+        ShapeKind::Plane => {
+            let f = fit_plane(points)?;
+            Summary {
+                kind,
+                points: n,
+                center: f.centroid,
+                normal: Some(f.normal),
+                diameter: None,
+                rms: f.rms,
+                max_abs_residual: f.max_abs_residual(),
+            }
+        }
+    })
+}
+
+fn xyz(v: &Vec3) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+/// The `--json` document, fields in this order.
+#[derive(Serialize)]
+struct JsonSummary {
+    kind: &'static str,
+    points: usize,
+    center: [f64; 3],
+    normal: Option<[f64; 3]>,
+    diameter: Option<f64>,
+    rms: f64,
+    max_abs_residual: f64,
+}
+
+fn to_json(s: &Summary) -> JsonSummary {
+    JsonSummary {
+        kind: s.kind.name(),
+        points: s.points,
+        center: xyz(&s.center),
+        normal: s.normal.as_ref().map(xyz),
+        diameter: s.diameter,
+        rms: s.rms,
+        max_abs_residual: s.max_abs_residual,
+    }
+}
+
+/// `x` with `decimals` decimals, right-aligned in 16 columns, without a sign on a zero.
+fn fixed(x: f64, decimals: usize) -> String {
+    let s = format!("{x:.decimals$}");
+    let s = if s.bytes().all(|b| matches!(b, b'-' | b'0' | b'.')) {
+        s.trim_start_matches('-').to_string()
+    } else {
+        s
+    };
+    format!("{s:>16}")
+}
+
+fn print_human(s: &Summary, file: &Path) {
+    println!(
+        "{} fit of {} points from {}",
+        s.kind,
+        s.points,
+        file.display()
+    );
+    let center_label = match s.kind {
+        ShapeKind::Circle | ShapeKind::Sphere => "center",
+        ShapeKind::Line | ShapeKind::Plane => "centroid",
+    };
+    let v = |v: &Vec3, decimals: usize| {
+        format!(
+            "{} {} {}",
+            fixed(v.x, decimals),
+            fixed(v.y, decimals),
+            fixed(v.z, decimals)
+        )
+    };
+    println!("  {center_label:<16} {}  mm", v(&s.center, 6));
+    if let Some(n) = &s.normal {
+        let label = match s.kind {
+            ShapeKind::Line => "direction",
+            _ => "normal",
+        };
+        println!("  {label:<16} {}", v(n, 9));
+    }
+    if let Some(d) = s.diameter {
+        println!("  {:<16} {}  mm", "diameter", fixed(d, 6));
+        println!("  {:<16} {}  mm", "radius", fixed(d / 2.0, 6));
+    }
+    println!("  {:<16} {}  mm", "rms residual", fixed(s.rms, 6));
+    println!(
+        "  {:<16} {}  mm",
+        "max |residual|",
+        fixed(s.max_abs_residual, 6)
+    );
+}

@@ -1,0 +1,1115 @@
+//! Compare, diagnose and add: the lab's questions answered on a [`Dataset`].
+
+use super::dataset::{Dataset, Phase};
+use super::fit::{fit_artifacts, nuisance_row, ArtifactFit, Normal};
+use super::program::FeatureKind;
+use super::LabError;
+use crate::effects::{self as fx, Effect, EffectConfig};
+use crate::sample::{Axis, Vec3};
+use serde::Serialize;
+
+/// The dataset prepared for fitting: artifact fit, masks, baseline figures.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// Artifact fit on all points.
+    pub art: ArtifactFit,
+    /// Points used for fitting.
+    pub fit_mask: Vec<bool>,
+    /// Held-out points.
+    pub held_mask: Vec<bool>,
+    /// Residual RMS on the fit set after refitting placements, µm.
+    pub rms_fit_um: f64,
+    /// Same on the held-out set (its own placements), µm.
+    pub rms_held_um: f64,
+    /// Lag-1 autocorrelation of the residuals (for the effective number of points).
+    pub rho: f64,
+}
+
+fn nuisance_ss(ds: &Dataset, art: &ArtifactFit, y: &[f64], mask: &[bool]) -> (f64, usize) {
+    let mut ne = Normal::new(art.n_cols);
+    let mut row = vec![];
+    for (i, p) in ds.points.iter().enumerate() {
+        if mask[i] && art.features[p.feature].is_some() {
+            nuisance_row(art, p, &p.surface, &mut row);
+            ne.add(&[], &row, y[i]);
+        }
+    }
+    let n = ne.n;
+    if n == 0 {
+        return (0.0, 0);
+    }
+    (ne.solve().ss, n)
+}
+
+fn rms_um(ss: f64, n: usize) -> f64 {
+    if n == 0 {
+        0.0
+    } else {
+        (ss / n as f64).sqrt() * 1e3
+    }
+}
+
+/// Fits the artifacts and the baseline.
+pub fn prepare(ds: &Dataset) -> Result<Prepared, LabError> {
+    let surfaces: Vec<Vec3> = ds.points.iter().map(|p| p.surface).collect();
+    let all = vec![true; ds.points.len()];
+    let art = fit_artifacts(ds, &surfaces, &all);
+    if art.features.iter().all(|f| f.is_none()) {
+        return Err(LabError::Data(
+            "no artifact could be fitted: a circle needs at least 3 points around its circumference, a face 3 points along it".into(),
+        ));
+    }
+    let fit_mask: Vec<bool> = ds
+        .points
+        .iter()
+        .map(|p| !p.held_out && art.features[p.feature].is_some())
+        .collect();
+    let held_mask: Vec<bool> = ds
+        .points
+        .iter()
+        .map(|p| p.held_out && art.features[p.feature].is_some())
+        .collect();
+    if fit_mask.iter().filter(|m| **m).count() < 50 {
+        return Err(LabError::Data("too few points to fit (fewer than 50 scan points in contact): scan the artifact longer".into()));
+    }
+    let (ssf, nf) = nuisance_ss(ds, &art, &art.residual, &fit_mask);
+    let (ssh, nh) = nuisance_ss(ds, &art, &art.residual, &held_mask);
+    let mut num = 0.0;
+    let mut den = 0.0;
+    for i in 1..ds.points.len() {
+        if ds.points[i].segment == ds.points[i - 1].segment
+            && ds.points[i].bag == ds.points[i - 1].bag
+        {
+            num += art.residual[i] * art.residual[i - 1];
+            den += art.residual[i] * art.residual[i];
+        }
+    }
+    let rho = if den > 0.0 {
+        (num / den).clamp(0.0, 0.99)
+    } else {
+        0.0
+    };
+    Ok(Prepared {
+        art,
+        fit_mask,
+        held_mask,
+        rms_fit_um: rms_um(ssf, nf),
+        rms_held_um: rms_um(ssh, nh),
+        rho,
+    })
+}
+
+/// Columns g_i·r_ik of effect configs for every point (row-major, `k` per point).
+fn columns(
+    ds: &Dataset,
+    art: &ArtifactFit,
+    configs: &[EffectConfig],
+) -> Result<(Vec<f64>, usize, Vec<Box<dyn Effect>>), LabError> {
+    let mut sensors = ds.sensors.clone();
+    let mut models = vec![];
+    for c in configs {
+        let b = c
+            .build(&mut sensors)
+            .map_err(|e| LabError::Data(format!("{}: {e}", c.kind())))?;
+        models.push(b.model);
+    }
+    if sensors.names().len() != ds.sensors.names().len() {
+        let missing: Vec<&String> = sensors
+            .names()
+            .iter()
+            .filter(|n| ds.sensors.find(n).is_none())
+            .collect();
+        return Err(LabError::Data(format!(
+            "the bags have no readings of temperature sensor(s) {missing:?}: record the temperature stream with those sensors"
+        )));
+    }
+    let k: usize = models.iter().map(|m| m.n_params()).sum();
+    let mut cols = vec![0.0; k * ds.points.len()];
+    let mut r = vec![Vec3::zeros(); models.iter().map(|m| m.n_params()).max().unwrap_or(0)];
+    for (i, p) in ds.points.iter().enumerate() {
+        let g = art.grad[i];
+        let mut c = 0;
+        for m in &models {
+            let n = m.n_params();
+            m.regressors(&p.ctx, &mut r[..n]);
+            for v in &r[..n] {
+                cols[i * k + c] = g.dot(v);
+                c += 1;
+            }
+        }
+    }
+    Ok((cols, k, models))
+}
+
+/// A fitted parameter.
+#[derive(Debug, Clone, Serialize)]
+pub struct Param {
+    /// Name with unit.
+    pub name: String,
+    /// Value.
+    pub value: f64,
+    /// Standard uncertainty (inflated for correlated residuals); absent when not identifiable.
+    pub sigma: Option<f64>,
+}
+
+/// The outcome of fitting some effects' parameters jointly with the artifact placements.
+#[derive(Debug, Clone, Serialize)]
+pub struct FitOutcome {
+    /// Fitted configs (parameters = current + fitted change).
+    #[serde(skip)]
+    pub configs: Vec<EffectConfig>,
+    /// Parameters of each config.
+    pub params: Vec<Vec<Param>>,
+    /// Parameters this data cannot determine (left at their previous value).
+    pub unidentifiable: Vec<String>,
+    /// Number of fitted parameters.
+    pub k: usize,
+    /// RMS on the fit set before and after, µm.
+    pub rms_before_um: f64,
+    /// After.
+    pub rms_after_um: f64,
+    /// RMS on held-out data before and after (placements refitted there), µm.
+    pub heldout_rms_before_um: f64,
+    /// After.
+    pub heldout_rms_after_um: f64,
+    /// Fraction of the held-out residual's sum of squares explained.
+    pub explained: f64,
+    /// RMS of the residual component removed on held-out data, µm.
+    pub explained_component_um: f64,
+    /// Change of the Bayesian information criterion on the fit set (negative: better).
+    pub delta_bic: f64,
+    /// Fitted correction per point (for confounding checks), projected on the normal.
+    #[serde(skip)]
+    pub predicted: Vec<f64>,
+}
+
+/// Fits the parameters of `configs` (their current values are the starting point; the
+/// change is fitted) jointly with the artifact placements.
+pub fn fit_effects(
+    ds: &Dataset,
+    prep: &Prepared,
+    configs: &[EffectConfig],
+) -> Result<FitOutcome, LabError> {
+    let art = &prep.art;
+    let (cols, k, _) = columns(ds, art, configs)?;
+    let mut ne = Normal::new(k + art.n_cols);
+    let mut row = vec![];
+    for (i, p) in ds.points.iter().enumerate() {
+        if prep.fit_mask[i] {
+            nuisance_row(art, p, &p.surface, &mut row);
+            ne.add(&cols[i * k..(i + 1) * k], &row, art.residual[i]);
+        }
+    }
+    let n = ne.n;
+    let sol = ne.solve();
+    let theta: Vec<f64> = sol.x.iter().take(k).copied().collect();
+    let (ss0, _) = nuisance_ss(ds, art, &art.residual, &prep.fit_mask);
+    // Held-out: apply θ, refit placements there.
+    let predicted: Vec<f64> = (0..ds.points.len())
+        .map(|i| (0..k).map(|c| cols[i * k + c] * theta[c]).sum())
+        .collect();
+    let y: Vec<f64> = art
+        .residual
+        .iter()
+        .zip(&predicted)
+        .map(|(e, d)| e + d)
+        .collect();
+    let (ssh0, nh) = nuisance_ss(ds, art, &art.residual, &prep.held_mask);
+    let (ssh1, _) = nuisance_ss(ds, art, &y, &prep.held_mask);
+    // Effective number of points and uncertainties.
+    let n_eff = (n as f64 * (1.0 - prep.rho) / (1.0 + prep.rho)).max(k as f64 + 2.0);
+    let dof = (n as f64 - (k + art.n_cols) as f64).max(1.0);
+    let sigma2 = sol.ss / dof * (n as f64 / n_eff);
+    let bic = |ss: f64, kk: usize| n_eff * (ss.max(1e-30) / n as f64).ln() + kk as f64 * n_eff.ln();
+    let delta_bic = bic(sol.ss, k) - bic(ss0, 0);
+    // Parameters: current + change.
+    let mut out_cfgs = vec![];
+    let mut params = vec![];
+    let mut unident = vec![];
+    let mut c = 0;
+    for cfg in configs {
+        let names = cfg.param_names();
+        let mut cur = cfg.params();
+        let mut ps = vec![];
+        for (j, name) in names.iter().enumerate() {
+            let col = c + j;
+            let ident = !sol.unidentifiable.contains(&col);
+            if ident {
+                cur[j] += theta[col];
+            } else {
+                unident.push(format!("{}: {name}", cfg.id()));
+            }
+            let s = (sol.cov[(col, col)] * sigma2).sqrt();
+            ps.push(Param {
+                name: name.clone(),
+                value: cur[j],
+                sigma: (ident && s.is_finite()).then_some(s),
+            });
+        }
+        c += names.len();
+        out_cfgs.push(cfg.with_params(&cur).map_err(LabError::Data)?);
+        params.push(ps);
+    }
+    let explained = if ssh0 > 0.0 {
+        ((ssh0 - ssh1) / ssh0).max(0.0)
+    } else {
+        0.0
+    };
+    Ok(FitOutcome {
+        configs: out_cfgs,
+        params,
+        unidentifiable: unident,
+        k,
+        rms_before_um: rms_um(ss0, n),
+        rms_after_um: rms_um(sol.ss, n),
+        heldout_rms_before_um: rms_um(ssh0, nh),
+        heldout_rms_after_um: rms_um(ssh1, nh),
+        explained,
+        explained_component_um: rms_um((ssh0 - ssh1).max(0.0), nh),
+        delta_bic: if delta_bic.is_finite() {
+            delta_bic
+        } else {
+            0.0
+        },
+        predicted,
+    })
+}
+
+/// The candidate effects of the library not in the calibration, with their variants.
+pub fn library_candidates(ds: &Dataset) -> Vec<(String, EffectConfig)> {
+    let present: Vec<&str> = ds.calibration.effects.iter().map(|e| e.kind()).collect();
+    let mut v = vec![];
+    for kind in fx::KINDS {
+        if present.contains(&kind) || kind == "custom" {
+            continue;
+        }
+        for name in variants(kind, ds) {
+            if let Ok(c) = candidate(&name, ds) {
+                v.push((name, c));
+            }
+        }
+    }
+    v
+}
+
+fn variants(kind: &str, ds: &Dataset) -> Vec<String> {
+    match kind {
+        "accel_deflection" => vec![
+            "accel_deflection".into(),
+            "accel_deflection:full".into(),
+            "accel_deflection:full,order=1".into(),
+        ],
+        "servo_gain" => vec!["servo_gain".into(), "servo_gain:powers=1+2".into()],
+        "stylus_thermal" => vec!["stylus_thermal".into(), "stylus_thermal:split".into()],
+        "guide_straightness" => Axis::ALL
+            .iter()
+            .filter(|a| axis_span(ds, **a).1 - axis_span(ds, **a).0 > 100.0)
+            .map(|a| format!("guide_straightness:axis={}", a.name()))
+            .collect(),
+        k => vec![k.to_string()],
+    }
+}
+
+fn axis_span(ds: &Dataset, a: Axis) -> (f64, f64) {
+    ds.points.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+        (
+            lo.min(p.ctx.scale[a.index()]),
+            hi.max(p.ctx.scale[a.index()]),
+        )
+    })
+}
+
+/// A zero-parameter effect from a candidate name: `kind[:option,option=value…]`.
+/// Options: accel_deflection `full`, `order=0|1|2`; servo_gain `powers=1+2`; stylus_thermal
+/// `split`; guide_straightness `axis=x|y|z`, `knots=N`; servo_phase `order=0|1`.
+pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
+    let (kind, opts) = name.split_once(':').unwrap_or((name, ""));
+    let mut o = std::collections::BTreeMap::new();
+    for kv in opts.split(',').filter(|s| !s.is_empty()) {
+        let (k, v) = kv.split_once('=').unwrap_or((kv, ""));
+        o.insert(k.to_string(), v.to_string());
+    }
+    let bad = |m: String| LabError::Data(format!("effect `{name}`: {m}"));
+    let order = |o: &std::collections::BTreeMap<String, String>| -> Result<u8, LabError> {
+        match o.get("order").map(|s| s.as_str()) {
+            None => Ok(0),
+            Some(s) => s
+                .parse::<u8>()
+                .ok()
+                .filter(|v| *v <= 2)
+                .ok_or_else(|| bad("order must be 0, 1 or 2".into())),
+        }
+    };
+    let cfg = match kind {
+        "accel_deflection" => EffectConfig::AccelDeflection(fx::accel_deflection::Config::zeros(
+            order(&o)?,
+            !o.contains_key("full"),
+        )),
+        "servo_phase" => EffectConfig::ServoPhase(fx::servo_phase::Config::zeros(order(&o)?)),
+        "servo_gain" => {
+            let powers = match o.get("powers") {
+                None => vec![2],
+                Some(s) => s
+                    .split('+')
+                    .map(|p| p.parse::<u32>().map_err(|_| bad("powers like 1+2".into())))
+                    .collect::<Result<_, _>>()?,
+            };
+            EffectConfig::ServoGain(fx::servo_gain::Config::zeros(order(&o)?, powers))
+        }
+        "stylus_thermal" => {
+            EffectConfig::StylusThermal(fx::stylus_thermal::Config::zeros(o.contains_key("split")))
+        }
+        "scale_thermal" => EffectConfig::ScaleThermal(fx::scale_thermal::Config::zeros()),
+        "probe_force" => EffectConfig::ProbeForce(fx::probe_force::Config::zeros()),
+        "guide_straightness" => {
+            let axis = match o.get("axis").map(|s| s.as_str()).unwrap_or("x") {
+                "x" => Axis::X,
+                "y" => Axis::Y,
+                "z" => Axis::Z,
+                a => return Err(bad(format!("axis `{a}` (x, y or z)"))),
+            };
+            let (lo, hi) = axis_span(ds, axis);
+            if !(hi - lo > 1.0) {
+                return Err(bad(format!(
+                    "the data does not move along {} (scan along the axis' travel)",
+                    axis.name()
+                )));
+            }
+            let n = match o.get("knots") {
+                Some(s) => s
+                    .parse::<usize>()
+                    .map_err(|_| bad("knots must be a number".into()))?,
+                None => (((hi - lo) / 40.0).round() as usize + 1).clamp(3, 41),
+            };
+            EffectConfig::GuideStraightness(fx::guide_straightness::Config::zeros(
+                axis,
+                lo.floor(),
+                hi.ceil(),
+                n,
+                true,
+            ))
+        }
+        "custom" => return Err(bad("a custom effect needs terms (--term AXIS:EXPR)".into())),
+        k => {
+            return Err(LabError::Data(format!(
+                "unknown effect `{k}` (known: {})",
+                fx::KINDS.join(", ")
+            )))
+        }
+    };
+    Ok(cfg)
+}
+
+/// A measurement that makes an effect visible.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Lever {
+    Lines,
+    SpinUp,
+    Speed,
+    Direction,
+    Position,
+    Temperature,
+    Deflection,
+    Stylus,
+}
+
+fn levers(kind: &str) -> &'static [Lever] {
+    use Lever::*;
+    match kind {
+        "accel_deflection" => &[Lines, SpinUp, Speed, Position],
+        "servo_gain" => &[Speed],
+        "servo_phase" => &[Speed, Direction],
+        "stylus_thermal" => &[Temperature, Stylus],
+        "scale_thermal" => &[Temperature, Position],
+        "probe_force" => &[Deflection],
+        "guide_straightness" => &[Position, Stylus],
+        _ => &[],
+    }
+}
+
+fn lever_text(l: Lever, a: &str, b: &str, covered: bool) -> String {
+    let more = if covered { "more " } else { "" };
+    let (with, without) = (a, b);
+    match l {
+        Lever::Lines => format!("{more}scans along straight lines with acceleration ({with} acts there, {without} only on arcs)"),
+        Lever::SpinUp => format!("{more}spin-up and slow-down on arcs (tangential acceleration: {with} responds, {without} does not)"),
+        Lever::Speed => format!("scans at {more}other speeds (the effects grow differently with speed)"),
+        Lever::Direction => format!("scans in {more}both directions, CW and CCW ({with} changes sign with direction)"),
+        Lever::Position => format!("the artifact at {more}other positions in the volume ({with} depends on position)"),
+        Lever::Temperature => format!("a {more}temperature change during the campaign ({with} depends on temperature)"),
+        Lever::Deflection => format!("scans at {more}other probe deflections ({with} grows with deflection)"),
+        Lever::Stylus => format!("{more}other styli or head angles ({with} depends on the stylus offset)"),
+    }
+}
+
+/// Two candidates this data cannot tell apart.
+#[derive(Debug, Clone, Serialize)]
+pub struct Confounded {
+    /// The two effects.
+    pub effects: [String; 2],
+    /// How much of each one's fitted correction the other reproduces (R², 0–1).
+    pub r2: [f64; 2],
+    /// Measurements that would separate them.
+    pub separate_by: Vec<String>,
+}
+
+/// Structure left in the residual that no candidate explains.
+#[derive(Debug, Clone, Serialize)]
+pub struct Structure {
+    /// What the residual follows: `period` along an axis, `reversal` of an axis.
+    pub kind: String,
+    /// Axis (coordinate and error direction).
+    pub axis: String,
+    /// Period, mm (periodic structure).
+    pub period_mm: Option<f64>,
+    /// Amplitude of the error along the axis, µm.
+    pub amplitude_um: f64,
+    /// Fraction of the residual's sum of squares it explains.
+    pub explained: f64,
+    /// Terms of a `custom` effect built from it (`AXIS:EXPR`).
+    pub custom_terms: Vec<String>,
+}
+
+/// One candidate of a diagnosis.
+#[derive(Debug, Clone, Serialize)]
+pub struct CandidateReport {
+    /// Effect (with variant).
+    pub effect: String,
+    /// Fraction of the held-out residual explained.
+    pub explained: f64,
+    /// Explains more than noise and pays for its parameters (see [`diagnose`]).
+    pub significant: bool,
+    /// RMS before, µm (fit data).
+    pub rms_before_um: f64,
+    /// After, µm (fit data).
+    pub rms_after_um: f64,
+    /// Held-out RMS before, µm.
+    pub heldout_rms_before_um: f64,
+    /// Held-out RMS after, µm.
+    pub heldout_rms_after_um: f64,
+    /// ΔBIC on the fit data.
+    pub delta_bic: f64,
+    /// Number of parameters.
+    pub k: usize,
+    /// Fitted parameters.
+    pub params: Vec<Param>,
+    /// Parameters the data cannot determine.
+    pub unidentifiable: Vec<String>,
+}
+
+/// A diagnosis.
+#[derive(Debug, Clone, Serialize)]
+pub struct Diagnosis {
+    /// Residual RMS of the current model on fit data, µm.
+    pub rms_um: f64,
+    /// On held-out data, µm.
+    pub heldout_rms_um: f64,
+    /// Noise floor, µm.
+    pub noise_floor_um: f64,
+    /// Candidates, best first.
+    pub candidates: Vec<CandidateReport>,
+    /// Pairs the data cannot separate.
+    pub confounded: Vec<Confounded>,
+    /// Structure no candidate explains (reported when no candidate is significant or the best
+    /// leaves clearly more than noise).
+    pub unexplained: Vec<Structure>,
+    /// Points used (fit, held out).
+    pub points: [usize; 2],
+    /// Candidates this data cannot test, and why.
+    pub skipped: Vec<String>,
+}
+
+fn significant(o: &FitOutcome, noise_um: f64) -> bool {
+    o.explained_component_um >= 0.5 * noise_um.max(0.01)
+        && o.delta_bic < -10.0
+        && o.heldout_rms_after_um < o.heldout_rms_before_um
+}
+
+fn r2_explains(
+    ds: &Dataset,
+    prep: &Prepared,
+    target: &[f64],
+    by: &EffectConfig,
+) -> Result<f64, LabError> {
+    let art = &prep.art;
+    let (cols, k, _) = columns(ds, art, std::slice::from_ref(by))?;
+    let mut ne = Normal::new(k + art.n_cols);
+    let mut nn = Normal::new(art.n_cols);
+    let mut row = vec![];
+    for (i, p) in ds.points.iter().enumerate() {
+        if prep.fit_mask[i] {
+            nuisance_row(art, p, &p.surface, &mut row);
+            ne.add(&cols[i * k..(i + 1) * k], &row, target[i]);
+            nn.add(&[], &row, target[i]);
+        }
+    }
+    let (s1, s0) = (ne.solve().ss, nn.solve().ss);
+    Ok(if s0 > 0.0 {
+        (1.0 - s1 / s0).clamp(0.0, 1.0)
+    } else {
+        0.0
+    })
+}
+
+/// What the data covers (for the separating measurements).
+fn coverage(ds: &Dataset) -> Vec<Lever> {
+    let mut v = vec![];
+    if ds
+        .points
+        .iter()
+        .any(|p| p.ctx.arc_radius == 0.0 && p.ctx.est_acc.norm() > 50.0)
+    {
+        v.push(Lever::Lines);
+    }
+    if ds.points.iter().any(|p| p.phase != Phase::Steady) {
+        v.push(Lever::SpinUp);
+    }
+    let speeds: std::collections::BTreeSet<i64> =
+        ds.points.iter().map(|p| p.speed.round() as i64).collect();
+    if speeds.len() > 2 {
+        v.push(Lever::Speed);
+    }
+    if ds.points.iter().any(|p| p.direction > 0) && ds.points.iter().any(|p| p.direction < 0) {
+        v.push(Lever::Direction);
+    }
+    if ds.features.len() > 1 {
+        v.push(Lever::Position);
+    }
+    let t: Vec<f64> = ds
+        .points
+        .iter()
+        .filter(|p| p.ctx.temps_valid & 1 != 0)
+        .map(|p| p.ctx.temps[0])
+        .collect();
+    if t.iter().cloned().fold(f64::MIN, f64::max) - t.iter().cloned().fold(f64::MAX, f64::min) > 0.5
+    {
+        v.push(Lever::Temperature);
+    }
+    let d: Vec<f64> = ds.points.iter().map(|p| p.ctx.deflection.norm()).collect();
+    if d.iter().cloned().fold(f64::MIN, f64::max) - d.iter().cloned().fold(f64::MAX, f64::min) > 0.1
+    {
+        v.push(Lever::Deflection);
+    }
+    let tips: std::collections::BTreeSet<(u32, i64)> = ds
+        .points
+        .iter()
+        .map(|p| (p.ctx.tip_id, p.ctx.head_a1_deg.round() as i64))
+        .collect();
+    if tips.len() > 1 {
+        v.push(Lever::Stylus);
+    }
+    v
+}
+
+fn separating(a: &str, b: &str, cov: &[Lever]) -> Vec<String> {
+    let (ka, kb) = (
+        a.split(':').next().unwrap_or(a),
+        b.split(':').next().unwrap_or(b),
+    );
+    let (la, lb) = (levers(ka), levers(kb));
+    let mut out = vec![];
+    for l in la.iter().filter(|l| !lb.contains(l)) {
+        out.push(lever_text(*l, ka, kb, cov.contains(l)));
+    }
+    for l in lb.iter().filter(|l| !la.contains(l)) {
+        out.push(lever_text(*l, kb, ka, cov.contains(l)));
+    }
+    if out.is_empty() {
+        out.push(format!("{ka} and {kb} respond to the same measurements; a custom effect that combines them may be the honest model"));
+    }
+    out
+}
+
+/// Diagnoses the residual of the dataset's calibration: fits every library effect not in
+/// the model (all variants) and ranks them by the held-out residual they explain.
+///
+/// A candidate is `significant` when, on held-out data, it removes a residual component of at
+/// least half the noise floor, and its fit pays for its parameters (ΔBIC < −10, with the
+/// number of points discounted for correlated residuals).
+pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
+    let prep = prepare(ds)?;
+    let noise = ds.noise_floor_um;
+    let mut results: Vec<(String, EffectConfig, FitOutcome)> = vec![];
+    let mut skipped = vec![];
+    for (name, cfg) in library_candidates(ds) {
+        match fit_effects(ds, &prep, std::slice::from_ref(&cfg)) {
+            Ok(o) => results.push((name, cfg, o)),
+            Err(e) => skipped.push(format!("{name}: {e}")),
+        }
+    }
+    results.sort_by(|a, b| {
+        let (sa, sb) = (significant(&a.2, noise), significant(&b.2, noise));
+        sb.cmp(&sa)
+            .then(b.2.explained.total_cmp(&a.2.explained))
+            .then(a.2.k.cmp(&b.2.k))
+    });
+    // Confounding: the best candidate against the other kinds that explain nearly as much.
+    let mut confounded = vec![];
+    let cov = coverage(ds);
+    if let Some((best_name, best_cfg, best)) = results.first() {
+        if significant(best, noise) {
+            let mut seen = std::collections::BTreeSet::new();
+            for (name, cfg, o) in results.iter().skip(1) {
+                if cfg.kind() == best_cfg.kind()
+                    || !seen.insert(cfg.kind())
+                    || o.explained < 0.5 * best.explained
+                {
+                    continue;
+                }
+                let r_ab = r2_explains(ds, &prep, &best.predicted, cfg)?;
+                let r_ba = r2_explains(ds, &prep, &o.predicted, best_cfg)?;
+                if r_ab > 0.8 && r_ba > 0.8 {
+                    confounded.push(Confounded {
+                        effects: [best_name.clone(), name.clone()],
+                        r2: [r_ab, r_ba],
+                        separate_by: separating(best_name, name, &cov),
+                    });
+                }
+            }
+        }
+    }
+    let best_left = results
+        .first()
+        .filter(|r| significant(&r.2, noise))
+        .map(|r| r.2.heldout_rms_after_um);
+    let unexplained = match best_left {
+        Some(left) if left < 1.5 * noise.max(0.01) => vec![],
+        _ => structure(ds, &prep, &prep.art.residual)?,
+    };
+    let npts = [
+        prep.fit_mask.iter().filter(|m| **m).count(),
+        prep.held_mask.iter().filter(|m| **m).count(),
+    ];
+    Ok(Diagnosis {
+        rms_um: prep.rms_fit_um,
+        heldout_rms_um: prep.rms_held_um,
+        noise_floor_um: noise,
+        candidates: results
+            .into_iter()
+            .map(|(name, _, o)| CandidateReport {
+                significant: significant(&o, noise),
+                effect: name,
+                explained: o.explained,
+                rms_before_um: o.rms_before_um,
+                rms_after_um: o.rms_after_um,
+                heldout_rms_before_um: o.heldout_rms_before_um,
+                heldout_rms_after_um: o.heldout_rms_after_um,
+                delta_bic: o.delta_bic,
+                k: o.k,
+                params: o.params.into_iter().flatten().collect(),
+                unidentifiable: o.unidentifiable,
+            })
+            .collect(),
+        confounded,
+        unexplained,
+        points: npts,
+        skipped,
+    })
+}
+
+/// Periodic and reversal structure of a residual, strongest first.
+pub fn structure(
+    ds: &Dataset,
+    prep: &Prepared,
+    residual: &[f64],
+) -> Result<Vec<Structure>, LabError> {
+    let art = &prep.art;
+    // Remove the placements first.
+    let mut ne = Normal::new(art.n_cols);
+    let mut row = vec![];
+    for (i, p) in ds.points.iter().enumerate() {
+        if art.features[p.feature].is_some() {
+            nuisance_row(art, p, &p.surface, &mut row);
+            ne.add(&[], &row, residual[i]);
+        }
+    }
+    let sol = ne.solve();
+    let mut e = vec![0.0; ds.points.len()];
+    let mut total = 0.0;
+    for (i, p) in ds.points.iter().enumerate() {
+        if art.features[p.feature].is_some() {
+            nuisance_row(art, p, &p.surface, &mut row);
+            e[i] = residual[i] + row.iter().map(|(c, v)| v * sol.x[*c]).sum::<f64>();
+            total += e[i] * e[i];
+        }
+    }
+    if total <= 0.0 {
+        return Ok(vec![]);
+    }
+    let two = |c1: &dyn Fn(usize) -> f64, c2: &dyn Fn(usize) -> f64| -> (f64, [f64; 2]) {
+        let (mut a11, mut a12, mut a22, mut b1, mut b2) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for i in 0..e.len() {
+            let (x1, x2) = (c1(i), c2(i));
+            a11 += x1 * x1;
+            a12 += x1 * x2;
+            a22 += x2 * x2;
+            b1 += x1 * e[i];
+            b2 += x2 * e[i];
+        }
+        let det = a11 * a22 - a12 * a12;
+        if det.abs() < 1e-30 {
+            return (0.0, [0.0; 2]);
+        }
+        let (t1, t2) = ((a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det);
+        (t1 * b1 + t2 * b2, [t1, t2])
+    };
+    let mut found = vec![];
+    for a in Axis::ALL {
+        let ai = a.index();
+        let g_rms = (ds
+            .points
+            .iter()
+            .enumerate()
+            .map(|(i, _)| art.grad[i][ai].powi(2))
+            .sum::<f64>()
+            / e.len() as f64)
+            .sqrt();
+        if g_rms < 0.1 {
+            continue;
+        }
+        let (lo, hi) = axis_span(ds, a);
+        let span = hi - lo;
+        if span < 2.0 {
+            continue;
+        }
+        // Periodogram over periods 0.5 mm … span/2.
+        let (pmin, pmax) = (0.5f64, (span / 2.0).min(200.0));
+        let mut best = (0.0, 0.0, [0.0; 2]);
+        let steps = 600;
+        let scan = |p: f64, best: &mut (f64, f64, [f64; 2])| {
+            let w = std::f64::consts::TAU / p;
+            let s = |i: usize| art.grad[i][ai] * (w * ds.points[i].ctx.scale[ai]).sin();
+            let c = |i: usize| art.grad[i][ai] * (w * ds.points[i].ctx.scale[ai]).cos();
+            let (red, th) = two(&s, &c);
+            if red > best.0 {
+                *best = (red, p, th);
+            }
+        };
+        if pmax > pmin {
+            for k in 0..=steps {
+                let p = pmin * (pmax / pmin).powf(k as f64 / steps as f64);
+                scan(p, &mut best);
+            }
+            // Refine around the best period.
+            let p0 = best.1;
+            for k in -50..=50 {
+                let p = p0 * (1.0 + k as f64 * 0.0004);
+                scan(p, &mut best);
+            }
+        }
+        if best.0 > 0.0 {
+            let p = best.1;
+            found.push(Structure {
+                kind: "period".into(),
+                axis: a.name().into(),
+                period_mm: Some(p),
+                amplitude_um: best.2[0].hypot(best.2[1]) * 1e3,
+                explained: best.0 / total,
+                custom_terms: vec![
+                    format!("{}:sin(2*pi*{}/{:.4})", a.name(), a.name(), p),
+                    format!("{}:cos(2*pi*{}/{:.4})", a.name(), a.name(), p),
+                ],
+            });
+        }
+        // Reversal (backlash-like): a step with the sign of the axis velocity.
+        let sg = |i: usize| {
+            art.grad[i][ai]
+                * ds.points[i].ctx.est_vel[ai].signum()
+                * (ds.points[i].ctx.est_vel[ai].abs() > 0.01) as i32 as f64
+        };
+        let zero = |_: usize| 0.0;
+        let (red, th) = {
+            let mut a11 = 0.0;
+            let mut b1 = 0.0;
+            for i in 0..e.len() {
+                a11 += sg(i) * sg(i);
+                b1 += sg(i) * e[i];
+            }
+            let _ = zero;
+            if a11 > 0.0 {
+                (b1 * b1 / a11, [b1 / a11, 0.0])
+            } else {
+                (0.0, [0.0; 2])
+            }
+        };
+        if red > 0.0 {
+            found.push(Structure {
+                kind: "reversal".into(),
+                axis: a.name().into(),
+                period_mm: None,
+                amplitude_um: th[0].abs() * 1e3,
+                explained: red / total,
+                custom_terms: vec![format!("{}:sign(v{})", a.name(), a.name())],
+            });
+        }
+    }
+    found.sort_by(|a, b| b.explained.total_cmp(&a.explained));
+    found.retain(|s| s.explained > 0.05 && s.amplitude_um.is_finite());
+    found.truncate(4);
+    Ok(found)
+}
+
+/// A bin of a residual breakdown.
+#[derive(Debug, Clone, Serialize)]
+pub struct Bin {
+    /// Feature binned by.
+    pub feature: String,
+    /// Bin label.
+    pub bin: String,
+    /// Points.
+    pub n: usize,
+    /// Residual RMS, µm.
+    pub rms_um: f64,
+    /// Mean residual, µm.
+    pub mean_um: f64,
+    /// Stands out from the rest.
+    pub failing: bool,
+}
+
+/// Harmonics of a circle feature's residual.
+#[derive(Debug, Clone, Serialize)]
+pub struct Harmonics {
+    /// Feature index.
+    pub feature: usize,
+    /// Artifact name.
+    pub artifact: String,
+    /// Amplitudes of 1θ…5θ, µm.
+    pub amplitude_um: [f64; 5],
+}
+
+/// A comparison of the model with the artifacts.
+#[derive(Debug, Clone, Serialize)]
+pub struct Comparison {
+    /// Residual RMS (all points, shared placements), µm.
+    pub rms_um: f64,
+    /// Peak-to-valley, µm.
+    pub pv_um: f64,
+    /// Noise floor, µm.
+    pub noise_floor_um: f64,
+    /// Bins that stand out, worst first.
+    pub failures: Vec<Bin>,
+    /// Every bin.
+    pub bins: Vec<Bin>,
+    /// Harmonics per circle feature.
+    pub harmonics: Vec<Harmonics>,
+    /// Tracking residual of the nominal model by segment: (bag, segment, µm), worst first.
+    pub tracking: Vec<(usize, u32, f64)>,
+    /// Points.
+    pub points: usize,
+    /// Residual per point, µm (for plots).
+    #[serde(skip)]
+    pub residual_um: Vec<f64>,
+}
+
+/// Compares the dataset's corrected points with their artifacts.
+pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
+    let prep = prepare(ds)?;
+    let art = &prep.art;
+    let all: Vec<bool> = ds
+        .points
+        .iter()
+        .map(|p| art.features[p.feature].is_some())
+        .collect();
+    let (ss, n) = nuisance_ss(ds, art, &art.residual, &all);
+    let res_um: Vec<f64> = art.residual.iter().map(|e| e * 1e3).collect();
+    let (mn, mx) = res_um
+        .iter()
+        .zip(&all)
+        .filter(|(_, a)| **a)
+        .fold((f64::MAX, f64::MIN), |(a, b), (r, _)| {
+            (a.min(*r), b.max(*r))
+        });
+    let rms = rms_um(ss, n);
+    let noise = ds.noise_floor_um;
+    let mut bins = vec![];
+    type Key = Box<dyn Fn(&super::dataset::LabPoint) -> Option<String>>;
+    let q = |v: f64, edges: &[f64], unit: &str| -> String {
+        let i = edges.partition_point(|e| *e <= v);
+        match i {
+            0 => format!("< {}{unit}", fmt(edges[0])),
+            i if i == edges.len() => format!("≥ {}{unit}", fmt(edges[edges.len() - 1])),
+            i => format!("{}–{}{unit}", fmt(edges[i - 1]), fmt(edges[i])),
+        }
+    };
+    fn fmt(x: f64) -> String {
+        if x.abs() >= 100.0 {
+            format!("{x:.0}")
+        } else if x.abs() >= 1.0 {
+            format!("{x:.1}")
+        } else {
+            format!("{x:.2}")
+        }
+    }
+    let quantiles = |vals: Vec<f64>| -> Vec<f64> {
+        let mut v: Vec<f64> = vals.into_iter().filter(|x| x.is_finite()).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        if v.is_empty() {
+            return vec![0.0];
+        }
+        let mut e: Vec<f64> = (1..5)
+            .map(|k| v[(v.len() * k / 5).min(v.len() - 1)])
+            .collect();
+        e.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+        e
+    };
+    let edges_speed = quantiles(ds.points.iter().map(|p| p.ctx.est_vel.norm()).collect());
+    let edges_acc = quantiles(ds.points.iter().map(|p| p.ctx.est_acc.norm()).collect());
+    let edges_f = quantiles(
+        ds.points
+            .iter()
+            .filter(|p| p.ctx.f_hz > 0.0)
+            .map(|p| p.ctx.f_hz)
+            .collect(),
+    );
+    let edges_t = quantiles(ds.points.iter().map(|p| p.ctx.t_ns as f64 * 1e-9).collect());
+    let edges_temp = quantiles(
+        ds.points
+            .iter()
+            .filter(|p| p.ctx.temps_valid & 1 != 0)
+            .map(|p| p.ctx.temps[0])
+            .collect(),
+    );
+    let edges_defl = quantiles(ds.points.iter().map(|p| p.ctx.deflection.norm()).collect());
+    let sensor0 = ds.sensors.names().first().cloned().unwrap_or_default();
+    let keys: Vec<(String, Key)> = vec![
+        (
+            "speed".into(),
+            Box::new(move |p| Some(q(p.ctx.est_vel.norm(), &edges_speed, " mm/s"))),
+        ),
+        (
+            "acceleration".into(),
+            Box::new(move |p| Some(q(p.ctx.est_acc.norm(), &edges_acc, " mm/s²"))),
+        ),
+        (
+            "rotation frequency".into(),
+            Box::new(move |p| (p.ctx.f_hz > 0.0).then(|| q(p.ctx.f_hz, &edges_f, " Hz"))),
+        ),
+        (
+            "direction".into(),
+            Box::new(|p| {
+                Some(match p.direction {
+                    1 => "CCW".into(),
+                    -1 => "CW".into(),
+                    _ => "line".into(),
+                })
+            }),
+        ),
+        (
+            "phase".into(),
+            Box::new(|p| Some(format!("{:?}", p.phase).to_lowercase())),
+        ),
+        (
+            "position".into(),
+            Box::new(|p| {
+                Some(format!(
+                    "artifact {} (x≈{:.0})",
+                    p.feature + 1,
+                    p.ctx.scale.x
+                ))
+            }),
+        ),
+        (
+            format!("temperature ({sensor0})"),
+            Box::new(move |p| {
+                (p.ctx.temps_valid & 1 != 0).then(|| q(p.ctx.temps[0], &edges_temp, " °C"))
+            }),
+        ),
+        (
+            "deflection".into(),
+            Box::new(move |p| Some(q(p.ctx.deflection.norm(), &edges_defl, " mm"))),
+        ),
+        (
+            "stylus/head".into(),
+            Box::new(|p| {
+                Some(format!(
+                    "tip {} A1={:.0}° A2={:.0}°",
+                    p.ctx.tip_id, p.ctx.head_a1_deg, p.ctx.head_a2_deg
+                ))
+            }),
+        ),
+        (
+            "time".into(),
+            Box::new(move |p| Some(q(p.ctx.t_ns as f64 * 1e-9, &edges_t, " s"))),
+        ),
+    ];
+    for (name, key) in &keys {
+        let mut acc: std::collections::BTreeMap<String, (usize, f64, f64)> = Default::default();
+        for (i, p) in ds.points.iter().enumerate() {
+            if !all[i] {
+                continue;
+            }
+            if let Some(k) = key(p) {
+                let a = acc.entry(k).or_default();
+                a.0 += 1;
+                a.1 += res_um[i];
+                a.2 += res_um[i] * res_um[i];
+            }
+        }
+        for (k, (cnt, s, s2)) in acc {
+            let r = (s2 / cnt as f64).sqrt();
+            let failing = cnt >= 30 && r > 1.3 * rms && r > 2.0 * noise;
+            bins.push(Bin {
+                feature: name.clone(),
+                bin: k,
+                n: cnt,
+                rms_um: r,
+                mean_um: s / cnt as f64,
+                failing,
+            });
+        }
+    }
+    let mut failures: Vec<Bin> = bins.iter().filter(|b| b.failing).cloned().collect();
+    failures.sort_by(|a, b| b.rms_um.total_cmp(&a.rms_um));
+    // Harmonics of circle features.
+    let mut harmonics = vec![];
+    for (fi, f) in art.features.iter().enumerate() {
+        let Some(f) = f else { continue };
+        if f.kind == FeatureKind::Face {
+            continue;
+        }
+        let mut amp = [0.0; 5];
+        let idx: Vec<usize> = (0..ds.points.len())
+            .filter(|&i| ds.points[i].feature == fi)
+            .collect();
+        for (k, a) in amp.iter_mut().enumerate() {
+            let kk = (k + 1) as f64;
+            let th = |i: usize| {
+                (ds.points[i].surface.y - f.center.y).atan2(ds.points[i].surface.x - f.center.x)
+                    * kk
+            };
+            let (mut cc, mut cs, mut ss_, mut bc, mut bs) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for &i in &idx {
+                let (s, c) = th(i).sin_cos();
+                cc += c * c;
+                cs += c * s;
+                ss_ += s * s;
+                bc += c * res_um[i];
+                bs += s * res_um[i];
+            }
+            let det = cc * ss_ - cs * cs;
+            if det > 1e-12 {
+                let (x, y) = ((ss_ * bc - cs * bs) / det, (cc * bs - cs * bc) / det);
+                *a = x.hypot(y);
+            }
+        }
+        harmonics.push(Harmonics {
+            feature: fi,
+            artifact: ds.features[fi].1.artifact.clone(),
+            amplitude_um: amp,
+        });
+    }
+    let mut tracking = ds.tracking.clone();
+    tracking.sort_by(|a, b| b.2.total_cmp(&a.2));
+    tracking.truncate(20);
+    Ok(Comparison {
+        rms_um: rms,
+        pv_um: if mx >= mn { mx - mn } else { 0.0 },
+        noise_floor_um: noise,
+        failures,
+        bins,
+        harmonics,
+        tracking,
+        points: n,
+        residual_um: res_um,
+    })
+}

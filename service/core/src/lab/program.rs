@@ -1,0 +1,138 @@
+//! What a bag says about what was measured: features (artifacts) and scan segments.
+//!
+//! Written by the simulator (and by any recorder that knows its part program) as the JSON of
+//! the `scancorr.program` metadata record; a bag without it can name its artifact on the
+//! command line (`--artifact ring:d=50.0012`).
+
+use serde::{Deserialize, Serialize};
+
+/// How a feature's surface meets the probe.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FeatureKind {
+    /// Inside of a circle (ring gauge, bore).
+    Bore,
+    /// Outside of a sphere or circle (sphere, boss).
+    Boss,
+    /// A plane face (straightedge, part face).
+    Face,
+}
+
+/// A measured feature.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeatureSpec {
+    /// Id within its bag.
+    pub id: u32,
+    /// `ring`, `sphere`, `straightedge`, `plane`, `part`.
+    pub artifact: String,
+    /// Bore, boss or face.
+    pub kind: FeatureKind,
+    /// Nominal position, mm.
+    pub nominal_center: [f64; 3],
+    /// Nominal diameter, mm (0 for faces).
+    pub nominal_diameter_mm: f64,
+    /// Certified diameter: the fit keeps it fixed, mm.
+    pub certificate_diameter_mm: Option<f64>,
+    /// Face normal, out of the material.
+    pub normal: [f64; 3],
+}
+
+/// Kind of a segment.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SegmentKind {
+    /// Measuring in contact.
+    Scan,
+    /// Positioning.
+    Move,
+    /// Standing in contact.
+    Dwell,
+}
+
+/// A segment of the program.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SegmentSpec {
+    /// Segment id (as in the command stream).
+    pub id: u32,
+    /// Kind.
+    pub kind: SegmentKind,
+    /// Feature scanned.
+    pub feature: Option<u32>,
+    /// Programmed speed, mm/s.
+    pub speed: f64,
+    /// +1 CCW, −1 CW, 0 not an arc.
+    pub direction: i32,
+    /// Tip.
+    pub tip: u32,
+    /// Head A1, degrees.
+    pub a1_deg: f64,
+    /// Head A2, degrees.
+    pub a2_deg: f64,
+    /// Programmed deflection, mm.
+    pub deflection_mm: f64,
+    /// Start, s.
+    pub t0_s: f64,
+    /// End, s.
+    pub t1_s: f64,
+}
+
+/// A program: features and segments.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProgramSpec {
+    /// Program name.
+    pub program: String,
+    /// Features.
+    pub features: Vec<FeatureSpec>,
+    /// Segments.
+    pub segments: Vec<SegmentSpec>,
+}
+
+/// Parses `ring:d=50.0012`, `sphere:d=25.0004`, `straightedge`, `plane` (a bag's only artifact,
+/// for bags without a program record).
+pub fn parse_artifact(s: &str) -> Result<FeatureSpec, String> {
+    let (kind, rest) = s.split_once(':').unwrap_or((s, ""));
+    let mut d = None;
+    let mut normal = [0.0, -1.0, 0.0];
+    for kv in rest.split(',').filter(|k| !k.is_empty()) {
+        let (k, v) = kv
+            .split_once('=')
+            .ok_or_else(|| format!("`{kv}`: expected key=value"))?;
+        let num = |v: &str| {
+            v.parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| format!("`{kv}`: not a number"))
+        };
+        match k {
+            "d" | "diameter" => d = Some(num(v)?),
+            "nx" => normal[0] = num(v)?,
+            "ny" => normal[1] = num(v)?,
+            "nz" => normal[2] = num(v)?,
+            _ => return Err(format!("`{k}`: unknown key (use d=, nx=, ny=, nz=)")),
+        }
+    }
+    let (fk, need_d) = match kind {
+        "ring" => (FeatureKind::Bore, true),
+        "sphere" => (FeatureKind::Boss, true),
+        "straightedge" | "plane" => (FeatureKind::Face, false),
+        _ => {
+            return Err(format!(
+                "unknown artifact `{kind}` (ring:d=…, sphere:d=…, straightedge, plane)"
+            ))
+        }
+    };
+    if need_d && d.is_none_or(|d| d <= 0.0) {
+        return Err(format!(
+            "{kind}: give the certified diameter, e.g. {kind}:d=50.0012"
+        ));
+    }
+    Ok(FeatureSpec {
+        id: 1,
+        artifact: kind.to_string(),
+        kind: fk,
+        nominal_center: [0.0; 3],
+        nominal_diameter_mm: d.unwrap_or(0.0),
+        certificate_diameter_mm: d,
+        normal,
+    })
+}
