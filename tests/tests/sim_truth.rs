@@ -269,3 +269,60 @@ fn debug_worst_points() {
     }
     let _ = n;
 }
+
+#[test]
+#[ignore]
+fn debug_backlash() {
+    let mut effects = std::collections::BTreeMap::new();
+    effects.insert("backlash".to_string(), 1.0);
+    let r = simulate(&Options {
+        program: "ring-speeds".into(),
+        effects,
+        ..Default::default()
+    });
+    let mut cal = r.res.truth.true_calibration.clone();
+    let b = r.res.truth.machine.backlash_mm;
+    cal.effects
+        .push(scancorr_core::effects::EffectConfig::Custom(
+            scancorr_core::effects::custom::Config {
+                id: "backlash".into(),
+                dynamic: false,
+                terms: vec![scancorr_core::effects::custom::Term {
+                    axis: scancorr_core::Axis::X,
+                    expr: "sign(vx)".into(),
+                }],
+                coefficients: vec![-b / 2.0],
+            },
+        ));
+    let out = correct(&r, &cal);
+    let segs = &r.res.program.segments;
+    let feats = &r.res.truth.features;
+    let mut worst = vec![];
+    for (p, ctx) in out.points.iter().zip(&out.contexts) {
+        let Some(seg) = segs.iter().find(|s| s.id == p.segment_id) else {
+            continue;
+        };
+        if seg.kind != SegmentKind::Scan || !p.estimator_valid {
+            continue;
+        }
+        let f = &feats[seg.feature.unwrap() as usize - 1];
+        let c = nalgebra::Vector3::from(f.center);
+        let rel = p.surface - c;
+        let th = rel.y.atan2(rel.x);
+        let dev = (rel.x.hypot(rel.y) - (f.radius_mm + f.form_at(th))) * 1e3;
+        worst.push((
+            dev.abs(),
+            seg.id,
+            seg.speed,
+            ctx.t_ns as f64 * 1e-9 - seg.t0_s,
+            ctx.est_vel.x,
+            th.to_degrees(),
+        ));
+    }
+    let d: Vec<f64> = worst.iter().map(|w| w.0).collect();
+    eprintln!("RMS {:.3}", rms(&d));
+    worst.sort_by(|a, b| b.0.total_cmp(&a.0));
+    for w in worst.iter().take(30) {
+        eprintln!("{w:?}");
+    }
+}

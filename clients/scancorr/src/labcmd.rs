@@ -422,7 +422,7 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 }
                 if !o.unidentifiable.is_empty() {
                     println!(
-                        "  {} parameter(s) not determined by this data (kept at 0)",
+                        "  {} parameter(s) not determined by this data (minimum-norm values)",
                         o.unidentifiable.len()
                     );
                 }

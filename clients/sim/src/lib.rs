@@ -321,11 +321,12 @@ pub fn calibration_for(
     }
     if on("guide_straightness") {
         let mut e = fx::guide_straightness::Config::zeros(Axis::X, 0.0, 1000.0, 51, true);
+        e.pitch_about = Some(Axis::Z);
         let knots = e.knots_mm.clone();
         let arm = V3::from(m.abbe_arm_mm);
         for (j, x) in knots.iter().enumerate() {
             let eps = profile(&m.guide_pitch, *x);
-            let fixed = V3::y().cross(&arm) * eps;
+            let fixed = V3::z().cross(&arm) * eps;
             e.straightness.get_mut(&Axis::Y).unwrap()[j] = profile(&m.guide_y, *x) + fixed.y;
             e.straightness.get_mut(&Axis::Z).unwrap()[j] = profile(&m.guide_z, *x) + fixed.z;
             e.pitch_rad.as_mut().unwrap()[j] = eps;
@@ -493,7 +494,7 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
     // Temperature history of this run.
     let mut tr = Rng::new(o.seed, "thermal");
     let t0_air = 20.0 + tr.range(0.2, 0.8);
-    let drift = tr.range(2.0, 3.0);
+    let drift = tr.range(2.5, 3.5);
     let wobble = tr.range(0.03, 0.08);
     let scale_off = [
         tr.range(-0.3, 0.3),
@@ -591,10 +592,12 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         }
         let pitch = profile(&m.guide_pitch, x.x);
         e += V3::new(0.0, profile(&m.guide_y, x.x), profile(&m.guide_z, x.x));
-        e += V3::y().cross(&(offset_true + V3::from(m.abbe_arm_mm))) * pitch;
-        if st.v[0] > 0.05 {
+        e += V3::z().cross(&(offset_true + V3::from(m.abbe_arm_mm))) * pitch;
+        // Backlash, idealised: the lost motion flips at the instant the X velocity changes
+        // sign (a real drive takes up its lash over a few µm of travel).
+        if st.v[0] > 0.0 {
             backlash_dir = 1.0;
-        } else if st.v[0] < -0.05 {
+        } else if st.v[0] < 0.0 {
             backlash_dir = -1.0;
         }
         e.x -= 0.5 * m.backlash_mm * backlash_dir;

@@ -137,7 +137,8 @@ pub struct TrueMachine {
     pub guide_y: Vec<Wave>,
     /// X guide straightness towards z, mm.
     pub guide_z: Vec<Wave>,
-    /// X carriage pitch (rotation about y), rad.
+    /// X carriage angular error about z (yaw), rad: the library's guide `pitch` term with
+    /// `pitch_about: z`. Seen through the Abbe lever of an offset (bent) stylus.
     pub guide_pitch: Vec<Wave>,
     /// Distance from the x guide to the probe-head centre (the fixed Abbe arm), mm. Zero on
     /// this machine: the head sits in line with the guide, the stylus is the whole lever.
@@ -207,14 +208,14 @@ impl TrueMachine {
             (0..3)
                 .map(|_| Wave {
                     amplitude: amp * r.range(0.4, 1.0) * if r.uniform() < 0.5 { -1.0 } else { 1.0 },
-                    wavelength_mm: r.range(250.0, 900.0),
+                    wavelength_mm: r.range(300.0, 800.0),
                     phase: r.range(0.0, std::f64::consts::TAU),
                 })
                 .collect::<Vec<_>>()
         };
-        let guide_y = waves(&mut r, 3.0e-3);
-        let guide_z = waves(&mut r, 2.0e-3);
-        let guide_pitch = waves(&mut r, 12e-6);
+        let guide_y = waves(&mut r, 5.0e-3);
+        let guide_z = waves(&mut r, 3.0e-3);
+        let guide_pitch = waves(&mut r, 20e-6);
         TrueMachine {
             machine_seed: seed,
             servo,
@@ -270,7 +271,7 @@ impl TrueMachine {
                     probe: "sp25".into(),
                     l1_mm: 40.0,
                     radius_mm: 1.0,
-                    l2_mm: 30.0,
+                    l2_mm: 40.0,
                     beta1_deg: 90.0,
                 },
             ],

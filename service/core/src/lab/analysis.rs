@@ -160,7 +160,7 @@ pub struct FitOutcome {
     pub configs: Vec<EffectConfig>,
     /// Parameters of each config.
     pub params: Vec<Vec<Param>>,
-    /// Parameters this data cannot determine (left at their previous value).
+    /// Parameters this data cannot determine (given the minimum-norm value).
     pub unidentifiable: Vec<String>,
     /// Number of fitted parameters.
     pub k: usize,
@@ -233,10 +233,11 @@ pub fn fit_effects(
         let mut ps = vec![];
         for (j, name) in names.iter().enumerate() {
             let col = c + j;
+            // The pseudo-inverse gives the minimum-norm change: parameters the data cannot
+            // determine get no more than the data asks of them, and are reported.
             let ident = !sol.unidentifiable.contains(&col);
-            if ident {
-                cur[j] += theta[col];
-            } else {
+            cur[j] += theta[col];
+            if !ident {
                 unident.push(format!("{}: {name}", cfg.id()));
             }
             let s = (sol.cov[(col, col)] * sigma2).sqrt();
@@ -304,7 +305,13 @@ fn variants(kind: &str, ds: &Dataset) -> Vec<String> {
         "guide_straightness" => Axis::ALL
             .iter()
             .filter(|a| axis_span(ds, **a).1 - axis_span(ds, **a).0 > 100.0)
-            .map(|a| format!("guide_straightness:axis={}", a.name()))
+            .flat_map(|a| {
+                Axis::ALL
+                    .iter()
+                    .filter(|r| *r != a)
+                    .map(|r| format!("guide_straightness:axis={},about={}", a.name(), r.name()))
+                    .collect::<Vec<_>>()
+            })
             .collect(),
         k => vec![k.to_string()],
     }
@@ -321,7 +328,8 @@ fn axis_span(ds: &Dataset, a: Axis) -> (f64, f64) {
 
 /// A zero-parameter effect from a candidate name: `kind[:option,option=value…]`.
 /// Options: accel_deflection `full`, `order=0|1|2`; servo_gain `powers=1+2`; stylus_thermal
-/// `split`; guide_straightness `axis=x|y|z`, `knots=N`; servo_phase `order=0|1`.
+/// `split`; guide_straightness `axis=x|y|z`, `about=x|y|z` (rotation axis of its angular
+/// term), `knots=N`; servo_phase `order=0|1`.
 pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
     let (kind, opts) = name.split_once(':').unwrap_or((name, ""));
     let mut o = std::collections::BTreeMap::new();
@@ -379,15 +387,24 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
                 Some(s) => s
                     .parse::<usize>()
                     .map_err(|_| bad("knots must be a number".into()))?,
-                None => (((hi - lo) / 40.0).round() as usize + 1).clamp(3, 41),
+                None => (((hi - lo) / 20.0).round() as usize + 1).clamp(3, 61),
             };
-            EffectConfig::GuideStraightness(fx::guide_straightness::Config::zeros(
-                axis,
-                lo.floor(),
-                hi.ceil(),
-                n,
-                true,
-            ))
+            let mut g = fx::guide_straightness::Config::zeros(axis, lo.floor(), hi.ceil(), n, true);
+            if let Some(r) = o.get("about") {
+                let r = match r.as_str() {
+                    "x" => Axis::X,
+                    "y" => Axis::Y,
+                    "z" => Axis::Z,
+                    r => return Err(bad(format!("about `{r}` (x, y or z)"))),
+                };
+                if r == axis {
+                    return Err(bad(
+                        "the angular error turns about an axis other than the moving one".into(),
+                    ));
+                }
+                g.pitch_about = Some(r);
+            }
+            EffectConfig::GuideStraightness(g)
         }
         "custom" => return Err(bad("a custom effect needs terms (--term AXIS:EXPR)".into())),
         k => {
