@@ -31,9 +31,17 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
-    /// Run the main job on embedded defaults and print what it shows.
+    /// The main job on embedded defaults: the model lab's loop on a simulated machine with a
+    /// hidden effect — compare, diagnose, add, and the error falling.
     Demo {
-        /// Print the summary as JSON.
+        /// The effect hidden from the starting calibration (a library effect, or
+        /// cyclic_error / backlash, which the library does not have).
+        #[arg(long, default_value = "accel_deflection")]
+        hide: String,
+        /// Keep the bags and calibrations in this folder.
+        #[arg(long)]
+        dir: Option<PathBuf>,
+        /// Print a JSON summary.
         #[arg(long)]
         json: bool,
     },
@@ -203,7 +211,7 @@ fn main() -> std::process::ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
-        Cmd::Demo { json } => demo::run(json),
+        Cmd::Demo { hide, dir, json } => demo::run(&hide, dir, json),
         Cmd::Bench(BenchCmd::Core {
             json,
             points,

@@ -58,8 +58,17 @@ fn stream_of(s: StreamId) -> Stream {
     }
 }
 
-/// Runs the simulator into a bag.
+/// Runs the simulator into a bag and reports on stderr.
 pub fn run(a: SimArgs) -> Result<()> {
+    run_inner(a, true)
+}
+
+/// Runs the simulator into a bag without a report.
+pub fn run_quiet(a: SimArgs) -> Result<()> {
+    run_inner(a, false)
+}
+
+fn run_inner(a: SimArgs, report: bool) -> Result<()> {
     let machine = a.options.machine_id.clone();
     let mut w = BagWriter::create(&a.out, BagHeader::default())
         .with_context(|| format!("creating {}", a.out.display()))?;
@@ -173,7 +182,7 @@ pub fn run(a: SimArgs) -> Result<()> {
                 "faults": res.truth.faults,
             })
         );
-    } else {
+    } else if report {
         eprintln!(
             "simulated {} on machine {} (machine seed {}, seed {}): {:.1} s of scanning, {total} samples → {} in {secs:.1} s",
             o.program,

@@ -200,8 +200,33 @@ pub fn fit_effects(
             ne.add(&cols[i * k..(i + 1) * k], &row, art.residual[i]);
         }
     }
+    // A column far weaker than its effect's strongest (e.g. z acceleration when every scan is
+    // horizontal) carries only numerical noise: it is not fitted and reported as undetermined.
+    let mut weak = vec![];
+    let mut c0 = 0;
+    for cfg in configs {
+        let kc = cfg.params().len();
+        let rms: Vec<f64> = (c0..c0 + kc)
+            .map(|c| ne.m[(c, c)].max(0.0).sqrt())
+            .collect();
+        let top = rms.iter().cloned().fold(0.0, f64::max);
+        for (j, r) in rms.iter().enumerate() {
+            if *r <= 1e-6 * top {
+                weak.push(c0 + j);
+            }
+        }
+        c0 += kc;
+    }
+    for &c in &weak {
+        for j in 0..ne.b.len() {
+            ne.m[(c, j)] = 0.0;
+            ne.m[(j, c)] = 0.0;
+        }
+        ne.b[c] = 0.0;
+    }
     let n = ne.n;
-    let sol = ne.solve();
+    let mut sol = ne.solve();
+    sol.unidentifiable.extend(weak.iter().copied());
     let theta: Vec<f64> = sol.x.iter().take(k).copied().collect();
     let (ss0, _) = nuisance_ss(ds, art, &art.residual, &prep.fit_mask);
     // Held-out: apply θ, refit placements there.
@@ -988,6 +1013,12 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
     );
     let edges_defl = quantiles(ds.points.iter().map(|p| p.ctx.deflection.norm()).collect());
     let sensor0 = ds.sensors.names().first().cloned().unwrap_or_default();
+    let centers: Vec<[f64; 3]> = ds.features.iter().map(|(_, f)| f.nominal_center).collect();
+    let names: Vec<String> = ds
+        .features
+        .iter()
+        .map(|(_, f)| f.artifact.clone())
+        .collect();
     let keys: Vec<(String, Key)> = vec![
         (
             "speed".into(),
@@ -1017,11 +1048,15 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
         ),
         (
             "position".into(),
-            Box::new(|p| {
+            Box::new(move |p| {
+                let c = centers[p.feature];
                 Some(format!(
-                    "artifact {} (x≈{:.0})",
+                    "{} {} at ({:.0}, {:.0}, {:.0})",
+                    names[p.feature],
                     p.feature + 1,
-                    p.ctx.scale.x
+                    c[0],
+                    c[1],
+                    c[2]
                 ))
             }),
         ),

@@ -1,0 +1,303 @@
+//! The lab's commands as a user runs them: JSON fields, the error fall across versions, and
+//! bad input answered with what is missing — never NaN.
+
+mod common;
+use common::*;
+use scancorr_bag::{BagHeader, BagWriter, Stream};
+
+fn json(s: &str) -> serde_json::Value {
+    assert!(
+        !s.contains("NaN") && !s.contains("null,\n  \"rms"),
+        "NaN in output: {s}"
+    );
+    serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
+}
+
+#[test]
+fn compare_diagnose_add_fit_history() {
+    let d = scratch("lab");
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "campaign",
+            "--hide",
+            "servo_phase",
+            "--out",
+            "c.mcap",
+            "--calib-out",
+            "v1.json",
+            "--truth",
+            "t.json",
+        ],
+    );
+    let cmp = json(&ok(
+        &d,
+        &[
+            "lab", "compare", "--bag", "c.mcap", "--calib", "v1.json", "--json",
+        ],
+    ));
+    for k in ["rms_um", "pv_um", "noise_floor_um"] {
+        assert!(cmp[k].as_f64().unwrap().is_finite(), "{k}");
+    }
+    let fails = cmp["failures"].as_array().unwrap();
+    assert!(
+        !fails.is_empty(),
+        "servo_phase hidden: some bins must stand out"
+    );
+    for f in fails {
+        assert!(
+            f["feature"].is_string() && f["bin"].is_string() && f["rms_um"].as_f64().unwrap() > 0.0
+        );
+    }
+    assert!(cmp["rms_um"].as_f64().unwrap() > 3.0 * cmp["noise_floor_um"].as_f64().unwrap());
+    // Diagnose with held-out scans of the same bag (no --validate).
+    let dg = json(&ok(
+        &d,
+        &[
+            "lab", "diagnose", "--bag", "c.mcap", "--calib", "v1.json", "--json",
+        ],
+    ));
+    let c0 = &dg["candidates"][0];
+    assert_eq!(
+        c0["effect"].as_str().unwrap().split(':').next(),
+        Some("servo_phase"),
+        "{dg:#}"
+    );
+    for k in [
+        "explained",
+        "rms_before_um",
+        "rms_after_um",
+        "heldout_rms_after_um",
+    ] {
+        assert!(c0[k].as_f64().unwrap().is_finite());
+    }
+    assert!(c0["significant"].as_bool().unwrap() && c0["params"].as_array().unwrap().len() == 6);
+    assert!(dg["confounded"].is_array() && dg["unexplained"].is_array());
+    // Add → v2, fit → v3, history shows the fall.
+    std::fs::create_dir_all(d.join("cals")).unwrap();
+    std::fs::copy(d.join("v1.json"), d.join("cals/v1.json")).unwrap();
+    let add = json(&ok(
+        &d,
+        &[
+            "lab",
+            "add",
+            "servo_phase",
+            "--bag",
+            "c.mcap",
+            "--calib",
+            "v1.json",
+            "--out",
+            "cals/v2.json",
+            "--json",
+        ],
+    ));
+    let (hb, ha) = (
+        add["heldout_rms_before_um"].as_f64().unwrap(),
+        add["heldout_rms_after_um"].as_f64().unwrap(),
+    );
+    assert!(ha < 0.3 * hb, "{add:#}");
+    assert!(add["rms_after_um"].as_f64().unwrap() < add["rms_before_um"].as_f64().unwrap());
+    let fit = json(&ok(
+        &d,
+        &[
+            "lab",
+            "fit",
+            "--bag",
+            "c.mcap",
+            "--calib",
+            "cals/v2.json",
+            "--out",
+            "cals/v3.json",
+            "--json",
+        ],
+    ));
+    assert_eq!(fit["version"], 3);
+    let nominal = fit["nominal"].as_array().unwrap();
+    assert_eq!(nominal.len(), 3);
+    for a in nominal {
+        assert!(a["rms_after_um"].as_f64().unwrap() <= a["rms_before_um"].as_f64().unwrap());
+    }
+    assert!(
+        fit["heldout_rms_after_um"].as_f64().unwrap() < 1.5 * ha,
+        "{fit:#}"
+    );
+    let hist = json(&ok(
+        &d,
+        &[
+            "lab",
+            "history",
+            "--calib-dir",
+            "cals",
+            "--bag",
+            "c.mcap",
+            "--json",
+        ],
+    ));
+    let rows = hist.as_array().unwrap();
+    assert_eq!(
+        rows.iter()
+            .map(|r| r["version"].as_u64().unwrap())
+            .collect::<Vec<_>>(),
+        vec![1, 2, 3]
+    );
+    assert!(
+        rows[1]["heldout_rms_um"].as_f64().unwrap()
+            < 0.3 * rows[0]["heldout_rms_um"].as_f64().unwrap()
+    );
+    let text = ok(&d, &["lab", "history", "--calib-dir", "cals"]);
+    assert!(text.contains('█') && text.contains("servo_phase"), "{text}");
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn lab_bad_input_says_what_is_missing() {
+    let d = scratch("labbad");
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "v1.json",
+        ],
+    );
+    // A bag without the program/artifact record.
+    {
+        let src = scancorr_bag::BagReader::open(d.join("r.mcap")).unwrap();
+        let mut w = BagWriter::create(d.join("bare.mcap"), BagHeader::default()).unwrap();
+        for m in src.messages().unwrap() {
+            let m = m.unwrap();
+            w.write(
+                m.stream,
+                &m.machine,
+                "cmm",
+                m.log_time,
+                m.publish_time,
+                &m.data,
+            )
+            .unwrap();
+        }
+        w.finish().unwrap();
+        let _ = Stream::Scale;
+    }
+    fails(
+        &d,
+        &["lab", "compare", "--bag", "bare.mcap", "--calib", "v1.json"],
+        &["--artifact ring:d="],
+    );
+    let c = json(&ok(
+        &d,
+        &[
+            "lab",
+            "compare",
+            "--bag",
+            "bare.mcap",
+            "--calib",
+            "v1.json",
+            "--artifact",
+            "ring:d=50.0012",
+            "--json",
+        ],
+    ));
+    assert!(c["rms_um"].as_f64().unwrap() < 1.0, "{c:#}");
+    fails(
+        &d,
+        &[
+            "lab",
+            "compare",
+            "--bag",
+            "bare.mcap",
+            "--calib",
+            "v1.json",
+            "--artifact",
+            "sphere",
+        ],
+        &["d="],
+    );
+    fails(
+        &d,
+        &[
+            "lab",
+            "compare",
+            "--bag",
+            "bare.mcap",
+            "--calib",
+            "v1.json",
+            "--artifact",
+            "cube:d=3",
+        ],
+        &["unknown artifact"],
+    );
+    // An effect the data cannot support.
+    fails(
+        &d,
+        &[
+            "lab",
+            "add",
+            "guide_straightness:axis=z",
+            "--bag",
+            "r.mcap",
+            "--calib",
+            "v1.json",
+            "--out",
+            "x.json",
+        ],
+        &["along z"],
+    );
+    fails(
+        &d,
+        &[
+            "lab", "add", "gravity", "--bag", "r.mcap", "--calib", "v1.json", "--out", "x.json",
+        ],
+        &["unknown effect"],
+    );
+    fails(
+        &d,
+        &[
+            "lab", "add", "custom", "--bag", "r.mcap", "--calib", "v1.json", "--out", "x.json",
+        ],
+        &["--term"],
+    );
+    fails(
+        &d,
+        &[
+            "lab", "add", "custom", "--term", "x:sin(q)", "--bag", "r.mcap", "--calib", "v1.json",
+            "--out", "x.json",
+        ],
+        &["'q'"],
+    );
+    // Too little data: the first 5 % of the bag holds no scan.
+    let bytes = std::fs::read(d.join("r.mcap")).unwrap();
+    std::fs::write(d.join("short.mcap"), &bytes[..bytes.len() / 8]).unwrap();
+    let e = run(
+        &d,
+        &[
+            "lab",
+            "compare",
+            "--bag",
+            "short.mcap",
+            "--calib",
+            "v1.json",
+        ],
+    );
+    let err = String::from_utf8_lossy(&e.stderr);
+    assert!(
+        !e.status.success() && !err.contains("panicked") && !err.contains("NaN"),
+        "{err}"
+    );
+    assert!(err.contains("no streams") || err.contains("scan"), "{err}");
+    // Too few points to fit.
+    fails(
+        &d,
+        &[
+            "lab", "diagnose", "--bag", "r.mcap", "--calib", "v1.json", "--stride", "5000",
+        ],
+        &["too few points"],
+    );
+    std::fs::remove_dir_all(&d).ok();
+}
