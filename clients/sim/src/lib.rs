@@ -320,7 +320,7 @@ pub fn calibration_for(
             }));
     }
     if on("guide_straightness") {
-        let mut e = fx::guide_straightness::Config::zeros(Axis::X, 0.0, 1000.0, 51, true);
+        let mut e = fx::guide_straightness::Config::zeros(Axis::X, 0.0, 1000.0, 101, true);
         e.pitch_about = Some(Axis::Z);
         let knots = e.knots_mm.clone();
         let arm = V3::from(m.abbe_arm_mm);
