@@ -267,17 +267,48 @@ fn outside_backlash() {
 #[test]
 fn rings_alone_confound_accel_deflection_and_servo_gain() {
     let dir = scratch("confound");
-    ok(&dir, &["sim", "--program", "ring-speeds", "--hide", "accel_deflection", "--hide", "servo_gain", "--out", "r.mcap", "--calib-out", "s.json"]);
-    let d: serde_json::Value = serde_json::from_str(&ok(&dir, &["lab", "diagnose", "--bag", "r.mcap", "--calib", "s.json", "--json"])).unwrap();
+    ok(
+        &dir,
+        &[
+            "sim",
+            "--program",
+            "ring-speeds",
+            "--hide",
+            "accel_deflection",
+            "--hide",
+            "servo_gain",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "s.json",
+        ],
+    );
+    let d: serde_json::Value = serde_json::from_str(&ok(
+        &dir,
+        &[
+            "lab", "diagnose", "--bag", "r.mcap", "--calib", "s.json", "--json",
+        ],
+    ))
+    .unwrap();
     let conf = d["confounded"].as_array().unwrap();
     let pair = conf
         .iter()
         .find(|c| {
-            let k: Vec<&str> = c["effects"].as_array().unwrap().iter().map(|e| kind(e.as_str().unwrap())).collect();
+            let k: Vec<&str> = c["effects"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|e| kind(e.as_str().unwrap()))
+                .collect();
             k.contains(&"accel_deflection") && k.contains(&"servo_gain")
         })
         .unwrap_or_else(|| panic!("not reported as confounded: {d:#}"));
-    let how: Vec<&str> = pair["separate_by"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    let how: Vec<&str> = pair["separate_by"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s.as_str().unwrap())
+        .collect();
     assert!(how.iter().any(|s| s.contains("straight lines")), "{how:?}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -5,6 +5,7 @@
 //! reported once, here, with their context chain.
 
 mod bench;
+mod bus;
 mod demo;
 mod labcmd;
 mod offline;
@@ -57,6 +58,56 @@ enum Cmd {
     /// The model lab: compare, diagnose, add, fit, history.
     #[command(subcommand)]
     Lab(labcmd::LabCmd),
+    /// A machine's status in scancorrd (samples, points, drops, alarms, version, stalls).
+    Status {
+        /// Machine.
+        #[arg(long, default_value = "m1")]
+        machine: String,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
+    /// Publish a bag's raw streams on the bus, paced by sample time.
+    Replay {
+        /// The bag.
+        #[arg(long)]
+        bag: PathBuf,
+        /// Speed: 1.0 real time, 2.0 twice as fast, `max` as fast as possible.
+        #[arg(long, default_value = "1.0")]
+        rate: String,
+        /// Start again at the end.
+        #[arg(long = "loop")]
+        looping: bool,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
+    /// Record key expressions from the bus into a bag.
+    Record {
+        /// Key expressions, e.g. 'cmm/m1/**'.
+        #[arg(long)]
+        keys: String,
+        /// Output bag.
+        #[arg(long)]
+        out: PathBuf,
+        /// Stop after this many seconds.
+        #[arg(long)]
+        seconds: Option<f64>,
+        /// Stop after this many seconds without a message (once something arrived).
+        #[arg(long)]
+        idle: Option<f64>,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
+    /// Show a machine's corrected points and alarms as they arrive.
+    Tail {
+        /// Machine.
+        #[arg(long, default_value = "m1")]
+        machine: String,
+        /// Stop after this many seconds.
+        #[arg(long)]
+        seconds: Option<f64>,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
     /// Simulate a CMM scanning a program; write a bag, the ground truth and a calibration.
     Sim(SimCli),
     /// Correct a bag offline through the core; write points and alarms to a bag.
@@ -188,6 +239,39 @@ enum CalibCmd {
         #[arg(long)]
         machine: Option<String>,
     },
+    /// Send a calibration to scancorrd: validated, stored as a new version, made current.
+    Put {
+        /// Machine.
+        #[arg(long)]
+        machine: String,
+        /// The JSON document.
+        #[arg(long)]
+        file: PathBuf,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
+    /// Fetch the current (or a given) calibration version from scancorrd.
+    Get {
+        /// Machine.
+        #[arg(long)]
+        machine: String,
+        /// A given version.
+        #[arg(long)]
+        version: Option<u64>,
+        /// Write it here instead of printing.
+        #[arg(long)]
+        file: Option<PathBuf>,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
+    /// The versions scancorrd keeps for a machine.
+    History {
+        /// Machine.
+        #[arg(long)]
+        machine: String,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
     /// Print an example document (nominal model only) for a machine.
     Example {
         /// Machine id.
@@ -237,6 +321,77 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Cmd::Lab(c) => labcmd::run(c),
+        Cmd::Calib(CalibCmd::Put { machine, file, bus }) => {
+            println!("{}", bus::calib_put(&bus, &machine, &file)?);
+            Ok(())
+        }
+        Cmd::Calib(CalibCmd::Get {
+            machine,
+            version,
+            file,
+            bus,
+        }) => {
+            let key = scancorr_proto::calibration_key(&bus.prefix, &machine);
+            let sel = match version {
+                Some(v) => format!("{key}?version={v}"),
+                None => key,
+            };
+            let doc = bus::query(&bus, sel)?;
+            match file {
+                Some(f) => {
+                    std::fs::write(&f, doc).with_context(|| format!("writing {}", f.display()))?
+                }
+                None => println!("{doc}"),
+            }
+            Ok(())
+        }
+        Cmd::Calib(CalibCmd::History { machine, bus }) => {
+            let key = scancorr_proto::calibration_key(&bus.prefix, &machine);
+            println!("{}", bus::query(&bus, format!("{key}?history"))?);
+            Ok(())
+        }
+        Cmd::Status { machine, bus } => {
+            println!(
+                "{}",
+                bus::query(&bus, format!("{}/{machine}/status", bus.prefix))?
+            );
+            Ok(())
+        }
+        Cmd::Replay {
+            bag,
+            rate,
+            looping,
+            bus,
+        } => {
+            let r = if rate == "max" {
+                None
+            } else {
+                let v: f64 = rate
+                    .parse()
+                    .with_context(|| format!("--rate {rate}: a number or max"))?;
+                anyhow::ensure!(v.is_finite() && v > 0.0, "--rate must be > 0");
+                Some(v)
+            };
+            let n = bus::replay(&bus, &bag, r, looping)?;
+            eprintln!("replayed {n} message(s) from {}", bag.display());
+            Ok(())
+        }
+        Cmd::Record {
+            keys,
+            out,
+            seconds,
+            idle,
+            bus,
+        } => {
+            let n = bus::record(&bus, &keys, &out, seconds, idle)?;
+            eprintln!("recorded {n} message(s) → {}", out.display());
+            Ok(())
+        }
+        Cmd::Tail {
+            machine,
+            seconds,
+            bus,
+        } => bus::tail(&bus, &machine, seconds),
         Cmd::Shape(ShapeCmd::Fit { kind, points, json }) => shapecmd::run(&kind, &points, json),
         Cmd::Sim(a) => {
             let mut effects = std::collections::BTreeMap::new();

@@ -1,0 +1,13 @@
+//! # scancorrd — the scancorr sidecar
+//!
+//! The thin async shell around `scancorr-core`: zenoh I/O, one correction state per machine,
+//! the calibration store, liveliness and status. [`run`] takes a configuration and a shutdown
+//! future so tests drive the real server.
+#![forbid(unsafe_code)]
+
+pub mod config;
+pub mod server;
+pub mod store;
+
+pub use config::Config;
+pub use server::{run, ServiceError};

@@ -1,0 +1,622 @@
+//! The lab's HTML reports render in a real browser with the plots the issue asks for: the polar
+//! deviation plot of each ring (before and after in `lab add`), the residual against each
+//! feature with the failing bins highlighted, the candidate ranking and the error-fall chart.
+//!
+//! A campaign is simulated with `accel_deflection` left out of the starting calibration, then
+//! `lab diagnose`, `lab add accel_deflection` and `lab history` write their reports. Each report
+//! must be one self-contained file (no scripts, no external resource) and is rendered in
+//! headless Chromium three ways:
+//!
+//! * `--dump-dom`: the rendered DOM holds the expected `<svg data-plot=…>` plots;
+//! * a harness page (this test's, with a script; the report has none) loads the report in an
+//!   iframe and measures what the browser laid out: every plot has a size, every polar plot's
+//!   curves have a length and extent, failing bins are painted in a different colour from the
+//!   others, and the report fetched no resource at all;
+//! * `--screenshot`: a 1200×3000 PNG that is not blank and differs from the same page with its
+//!   plots removed.
+//!
+//! Chromium comes from `scripts/chromium.sh` (installs the Debian package `chromium` with
+//! apt-get if it is missing). If it cannot be installed the test fails: it does not skip.
+
+mod common;
+use common::*;
+use serde_json::Value;
+use std::fs::File;
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// Chromium is killed (with its whole process group) after this long.
+const CHROMIUM_TIMEOUT: Duration = Duration::from_secs(60);
+const WINDOW: (u32, u32) = (1200, 3000);
+
+/// Flags every Chromium run needs on a headless machine without network (without the
+/// networking ones it waits on the network).
+const FLAGS: &[&str] = &[
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-default-apps",
+    "--disable-extensions",
+    "--mute-audio",
+];
+
+/// The path of Chromium from `scripts/chromium.sh` (installing it if needed), or a failure
+/// that says why.
+fn chromium() -> PathBuf {
+    let script = root().join("scripts/chromium.sh");
+    let t = Instant::now();
+    let o = Command::new("bash")
+        .arg(&script)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {}: {e}", script.display()));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.success(),
+        "headless Chromium is required to test the HTML reports and {} could not provide it \
+         ({}):\n{stderr}\nInstall it (Debian: `apt-get install chromium`) or put a `chromium` on PATH.",
+        script.display(),
+        o.status
+    );
+    let path = PathBuf::from(
+        stdout
+            .lines()
+            .last()
+            .unwrap_or_else(|| panic!("{} printed no path:\n{stderr}", script.display()))
+            .trim(),
+    );
+    assert!(
+        path.exists(),
+        "{} printed `{}`, which does not exist",
+        script.display(),
+        path.display()
+    );
+    eprintln!(
+        "chromium: {} (ready in {:.1} s)",
+        path.display(),
+        t.elapsed().as_secs_f64()
+    );
+    path
+}
+
+/// `file://` URL of an absolute path.
+fn file_url(p: &Path) -> String {
+    let mut s = String::from("file://");
+    for b in p.to_str().expect("UTF-8 path").bytes() {
+        if b.is_ascii_alphanumeric() || b"/-_.~".contains(&b) {
+            s.push(b as char);
+        } else {
+            s.push_str(&format!("%{b:02X}"));
+        }
+    }
+    s
+}
+
+/// Runs Chromium with `args` and a fresh profile in `dir`, stdout to a file; kills it (and its
+/// children) after [`CHROMIUM_TIMEOUT`]. Returns stdout; panics with stderr on failure.
+fn run_chromium(chrome: &Path, dir: &Path, tag: &str, args: &[String]) -> String {
+    let profile = dir.join(format!("profile-{tag}"));
+    let _ = std::fs::remove_dir_all(&profile);
+    std::fs::create_dir_all(&profile).unwrap();
+    let (out, err) = (
+        dir.join(format!("chromium-{tag}.out")),
+        dir.join(format!("chromium-{tag}.err")),
+    );
+    let mut child = Command::new(chrome)
+        .args(FLAGS)
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .args(args)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(File::create(&out).unwrap())
+        .stderr(File::create(&err).unwrap())
+        .process_group(0)
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start {}: {e}", chrome.display()));
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if start.elapsed() > CHROMIUM_TIMEOUT {
+            let _ = Command::new("kill")
+                .args(["-KILL", "--", &format!("-{}", child.id())])
+                .status();
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!(
+                "chromium {args:?} did not finish within {CHROMIUM_TIMEOUT:?}; stderr:\n{}",
+                tail(&std::fs::read_to_string(&err).unwrap_or_default())
+            );
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let _ = std::fs::remove_dir_all(&profile);
+    let stderr = std::fs::read_to_string(&err).unwrap_or_default();
+    assert!(
+        status.success(),
+        "chromium {args:?} failed ({status}):\n{}",
+        tail(&stderr)
+    );
+    std::fs::read_to_string(&out).unwrap()
+}
+
+fn tail(s: &str) -> String {
+    let lines: Vec<&str> = s.lines().collect();
+    lines[lines.len().saturating_sub(30)..].join("\n")
+}
+
+/// The DOM after Chromium loaded and laid out `page`.
+fn dump_dom(chrome: &Path, dir: &Path, tag: &str, page: &Path, extra: &[&str]) -> String {
+    let mut args: Vec<String> = extra.iter().map(|s| s.to_string()).collect();
+    args.push("--dump-dom".into());
+    args.push(file_url(page));
+    let dom = run_chromium(chrome, dir, tag, &args);
+    assert!(
+        dom.trim_end().ends_with("</html>"),
+        "chromium dumped an incomplete DOM for {}:\n{}",
+        page.display(),
+        &dom[..dom.len().min(2000)]
+    );
+    dom
+}
+
+/// A screenshot of `page`; returns the PNG's bytes.
+fn screenshot(chrome: &Path, dir: &Path, tag: &str, page: &Path) -> Vec<u8> {
+    let png = dir.join(format!("{tag}.png"));
+    let _ = std::fs::remove_file(&png);
+    run_chromium(
+        chrome,
+        dir,
+        tag,
+        &[
+            format!("--screenshot={}", png.display()),
+            format!("--window-size={},{}", WINDOW.0, WINDOW.1),
+            "--hide-scrollbars".into(),
+            file_url(page),
+        ],
+    );
+    let bytes = std::fs::read(&png)
+        .unwrap_or_else(|e| panic!("chromium wrote no screenshot {}: {e}", png.display()));
+    assert!(
+        bytes.len() > 24 && bytes.starts_with(b"\x89PNG\r\n\x1a\n") && &bytes[12..16] == b"IHDR",
+        "{} is not a PNG",
+        png.display()
+    );
+    let be = |i: usize| u32::from_be_bytes(bytes[i..i + 4].try_into().unwrap());
+    assert_eq!(
+        (be(16), be(20)),
+        WINDOW,
+        "{}: screenshot size",
+        png.display()
+    );
+    bytes
+}
+
+/// The `<svg …>…</svg>` elements of a document: (data-plot, markup).
+fn plots(doc: &str) -> Vec<(String, String)> {
+    let mut v = Vec::new();
+    let mut rest = doc;
+    while let Some(i) = rest.find("<svg") {
+        let end = rest[i..]
+            .find("</svg>")
+            .map(|j| i + j + 6)
+            .expect("unclosed <svg>");
+        let svg = &rest[i..end];
+        let open = &svg[..svg.find('>').unwrap()];
+        let kind = open
+            .split("data-plot=\"")
+            .nth(1)
+            .and_then(|s| s.split('"').next())
+            .unwrap_or("")
+            .to_string();
+        v.push((kind, svg.to_string()));
+        rest = &rest[end..];
+    }
+    v
+}
+
+fn of_kind<'a>(p: &'a [(String, String)], kind: &str) -> Vec<&'a str> {
+    p.iter()
+        .filter(|(k, _)| k == kind)
+        .map(|(_, s)| s.as_str())
+        .collect()
+}
+
+/// The document with every `<svg>…</svg>` removed.
+fn without_plots(doc: &str) -> String {
+    let mut s = String::new();
+    let mut rest = doc;
+    while let Some(i) = rest.find("<svg") {
+        s.push_str(&rest[..i]);
+        let j = rest[i..].find("</svg>").expect("unclosed <svg>");
+        rest = &rest[i + j + 6..];
+    }
+    s + rest
+}
+
+/// The report is one self-contained file: no script, nothing fetched or linked. The one URL an
+/// inline SVG may carry is its namespace name, which is never fetched.
+fn assert_self_contained(name: &str, html: &str) {
+    let low = html.to_ascii_lowercase();
+    let scrubbed = low.replace("xmlns=\"http://www.w3.org/2000/svg\"", "");
+    for bad in [
+        "http://", "https://", "<script", " src=", "href=", "<link", "<img", "<iframe", "<object",
+        "<embed", "@import", "url(", " on",
+    ] {
+        // " on" catches event-handler attributes (onload=…) only inside tags.
+        let hit = if bad == " on" {
+            tags(&scrubbed).any(|t| {
+                t.split_whitespace()
+                    .skip(1)
+                    .any(|a| a.starts_with("on") && a.contains('='))
+            })
+        } else {
+            scrubbed.contains(bad)
+        };
+        assert!(!hit, "{name}: not self-contained, contains `{bad}`");
+    }
+}
+
+/// The opening tags of a document (`<name attr…`), without the brackets.
+fn tags(doc: &str) -> impl Iterator<Item = &str> {
+    doc.split('<')
+        .skip(1)
+        .filter_map(|s| s.split('>').next())
+        .filter(|t| !t.starts_with('/') && !t.starts_with('!'))
+}
+
+/// A page of this test's (not the report's) that loads `report` in an iframe and writes what
+/// the browser laid out as JSON into `<pre id="result">`.
+const HARNESS: &str = r#"<!doctype html><html><head><meta charset="utf-8"></head><body>
+<iframe id="r" src="REPORT" width="1200" height="3000"></iframe>
+<script>
+window.addEventListener('load', function () {
+  var out = {};
+  try {
+    var w = document.getElementById('r').contentWindow, d = w.document;
+    out.title = d.title;
+    out.resources = w.performance.getEntriesByType('resource').map(function (e) { return e.name; });
+    out.plots = Array.prototype.map.call(d.querySelectorAll('svg'), function (s) {
+      var r = s.getBoundingClientRect();
+      return {
+        kind: s.getAttribute('data-plot'),
+        width: r.width, height: r.height,
+        visible: w.getComputedStyle(s).visibility === 'visible' && w.getComputedStyle(s).display !== 'none',
+        paths: Array.prototype.map.call(s.querySelectorAll('path'), function (p) {
+          var b = p.getBBox();
+          return { stroke: w.getComputedStyle(p).stroke, length: p.getTotalLength(), width: b.width, height: b.height };
+        }),
+        rects: Array.prototype.map.call(s.querySelectorAll('rect'), function (p) {
+          var b = p.getBBox();
+          return { failing: p.getAttribute('data-failing'), fill: w.getComputedStyle(p).fill, width: b.width, height: b.height };
+        })
+      };
+    });
+  } catch (e) { out.error = String(e); }
+  var pre = document.createElement('pre');
+  pre.id = 'result';
+  pre.textContent = JSON.stringify(out);
+  document.body.appendChild(pre);
+});
+</script></body></html>"#;
+
+/// What the browser laid out for `report` (see [`HARNESS`]).
+fn layout(chrome: &Path, dir: &Path, report: &str) -> Value {
+    let page = dir.join(format!("harness-{report}"));
+    std::fs::write(&page, HARNESS.replace("REPORT", report)).unwrap();
+    let tag = format!("layout-{report}");
+    // The harness reads the report's document across file:// URLs.
+    let dom = dump_dom(
+        chrome,
+        dir,
+        &tag,
+        &page,
+        &["--allow-file-access-from-files"],
+    );
+    let json = dom
+        .split("<pre id=\"result\">")
+        .nth(1)
+        .and_then(|s| s.split("</pre>").next())
+        .unwrap_or_else(|| panic!("{report}: the harness wrote no result:\n{}", tail(&dom)));
+    let json = json
+        .replace("&lt;", "<")
+        .replace("&gt;", ">")
+        .replace("&nbsp;", "\u{a0}")
+        .replace("&amp;", "&");
+    let v: Value = serde_json::from_str(&json)
+        .unwrap_or_else(|e| panic!("{report}: harness result is not JSON ({e}): {json}"));
+    assert!(
+        v.get("error").is_none(),
+        "{report}: the harness could not inspect the report: {}",
+        v["error"]
+    );
+    v
+}
+
+fn num(v: &Value) -> f64 {
+    v.as_f64().unwrap_or(f64::NAN)
+}
+
+/// Checks common to every laid-out plot; returns the plots of `kind`.
+fn laid_out<'a>(name: &str, lay: &'a Value, kind: &str) -> Vec<&'a Value> {
+    let res = lay["resources"].as_array().unwrap();
+    assert!(res.is_empty(), "{name}: the report fetched {res:?}");
+    let plots = lay["plots"].as_array().unwrap();
+    for p in plots {
+        assert!(
+            p["visible"].as_bool() == Some(true)
+                && num(&p["width"]) >= 50.0
+                && num(&p["height"]) >= 30.0,
+            "{name}: a {} plot is not laid out visibly: {p}",
+            p["kind"]
+        );
+    }
+    plots.iter().filter(|p| p["kind"] == kind).collect()
+}
+
+/// Polar plots: every curve has a length and spans most of the plot. Returns the number of
+/// curves per plot.
+fn check_polars(name: &str, polars: &[&Value]) -> Vec<usize> {
+    polars
+        .iter()
+        .map(|p| {
+            let paths = p["paths"].as_array().unwrap();
+            for c in paths {
+                assert!(
+                    num(&c["length"]) > 100.0
+                        && num(&c["width"]) > 40.0
+                        && num(&c["height"]) > 20.0,
+                    "{name}: a polar curve is (nearly) empty: {c}"
+                );
+            }
+            paths.len()
+        })
+        .collect()
+}
+
+/// Bar charts: every bar has a size; returns (fills of failing bars, fills of others).
+fn check_bars(name: &str, charts: &[&Value]) -> (Vec<String>, Vec<String>) {
+    let (mut hot, mut cold) = (Vec::new(), Vec::new());
+    for c in charts {
+        let rects = c["rects"].as_array().unwrap();
+        assert!(
+            !rects.is_empty(),
+            "{name}: a {} chart has no bars",
+            c["kind"]
+        );
+        for r in rects {
+            assert!(
+                num(&r["width"]) > 0.0 && num(&r["height"]) > 5.0,
+                "{name}: a bar is not drawn: {r}"
+            );
+            let fill = r["fill"].as_str().unwrap_or("").to_string();
+            if r["failing"] == "true" {
+                hot.push(fill);
+            } else {
+                cold.push(fill);
+            }
+        }
+    }
+    (hot, cold)
+}
+
+#[test]
+fn reports_render_in_headless_chromium() {
+    let t0 = Instant::now();
+    let d = scratch("report-html");
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "campaign",
+            "--seed",
+            "1",
+            "--hide",
+            "accel_deflection",
+            "--out",
+            "c.mcap",
+            "--calib-out",
+            "start.json",
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring-speeds",
+            "--seed",
+            "2",
+            "--position",
+            "550,300,-250",
+            "--out",
+            "v.mcap",
+        ],
+    );
+    let lab = [
+        "--bag",
+        "c.mcap",
+        "--validate",
+        "v.mcap",
+        "--calib",
+        "start.json",
+    ];
+    ok(
+        &d,
+        &[
+            &["lab", "diagnose"][..],
+            &lab,
+            &["--report", "diagnose.html"],
+        ]
+        .concat(),
+    );
+    ok(
+        &d,
+        &[
+            &["lab", "add", "accel_deflection"][..],
+            &lab,
+            &["--out", "next.json", "--report", "add.html"],
+        ]
+        .concat(),
+    );
+    let cal = d.join("calibs");
+    std::fs::create_dir_all(&cal).unwrap();
+    for f in ["start.json", "next.json"] {
+        std::fs::copy(d.join(f), cal.join(f)).unwrap();
+    }
+    ok(
+        &d,
+        &[
+            "lab",
+            "history",
+            "--calib-dir",
+            "calibs",
+            "--report",
+            "history.html",
+        ],
+    );
+    eprintln!("reports written in {:.1} s", t0.elapsed().as_secs_f64());
+
+    let chrome = chromium();
+    let t1 = Instant::now();
+
+    // Reference screenshot: an empty page.
+    let blank = d.join("blank.html");
+    std::fs::write(&blank, "<!doctype html><html><body></body></html>").unwrap();
+    let blank_png = screenshot(&chrome, &d, "blank", &blank);
+
+    for name in ["diagnose.html", "add.html", "history.html"] {
+        let path = d.join(name);
+        let html = std::fs::read_to_string(&path).unwrap();
+        assert_self_contained(name, &html);
+
+        // (a) The DOM Chromium built from the file.
+        let dom = dump_dom(&chrome, &d, &format!("dom-{name}"), &path, &[]);
+        let p = plots(&dom);
+        let count = |k: &str| of_kind(&p, k).len();
+        assert_eq!(
+            plots(&html).len(),
+            p.len(),
+            "{name}: the rendered DOM lost plots"
+        );
+        // (b) What it laid out.
+        let lay = layout(&chrome, &d, name);
+        assert_eq!(
+            lay["plots"].as_array().unwrap().len(),
+            p.len(),
+            "{name}: plots laid out vs in the DOM"
+        );
+
+        match name {
+            "diagnose.html" => {
+                assert!(
+                    count("polar") >= 3,
+                    "{name}: expected a polar plot per ring (≥ 3), got {}",
+                    count("polar")
+                );
+                assert_eq!(count("ranking"), 1, "{name}: the candidate ranking");
+                assert!(
+                    of_kind(&p, "ranking")[0].contains("<rect"),
+                    "{name}: the ranking has no bars"
+                );
+                let residual = of_kind(&p, "residual");
+                assert!(!residual.is_empty(), "{name}: no residual chart");
+                assert!(
+                    residual.iter().any(|s| s.contains("data-failing=\"true\"")),
+                    "{name}: accel_deflection is hidden, yet no residual bin is marked failing"
+                );
+                let polars = laid_out(name, &lay, "polar");
+                assert!(
+                    check_polars(name, &polars).iter().all(|&n| n >= 1),
+                    "{name}: a polar plot without a curve"
+                );
+                let (hot, cold) = check_bars(name, &laid_out(name, &lay, "residual"));
+                assert!(!hot.is_empty(), "{name}: no failing bar laid out");
+                for f in &hot {
+                    assert!(
+                        !cold.contains(f),
+                        "{name}: failing bins are painted like the others ({f})"
+                    );
+                }
+                check_bars(name, &laid_out(name, &lay, "ranking"));
+            }
+            "add.html" => {
+                let polar = of_kind(&p, "polar");
+                assert!(
+                    polar.len() >= 3,
+                    "{name}: expected a polar plot per ring (≥ 3), got {}",
+                    polar.len()
+                );
+                for s in &polar {
+                    assert!(
+                        s.contains("stroke=\"#d55\"") && s.contains("stroke=\"#2266cc\""),
+                        "{name}: a polar plot lacks the before (red) or after (blue) curve"
+                    );
+                }
+                assert_eq!(count("error-fall"), 1, "{name}: the error-fall chart");
+                let polars = laid_out(name, &lay, "polar");
+                for (i, n) in check_polars(name, &polars).into_iter().enumerate() {
+                    assert_eq!(n, 2, "{name}: polar plot {i}: before and after curves");
+                    let s: Vec<&str> = polars[i]["paths"]
+                        .as_array()
+                        .unwrap()
+                        .iter()
+                        .map(|c| c["stroke"].as_str().unwrap_or(""))
+                        .collect();
+                    assert_ne!(s[0], s[1], "{name}: before and after drawn alike");
+                }
+                let (_, bars) = check_bars(name, &laid_out(name, &lay, "error-fall"));
+                assert!(
+                    bars.len() >= 2,
+                    "{name}: the error fall needs before and after"
+                );
+                check_bars(name, &laid_out(name, &lay, "residual"));
+            }
+            "history.html" => {
+                assert_eq!(count("error-fall"), 1, "{name}: the error-fall chart");
+                check_bars(name, &laid_out(name, &lay, "error-fall"));
+            }
+            _ => unreachable!(),
+        }
+
+        // (c) Pixels: not blank, and the plots change them.
+        let png = screenshot(&chrome, &d, &format!("shot-{name}"), &path);
+        assert!(
+            png.len() > 10_000 && png.len() > blank_png.len() && png != blank_png,
+            "{name}: screenshot looks empty ({} bytes; empty page {} bytes)",
+            png.len(),
+            blank_png.len()
+        );
+        let bare = d.join(format!("bare-{name}"));
+        std::fs::write(&bare, without_plots(&html)).unwrap();
+        let bare_png = screenshot(&chrome, &d, &format!("bare-{name}"), &bare);
+        assert_ne!(
+            png, bare_png,
+            "{name}: the screenshot is the same with the plots removed"
+        );
+        eprintln!(
+            "{name}: {} plots ({} polar), screenshot {} kB (without plots {} kB, empty page {} kB)",
+            p.len(),
+            count("polar"),
+            png.len() / 1000,
+            bare_png.len() / 1000,
+            blank_png.len() / 1000
+        );
+    }
+    eprintln!(
+        "rendered in {:.1} s; files in {}",
+        t1.elapsed().as_secs_f64(),
+        d.display()
+    );
+    let _ = std::fs::remove_dir_all(&d);
+}

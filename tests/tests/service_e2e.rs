@@ -1,0 +1,295 @@
+//! End to end across processes over a real zenoh session on loopback: scancorrd, a replayed
+//! bag as the machine controller, a recorder as the consumer; live equals offline; a
+//! calibration put mid-stream; a restart keeps the history.
+
+mod common;
+use common::*;
+use scancorr_bag::{BagReader, Stream};
+use scancorr_proto::v1::CorrectedPointBatch;
+use scancorr_proto::Message;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn scancorrd() -> PathBuf {
+    let s = scancorr();
+    let bin = s.with_file_name("scancorrd");
+    if !bin.exists() {
+        let mut c = Command::new(env!("CARGO"));
+        c.args(["build", "-p", "scancorrd"]).current_dir(root());
+        if !cfg!(debug_assertions) {
+            c.arg("--release");
+        }
+        assert!(c.status().unwrap().success());
+    }
+    bin
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+struct Service {
+    child: Child,
+}
+
+impl Service {
+    fn start(dir: &Path, port: u16) -> Service {
+        let log = std::fs::File::create(dir.join(format!(
+            "scancorrd-{port}-{}.log",
+            Instant::now().elapsed().as_nanos()
+        )))
+        .unwrap();
+        let child = Command::new(scancorrd())
+            .args([
+                "--listen",
+                &format!("tcp/127.0.0.1:{port}"),
+                "--data-dir",
+                "data",
+            ])
+            .current_dir(dir)
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        // Wait until it listens.
+        let t0 = Instant::now();
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(
+                t0.elapsed() < Duration::from_secs(20),
+                "scancorrd did not start"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Service { child }
+    }
+    /// SIGTERM: flush and close; waits for the exit.
+    fn stop(mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        let t0 = Instant::now();
+        loop {
+            if let Some(st) = self.child.try_wait().unwrap() {
+                assert!(st.success(), "scancorrd exited with {st:?}");
+                return;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(20),
+                "scancorrd did not stop"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
+    let r = BagReader::open(bag).unwrap();
+    let mut v = vec![];
+    for m in r.messages().unwrap() {
+        let m = m.unwrap();
+        if m.stream == Stream::Points {
+            v.extend(CorrectedPointBatch::decode(&*m.data).unwrap().points);
+        }
+    }
+    v
+}
+
+#[test]
+fn live_equals_offline_calibration_switch_and_restart() {
+    let d = scratch("service");
+    let port = free_port();
+    let bus = ["--connect".to_string(), format!("tcp/127.0.0.1:{port}")];
+    let with_bus = |args: &[&str]| -> Vec<String> {
+        args.iter()
+            .map(|s| s.to_string())
+            .chain(bus.iter().cloned())
+            .collect()
+    };
+    let run_bus = |args: &[&str]| {
+        ok(
+            &d,
+            &with_bus(args)
+                .iter()
+                .map(|s| s.as_str())
+                .collect::<Vec<_>>(),
+        )
+    };
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring-speeds",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "v1.json",
+        ],
+    );
+
+    // --- Live equals offline. ---
+    let svc = Service::start(&d, port);
+    let put = run_bus(&["calib", "put", "--machine", "m1", "--file", "v1.json"]);
+    assert!(put.contains("\"version\":1"), "{put}");
+    let mut rec = Command::new(scancorr())
+        .args(with_bus(&[
+            "record",
+            "--keys",
+            "cmm/m1/corrected/**",
+            "--out",
+            "live.mcap",
+            "--idle",
+            "3",
+            "--seconds",
+            "120",
+        ]))
+        .current_dir(&d)
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(800));
+    run_bus(&["replay", "--bag", "r.mcap", "--rate", "max"]);
+    std::thread::sleep(Duration::from_millis(500));
+    let status: serde_json::Value =
+        serde_json::from_str(&run_bus(&["status", "--machine", "m1"])).unwrap();
+    assert_eq!(status["calibration_version"], 1, "{status}");
+    svc.stop(); // flushes what is buffered
+    assert!(rec.wait().unwrap().success());
+    ok(
+        &d,
+        &[
+            "correct", "--bag", "r.mcap", "--calib", "v1.json", "--out", "off.mcap",
+        ],
+    );
+    let live = points(&d.join("live.mcap"));
+    let off = points(&d.join("off.mcap"));
+    assert!(live.len() > 50_000, "{} live points", live.len());
+    assert!(
+        live.iter().enumerate().all(|(i, p)| p.seq == i as u64),
+        "a seq gap in the live points"
+    );
+    assert_eq!(live.len(), off.len());
+    assert!(live == off, "live points differ from offline points");
+
+    // --- Restart keeps the calibration; a new version mid-stream loses no point. ---
+    let svc = Service::start(&d, port);
+    let h: serde_json::Value =
+        serde_json::from_str(&run_bus(&["calib", "history", "--machine", "m1"])).unwrap();
+    assert_eq!(h.as_array().unwrap().len(), 1, "{h}");
+    let mut v2: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("v1.json")).unwrap()).unwrap();
+    v2["version"] = 2.into();
+    v2["note"] = "second version, put mid-stream".into();
+    std::fs::write(d.join("v2.json"), v2.to_string()).unwrap();
+    let mut rec = Command::new(scancorr())
+        .args(with_bus(&[
+            "record",
+            "--keys",
+            "cmm/m1/corrected/**",
+            "--out",
+            "live2.mcap",
+            "--idle",
+            "3",
+            "--seconds",
+            "120",
+        ]))
+        .current_dir(&d)
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(800));
+    let mut rep = Command::new(scancorr())
+        .args(with_bus(&["replay", "--bag", "r.mcap", "--rate", "20"]))
+        .current_dir(&d)
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    let put = run_bus(&["calib", "put", "--machine", "m1", "--file", "v2.json"]);
+    assert!(put.contains("\"version\":2"), "{put}");
+    assert!(rep.wait().unwrap().success());
+    std::thread::sleep(Duration::from_millis(500));
+    svc.stop();
+    assert!(rec.wait().unwrap().success());
+    let live2 = points(&d.join("live2.mcap"));
+    assert_eq!(live2.len(), off.len(), "every point arrives");
+    assert!(
+        live2.iter().enumerate().all(|(i, p)| p.seq == i as u64),
+        "a seq gap across the calibration switch"
+    );
+    let switch = live2
+        .iter()
+        .position(|p| p.calibration_version == 2)
+        .expect("version 2 applied mid-stream");
+    assert!(
+        switch > 1000
+            && live2[..switch].iter().all(|p| p.calibration_version == 1)
+            && live2[switch..].iter().all(|p| p.calibration_version == 2)
+    );
+    // Same model content: the points after the switch equal the offline ones.
+    assert!(live2[switch..]
+        .iter()
+        .zip(&off[switch..])
+        .all(|(a, b)| a.surface == b.surface));
+
+    // --- A bad document changes nothing; the history survives another restart. ---
+    std::fs::write(
+        d.join("bad.json"),
+        v2.to_string()
+            .replace("\"sample_period_s\":0.001", "\"sample_period_s\":-1"),
+    )
+    .unwrap();
+    let svc = Service::start(&d, port);
+    let o = Command::new(scancorr())
+        .args(with_bus(&[
+            "calib",
+            "put",
+            "--machine",
+            "m1",
+            "--file",
+            "bad.json",
+        ]))
+        .current_dir(&d)
+        .output()
+        .unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("sample_period_s"));
+    let o = Command::new(scancorr())
+        .args(with_bus(&[
+            "calib",
+            "put",
+            "--machine",
+            "m2",
+            "--file",
+            "v1.json",
+        ]))
+        .current_dir(&d)
+        .output()
+        .unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("m2"));
+    let h: serde_json::Value =
+        serde_json::from_str(&run_bus(&["calib", "history", "--machine", "m1"])).unwrap();
+    let versions: Vec<u64> = h
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["version"].as_u64().unwrap())
+        .collect();
+    assert_eq!(versions, vec![1, 2]);
+    let cur: serde_json::Value =
+        serde_json::from_str(&run_bus(&["calib", "get", "--machine", "m1"])).unwrap();
+    assert_eq!(cur["version"], 2);
+    svc.stop();
+    std::fs::remove_dir_all(&d).ok();
+}
