@@ -28,6 +28,9 @@ pub struct Config {
     pub stall_after_ms: u64,
     /// Zenoh multicast scouting (off by default: endpoints are explicit).
     pub scouting: bool,
+    /// A zenoh configuration file (JSON5) for everything else — TLS certificates, user
+    /// authentication — used as the base; mode and endpoints above override it.
+    pub zenoh_config: Option<PathBuf>,
 }
 
 impl Default for Config {
@@ -43,6 +46,7 @@ impl Default for Config {
             max_machines: 4096,
             stall_after_ms: 1000,
             scouting: false,
+            zenoh_config: None,
         }
     }
 }
@@ -98,7 +102,11 @@ impl Config {
 
     /// The zenoh session configuration.
     pub fn zenoh(&self) -> Result<zenoh::Config, ConfigError> {
-        zenoh_config(&self.mode, &self.listen, &self.connect, self.scouting)
+        let base = match &self.zenoh_config {
+            Some(p) => zenoh::Config::from_file(p).map_err(|e| ConfigError::Zenoh { key: p.display().to_string(), msg: e.to_string() })?,
+            None => zenoh::Config::default(),
+        };
+        apply(base, &self.mode, &self.listen, &self.connect, self.scouting)
     }
 
     /// Whether `machine` may be served.
@@ -114,7 +122,10 @@ pub fn zenoh_config(
     connect: &[String],
     scouting: bool,
 ) -> Result<zenoh::Config, ConfigError> {
-    let mut z = zenoh::Config::default();
+    apply(zenoh::Config::default(), mode, listen, connect, scouting)
+}
+
+fn apply(mut z: zenoh::Config, mode: &str, listen: &[String], connect: &[String], scouting: bool) -> Result<zenoh::Config, ConfigError> {
     let set = |z: &mut zenoh::Config, k: &str, v: String| {
         z.insert_json5(k, &v).map_err(|e| ConfigError::Zenoh {
             key: k.into(),
