@@ -141,9 +141,9 @@ struct SimCli {
     /// Machine id in the streams.
     #[arg(long, default_value = "m1")]
     machine: String,
-    /// Output bag.
+    /// Output bag (with --live: optional, a temporary bag is used).
     #[arg(long)]
-    out: PathBuf,
+    out: Option<PathBuf>,
     /// Ground truth (JSON): every true parameter, the true surfaces, the true calibration.
     #[arg(long)]
     truth: Option<PathBuf>,
@@ -177,12 +177,18 @@ struct SimCli {
     /// Samples per message.
     #[arg(long, default_value_t = 100)]
     batch: usize,
-    /// Key-expression prefix.
-    #[arg(long, default_value = scancorr_proto::DEFAULT_PREFIX)]
-    prefix: String,
     /// Print a JSON summary.
     #[arg(long)]
     json: bool,
+    /// Publish on the bus as a machine controller would (paced by sample time), instead of
+    /// only writing the bag (`--out` then keeps a copy).
+    #[arg(long)]
+    live: bool,
+    /// With --live: speed (1.0 real time, `max` as fast as possible).
+    #[arg(long, default_value = "1.0")]
+    live_rate: String,
+    #[command(flatten)]
+    bus: bus::Bus,
 }
 
 #[derive(Subcommand)]
@@ -420,15 +426,32 @@ fn run(cli: Cli) -> Result<()> {
                 minutes: a.minutes,
                 ..Default::default()
             };
+            let live = a.live;
+            let out = match (&a.out, live) {
+                (Some(p), _) => p.clone(),
+                (None, true) => std::env::temp_dir().join(format!("scancorr-live-{}.mcap", std::process::id())),
+                (None, false) => anyhow::bail!("give --out FILE (or --live to publish on the bus)"),
+            };
+            let keep = a.out.is_some();
+            let (rate, bus_args) = (a.live_rate.clone(), a.bus.clone());
             simcmd::run(simcmd::SimArgs {
                 options,
-                out: a.out,
+                out: out.clone(),
                 truth: a.truth,
                 calib_out: a.calib_out,
                 batch: a.batch,
-                prefix: a.prefix,
+                prefix: a.bus.prefix.clone(),
                 json: a.json,
-            })
+            })?;
+            if live {
+                let r = if rate == "max" { None } else { Some(rate.parse::<f64>().with_context(|| format!("--live-rate {rate}"))?) };
+                let n = bus::replay(&bus_args, &out, r, false)?;
+                eprintln!("published {n} message(s) live");
+                if !keep {
+                    std::fs::remove_file(&out).ok();
+                }
+            }
+            Ok(())
         }
         Cmd::Correct {
             bag,
