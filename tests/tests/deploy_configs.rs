@@ -4,15 +4,20 @@
 #[test]
 fn deploy_configs_parse() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy");
-    let router = zenoh::Config::from_file(dir.join("router.json5")).expect("router.json5 is a valid zenoh configuration");
+    let router = zenoh::Config::from_file(dir.join("router.json5"))
+        .expect("router.json5 is a valid zenoh configuration");
     let text = format!("{router}");
-    assert!(text.contains("access_control") || text.contains("enabled"), "{text}");
+    assert!(
+        text.contains("access_control") || text.contains("enabled"),
+        "{text}"
+    );
     zenoh::Config::from_file(dir.join("zenoh-client-tls.json5")).expect("zenoh-client-tls.json5");
     let mut svc = scancorrd::Config::load(&dir.join("scancorrd.json5")).expect("scancorrd.json5");
     assert_eq!(svc.mode, "client");
     assert!(!svc.allow_any_machine && svc.serves("m1") && !svc.serves("m9"));
     svc.zenoh_config = Some(dir.join("zenoh-client-tls.json5"));
-    svc.zenoh().expect("the service builds its zenoh configuration");
+    svc.zenoh()
+        .expect("the service builds its zenoh configuration");
     // Unknown fields are refused with the file named.
     let bad = std::env::temp_dir().join(format!("scancorrd-bad-{}.json5", std::process::id()));
     std::fs::write(&bad, "{ lisen: ['tcp/127.0.0.1:1'] }").unwrap();

@@ -340,7 +340,13 @@ fn a_python_zenoh_subscriber_receives_what_the_offline_corrector_computes() {
     ok(
         &d,
         &[
-            "replay", "--bag", "r.mcap", "--rate", "max", "--connect", &bus,
+            "replay",
+            "--bag",
+            "r.mcap",
+            "--rate",
+            "max",
+            "--connect",
+            &bus,
         ],
     );
     std::thread::sleep(Duration::from_millis(500));

@@ -584,7 +584,11 @@ fn reports_render_in_headless_chromium() {
             }
             "history.html" => {
                 assert_eq!(count("error-fall"), 1, "{name}: the error-fall chart");
-                check_bars(name, &laid_out(name, &lay, "error-fall"));
+                let (_, bars) = check_bars(name, &laid_out(name, &lay, "error-fall"));
+                assert!(
+                    bars.len() >= 2,
+                    "{name}: the error fall needs the starting version and the new one"
+                );
             }
             _ => unreachable!(),
         }

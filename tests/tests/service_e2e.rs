@@ -299,16 +299,62 @@ fn simulator_publishes_live_and_the_service_corrects() {
     let d = scratch("service-live");
     let port = free_port();
     let ep = format!("tcp/127.0.0.1:{port}");
-    ok(&d, &["sim", "--program", "ring", "--out", "r.mcap", "--calib-out", "v1.json"]);
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "v1.json",
+        ],
+    );
     let svc = Service::start(&d, port);
-    ok(&d, &["calib", "put", "--machine", "m1", "--file", "v1.json", "--connect", &ep]);
-    ok(&d, &["sim", "--program", "ring", "--live", "--live-rate", "max", "--connect", &ep]);
+    ok(
+        &d,
+        &[
+            "calib",
+            "put",
+            "--machine",
+            "m1",
+            "--file",
+            "v1.json",
+            "--connect",
+            &ep,
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--live",
+            "--live-rate",
+            "max",
+            "--connect",
+            &ep,
+        ],
+    );
     std::thread::sleep(Duration::from_millis(500));
-    let st: serde_json::Value = serde_json::from_str(&ok(&d, &["status", "--machine", "m1", "--connect", &ep])).unwrap();
-    let off: serde_json::Value = serde_json::from_str(&ok(&d, &["correct", "--bag", "r.mcap", "--calib", "v1.json", "--json"])).unwrap();
+    let st: serde_json::Value =
+        serde_json::from_str(&ok(&d, &["status", "--machine", "m1", "--connect", &ep])).unwrap();
+    let off: serde_json::Value = serde_json::from_str(&ok(
+        &d,
+        &["correct", "--bag", "r.mcap", "--calib", "v1.json", "--json"],
+    ))
+    .unwrap();
     // Everything but the last few points still waiting for their next samples.
-    let (live, offline) = (st["points_out"].as_u64().unwrap(), off["points"].as_u64().unwrap());
-    assert!(live + 5 >= offline && live <= offline, "{live} live vs {offline} offline: {st}");
+    let (live, offline) = (
+        st["points_out"].as_u64().unwrap(),
+        off["points"].as_u64().unwrap(),
+    );
+    assert!(
+        live + 5 >= offline && live <= offline,
+        "{live} live vs {offline} offline: {st}"
+    );
     assert_eq!(st["messages"]["malformed"], 0);
     svc.stop();
     std::fs::remove_dir_all(&d).ok();

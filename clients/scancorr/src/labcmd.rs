@@ -373,6 +373,8 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 ("rms_um".to_string(), after.rms_fit_um),
                 ("heldout_rms_um".to_string(), after.rms_held_um),
                 ("noise_floor_um".to_string(), ds.noise_floor_um),
+                ("parent_rms_um".to_string(), prep.rms_fit_um),
+                ("parent_heldout_rms_um".to_string(), prep.rms_held_um),
             ]
             .into();
             new.build().context("the fitted calibration")?;
@@ -533,6 +535,12 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 bail!("{}: no calibration documents (*.json)", dir.display());
             }
             cals.sort_by_key(|(_, c)| (c.machine_id.clone(), c.version));
+            // A version without recorded figures takes them from a child that measured it.
+            let from_child = |v: u64, key: &str| {
+                cals.iter()
+                    .find(|(_, c)| c.parent_version == Some(v))
+                    .and_then(|(_, c)| c.metrics.get(key).copied())
+            };
             let mut rows = vec![];
             let bags = if bag.is_empty() {
                 vec![]
@@ -547,8 +555,14 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             for (p, c) in &cals {
                 let (rms, held) = if bags.is_empty() {
                     (
-                        c.metrics.get("rms_um").copied(),
-                        c.metrics.get("heldout_rms_um").copied(),
+                        c.metrics
+                            .get("rms_um")
+                            .copied()
+                            .or_else(|| from_child(c.version, "parent_rms_um")),
+                        c.metrics
+                            .get("heldout_rms_um")
+                            .copied()
+                            .or_else(|| from_child(c.version, "parent_heldout_rms_um")),
                     )
                 } else {
                     let opts = BuildOptions {

@@ -429,7 +429,9 @@ fn run(cli: Cli) -> Result<()> {
             let live = a.live;
             let out = match (&a.out, live) {
                 (Some(p), _) => p.clone(),
-                (None, true) => std::env::temp_dir().join(format!("scancorr-live-{}.mcap", std::process::id())),
+                (None, true) => {
+                    std::env::temp_dir().join(format!("scancorr-live-{}.mcap", std::process::id()))
+                }
                 (None, false) => anyhow::bail!("give --out FILE (or --live to publish on the bus)"),
             };
             let keep = a.out.is_some();
@@ -444,7 +446,14 @@ fn run(cli: Cli) -> Result<()> {
                 json: a.json,
             })?;
             if live {
-                let r = if rate == "max" { None } else { Some(rate.parse::<f64>().with_context(|| format!("--live-rate {rate}"))?) };
+                let r = if rate == "max" {
+                    None
+                } else {
+                    Some(
+                        rate.parse::<f64>()
+                            .with_context(|| format!("--live-rate {rate}"))?,
+                    )
+                };
                 let n = bus::replay(&bus_args, &out, r, false)?;
                 eprintln!("published {n} message(s) live");
                 if !keep {

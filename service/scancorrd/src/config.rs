@@ -103,7 +103,10 @@ impl Config {
     /// The zenoh session configuration.
     pub fn zenoh(&self) -> Result<zenoh::Config, ConfigError> {
         let base = match &self.zenoh_config {
-            Some(p) => zenoh::Config::from_file(p).map_err(|e| ConfigError::Zenoh { key: p.display().to_string(), msg: e.to_string() })?,
+            Some(p) => zenoh::Config::from_file(p).map_err(|e| ConfigError::Zenoh {
+                key: p.display().to_string(),
+                msg: e.to_string(),
+            })?,
             None => zenoh::Config::default(),
         };
         apply(base, &self.mode, &self.listen, &self.connect, self.scouting)
@@ -125,7 +128,13 @@ pub fn zenoh_config(
     apply(zenoh::Config::default(), mode, listen, connect, scouting)
 }
 
-fn apply(mut z: zenoh::Config, mode: &str, listen: &[String], connect: &[String], scouting: bool) -> Result<zenoh::Config, ConfigError> {
+fn apply(
+    mut z: zenoh::Config,
+    mode: &str,
+    listen: &[String],
+    connect: &[String],
+    scouting: bool,
+) -> Result<zenoh::Config, ConfigError> {
     let set = |z: &mut zenoh::Config, k: &str, v: String| {
         z.insert_json5(k, &v).map_err(|e| ConfigError::Zenoh {
             key: k.into(),

@@ -976,10 +976,32 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
     fn fmt(x: f64) -> String {
         if x.abs() >= 100.0 {
             format!("{x:.0}")
-        } else if x.abs() >= 1.0 {
+        } else if x.abs() >= 10.0 {
             format!("{x:.1}")
-        } else {
+        } else if x.abs() >= 1.0 {
             format!("{x:.2}")
+        } else {
+            format!("{x:.3}")
+        }
+    }
+    // Bins in value order: "< a", "a–b" by a, "≥ b"; categories alphabetically.
+    fn order(label: &str) -> (f64, String) {
+        let num = |t: &str| {
+            t.split_whitespace()
+                .next()
+                .and_then(|x| x.parse::<f64>().ok())
+        };
+        if let Some(r) = label.strip_prefix("< ") {
+            (num(r).map(|_| f64::MIN).unwrap_or(0.0), label.to_string())
+        } else if let Some(r) = label.strip_prefix("≥ ") {
+            (num(r).map(|_| f64::MAX).unwrap_or(0.0), label.to_string())
+        } else if let Some(a) = label
+            .split_once('–')
+            .and_then(|(a, _)| a.parse::<f64>().ok())
+        {
+            (a, label.to_string())
+        } else {
+            (0.0, label.to_string())
         }
     }
     let quantiles = |vals: Vec<f64>| -> Vec<f64> {
@@ -1097,6 +1119,11 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
                 a.2 += res_um[i] * res_um[i];
             }
         }
+        let mut acc: Vec<(String, (usize, f64, f64))> = acc.into_iter().collect();
+        acc.sort_by(|a, b| {
+            let (oa, ob) = (order(&a.0), order(&b.0));
+            oa.0.total_cmp(&ob.0).then(oa.1.cmp(&ob.1))
+        });
         for (k, (cnt, s, s2)) in acc {
             let r = (s2 / cnt as f64).sqrt();
             let failing = cnt >= 30 && r > 1.3 * rms && r > 2.0 * noise;
