@@ -5,6 +5,7 @@
 //! reported once, here, with their context chain.
 
 mod bench;
+mod benchlive;
 mod bus;
 mod demo;
 mod labcmd;
@@ -222,6 +223,15 @@ enum BenchCmd {
         #[arg(long, default_value_t = 5)]
         repeat: usize,
     },
+    /// A bare zenoh relay against scancorrd on loopback: throughput, ratio, latency.
+    Live {
+        /// Print JSON (`relay_samples_per_s`, `service_samples_per_s`, `ratio`, `p50_latency_us`, `p99_latency_us`).
+        #[arg(long)]
+        json: bool,
+        /// Scale instants to send (×3 streams plus temperatures).
+        #[arg(long, default_value_t = 30_000)]
+        points: usize,
+    },
     /// `scancorr correct` end to end on a simulated campaign bag: read, decode, correct,
     /// encode, write.
     Correct {
@@ -308,6 +318,7 @@ fn run(cli: Cli) -> Result<()> {
             repeat,
         }) => bench::core(points, repeat, json),
         Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
+        Cmd::Bench(BenchCmd::Live { json, points }) => benchlive::run(points, json),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
             let text = std::fs::read_to_string(&file)
                 .with_context(|| format!("reading {}", file.display()))?;
