@@ -26,28 +26,6 @@ use std::time::{Duration, Instant};
 /// How long the subscriber may run in all (its `--max-seconds`).
 const SUBSCRIBER_MAX_S: u64 = 90;
 
-fn scancorrd() -> PathBuf {
-    let s = scancorr();
-    let bin = s.with_file_name("scancorrd");
-    if !bin.exists() {
-        let mut c = Command::new(env!("CARGO"));
-        c.args(["build", "-p", "scancorrd"]).current_dir(root());
-        if !cfg!(debug_assertions) {
-            c.arg("--release");
-        }
-        assert!(c.status().unwrap().success(), "building scancorrd failed");
-    }
-    bin
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 fn describe(what: &str, out: &Output) -> String {
     format!(
         "{what}: {}\n--- stdout ---\n{}\n--- stderr ---\n{}",
@@ -78,69 +56,6 @@ fn python() -> PathBuf {
         "scripts/python-env.sh printed no interpreter path:\n{stdout}"
     );
     py
-}
-
-struct Service {
-    child: Child,
-    log: PathBuf,
-}
-
-impl Service {
-    fn start(dir: &Path, port: u16) -> Service {
-        let log = dir.join(format!("scancorrd-{port}.log"));
-        let child = Command::new(scancorrd())
-            .args([
-                "--listen",
-                &format!("tcp/127.0.0.1:{port}"),
-                "--data-dir",
-                "data",
-            ])
-            .current_dir(dir)
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap();
-        let t0 = Instant::now();
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            assert!(
-                t0.elapsed() < Duration::from_secs(20),
-                "scancorrd did not start; its log:\n{}",
-                std::fs::read_to_string(&log).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        Service { child, log }
-    }
-
-    /// SIGTERM: flush and close; waits for the exit.
-    fn stop(mut self) {
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
-        let t0 = Instant::now();
-        loop {
-            if let Some(st) = self.child.try_wait().unwrap() {
-                assert!(
-                    st.success(),
-                    "scancorrd exited with {st:?}; its log:\n{}",
-                    std::fs::read_to_string(&self.log).unwrap_or_default()
-                );
-                return;
-            }
-            assert!(
-                t0.elapsed() < Duration::from_secs(20),
-                "scancorrd did not stop"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// The Python subscriber, with its stderr collected by a thread (which also reports `ready`).

@@ -9,10 +9,6 @@ use scancorr_proto::Message;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-fn scancorrd() -> std::path::PathBuf {
-    scancorr().with_file_name("scancorrd")
-}
-
 async fn session(port: u16) -> zenoh::Session {
     let mut c = zenoh::Config::default();
     c.insert_json5("mode", "\"peer\"").unwrap();

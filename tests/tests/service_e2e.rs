@@ -7,92 +7,9 @@ use common::*;
 use scancorr_bag::{BagReader, Stream};
 use scancorr_proto::v1::CorrectedPointBatch;
 use scancorr_proto::Message;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
-
-fn scancorrd() -> PathBuf {
-    let s = scancorr();
-    let bin = s.with_file_name("scancorrd");
-    if !bin.exists() {
-        let mut c = Command::new(env!("CARGO"));
-        c.args(["build", "-p", "scancorrd"]).current_dir(root());
-        if !cfg!(debug_assertions) {
-            c.arg("--release");
-        }
-        assert!(c.status().unwrap().success());
-    }
-    bin
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-struct Service {
-    child: Child,
-}
-
-impl Service {
-    fn start(dir: &Path, port: u16) -> Service {
-        let log = std::fs::File::create(dir.join(format!(
-            "scancorrd-{port}-{}.log",
-            Instant::now().elapsed().as_nanos()
-        )))
-        .unwrap();
-        let child = Command::new(scancorrd())
-            .args([
-                "--listen",
-                &format!("tcp/127.0.0.1:{port}"),
-                "--data-dir",
-                "data",
-            ])
-            .current_dir(dir)
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .unwrap();
-        // Wait until it listens.
-        let t0 = Instant::now();
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            assert!(
-                t0.elapsed() < Duration::from_secs(20),
-                "scancorrd did not start"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        Service { child }
-    }
-    /// SIGTERM: flush and close; waits for the exit.
-    fn stop(mut self) {
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
-        let t0 = Instant::now();
-        loop {
-            if let Some(st) = self.child.try_wait().unwrap() {
-                assert!(st.success(), "scancorrd exited with {st:?}");
-                return;
-            }
-            assert!(
-                t0.elapsed() < Duration::from_secs(20),
-                "scancorrd did not stop"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
 fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
     let r = BagReader::open(bag).unwrap();

@@ -6,19 +6,12 @@
 
 use crate::machine::{head_rotation, Stylus, TrueMachine, V3};
 use serde::{Deserialize, Serialize};
+// What the bag says about the program is the lab's contract: the same types, not a copy.
+pub use scancorr_core::lab::program::{
+    FeatureKind, FeatureSpec as FeatureInfo, ProgramSpec as ProgramInfo, SegmentKind,
+    SegmentSpec as SegmentInfo,
+};
 use std::f64::consts::{PI, TAU};
-
-/// How the surface of a feature meets the probe.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum FeatureKind {
-    /// Inside of a circle (ring gauge, bore): material outside the radius.
-    Bore,
-    /// Outside of a sphere or circle (master sphere, boss): material inside.
-    Boss,
-    /// A plane face; `normal` points out of the material towards the probe.
-    Face,
-}
 
 /// One artifact feature on the table, with its true geometry.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -180,18 +173,6 @@ impl Path {
     }
 }
 
-/// What a segment is for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum SegmentKind {
-    /// Measuring: the probe is in contact with a feature.
-    Scan,
-    /// Positioning: not in contact.
-    Move,
-    /// Standing in contact before or after a scan.
-    Dwell,
-}
-
 /// One planned segment.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Segment {
@@ -258,64 +239,6 @@ impl Segment {
     pub fn at(&self, t: f64) -> V3 {
         self.path.at(self.s_at(t))
     }
-}
-
-/// Program description written to the bag (what the lab needs to know about the scans).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ProgramInfo {
-    /// Program name.
-    pub program: String,
-    /// Features with their nominal and certified geometry (the true geometry is only in the
-    /// truth file).
-    pub features: Vec<FeatureInfo>,
-    /// Segments.
-    pub segments: Vec<SegmentInfo>,
-}
-
-/// What the measuring person knows about a feature.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct FeatureInfo {
-    /// Id.
-    pub id: u32,
-    /// Artifact: ring, sphere, straightedge, part.
-    pub artifact: String,
-    /// Bore, boss, face.
-    pub kind: FeatureKind,
-    /// Nominal position, mm.
-    pub nominal_center: [f64; 3],
-    /// Nominal diameter, mm (0 for faces).
-    pub nominal_diameter_mm: f64,
-    /// Certified diameter, mm.
-    pub certificate_diameter_mm: Option<f64>,
-    /// Face normal.
-    pub normal: [f64; 3],
-}
-
-/// What was scanned in a segment.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SegmentInfo {
-    /// Segment id.
-    pub id: u32,
-    /// Kind.
-    pub kind: SegmentKind,
-    /// Feature.
-    pub feature: Option<u32>,
-    /// Speed, mm/s.
-    pub speed: f64,
-    /// +1 CCW, −1 CW, 0 lines.
-    pub direction: i32,
-    /// Tip.
-    pub tip: u32,
-    /// Head angles.
-    pub a1_deg: f64,
-    /// Head angles.
-    pub a2_deg: f64,
-    /// Nominal deflection.
-    pub deflection_mm: f64,
-    /// Start and end time, s from the run start.
-    pub t0_s: f64,
-    /// End.
-    pub t1_s: f64,
 }
 
 /// A planned program: features and segments with start times.

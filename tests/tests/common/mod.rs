@@ -2,7 +2,8 @@
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
 
 /// The workspace root.
 pub fn root() -> PathBuf {
@@ -89,4 +90,93 @@ pub fn fails(dir: &Path, args: &[&str], needles: &[&str]) -> String {
         );
     }
     err
+}
+
+/// The `scancorrd` binary next to `scancorr` (built if missing).
+pub fn scancorrd() -> PathBuf {
+    let s = scancorr();
+    let bin = s.with_file_name("scancorrd");
+    if !bin.exists() {
+        let mut c = Command::new(env!("CARGO"));
+        c.args(["build", "-p", "scancorrd"]).current_dir(root());
+        if !cfg!(debug_assertions) {
+            c.arg("--release");
+        }
+        assert!(c.status().unwrap().success(), "building scancorrd failed");
+    }
+    bin
+}
+
+/// A free TCP port on loopback.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A running scancorrd (separate process) listening on a loopback port.
+pub struct Service {
+    child: Child,
+    log: PathBuf,
+}
+
+impl Service {
+    /// Starts it in `dir` (data in `dir/data`) and waits until it listens.
+    pub fn start(dir: &Path, port: u16) -> Service {
+        let log = dir.join(format!("scancorrd-{port}.log"));
+        let child = Command::new(scancorrd())
+            .args([
+                "--listen",
+                &format!("tcp/127.0.0.1:{port}"),
+                "--data-dir",
+                "data",
+            ])
+            .current_dir(dir)
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        let t0 = Instant::now();
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(
+                t0.elapsed() < Duration::from_secs(20),
+                "scancorrd did not start; its log:\n{}",
+                std::fs::read_to_string(&log).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Service { child, log }
+    }
+
+    /// SIGTERM: flush and close; waits for the exit.
+    pub fn stop(mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        let t0 = Instant::now();
+        loop {
+            if let Some(st) = self.child.try_wait().unwrap() {
+                assert!(
+                    st.success(),
+                    "scancorrd exited with {st:?}; its log:\n{}",
+                    std::fs::read_to_string(&self.log).unwrap_or_default()
+                );
+                return;
+            }
+            assert!(
+                t0.elapsed() < Duration::from_secs(20),
+                "scancorrd did not stop"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }
