@@ -207,6 +207,16 @@ fn live_equals_offline_calibration_switch_and_restart() {
     let cur: serde_json::Value =
         serde_json::from_str(&run_bus(&["calib", "get", "--machine", "m1"])).unwrap();
     assert_eq!(cur["version"], 2);
+    // The lab reads the error fall straight from the service's store.
+    let hist: serde_json::Value =
+        serde_json::from_str(&run_bus(&["lab", "history", "--machine", "m1", "--json"])).unwrap();
+    let vs: Vec<u64> = hist
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["version"].as_u64().unwrap())
+        .collect();
+    assert_eq!(vs, vec![1, 2], "{hist}");
     svc.stop();
     std::fs::remove_dir_all(&d).ok();
 }

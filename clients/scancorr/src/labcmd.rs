@@ -82,7 +82,7 @@ pub enum LabCmd {
         /// Folder of calibration documents (*.json).
         #[arg(long)]
         calib_dir: Option<PathBuf>,
-        /// The machine's versions in the service's store (needs a running scancorrd).
+        /// The machine's versions in the service's store (asks scancorrd at --connect).
         #[arg(long)]
         machine: Option<String>,
         /// Re-evaluate every version on these bags (otherwise the figures recorded by the lab).
@@ -97,6 +97,8 @@ pub enum LabCmd {
         /// Write a self-contained HTML report.
         #[arg(long)]
         report: Option<PathBuf>,
+        #[command(flatten)]
+        bus: crate::bus::Bus,
     },
 }
 
@@ -514,25 +516,39 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             artifact,
             json,
             report,
+            bus,
         } => {
-            if machine.is_some() {
-                bail!("--machine reads the versions from a running scancorrd, which this build does not include yet; export them to a folder and use --calib-dir");
-            }
-            let dir =
-                calib_dir.context("give --calib-dir DIR (a folder of calibration versions)")?;
-            let mut cals = vec![];
-            for e in
-                std::fs::read_dir(&dir).with_context(|| format!("reading {}", dir.display()))?
-            {
-                let p = e?.path();
-                if p.extension().is_some_and(|x| x == "json") {
-                    if let Ok(c) = offline::load_calibration(&p) {
-                        cals.push((p, c));
+            let mut cals: Vec<(PathBuf, Calibration)> = vec![];
+            match (&machine, &calib_dir) {
+                (Some(m), None) => {
+                    // Every version the service keeps for the machine.
+                    let key = scancorr_proto::calibration_key(&bus.prefix, m);
+                    let list: serde_json::Value = serde_json::from_str(&crate::bus::query(&bus, format!("{key}?history"))?)
+                        .context("the service's history reply")?;
+                    for v in list.as_array().into_iter().flatten() {
+                        let n = v["version"].as_u64().context("a version number")?;
+                        let doc = crate::bus::query(&bus, format!("{key}?version={n}"))?;
+                        let c = Calibration::from_json(&doc)?;
+                        cals.push((PathBuf::from(format!("scancorrd:{m}@v{n}")), c));
+                    }
+                    if cals.is_empty() {
+                        bail!("scancorrd keeps no calibration for machine `{m}`");
                     }
                 }
-            }
-            if cals.is_empty() {
-                bail!("{}: no calibration documents (*.json)", dir.display());
+                (None, Some(dir)) => {
+                    for e in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+                        let p = e?.path();
+                        if p.extension().is_some_and(|x| x == "json") {
+                            if let Ok(c) = offline::load_calibration(&p) {
+                                cals.push((p, c));
+                            }
+                        }
+                    }
+                    if cals.is_empty() {
+                        bail!("{}: no calibration documents (*.json)", dir.display());
+                    }
+                }
+                _ => bail!("give either --calib-dir DIR (a folder of versions) or --machine M (the versions scancorrd keeps)"),
             }
             cals.sort_by_key(|(_, c)| (c.machine_id.clone(), c.version));
             // A version without recorded figures takes them from a child that measured it.

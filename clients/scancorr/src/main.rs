@@ -53,6 +53,13 @@ enum Cmd {
     /// Calibration documents.
     #[command(subcommand)]
     Calib(CalibCmd),
+    /// The wire contract: write the protobuf FileDescriptorSet (for consumers in other
+    /// languages that build message classes from it).
+    Proto {
+        /// Output file (`.bin`).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Least-squares geometry fits (the ones the lab uses).
     #[command(subcommand)]
     Shape(ShapeCmd),
@@ -338,6 +345,17 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Cmd::Lab(c) => labcmd::run(c),
+        Cmd::Proto { out } => {
+            std::fs::write(&out, scancorr_proto::FILE_DESCRIPTOR_SET)
+                .with_context(|| format!("writing {}", out.display()))?;
+            eprintln!(
+                "{}: FileDescriptorSet of package {} ({} bytes)",
+                out.display(),
+                scancorr_proto::PACKAGE,
+                scancorr_proto::FILE_DESCRIPTOR_SET.len()
+            );
+            Ok(())
+        }
         Cmd::Calib(CalibCmd::Put { machine, file, bus }) => {
             println!("{}", bus::calib_put(&bus, &machine, &file)?);
             Ok(())

@@ -9,8 +9,6 @@ use std::path::Path;
 
 /// Raw samples of one machine read from a bag, in the bag's (receive) order.
 pub struct BagInput {
-    /// The machine.
-    pub machine: String,
     /// Samples with the log time of the message that carried them.
     pub samples: Vec<(u64, Sample)>,
     /// Metadata records (name, entries) in file order.
@@ -94,7 +92,6 @@ fn list(v: &[String]) -> String {
 pub fn read(path: &Path, machine: Option<&str>) -> Result<BagInput> {
     let (reader, machine, warnings) = open(path, machine)?;
     let mut input = BagInput {
-        machine: machine.clone(),
         samples: vec![],
         metadata: reader
             .metadata()
