@@ -12,9 +12,6 @@
 
 mod common;
 use common::*;
-use scancorr_bag::{BagReader, Stream};
-use scancorr_proto::v1::CorrectedPointBatch;
-use scancorr_proto::Message;
 use serde_json::Value;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
@@ -184,17 +181,6 @@ impl Drop for Subscriber {
 }
 
 /// The points of the corrector's bag, in file order.
-fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
-    let r = BagReader::open(bag).unwrap();
-    let mut v = vec![];
-    for m in r.messages().unwrap() {
-        let m = m.unwrap();
-        if m.stream == Stream::Points {
-            v.extend(CorrectedPointBatch::decode(&*m.data).unwrap().points);
-        }
-    }
-    v
-}
 
 fn f64s(v: &Value, what: &str) -> Vec<f64> {
     v.as_array()

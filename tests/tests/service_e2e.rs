@@ -4,24 +4,8 @@
 
 mod common;
 use common::*;
-use scancorr_bag::{BagReader, Stream};
-use scancorr_proto::v1::CorrectedPointBatch;
-use scancorr_proto::Message;
-use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Duration;
-
-fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
-    let r = BagReader::open(bag).unwrap();
-    let mut v = vec![];
-    for m in r.messages().unwrap() {
-        let m = m.unwrap();
-        if m.stream == Stream::Points {
-            v.extend(CorrectedPointBatch::decode(&*m.data).unwrap().points);
-        }
-    }
-    v
-}
 
 #[test]
 fn live_equals_offline_calibration_switch_and_restart() {

@@ -180,3 +180,21 @@ impl Drop for Service {
         let _ = self.child.wait();
     }
 }
+
+/// Every corrected point in a bag, in order.
+pub fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
+    use scancorr_proto::Message;
+    let r = scancorr_bag::BagReader::open(bag).unwrap();
+    let mut v = vec![];
+    for m in r.messages().unwrap() {
+        let m = m.unwrap();
+        if m.stream == scancorr_bag::Stream::Points {
+            v.extend(
+                scancorr_proto::v1::CorrectedPointBatch::decode(&*m.data)
+                    .unwrap()
+                    .points,
+            );
+        }
+    }
+    v
+}
