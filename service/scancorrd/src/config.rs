@@ -144,7 +144,11 @@ fn apply(
     set(&mut z, "mode", format!("\"{mode}\""))?;
     if std::env::var_os("SCANCORR_ZENOH_NO_BATCHING").is_some() {
         // Low latency at the cost of throughput: no adaptive batching on the links.
-        set(&mut z, "transport/link/tx/queue/batching/enabled", "false".into())?;
+        set(
+            &mut z,
+            "transport/link/tx/queue/batching/enabled",
+            "false".into(),
+        )?;
     }
     set(
         &mut z,
