@@ -2,7 +2,7 @@
 
 mod common;
 use common::*;
-use scancorr_bag::{BagHeader, BagWriter, Stream};
+use scancorr_bag::Stream;
 use std::process::{Command, Stdio};
 
 fn json(s: &str) -> serde_json::Value {
@@ -205,25 +205,9 @@ fn bad_bags_and_calibrations_are_clear_errors() {
     );
 
     // A bag missing the probe channel, with an unknown channel.
-    {
-        let src = scancorr_bag::BagReader::open(d.join("r.mcap")).unwrap();
-        let mut w = BagWriter::create(d.join("noprobe.mcap"), BagHeader::default()).unwrap();
-        for m in src.messages().unwrap() {
-            let m = m.unwrap();
-            if m.stream != Stream::Probe {
-                w.write(
-                    m.stream,
-                    &m.machine,
-                    "cmm",
-                    m.log_time,
-                    m.publish_time,
-                    &m.data,
-                )
-                .unwrap();
-            }
-        }
-        w.finish().unwrap();
-    }
+    copy_bag(&d.join("r.mcap"), &d.join("noprobe.mcap"), |s| {
+        s != Stream::Probe
+    });
     fails(
         &d,
         &["correct", "--bag", "noprobe.mcap", "--calib", "start.json"],

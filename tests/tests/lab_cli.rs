@@ -3,7 +3,6 @@
 
 mod common;
 use common::*;
-use scancorr_bag::{BagHeader, BagWriter, Stream};
 
 fn json(s: &str) -> serde_json::Value {
     assert!(
@@ -167,24 +166,7 @@ fn lab_bad_input_says_what_is_missing() {
         ],
     );
     // A bag without the program/artifact record.
-    {
-        let src = scancorr_bag::BagReader::open(d.join("r.mcap")).unwrap();
-        let mut w = BagWriter::create(d.join("bare.mcap"), BagHeader::default()).unwrap();
-        for m in src.messages().unwrap() {
-            let m = m.unwrap();
-            w.write(
-                m.stream,
-                &m.machine,
-                "cmm",
-                m.log_time,
-                m.publish_time,
-                &m.data,
-            )
-            .unwrap();
-        }
-        w.finish().unwrap();
-        let _ = Stream::Scale;
-    }
+    copy_bag(&d.join("r.mcap"), &d.join("bare.mcap"), |_| true);
     fails(
         &d,
         &["lab", "compare", "--bag", "bare.mcap", "--calib", "v1.json"],

@@ -327,6 +327,28 @@ impl<'a> Builder<'a> {
         self.features.push(f);
         id
     }
+    /// Approach, stand in contact, scan the path, stand again.
+    fn scan(&mut self, path: Path, speed: f64, ramp: f64, fid: u32, defl: f64) {
+        self.move_to(path.start());
+        let dwell = |at, seconds| Path::Dwell { at, seconds };
+        self.push(
+            SegmentKind::Dwell,
+            dwell(path.start(), 0.25),
+            0.0,
+            0.0,
+            Some(fid),
+            defl,
+        );
+        self.push(SegmentKind::Scan, path, speed, ramp, Some(fid), defl);
+        self.push(
+            SegmentKind::Dwell,
+            dwell(self.carriage, 0.15),
+            0.0,
+            0.0,
+            Some(fid),
+            defl,
+        );
+    }
     /// A circle scan of a bore or boss: one turn plus the ramps, dwell before and after.
     fn circle(&mut self, fid: u32, speed: f64, dir: f64, defl: f64, start: f64) {
         let f = self.features[fid as usize - 1].clone();
@@ -350,30 +372,7 @@ impl<'a> Builder<'a> {
             start,
             sweep,
         };
-        self.move_to(path.start());
-        self.push(
-            SegmentKind::Dwell,
-            Path::Dwell {
-                at: path.start(),
-                seconds: 0.25,
-            },
-            0.0,
-            0.0,
-            Some(fid),
-            defl,
-        );
-        self.push(SegmentKind::Scan, path, speed, ramp, Some(fid), defl);
-        self.push(
-            SegmentKind::Dwell,
-            Path::Dwell {
-                at: self.carriage,
-                seconds: 0.15,
-            },
-            0.0,
-            0.0,
-            Some(fid),
-            defl,
-        );
+        self.scan(path, speed, ramp, fid, defl);
     }
     /// A line along a face from `s0` to `s1` (positions along the face).
     fn face_line(&mut self, fid: u32, s0: f64, s1: f64, speed: f64, defl: f64) {
@@ -387,30 +386,7 @@ impl<'a> Builder<'a> {
             from: base + along * s0,
             to: base + along * s1,
         };
-        self.move_to(path.start());
-        self.push(
-            SegmentKind::Dwell,
-            Path::Dwell {
-                at: path.start(),
-                seconds: 0.25,
-            },
-            0.0,
-            0.0,
-            Some(fid),
-            defl,
-        );
-        self.push(SegmentKind::Scan, path, speed, 0.4, Some(fid), defl);
-        self.push(
-            SegmentKind::Dwell,
-            Path::Dwell {
-                at: self.carriage,
-                seconds: 0.15,
-            },
-            0.0,
-            0.0,
-            Some(fid),
-            defl,
-        );
+        self.scan(path, speed, 0.4, fid, defl);
     }
 }
 

@@ -198,3 +198,25 @@ pub fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
     }
     v
 }
+
+/// Copies the messages of the streams `keep` accepts into a new bag, without any metadata
+/// record (bags as a recorder that knows nothing of the program would write them).
+pub fn copy_bag(src: &Path, dst: &Path, keep: impl Fn(scancorr_bag::Stream) -> bool) {
+    let r = scancorr_bag::BagReader::open(src).unwrap();
+    let mut w = scancorr_bag::BagWriter::create(dst, scancorr_bag::BagHeader::default()).unwrap();
+    for m in r.messages().unwrap() {
+        let m = m.unwrap();
+        if keep(m.stream) {
+            w.write(
+                m.stream,
+                &m.machine,
+                r.prefix(),
+                m.log_time,
+                m.publish_time,
+                &m.data,
+            )
+            .unwrap();
+        }
+    }
+    w.finish().unwrap();
+}
