@@ -5,6 +5,7 @@
 //! reported once, here, with their context chain.
 
 mod bench;
+mod benchfleet;
 mod benchlive;
 mod bus;
 mod demo;
@@ -230,6 +231,39 @@ enum BenchCmd {
         #[arg(long, default_value_t = 5)]
         repeat: usize,
     },
+    /// One scancorrd process serving many machines at 1 kHz each in real time: delivered
+    /// points, seq gaps, latency, memory and CPU per machine.
+    Fleet {
+        /// Print JSON (`points_per_s`, `kept_up`, `rss_per_machine_bytes`, `core_state_bytes_max`, …).
+        #[arg(long)]
+        json: bool,
+        /// Machines.
+        #[arg(long, default_value_t = 1000)]
+        machines: usize,
+        /// Seconds of scanning per machine (1 kHz).
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        /// Controller batch period, ms (one message per stream per period).
+        #[arg(long, default_value_t = 100)]
+        batch_ms: u64,
+        /// The service's `max_pending_samples` (per stream per machine).
+        #[arg(long, default_value_t = 256)]
+        max_pending: usize,
+        /// Wall-clock pace, fraction of real time (below 1 when this machine cannot generate
+        /// the whole fleet's load besides serving it).
+        #[arg(long, default_value_t = 1.0)]
+        pace: f64,
+    },
+    /// The bare relay `bench live` compares against (run by it as a child process).
+    #[command(hide = true)]
+    Relay {
+        /// Port to listen on (127.0.0.1).
+        #[arg(long)]
+        port: u16,
+        /// Key prefix: `<prefix>/*/raw/*` is relayed to `<key>/out`.
+        #[arg(long, default_value = "bench")]
+        prefix: String,
+    },
     /// A bare zenoh relay against scancorrd on loopback: throughput, ratio, latency.
     Live {
         /// Print JSON (`relay_samples_per_s`, `service_samples_per_s`, `ratio`, `p50_latency_us`, `p99_latency_us`).
@@ -326,6 +360,22 @@ fn run(cli: Cli) -> Result<()> {
         }) => bench::core(points, repeat, json),
         Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
         Cmd::Bench(BenchCmd::Live { json, points }) => benchlive::run(points, json),
+        Cmd::Bench(BenchCmd::Relay { port, prefix }) => benchlive::relay(port, &prefix),
+        Cmd::Bench(BenchCmd::Fleet {
+            json,
+            machines,
+            seconds,
+            batch_ms,
+            max_pending,
+            pace,
+        }) => benchfleet::run(benchfleet::Params {
+            machines,
+            seconds,
+            batch_ms,
+            max_pending,
+            pace,
+            json,
+        }),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
             let text = std::fs::read_to_string(&file)
                 .with_context(|| format!("reading {}", file.display()))?;
@@ -515,7 +565,8 @@ fn run(cli: Cli) -> Result<()> {
                     s.points_flagged,
                     s.alarms,
                     s.dropped,
-                    if s.bad_messages > 0 { format!(", {} malformed message(s)", s.bad_messages) } else { String::new() },
+                    if s.bad_messages > 0 { format!(", {} malformed message(s)", s.bad_messages) } else { String::new() }
+                        + &if s.clock_resets > 0 { format!(", {} controller clock reset(s)", s.clock_resets) } else { String::new() },
                     s.seconds,
                     s.samples_per_s
                 );

@@ -137,6 +137,14 @@ pub struct Join {
     pub temperature_max_age_s: f64,
     /// Most samples buffered per stream while waiting for the others.
     pub max_pending: usize,
+    /// A sample this much earlier than its stream's latest is evidence that the controller's
+    /// clock was reset (a reboot), not a late sample, s.
+    pub clock_reset_s: f64,
+    /// That many such samples of one stream confirm the reset: the machine's join, estimator
+    /// and judgement restart in the new time base, and the samples held while confirming are
+    /// corrected, not lost. Fewer, followed by a sample in the old time base, are counted as
+    /// `out_of_order`.
+    pub clock_reset_samples: usize,
 }
 
 impl Default for Join {
@@ -146,6 +154,8 @@ impl Default for Join {
             temperature_delay_s: 0.2,
             temperature_max_age_s: 5.0,
             max_pending: 20_000,
+            clock_reset_s: 1.0,
+            clock_reset_samples: 50,
         }
     }
 }
@@ -399,6 +409,12 @@ impl Calibration {
         }
         if jn.max_pending < 16 {
             return Err(invalid("join.max_pending", "must be at least 16"));
+        }
+        if !(jn.clock_reset_s.is_finite() && jn.clock_reset_s > 0.0) {
+            return Err(invalid("join.clock_reset_s", "must be a finite number > 0"));
+        }
+        if !(1..=1000).contains(&jn.clock_reset_samples) {
+            return Err(invalid("join.clock_reset_samples", "must be 1 … 1000"));
         }
         let ns = |s: f64| (s * 1e9).round() as i64;
         Ok(Model {

@@ -86,6 +86,8 @@ impl DropReason {
 /// Counters of one corrector.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Stats {
+    /// Controller clock resets detected (each restarts the join in the new time base).
+    pub clock_resets: u64,
     /// Samples received per stream (command, scale, probe, temperature).
     pub samples_in: [u64; 4],
     /// Points produced.
@@ -129,6 +131,7 @@ impl Stats {
         self.points_out += o.points_out;
         self.points_invalid += o.points_invalid;
         self.alarms_raised += o.alarms_raised;
+        self.clock_resets += o.clock_resets;
     }
 }
 
@@ -190,6 +193,13 @@ pub struct Corrector {
     alarm_seq: u64,
     record_context: bool,
     stats: Stats,
+    /// The host's bound on samples waiting per stream (a service serving many machines caps
+    /// their memory below the calibration's `join.max_pending`).
+    pending_limit: Option<usize>,
+    /// Samples far behind their stream's latest, held until they prove a clock reset (or a
+    /// sample in the old time base proves them late); count per stream.
+    probation: Vec<Sample>,
+    probation_n: [usize; 4],
 }
 
 impl Corrector {
@@ -227,6 +237,9 @@ impl Corrector {
             alarm_seq: 0,
             record_context: false,
             stats: Stats::default(),
+            pending_limit: None,
+            probation: Vec::new(),
+            probation_n: [0; 4],
         }
     }
 
@@ -307,33 +320,118 @@ impl Corrector {
         self.model = model;
     }
 
+    /// Caps the samples waiting per stream at `limit` (at least 1), below the calibration's
+    /// `join.max_pending` when smaller; `None` leaves the calibration's bound alone. Samples
+    /// pushed out of a full buffer are counted as `buffer_overflow`.
+    pub fn limit_pending(&mut self, limit: Option<usize>) {
+        self.pending_limit = limit.map(|l| l.max(1));
+    }
+
+    /// The bound on samples waiting per stream in force.
+    pub fn max_pending(&self) -> usize {
+        let m = self.model.doc.join.max_pending.max(1);
+        self.pending_limit.map_or(m, |l| l.min(m))
+    }
+
+    /// Bytes held by this corrector's own state: the struct and the capacity of its buffers
+    /// (not the calibration model, which is shared and counted once by its owner).
+    pub fn state_bytes(&self) -> usize {
+        use std::mem::size_of;
+        size_of::<Corrector>()
+            + self.cmd_q.capacity() * size_of::<CommandSample>()
+            + self.scale_q.capacity() * size_of::<ScaleSample>()
+            + self.probe_q.capacity() * size_of::<ProbeSample>()
+            + self.temp_q.capacity() * size_of::<PendingTemp>()
+            + self
+                .temp_q
+                .iter()
+                .map(|p| p.sensor.capacity())
+                .sum::<usize>()
+            + self.held_all.capacity() * size_of::<(String, f64, i64)>()
+            + self.held_all.iter().map(|h| h.0.capacity()).sum::<usize>()
+            + self.probe_type.capacity()
+            + self.judge.heap_bytes()
+    }
+
     /// Takes one sample and appends whatever it completes to `out`.
     pub fn push(&mut self, sample: Sample, out: &mut Output) {
+        let k = sample.stream() as usize;
+        self.stats.samples_in[k] += 1;
+        let behind = self.intake[k].last_t.is_some_and(|l| {
+            sample.t_ns() < l.saturating_sub((self.model.doc.join.clock_reset_s * 1e9) as i64)
+        });
+        if behind && sample.is_finite() {
+            self.probation.push(sample);
+            self.probation_n[k] += 1;
+            if self.probation_n[k] >= self.model.doc.join.clock_reset_samples {
+                self.reset_clock(out);
+            }
+            return;
+        }
+        if self.probation_n[k] > 0 {
+            // A sample in the old time base: what was held was late, not a new time base.
+            self.probation.retain(|s| s.stream() as usize != k);
+            self.stats.dropped[DropReason::OutOfOrder as usize] += self.probation_n[k] as u64;
+            self.probation_n[k] = 0;
+        }
+        self.take(sample, out);
+    }
+
+    /// The controller's clock was reset: what the old time base can still give is given, the
+    /// join, estimator and judgement restart (point and alarm `seq` run on), and the samples
+    /// that proved the reset are taken in the new time base.
+    fn reset_clock(&mut self, out: &mut Output) {
+        self.emit(true, out);
+        self.cmd_q.clear();
+        self.probe_q.clear();
+        self.temp_q.clear();
+        self.intake = [Intake::default(); 4];
+        self.held_valid = 0;
+        self.held_all.clear();
+        self.estimator = None;
+        self.probe_type.clear();
+        self.e0 = None;
+        self.e1 = None;
+        self.judge.restart();
+        self.last_judged_t = None;
+        self.stats.clock_resets += 1;
+        self.probation_n = [0; 4];
+        for s in std::mem::take(&mut self.probation) {
+            self.take(s, out);
+        }
+    }
+
+    fn take(&mut self, sample: Sample, out: &mut Output) {
         if self.accept(&sample) {
-            let max = self.model.doc.join.max_pending;
+            // Make room first, so a buffer never holds (or allocates for) more than `max`.
+            let max = self.max_pending();
             match sample {
                 Sample::Command(c) => {
-                    self.cmd_q.push_back(c);
-                    if self.cmd_q.len() > max {
+                    if self.cmd_q.len() >= max {
                         self.cmd_q.pop_front();
                         self.drop(DropReason::BufferOverflow);
                     }
+                    self.cmd_q.push_back(c);
                 }
                 Sample::Scale(s) => {
-                    self.scale_q.push_back(s);
-                    if self.scale_q.len() > max {
+                    if self.scale_q.len() >= max {
                         self.scale_q.pop_front();
                         self.drop(DropReason::BufferOverflow);
                     }
+                    self.scale_q.push_back(s);
                 }
                 Sample::Probe(p) => {
-                    self.probe_q.push_back(p);
-                    if self.probe_q.len() > max {
+                    if self.probe_q.len() >= max {
                         self.probe_q.pop_front();
                         self.drop(DropReason::BufferOverflow);
                     }
+                    self.probe_q.push_back(p);
                 }
                 Sample::Temperature(t) => {
+                    if self.temp_q.len() >= max {
+                        let p = self.temp_q.pop_front().expect("non-empty");
+                        self.hold(&p);
+                    }
                     let slot = self.model.sensors.find(&t.sensor);
                     self.temp_q.push_back(PendingTemp {
                         t_ns: t.t_ns,
@@ -341,10 +439,6 @@ impl Corrector {
                         celsius: t.celsius,
                         sensor: t.sensor,
                     });
-                    if self.temp_q.len() > max {
-                        let p = self.temp_q.pop_front().expect("non-empty");
-                        self.hold(&p);
-                    }
                 }
             }
         }
@@ -360,6 +454,9 @@ impl Corrector {
 
     /// End of input: produces every point that can still be produced and drops the rest.
     pub fn flush(&mut self, out: &mut Output) {
+        self.stats.dropped[DropReason::OutOfOrder as usize] += self.probation.len() as u64;
+        self.probation.clear();
+        self.probation_n = [0; 4];
         self.emit(true, out);
     }
 
@@ -369,28 +466,7 @@ impl Corrector {
 
     fn accept(&mut self, s: &Sample) -> bool {
         let k = s.stream() as usize;
-        self.stats.samples_in[k] += 1;
-        let (seq, t, finite) = match s {
-            Sample::Command(c) => (
-                c.seq,
-                c.t_ns,
-                c.pos
-                    .iter()
-                    .chain(c.arc_center.iter())
-                    .all(|v| v.is_finite())
-                    && c.arc_radius.is_finite()
-                    && c.arc_radius >= 0.0,
-            ),
-            Sample::Scale(c) => (c.seq, c.t_ns, c.pos.iter().all(|v| v.is_finite())),
-            Sample::Probe(c) => (
-                c.seq,
-                c.t_ns,
-                c.deflection.iter().all(|v| v.is_finite())
-                    && c.head_a1_deg.is_finite()
-                    && c.head_a2_deg.is_finite(),
-            ),
-            Sample::Temperature(c) => (c.seq, c.t_ns, c.celsius.is_finite()),
-        };
+        let (seq, t, finite) = (s.seq(), s.t_ns(), s.is_finite());
         let st = &mut self.intake[k];
         if !finite {
             self.stats.dropped[DropReason::NonFinite as usize] += 1;

@@ -52,6 +52,11 @@ pub struct Judge {
 }
 
 impl Judge {
+    /// Bytes of heap this judge holds (its filter sections).
+    pub fn heap_bytes(&self) -> usize {
+        self.sections.capacity() * std::mem::size_of::<Coefficients>()
+    }
+
     /// A judge with validated filter sections and limits.
     pub fn new(
         sections: Vec<Coefficients>,

@@ -121,6 +121,35 @@ impl Sample {
             Sample::Temperature(s) => s.t_ns,
         }
     }
+    /// The sequence number within its stream.
+    pub fn seq(&self) -> u64 {
+        match self {
+            Sample::Command(s) => s.seq,
+            Sample::Scale(s) => s.seq,
+            Sample::Probe(s) => s.seq,
+            Sample::Temperature(s) => s.seq,
+        }
+    }
+    /// Whether every value is finite (and an arc radius is not negative).
+    pub fn is_finite(&self) -> bool {
+        match self {
+            Sample::Command(c) => {
+                c.pos
+                    .iter()
+                    .chain(c.arc_center.iter())
+                    .all(|v| v.is_finite())
+                    && c.arc_radius.is_finite()
+                    && c.arc_radius >= 0.0
+            }
+            Sample::Scale(c) => c.pos.iter().all(|v| v.is_finite()),
+            Sample::Probe(c) => {
+                c.deflection.iter().all(|v| v.is_finite())
+                    && c.head_a1_deg.is_finite()
+                    && c.head_a2_deg.is_finite()
+            }
+            Sample::Temperature(c) => c.celsius.is_finite(),
+        }
+    }
     /// Stream index: 0 command, 1 scale, 2 probe, 3 temperature.
     pub fn stream(&self) -> StreamId {
         match self {

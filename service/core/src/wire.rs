@@ -193,6 +193,120 @@ pub fn point(p: &CorrectedPoint, machine: &str, effect_ids: &[String]) -> v1::Co
     }
 }
 
+/// Encodes a batch of points and appends it to `buf`: the bytes of
+/// `CorrectedPointBatch { points: ps.map(point) }.encode_to_vec()`, written without building
+/// the messages (no allocation per point — the live service's hot path). A test checks the
+/// bytes against prost's.
+pub fn encode_points(
+    ps: &[CorrectedPoint],
+    machine: &str,
+    effect_ids: &[String],
+    buf: &mut Vec<u8>,
+) {
+    for p in ps {
+        ld_key(1, point_len(p, machine, effect_ids), buf);
+        put_str(1, machine, buf);
+        put_u64(2, p.seq, buf);
+        put_u64(3, p.t_ns as u64, buf);
+        put_u64(4, p.sample_seq, buf);
+        put_vec3(5, &p.surface, buf);
+        put_vec3(6, &p.tip_center, buf);
+        put_vec3(7, &p.normal, buf);
+        for (c, id) in p.corrections.iter().zip(effect_ids) {
+            ld_key(8, correction_len(c, id), buf);
+            put_str(1, id, buf);
+            put_f64(2, c.x, buf);
+            put_f64(3, c.y, buf);
+            put_f64(4, c.z, buf);
+        }
+        put_u64(9, p.calibration_version, buf);
+        put_u64(10, p.estimator_valid as u64, buf);
+        put_u64(11, p.segment_id as u64, buf);
+        put_u64(12, p.tip_id as u64, buf);
+    }
+}
+
+// Protobuf field encoders for `encode_points`, skipping default values as proto3 does. Every
+// tag used is below 16, so a key is one byte.
+use scancorr_proto::prost::encoding::{encode_varint, encoded_len_varint};
+
+fn ld_key(tag: u8, len: usize, buf: &mut Vec<u8>) {
+    buf.push(tag << 3 | 2);
+    encode_varint(len as u64, buf);
+}
+fn put_str(tag: u8, s: &str, buf: &mut Vec<u8>) {
+    if !s.is_empty() {
+        ld_key(tag, s.len(), buf);
+        buf.extend_from_slice(s.as_bytes());
+    }
+}
+fn put_u64(tag: u8, v: u64, buf: &mut Vec<u8>) {
+    if v != 0 {
+        buf.push(tag << 3);
+        encode_varint(v, buf);
+    }
+}
+fn put_f64(tag: u8, v: f64, buf: &mut Vec<u8>) {
+    if v != 0.0 {
+        buf.push(tag << 3 | 1);
+        buf.extend_from_slice(&v.to_le_bytes());
+    }
+}
+fn put_vec3(tag: u8, v: &Vec3, buf: &mut Vec<u8>) {
+    ld_key(tag, vec3_len(v), buf);
+    put_f64(1, v.x, buf);
+    put_f64(2, v.y, buf);
+    put_f64(3, v.z, buf);
+}
+fn str_len(s: &str) -> usize {
+    if s.is_empty() {
+        0
+    } else {
+        1 + encoded_len_varint(s.len() as u64) + s.len()
+    }
+}
+fn u64_len(v: u64) -> usize {
+    if v == 0 {
+        0
+    } else {
+        1 + encoded_len_varint(v)
+    }
+}
+fn f64_len(v: f64) -> usize {
+    if v != 0.0 {
+        9
+    } else {
+        0
+    }
+}
+fn ld_len(len: usize) -> usize {
+    1 + encoded_len_varint(len as u64) + len
+}
+fn vec3_len(v: &Vec3) -> usize {
+    f64_len(v.x) + f64_len(v.y) + f64_len(v.z)
+}
+fn correction_len(c: &Vec3, id: &str) -> usize {
+    str_len(id) + vec3_len(c)
+}
+fn point_len(p: &CorrectedPoint, machine: &str, effect_ids: &[String]) -> usize {
+    str_len(machine)
+        + u64_len(p.seq)
+        + u64_len(p.t_ns as u64)
+        + u64_len(p.sample_seq)
+        + ld_len(vec3_len(&p.surface))
+        + ld_len(vec3_len(&p.tip_center))
+        + ld_len(vec3_len(&p.normal))
+        + p.corrections
+            .iter()
+            .zip(effect_ids)
+            .map(|(c, id)| ld_len(correction_len(c, id)))
+            .sum::<usize>()
+        + u64_len(p.calibration_version)
+        + u64_len(p.estimator_valid as u64)
+        + u64_len(p.segment_id as u64)
+        + u64_len(p.tip_id as u64)
+}
+
 /// Wire form of an alarm.
 pub fn alarm(a: &Alarm, machine: &str) -> v1::EstimatorAlarm {
     v1::EstimatorAlarm {
@@ -406,5 +520,49 @@ mod tests {
             decode(StreamId::Scale, &[]),
             Err(WireError::Empty(_))
         ));
+    }
+
+    #[test]
+    fn encode_points_writes_prosts_bytes() {
+        let ids: Vec<String> = ["accel_deflection", "", "x_cyclic"]
+            .map(String::from)
+            .to_vec();
+        let mut ps = vec![];
+        for k in 0..40u64 {
+            let f = k as f64;
+            let z = |v: f64| if k % 3 == 0 { 0.0 } else { v };
+            ps.push(CorrectedPoint {
+                seq: k * 1_000_003,
+                t_ns: if k % 5 == 0 {
+                    -(k as i64) * 7_777_777
+                } else {
+                    k as i64 * 1_000_000_000
+                },
+                sample_seq: k % 4,
+                surface: Vec3::new(z(f * 1.5), -f, if k % 2 == 0 { -0.0 } else { 3.25 }),
+                tip_center: Vec3::new(f, z(2.0), 1e-300),
+                normal: Vec3::zeros(),
+                corrections: (0..(k as usize % 4))
+                    .map(|i| Vec3::new(z(i as f64 * 1e-4), 0.0, -1e-6))
+                    .collect(),
+                calibration_version: k % 3,
+                estimator_valid: k % 2 == 0,
+                segment_id: (k % 7) as u32,
+                tip_id: (k * 300) as u32,
+            });
+        }
+        for machine in [
+            "m1",
+            "",
+            "a-machine-with-a-long-name-to-make-lengths-two-bytes",
+        ] {
+            let want = v1::CorrectedPointBatch {
+                points: ps.iter().map(|p| point(p, machine, &ids)).collect(),
+            }
+            .encode_to_vec();
+            let mut got = vec![0xAA];
+            encode_points(&ps, machine, &ids, &mut got);
+            assert_eq!(&got[1..], &want[..], "machine `{machine}`");
+        }
     }
 }

@@ -337,3 +337,135 @@ fn judgement_raises_once_on_a_collision_and_clears() {
         .any(|p| !p.estimator_valid && p.t_ns / T_NS > 600));
     let _ = PI;
 }
+
+#[test]
+fn a_host_pending_limit_bounds_buffers_and_counts_what_it_pushes_out() {
+    let streams = ring_streams(1000, 25.0, 1.5, 0.3);
+    let cal = calibration();
+    // Commands and scales arrive, the probe stays silent: everything waits for it.
+    let mut corr = Corrector::new(&cal).unwrap();
+    corr.limit_pending(Some(64));
+    assert_eq!(corr.max_pending(), 64);
+    let mut out = Output::default();
+    let waiting: Vec<Sample> = streams[0].iter().chain(&streams[1]).cloned().collect();
+    corr.push_all(waiting, &mut out);
+    assert!(out.points.is_empty());
+    let [c, s, _, _] = corr.pending();
+    assert_eq!((c, s), (64, 64));
+    // 1000 commands and 1000 scales in, 64 of each kept: the rest counted, none lost silently.
+    let overflow = corr
+        .stats()
+        .dropped_by_name()
+        .into_iter()
+        .find(|(n, _)| *n == "buffer_overflow")
+        .map(|(_, v)| v);
+    assert_eq!(overflow, Some(2 * (1000 - 64)));
+    let bound = std::mem::size_of::<Corrector>()
+        + 64 * (std::mem::size_of::<CommandSample>() + std::mem::size_of::<ScaleSample>())
+        + 4096;
+    assert!(
+        corr.state_bytes() <= bound,
+        "{} > {bound}",
+        corr.state_bytes()
+    );
+    // Without the host's limit the calibration's bound (20 000) holds everything.
+    let mut free = Corrector::new(&cal).unwrap();
+    free.push_all(streams[0].iter().cloned(), &mut out);
+    assert_eq!(free.pending()[0], 1000);
+    assert!(free.state_bytes() > corr.state_bytes());
+    // A limit above the calibration's bound does not raise it.
+    free.limit_pending(Some(1_000_000));
+    assert_eq!(free.max_pending(), cal.join.max_pending);
+}
+
+/// The streams of `ring_streams` moved by `dt_ns` in controller time.
+fn shifted(streams: &[Vec<Sample>; 4], dt_ns: i64) -> Vec<Sample> {
+    time_ordered(streams)
+        .into_iter()
+        .map(|mut s| {
+            match &mut s {
+                Sample::Command(c) => c.t_ns += dt_ns,
+                Sample::Scale(c) => c.t_ns += dt_ns,
+                Sample::Probe(c) => c.t_ns += dt_ns,
+                Sample::Temperature(c) => c.t_ns += dt_ns,
+            }
+            s
+        })
+        .collect()
+}
+
+#[test]
+fn a_controller_clock_reset_restarts_the_join_and_loses_no_new_sample() {
+    let cal = calibration();
+    let before = shifted(&ring_streams(800, 25.0, 1.5, 0.3), 3_600_000_000_000);
+    // The controller reboots: its clock and its seq counters start again from zero.
+    let after = shifted(&ring_streams(1200, 25.0, 1.5, 0.3), 0);
+    let (alone_before, _) = run(&cal, before.clone());
+    let (alone_after, _) = run(&cal, after.clone());
+    let (both, stats) = run(&cal, before.into_iter().chain(after));
+    assert_eq!(stats.clock_resets, 1);
+    assert_eq!(
+        both.points.len(),
+        alone_before.points.len() + alone_after.points.len()
+    );
+    // Point seq runs on; every point of the new time base equals the one a fresh corrector
+    // computes from the new time base alone.
+    for (k, p) in both.points.iter().enumerate() {
+        assert_eq!(p.seq, k as u64);
+    }
+    let tail = &both.points[alone_before.points.len()..];
+    for (a, b) in tail.iter().zip(&alone_after.points) {
+        assert_eq!(
+            (
+                a.t_ns,
+                a.sample_seq,
+                a.surface,
+                a.tip_center,
+                a.estimator_valid
+            ),
+            (
+                b.t_ns,
+                b.sample_seq,
+                b.surface,
+                b.tip_center,
+                b.estimator_valid
+            )
+        );
+        assert_eq!(a.corrections, b.corrections);
+    }
+    assert_eq!(stats.dropped_by_name(), vec![]);
+}
+
+#[test]
+fn a_few_samples_far_back_are_late_not_a_clock_reset() {
+    let cal = calibration();
+    let mut samples = time_ordered(&ring_streams(1000, 25.0, 1.5, 0.3));
+    // Five scale samples stamped 10 s in the past arrive in the middle.
+    let glitch: Vec<Sample> = (0..5)
+        .map(|k| {
+            Sample::Scale(ScaleSample {
+                seq: 5000 + k,
+                t_ns: k as i64 * T_NS,
+                pos: Vec3::zeros(),
+            })
+        })
+        .collect();
+    let at = samples.len() / 2;
+    let mut glitched = samples.clone();
+    let late_t = samples[at].t_ns() - 10_000_000_000;
+    let glitch: Vec<Sample> = glitch
+        .into_iter()
+        .map(|mut s| {
+            if let Sample::Scale(c) = &mut s {
+                c.t_ns += late_t;
+            }
+            s
+        })
+        .collect();
+    glitched.splice(at..at, glitch);
+    let (clean, _) = run(&cal, samples.drain(..));
+    let (out, stats) = run(&cal, glitched);
+    assert_eq!(stats.clock_resets, 0);
+    assert_eq!(stats.dropped_by_name(), vec![("out_of_order", 5)]);
+    assert_eq!(out.points.len(), clean.points.len());
+}

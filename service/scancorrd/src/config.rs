@@ -23,6 +23,11 @@ pub struct Config {
     pub data_dir: PathBuf,
     /// Most machines served at once.
     pub max_machines: usize,
+    /// Most samples waiting per stream per machine for their partners in the join (the
+    /// calibration's `join.max_pending` applies when it is smaller). Bounds each machine's
+    /// memory: a buffer holds at most this many samples (≈ 240 bytes per instant over the
+    /// four streams), and what is pushed out is counted as `buffer_overflow`.
+    pub max_pending_samples: usize,
     /// A stream that has sent nothing for this long while the scales keep coming is reported
     /// stalled, ms.
     pub stall_after_ms: u64,
@@ -44,6 +49,7 @@ impl Default for Config {
             allow_any_machine: true,
             data_dir: PathBuf::from("scancorr-data"),
             max_machines: 4096,
+            max_pending_samples: 2048,
             stall_after_ms: 1000,
             scouting: false,
             zenoh_config: None,

@@ -48,7 +48,9 @@ struct Machine {
     points: zenoh::pubsub::Publisher<'static>,
     alarms: zenoh::pubsub::Publisher<'static>,
     _token: zenoh::liveliness::LivelinessToken,
-    out: Output,
+    /// The machine's raw key expressions, declared so that zenoh resolves an incoming
+    /// message's route once, not by matching every key of every machine per message.
+    _raw_keys: Vec<zenoh::key_expr::KeyExpr<'static>>,
     ids: Vec<String>,
     extra: Extra,
     last_arrival: [Option<Instant>; 4],
@@ -62,6 +64,9 @@ struct State {
     store: Store,
     machines: BTreeMap<String, Machine>,
     refused: BTreeMap<String, u64>,
+    /// What the core completed for the message in hand; published and cleared before the
+    /// next message, so one buffer serves every machine.
+    out: Output,
 }
 
 /// Runs the service until `shutdown` resolves; then flushes every machine and closes the
@@ -89,6 +94,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         store,
         machines: BTreeMap::new(),
         refused: BTreeMap::new(),
+        out: Output::default(),
     };
     // Machines with a stored calibration are served from the start.
     for m in st.store.machines()? {
@@ -126,18 +132,35 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
 }
 
 impl State {
+    /// A corrector under this service's limits.
+    fn corrector(&self, model: Arc<scancorr_core::calib::Model>) -> Corrector {
+        let mut c = Corrector::with_model(model);
+        c.limit_pending(Some(self.cfg.max_pending_samples));
+        c
+    }
+
     async fn machine(&mut self, name: &str) -> Result<&mut Machine, ServiceError> {
         if !self.machines.contains_key(name) {
             let p = &self.cfg.prefix;
             let points = self
                 .session
-                .declare_publisher(Stream::Points.key(p, name))
+                .declare_publisher(
+                    self.session
+                        .declare_keyexpr(Stream::Points.key(p, name))
+                        .await
+                        .map_err(z)?,
+                )
                 .congestion_control(CongestionControl::Block)
                 .await
                 .map_err(z)?;
             let alarms = self
                 .session
-                .declare_publisher(Stream::Alarms.key(p, name))
+                .declare_publisher(
+                    self.session
+                        .declare_keyexpr(Stream::Alarms.key(p, name))
+                        .await
+                        .map_err(z)?,
+                )
                 .congestion_control(CongestionControl::Block)
                 .await
                 .map_err(z)?;
@@ -147,9 +170,18 @@ impl State {
                 .declare_token(format!("{p}/{name}/scancorrd"))
                 .await
                 .map_err(z)?;
+            let mut raw_keys = Vec::with_capacity(4);
+            for st in scancorr_core::sample::StreamId::ALL {
+                raw_keys.push(
+                    self.session
+                        .declare_keyexpr(format!("{p}/{name}/raw/{}", st.name()))
+                        .await
+                        .map_err(z)?,
+                );
+            }
             let corrector = match self.store.current(name)? {
                 Some(c) => match c.build() {
-                    Ok(m) => Some(Corrector::with_model(Arc::new(m))),
+                    Ok(m) => Some(self.corrector(Arc::new(m))),
                     Err(e) => {
                         warn!(machine = name, error = %e, "stored calibration is not valid; waiting for a new one");
                         None
@@ -172,7 +204,7 @@ impl State {
                     points,
                     alarms,
                     _token: token,
-                    out: Output::default(),
+                    _raw_keys: raw_keys,
                     ids,
                     extra: Extra::default(),
                     last_arrival: [None; 4],
@@ -204,13 +236,14 @@ impl State {
             *n += 1;
             return;
         }
-        let m = match self.machine(&machine).await {
-            Ok(m) => m,
-            Err(e) => {
-                warn!(machine = %machine, error = %e, "cannot serve machine");
-                return;
-            }
-        };
+        if let Err(e) = self.machine(&machine).await {
+            warn!(machine = %machine, error = %e, "cannot serve machine");
+            return;
+        }
+        let (m, out) = (
+            self.machines.get_mut(&machine).expect("served"),
+            &mut self.out,
+        );
         m.extra.messages += 1;
         m.last_arrival[sid as usize] = Some(Instant::now());
         if m.stalled[sid as usize] {
@@ -233,8 +266,12 @@ impl State {
             m.extra.no_calibration += samples.len() as u64;
             return;
         };
+        let resets = corr.stats().clock_resets;
         for x in samples {
-            corr.push(x, &mut m.out);
+            corr.push(x, out);
+        }
+        if corr.stats().clock_resets > resets {
+            warn!(machine = %machine, "controller clock reset: the machine's join, estimator and judgement restarted in the new time base");
         }
         if let Some(t) = corr.watermarks()[1] {
             let now_ns = std::time::SystemTime::now()
@@ -243,14 +280,14 @@ impl State {
                 .unwrap_or(0);
             m.last_lag_ms = (now_ns - t) as f64 * 1e-6;
         }
-        publish(m, &machine).await;
+        publish(m, out, &machine).await;
     }
 
     async fn flush(&mut self, machine: &str) {
         if let Some(m) = self.machines.get_mut(machine) {
             if let Some(c) = m.corrector.as_mut() {
-                c.flush(&mut m.out);
-                publish(m, machine).await;
+                c.flush(&mut self.out);
+                publish(m, &mut self.out, machine).await;
             }
         }
     }
@@ -307,11 +344,14 @@ impl State {
                     "points_flagged": stats.as_ref().map(|s| s.points_invalid).unwrap_or(0),
                     "dropped": stats.as_ref().map(|s| s.dropped_by_name().into_iter().map(|(k, v)| (k.to_string(), v)).collect::<BTreeMap<_, _>>()).unwrap_or_default(),
                     "alarms_raised": stats.as_ref().map(|s| s.alarms_raised).unwrap_or(0),
+                    "clock_resets": stats.as_ref().map(|s| s.clock_resets).unwrap_or(0),
                     "messages": m.extra,
                     "pending": {"command": pending[0], "scale": pending[1], "probe": pending[2], "temperature": pending[3]},
                     "watermarks_ns": wm,
                     "stalled": stalled,
                     "stream_lag_ms": m.last_lag_ms,
+                    "state_bytes": m.corrector.as_ref().map(|c| c.state_bytes()).unwrap_or(0),
+                    "max_pending": m.corrector.as_ref().map(|c| c.max_pending()),
                 })
             }
         };
@@ -370,10 +410,12 @@ impl State {
         }
         let stored = self.store.put(cal).map_err(|e| e.to_string())?;
         let model = Arc::new(stored.build().map_err(|e| e.to_string())?);
-        let m = self.machine(machine).await.map_err(|e| e.to_string())?;
+        self.machine(machine).await.map_err(|e| e.to_string())?;
+        let fresh = self.corrector(model.clone());
+        let m = self.machines.get_mut(machine).expect("served");
         match m.corrector.as_mut() {
             Some(c) => c.set_model(model),
-            None => m.corrector = Some(Corrector::with_model(model)),
+            None => m.corrector = Some(fresh),
         }
         m.ids = m
             .corrector
@@ -385,21 +427,16 @@ impl State {
     }
 }
 
-async fn publish(m: &mut Machine, machine: &str) {
-    if !m.out.points.is_empty() {
-        let batch = scancorr_proto::v1::CorrectedPointBatch {
-            points: m
-                .out
-                .points
-                .iter()
-                .map(|p| wire::point(p, machine, &m.ids))
-                .collect(),
-        };
-        if let Err(e) = m.points.put(batch.encode_to_vec()).await {
+async fn publish(m: &mut Machine, out: &mut Output, machine: &str) {
+    if !out.points.is_empty() {
+        // Written straight to protobuf (the same bytes prost makes, without a message per point).
+        let mut bytes = Vec::with_capacity(out.points.len() * 320);
+        wire::encode_points(&out.points, machine, &m.ids, &mut bytes);
+        if let Err(e) = m.points.put(bytes).await {
             warn!(machine, error = %e, "publishing points failed");
         }
     }
-    for a in &m.out.alarms {
+    for a in &out.alarms {
         if a.raised {
             warn!(
                 machine,
@@ -415,5 +452,5 @@ async fn publish(m: &mut Machine, machine: &str) {
             warn!(machine, error = %e, "publishing alarm failed");
         }
     }
-    m.out.clear();
+    out.clear();
 }

@@ -1,0 +1,495 @@
+//! `scancorr bench fleet`: one scancorrd process serving many machines at 1 kHz each, in real
+//! time, on loopback. This process plays every machine controller (pre-encoded batches, paced
+//! by sample time) and one consumer of every machine's points; the service runs as its own
+//! process so its memory and CPU time are its own.
+//!
+//! Figures: points delivered per second against the fleet's rate, `seq` gaps, end-to-end
+//! latency (from the moment a batch period ends and the controller publishes it to the
+//! moment its corrected points arrive), the service's resident memory per machine and the
+//! core's own state per machine (from the status queryable), and CPU time of both processes.
+
+use crate::synth;
+use anyhow::{bail, Context, Result};
+use scancorr_core::sample::{Sample, StreamId};
+use scancorr_core::wire::Batcher;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use zenoh::qos::CongestionControl;
+
+/// Fleet benchmark parameters.
+#[derive(Debug, Clone)]
+pub struct Params {
+    /// Machines served at once.
+    pub machines: usize,
+    /// Simulated seconds each machine scans (at 1 kHz).
+    pub seconds: f64,
+    /// Controller batch period: each stream's samples of one period go in one message, ms.
+    pub batch_ms: u64,
+    /// The service's `max_pending_samples` (per stream per machine).
+    pub max_pending: usize,
+    /// Wall-clock pace as a fraction of real time (1 = real time; 0.25 publishes each period
+    /// four times later, so a machine too small to generate the full load can still measure
+    /// the state of a full fleet: the samples, batches and per-machine state are the same).
+    pub pace: f64,
+    /// Print JSON.
+    pub json: bool,
+}
+
+/// Only what the consumer needs of a point batch (prost skips the other fields).
+#[derive(Clone, PartialEq, prost::Message)]
+struct SeqPoint {
+    #[prost(uint64, tag = "2")]
+    seq: u64,
+    #[prost(int64, tag = "3")]
+    t_ns: i64,
+}
+#[derive(Clone, PartialEq, prost::Message)]
+struct SeqBatch {
+    #[prost(message, repeated, tag = "1")]
+    points: Vec<SeqPoint>,
+}
+
+fn machine_name(k: usize) -> String {
+    format!("f{k:04}")
+}
+
+/// The service binary: next to this one (they are built and installed together).
+pub(crate) fn scancorrd_path() -> Result<PathBuf> {
+    let exe = std::env::current_exe()?;
+    let p = exe.with_file_name(format!("scancorrd{}", std::env::consts::EXE_SUFFIX));
+    if !p.exists() {
+        bail!(
+            "{} not found: build it with `cargo build --release -p scancorrd`",
+            p.display()
+        );
+    }
+    Ok(p)
+}
+
+/// Resident and peak memory (VmRSS, VmHWM) of a process, bytes.
+pub(crate) fn memory(pid: u32) -> Option<(u64, u64)> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let field = |name: &str| -> Option<u64> {
+        let l = s.lines().find(|l| l.starts_with(name))?;
+        let kb: u64 = l.split_whitespace().nth(1)?.parse().ok()?;
+        Some(kb * 1024)
+    };
+    Some((field("VmRSS:")?, field("VmHWM:")?))
+}
+
+/// CPU seconds (user + system) a process has used; Linux clock ticks are 1/100 s.
+pub(crate) fn cpu_seconds(pid: &str) -> Option<f64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let rest = &s[s.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: u64 = f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?;
+    Some(ticks as f64 / 100.0)
+}
+
+/// A child process (scancorrd, or a relay) stopped with SIGTERM when dropped; `dir` is removed.
+pub(crate) struct Service {
+    pub(crate) child: Child,
+    pub(crate) dir: PathBuf,
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        let t = Instant::now();
+        while t.elapsed() < Duration::from_secs(10) {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        std::fs::remove_dir_all(&self.dir).ok();
+    }
+}
+
+fn start_service(dir: &Path, port: u16, p: &Params) -> Result<Service> {
+    start_scancorrd(
+        dir,
+        port,
+        &format!(
+            "max_machines: {}, max_pending_samples: {},",
+            p.machines + 16,
+            p.max_pending
+        ),
+    )
+}
+
+/// Starts scancorrd in peer mode on `port` with its data in `dir`; `extra` adds config fields.
+pub(crate) fn start_scancorrd(dir: &Path, port: u16, extra: &str) -> Result<Service> {
+    std::fs::create_dir_all(dir)?;
+    let cfg = format!(
+        "{{ mode: \"peer\", listen: [\"tcp/127.0.0.1:{port}\"], data_dir: \"{}\", allow_any_machine: true, {extra} }}",
+        dir.join("data").display(),
+    );
+    std::fs::write(dir.join("scancorrd.json5"), cfg)?;
+    let log = std::fs::File::create(dir.join("scancorrd.log"))?;
+    let child = Command::new(scancorrd_path()?)
+        .arg("--config")
+        .arg(dir.join("scancorrd.json5"))
+        .env("RUST_LOG", "warn,zenoh=error")
+        .stdout(Stdio::null())
+        .stderr(log)
+        .spawn()
+        .context("starting scancorrd")?;
+    Ok(Service {
+        child,
+        dir: dir.to_path_buf(),
+    })
+}
+
+/// One batch period of one machine: (stream, payload) messages.
+type Period = Vec<(usize, Vec<u8>)>;
+
+/// Every machine's messages per batch period (the same scan, each machine's own id).
+fn encode_fleet(samples: &[Sample], machines: usize, batch_ns: i64) -> Vec<Vec<Period>> {
+    let t_min = samples.iter().map(|s| s.t_ns()).min().unwrap_or(0);
+    let periods = samples
+        .iter()
+        .map(|s| ((s.t_ns() - t_min) / batch_ns) as usize)
+        .max()
+        .map_or(0, |p| p + 1);
+    let mut by_period: Vec<Vec<&Sample>> = vec![vec![]; periods];
+    for s in samples {
+        by_period[((s.t_ns() - t_min) / batch_ns) as usize].push(s);
+    }
+    by_period
+        .iter()
+        .map(|ss| {
+            (0..machines)
+                .map(|m| {
+                    let mut b = Batcher::new(&machine_name(m), usize::MAX);
+                    for s in ss {
+                        b.push(s);
+                    }
+                    StreamId::ALL
+                        .iter()
+                        .filter_map(|st| b.take(*st).map(|(bytes, _, _)| (*st as usize, bytes)))
+                        .collect()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+pub(crate) async fn query(
+    s: &zenoh::Session,
+    key: String,
+    payload: Option<String>,
+) -> Result<String> {
+    let mut g = s.get(key.clone()).timeout(Duration::from_secs(30));
+    if let Some(p) = payload {
+        g = g.payload(p);
+    }
+    let replies = g.await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let r = replies
+        .recv_async()
+        .await
+        .map_err(|_| anyhow::anyhow!("{key}: no reply"))?;
+    match r.into_result() {
+        Ok(s) => Ok(s.payload().try_to_string()?.to_string()),
+        Err(e) => bail!("{key}: {}", e.payload().try_to_string().unwrap_or_default()),
+    }
+}
+
+/// Runs `f` over `items`, `width` at a time.
+async fn in_parallel<T: Send + 'static>(
+    session: &zenoh::Session,
+    items: Vec<(String, Option<String>)>,
+    width: usize,
+    what: &str,
+    quiet: bool,
+    done: impl Fn(String) -> T,
+) -> Result<Vec<T>> {
+    let mut out = Vec::with_capacity(items.len());
+    let n = items.len();
+    for (k, chunk) in items.chunks(width).enumerate() {
+        let mut set = tokio::task::JoinSet::new();
+        for (i, (key, payload)) in chunk.iter().cloned().enumerate() {
+            let s = session.clone();
+            set.spawn(async move { (i, query(&s, key, payload).await) });
+        }
+        let mut got: Vec<(usize, String)> = Vec::with_capacity(chunk.len());
+        while let Some(r) = set.join_next().await {
+            let (i, r) = r?;
+            got.push((i, r?));
+        }
+        got.sort_by_key(|g| g.0);
+        out.extend(got.into_iter().map(|(_, s)| done(s)));
+        if !quiet && (k + 1) % 10 == 0 {
+            eprintln!("  {what}: {} of {n}", ((k + 1) * width).min(n));
+        }
+    }
+    Ok(out)
+}
+
+fn pct(v: &mut [f64], p: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[((v.len() as f64 - 1.0) * p).round() as usize]
+}
+
+#[derive(Default)]
+struct Received {
+    points: u64,
+    gaps: u64,
+    next_seq: Vec<u64>,
+    latencies_ms: Vec<f64>,
+    last_arrival: Option<Instant>,
+}
+
+/// Runs the benchmark.
+pub fn run(p: Params) -> Result<()> {
+    anyhow::ensure!(p.machines >= 1, "--machines must be at least 1");
+    anyhow::ensure!(p.batch_ms >= 1, "--batch-ms must be at least 1");
+    anyhow::ensure!(
+        p.seconds > 0.0 && p.seconds.is_finite(),
+        "--seconds must be > 0"
+    );
+    anyhow::ensure!(p.pace > 0.0 && p.pace <= 1.0, "--pace must be in (0, 1]");
+    let quiet = p.json;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    rt.block_on(async {
+        let dir = std::env::temp_dir().join(format!("scancorr-bench-fleet-{}", std::process::id()));
+        let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+        let mut svc = start_service(&dir, port, &p)?;
+        let pid = svc.child.id();
+        let cfg = scancorrd::config::zenoh_config("peer", &[], &[format!("tcp/127.0.0.1:{port}")], false)?;
+        let session = zenoh::open(cfg).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        // Wait for the service.
+        let t0 = Instant::now();
+        while query(&session, "cmm/probe-service/status".into(), None).await.is_err() {
+            if let Ok(Some(st)) = svc.child.try_wait() {
+                bail!("scancorrd exited ({st}); log: {}", dir.join("scancorrd.log").display());
+            }
+            anyhow::ensure!(t0.elapsed() < Duration::from_secs(20), "scancorrd did not answer");
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        let (rss_idle, _) = memory(pid).context("reading the service's memory")?;
+
+        // The scan and what the core makes of it (every machine gets the same scan).
+        let n_points = (p.seconds * 1000.0).round() as usize;
+        let samples = synth::ring_scan(n_points);
+        let cal0 = synth::all_effects_calibration(&machine_name(0));
+        let expected_per_machine = {
+            let mut c = scancorr_core::Corrector::new(&cal0)?;
+            let mut o = scancorr_core::Output::default();
+            c.push_all(samples.iter().cloned(), &mut o);
+            o.points.len() as u64
+        };
+        if !quiet {
+            eprintln!("fleet: {} machines × {} samples ({:.0} s at 1 kHz), {} ms batches", p.machines, samples.len(), p.seconds, p.batch_ms);
+            eprintln!("  encoding every machine's batches …");
+        }
+        let batch_ns = p.batch_ms as i64 * 1_000_000;
+        // Wall-clock length of a period.
+        let wall_ns = (batch_ns as f64 / p.pace).round() as i64;
+        let t_min = samples.iter().map(|s| s.t_ns()).min().unwrap_or(0);
+        let fleet = encode_fleet(&samples, p.machines, batch_ns);
+        let encoded_bytes: usize = fleet.iter().flatten().flatten().map(|(_, b)| b.len()).sum();
+
+        // One calibration per machine: the service creates each machine's state on the put.
+        let t_cal = Instant::now();
+        let puts: Vec<(String, Option<String>)> = (0..p.machines)
+            .map(|m| (format!("cmm/{}/calibration", machine_name(m)), Some(synth::all_effects_calibration(&machine_name(m)).to_json())))
+            .collect();
+        in_parallel(&session, puts, 32, "calibrations put", quiet, |_| ()).await?;
+        let cal_s = t_cal.elapsed().as_secs_f64();
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let (rss_served, _) = memory(pid).context("reading the service's memory")?;
+
+        // The consumer: every machine's points, seq checked, latency against the schedule.
+        let rec = Arc::new(Mutex::new(Received { next_seq: vec![0; p.machines], ..Default::default() }));
+        let start_cell: Arc<Mutex<Option<Instant>>> = Arc::new(Mutex::new(None));
+        let sub = {
+            let rec = rec.clone();
+            let start_cell = start_cell.clone();
+            session
+                .declare_subscriber("cmm/*/corrected/points")
+                .callback(move |s| {
+                    let now = Instant::now();
+                    let key = s.key_expr().as_str();
+                    let Some(m) = key.split('/').nth(1).and_then(|n| n.strip_prefix('f')).and_then(|n| n.parse::<usize>().ok()) else { return };
+                    let Ok(b) = <SeqBatch as prost::Message>::decode(&*s.payload().to_bytes()) else { return };
+                    let (Some(first), Some(last)) = (b.points.first(), b.points.last()) else { return };
+                    let start = *start_cell.lock().expect("lock");
+                    let mut r = rec.lock().expect("lock");
+                    if m >= r.next_seq.len() {
+                        return;
+                    }
+                    if first.seq != r.next_seq[m] {
+                        r.gaps += 1;
+                    }
+                    r.next_seq[m] = last.seq + 1;
+                    r.points += b.points.len() as u64;
+                    if let Some(start) = start {
+                        let period = (last.t_ns - t_min) / batch_ns;
+                        let due = start + Duration::from_nanos(((period + 1) * wall_ns) as u64);
+                        r.latencies_ms.push(now.saturating_duration_since(due).as_secs_f64() * 1e3);
+                    }
+                    r.last_arrival = Some(now);
+                })
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?
+        };
+        let mut publishers = Vec::with_capacity(p.machines);
+        for m in 0..p.machines {
+            let mut row = Vec::with_capacity(4);
+            for st in StreamId::ALL {
+                // A declared key expression travels as a number and its route is cached.
+                let ke = session
+                    .declare_keyexpr(format!("cmm/{}/raw/{}", machine_name(m), st.name()))
+                    .await
+                    .map_err(|e| anyhow::anyhow!("{e}"))?;
+                row.push(
+                    session
+                        .declare_publisher(ke)
+                        .congestion_control(CongestionControl::Block)
+                        .await
+                        .map_err(|e| anyhow::anyhow!("{e}"))?,
+                );
+            }
+            publishers.push(row);
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+
+        // The controllers: each period's batches are published when the period has ended.
+        let self_cpu0 = cpu_seconds("self").unwrap_or(0.0);
+        let svc_cpu0 = cpu_seconds(&pid.to_string()).unwrap_or(0.0);
+        let start = Instant::now();
+        *start_cell.lock().expect("lock") = Some(start);
+        let mut late_periods = 0u64;
+        let mut worst_publish_lag_ms = 0f64;
+        let mut rss_steady = 0u64;
+        let n_periods = fleet.len();
+        for (k, period) in fleet.iter().enumerate() {
+            let due = start + Duration::from_nanos(((k as i64 + 1) * wall_ns) as u64);
+            let now = Instant::now();
+            if now < due {
+                tokio::time::sleep_until(due.into()).await;
+            } else {
+                late_periods += 1;
+                worst_publish_lag_ms = worst_publish_lag_ms.max((now - due).as_secs_f64() * 1e3);
+            }
+            for (m, msgs) in period.iter().enumerate() {
+                for (st, bytes) in msgs {
+                    publishers[m][*st].put(bytes.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+                }
+            }
+            if k == n_periods * 4 / 5 {
+                rss_steady = memory(pid).map(|m| m.0).unwrap_or(0);
+            }
+            if !quiet && k > 0 && k % (n_periods / 10).max(1) == 0 {
+                let got = rec.lock().expect("lock").points;
+                eprintln!("  {:>3.0} %  points received {got}", 100.0 * k as f64 / n_periods as f64);
+            }
+        }
+        let publish_s = start.elapsed().as_secs_f64();
+        let expected = expected_per_machine * p.machines as u64;
+        let t_wait = Instant::now();
+        while rec.lock().expect("lock").points < expected && t_wait.elapsed() < Duration::from_secs(30) {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        let svc_cpu = cpu_seconds(&pid.to_string()).unwrap_or(0.0) - svc_cpu0;
+        let self_cpu = cpu_seconds("self").unwrap_or(0.0) - self_cpu0;
+        let (rss_end, rss_peak) = memory(pid).unwrap_or((0, 0));
+        drop(sub);
+
+        // The service's own account of each machine.
+        let keys: Vec<(String, Option<String>)> = (0..p.machines).map(|m| (format!("cmm/{}/status", machine_name(m)), None)).collect();
+        let statuses: Vec<serde_json::Value> = in_parallel(&session, keys, 50, "status read", quiet, |s| serde_json::from_str(&s).unwrap_or_default()).await?;
+        let state: Vec<f64> = statuses.iter().filter_map(|s| s["state_bytes"].as_f64()).collect();
+        let mut drops = std::collections::BTreeMap::<String, u64>::new();
+        for s in &statuses {
+            if let Some(d) = s["dropped"].as_object() {
+                for (k, v) in d {
+                    *drops.entry(k.clone()).or_default() += v.as_u64().unwrap_or(0);
+                }
+            }
+        }
+        session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        drop(svc);
+
+        let r = rec.lock().expect("lock");
+        let mut lat = r.latencies_ms.clone();
+        let (p50, p99, pmax) = (pct(&mut lat, 0.5), pct(&mut lat, 0.99), pct(&mut lat, 1.0));
+        let span_s = r.last_arrival.map_or(publish_s, |t| (t - start).as_secs_f64());
+        let samples_per_s = (samples.len() * p.machines) as f64 / p.seconds * p.pace;
+        let points_expected_per_s = (expected_per_machine * p.machines as u64) as f64 / p.seconds * p.pace;
+        // Service CPU per delivered point, and what the full fleet at real time would need.
+        let us_per_point = svc_cpu / (r.points.max(1) as f64) * 1e6;
+        let cores_for_target = us_per_point * 1e-6 * 1000.0 * 1000.0;
+        let points_per_s = r.points as f64 / span_s.max(1e-9);
+        let per_machine_rss = (rss_steady.max(rss_idle) - rss_idle) as f64 / p.machines as f64;
+        let per_machine_served = (rss_served.max(rss_idle) - rss_idle) as f64 / p.machines as f64;
+        let state_mean = state.iter().sum::<f64>() / state.len().max(1) as f64;
+        let state_max = state.iter().cloned().fold(0.0, f64::max);
+        let kept_up = r.points == expected && r.gaps == 0 && late_periods == 0 && p99 < 2.0 * p.batch_ms as f64 / p.pace;
+        let out = serde_json::json!({
+            "bench": "fleet",
+            "machines": p.machines,
+            "rate_hz_per_machine": 1000,
+            "seconds": p.seconds,
+            "batch_ms": p.batch_ms,
+            "pace": p.pace,
+            "max_pending_samples": p.max_pending,
+            "offered_samples_per_s": samples_per_s,
+            "expected_points": expected,
+            "received_points": r.points,
+            "seq_gaps": r.gaps,
+            "dropped": drops,
+            "points_per_s": points_per_s,
+            "publish_seconds": publish_s,
+            "late_periods": late_periods,
+            "worst_publish_lag_ms": worst_publish_lag_ms,
+            "p50_latency_ms": p50,
+            "p99_latency_ms": p99,
+            "max_latency_ms": pmax,
+            "kept_up": kept_up,
+            "calibration_puts_s": cal_s,
+            "encoded_input_bytes": encoded_bytes,
+            "service_rss_idle_bytes": rss_idle,
+            "service_rss_served_bytes": rss_served,
+            "service_rss_steady_bytes": rss_steady,
+            "service_rss_end_bytes": rss_end,
+            "service_rss_peak_bytes": rss_peak,
+            "rss_per_machine_bytes": per_machine_rss,
+            "rss_per_machine_before_data_bytes": per_machine_served,
+            "core_state_bytes_mean": state_mean,
+            "core_state_bytes_max": state_max,
+            "service_cpu_cores": svc_cpu / span_s.max(1e-9),
+            "service_cpu_us_per_point": us_per_point,
+            "service_cores_for_1000_machines_at_1khz": cores_for_target,
+            "bench_process_cpu_cores": self_cpu / span_s.max(1e-9),
+            "targets": {"machines": 1000, "state_bytes_per_machine": 65536},
+        });
+        if p.json {
+            println!("{out}");
+        } else {
+            let kib = |b: f64| b / 1024.0;
+            println!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace);
+            println!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)");
+            println!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, dropped {:?}", r.points, r.gaps, drops);
+            println!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)");
+            println!("  kept up                {}", if kept_up { "yes" } else { "NO" });
+            println!("  service memory         idle {:.1} MiB, served {:.1} MiB, steady {:.1} MiB, peak {:.1} MiB", rss_idle as f64 / 1048576.0, rss_served as f64 / 1048576.0, rss_steady as f64 / 1048576.0, rss_peak as f64 / 1048576.0);
+            println!("  per machine            {:.1} KiB resident ({:.1} KiB before data); core state {:.1} KiB mean, {:.1} KiB max   (target ≤ 64 KiB)", kib(per_machine_rss), kib(per_machine_served), kib(state_mean), kib(state_max));
+            println!("  CPU                    service {:.2} cores, controllers + consumer {:.2} cores; service {us_per_point:.2} µs per point → {cores_for_target:.2} cores for 1000 machines at 1 kHz", svc_cpu / span_s.max(1e-9), self_cpu / span_s.max(1e-9));
+        }
+        Ok(())
+    })
+}
