@@ -219,6 +219,8 @@ pub struct Model {
     pub max_gap_ns: i64,
     /// Temperature delay, ns.
     pub temperature_delay_ns: i64,
+    /// `join.clock_reset_s` in ns.
+    pub clock_reset_ns: i64,
     /// Temperature maximum age, ns.
     pub temperature_max_age_ns: i64,
 }
@@ -428,6 +430,7 @@ impl Calibration {
             clear_samples: ((j.clear_duration_s / t).round() as u32).max(1),
             max_gap_ns: ns(jn.max_gap_periods * t),
             temperature_delay_ns: ns(jn.temperature_delay_s),
+            clock_reset_ns: ns(jn.clock_reset_s),
             temperature_max_age_ns: ns(jn.temperature_max_age_s),
         })
     }

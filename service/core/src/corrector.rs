@@ -357,9 +357,10 @@ impl Corrector {
     pub fn push(&mut self, sample: Sample, out: &mut Output) {
         let k = sample.stream() as usize;
         self.stats.samples_in[k] += 1;
-        let behind = self.intake[k].last_t.is_some_and(|l| {
-            sample.t_ns() < l.saturating_sub((self.model.doc.join.clock_reset_s * 1e9) as i64)
-        });
+        let t = sample.t_ns();
+        let behind = self.intake[k]
+            .last_t
+            .is_some_and(|l| t < l && t < l.saturating_sub(self.model.clock_reset_ns));
         if behind && sample.is_finite() {
             self.probation.push(sample);
             self.probation_n[k] += 1;
@@ -401,6 +402,7 @@ impl Corrector {
         }
     }
 
+    #[inline]
     fn take(&mut self, sample: Sample, out: &mut Output) {
         if self.accept(&sample) {
             // Make room first, so a buffer never holds (or allocates for) more than `max`.
