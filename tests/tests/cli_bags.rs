@@ -219,18 +219,7 @@ fn bad_bags_and_calibrations_are_clear_errors() {
 #[test]
 fn a_bag_cut_short_by_a_killed_simulator_is_still_readable() {
     let d = scratch("killed");
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "ring",
-            "--out",
-            "r.mcap",
-            "--calib-out",
-            "start.json",
-        ],
-    );
+    sim_ring(&d, "start.json");
     let mut child = Command::new(scancorr())
         .args([
             "sim",

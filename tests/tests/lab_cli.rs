@@ -153,18 +153,7 @@ fn compare_diagnose_add_fit_history() {
 #[test]
 fn lab_bad_input_says_what_is_missing() {
     let d = scratch("labbad");
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "ring",
-            "--out",
-            "r.mcap",
-            "--calib-out",
-            "v1.json",
-        ],
-    );
+    sim_ring(&d, "v1.json");
     // A bag without the program/artifact record.
     copy_bag(&d.join("r.mcap"), &d.join("bare.mcap"), |_| true);
     fails(

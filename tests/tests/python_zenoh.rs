@@ -207,18 +207,7 @@ fn a_python_zenoh_subscriber_receives_what_the_offline_corrector_computes() {
     let d = scratch("python-zenoh");
     let port = free_port();
     let bus = format!("tcp/127.0.0.1:{port}");
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "ring",
-            "--out",
-            "r.mcap",
-            "--calib-out",
-            "v1.json",
-        ],
-    );
+    sim_ring(&d, "v1.json");
 
     let svc = Service::start(&d, port);
     let put = ok(

@@ -210,18 +210,7 @@ fn simulator_publishes_live_and_the_service_corrects() {
     let d = scratch("service-live");
     let port = free_port();
     let ep = format!("tcp/127.0.0.1:{port}");
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "ring",
-            "--out",
-            "r.mcap",
-            "--calib-out",
-            "v1.json",
-        ],
-    );
+    sim_ring(&d, "v1.json");
     let svc = Service::start(&d, port);
     ok(
         &d,

@@ -232,7 +232,8 @@ async fn in_parallel<T: Send + 'static>(
     Ok(out)
 }
 
-fn pct(v: &mut [f64], p: f64) -> f64 {
+/// The `p` quantile of `v` (sorted in place); 0 when empty.
+pub(crate) fn pct(v: &mut [f64], p: f64) -> f64 {
     if v.is_empty() {
         return 0.0;
     }

@@ -9,7 +9,7 @@
 //! to the arrival of that instant's relayed probe sample or corrected point; the service's
 //! added latency is its percentile minus the relay's.
 
-use crate::benchfleet::{query, start_scancorrd, Service};
+use crate::benchfleet::{pct, query, start_scancorrd, Service};
 use crate::synth;
 use anyhow::{Context, Result};
 use scancorr_core::sample::{Sample, StreamId};
@@ -242,14 +242,6 @@ async fn drive(
         seconds: (end - start).as_secs_f64(),
         latencies_us,
     })
-}
-
-fn pct(v: &mut [f64], p: f64) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[((v.len() as f64 - 1.0) * p).round() as usize]
 }
 
 async fn put_calibration(s: &zenoh::Session, machine: &str) -> Result<()> {

@@ -57,6 +57,22 @@ pub fn run(dir: &Path, args: &[&str]) -> Output {
 }
 
 /// Runs and expects success; returns stdout.
+/// `scancorr sim --program ring --out r.mcap --calib-out <calib_out>` in `dir`.
+pub fn sim_ring(dir: &Path, calib_out: &str) {
+    ok(
+        dir,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            calib_out,
+        ],
+    );
+}
+
 pub fn ok(dir: &Path, args: &[&str]) -> String {
     let o = run(dir, args);
     assert!(
