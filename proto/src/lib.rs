@@ -6,6 +6,8 @@
 //! carry as their schema.
 #![forbid(unsafe_code)]
 
+pub mod names;
+
 /// Generated types of package `scancorr.v1`.
 pub mod v1 {
     #![allow(missing_docs)]
@@ -83,7 +85,8 @@ impl Stream {
         format!("{prefix}/{machine}/{}", self.suffix())
     }
 
-    /// Parses `<prefix>/<machine>/<suffix>` back into (machine, stream).
+    /// Parses `<prefix>/<machine>/<suffix>` back into (machine, stream); `None` unless the
+    /// machine id follows the [`names`] grammar (so a wildcard is never taken for a machine).
     pub fn parse_key<'a>(prefix: &str, key: &'a str) -> Option<(&'a str, Stream)> {
         let rest = key.strip_prefix(prefix)?.strip_prefix('/')?;
         let (machine, suffix) = rest.split_once('/')?;
@@ -97,8 +100,19 @@ impl Stream {
         ]
         .into_iter()
         .find(|s| s.suffix() == suffix)?;
-        (!machine.is_empty()).then_some((machine, stream))
+        names::is_valid(machine).then_some((machine, stream))
     }
+}
+
+/// The machine of `<prefix>/<machine>/<suffix>` (e.g. suffix `calibration` or `status`):
+/// the prefix and the suffix are stripped once each, and the rest must be one valid name.
+pub fn machine_of<'a>(prefix: &str, key: &'a str, suffix: &str) -> Option<&'a str> {
+    let m = key
+        .strip_prefix(prefix)?
+        .strip_prefix('/')?
+        .strip_suffix(suffix)?
+        .strip_suffix('/')?;
+    names::is_valid(m).then_some(m)
 }
 
 /// Key expression of a machine's calibration queryable.
@@ -163,6 +177,7 @@ mod tests {
                 y: -2.0,
                 z: 3.25,
             }],
+            stream: v1::StreamKind::Scale as i32,
         };
         let bytes = b.encode_to_vec();
         assert_eq!(v1::ScaleBatch::decode(bytes.as_slice()).unwrap(), b);
@@ -177,5 +192,24 @@ mod tests {
         assert_eq!(Stream::parse_key("cmm", "cmm/m7/raw/other"), None);
         assert_eq!(Stream::parse_key("cmm", "other/m7/raw/scale"), None);
         assert_eq!(calibration_key("cmm", "m1"), "cmm/m1/calibration");
+        assert_eq!(
+            machine_of("cmm", "cmm/cmm/calibration", "calibration"),
+            Some("cmm")
+        );
+        assert_eq!(machine_of("cmm", "cmm/**/calibration", "calibration"), None);
+        assert_eq!(
+            machine_of("cmm", "cmm/a/b/calibration", "calibration"),
+            None
+        );
+        for wild in ["*", "**", "$*", "m$*x"] {
+            assert_eq!(
+                Stream::parse_key("cmm", &format!("cmm/{wild}/raw/scale")),
+                None
+            );
+        }
+        assert_eq!(
+            Stream::parse_key("cmm", "cmm/cmm/raw/scale"),
+            Some(("cmm", Stream::Scale))
+        );
     }
 }

@@ -275,6 +275,7 @@ mod tests {
                     ..Default::default()
                 })
                 .collect(),
+            ..Default::default()
         };
         let p = peek(Stream::Scale, &b.encode_to_vec()).unwrap();
         assert_eq!(

@@ -30,6 +30,20 @@ pub enum BagError {
         /// What is wrong.
         reason: String,
     },
+    /// The bag was altered after it was written: a checksum does not match (chunk CRC, data
+    /// section CRC), or a record of a finished file is malformed. Reading with
+    /// [`crate::ReadOptions::skip_damaged`] skips damaged chunks and counts them instead.
+    #[error("{}: damaged bag: {what} at byte offset {offset}: {reason}", path.display())]
+    Damaged {
+        /// The bag file.
+        path: PathBuf,
+        /// What is damaged: `chunk`, `record` or `data section`.
+        what: &'static str,
+        /// File offset of the damaged record (0 for the data section).
+        offset: u64,
+        /// What is wrong, e.g. `CRC mismatch (expected 0x1a2b3c4d, computed 0x5e6f7a8b)`.
+        reason: String,
+    },
     /// A channel on a scancorr topic declares a schema other than the stream's message.
     #[error("{}: channel {topic:?} has schema {found:?}, expected {expected:?}", path.display())]
     WrongSchema {

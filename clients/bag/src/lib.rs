@@ -13,12 +13,19 @@
 //!   `scancorr.run`), and `scancorr.sample_counts` (topic → samples, written on finish);
 //! - zstd-compressed chunks of 1 MiB: a file cut short (recorder killed) reads up to its last
 //!   complete chunk, and [`BagReader::truncation`] says so.
+//!
+//! Reading verifies every checksum the file carries (summary CRC, data-section CRC, each
+//! chunk's CRC of its uncompressed records; a CRC of 0 means "not computed"): damage is a
+//! [`BagError::Damaged`] error, or with [`ReadOptions::skip_damaged`] a skipped chunk listed by
+//! [`BagReader::damaged_chunks`] — never silently altered messages.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 mod artifact;
 mod batch;
+mod crc;
 mod error;
+mod layout;
 mod reader;
 mod writer;
 
@@ -26,7 +33,8 @@ pub use artifact::{Artifact, ArtifactKind, ARTIFACT_METADATA};
 pub use batch::{peek, BatchMessage, BatchPeek, RawBatch};
 pub use error::{BagError, Result};
 pub use reader::{
-    BagMessage, BagReader, ChannelInfo, Messages, MetadataRecord, Truncation, UnknownChannel,
+    BagMessage, BagReader, ChannelInfo, DamagedChunk, Messages, MetadataRecord, ReadOptions,
+    Truncation, UnknownChannel,
 };
 pub use scancorr_proto::Stream;
 pub use writer::{BagHeader, BagWriter, Compression, DEFAULT_CHUNK_SIZE, DEFAULT_PROFILE};

@@ -38,7 +38,7 @@ pub fn core(points: usize, repeat: usize, json: bool) -> Result<()> {
     let median = rates[rates.len() / 2];
     let per_point_ns = 1e9 / (median * produced as f64 / n as f64);
     if json {
-        println!(
+        outln!(
             "{}",
             serde_json::json!({
                 "bench": "core",
@@ -52,21 +52,22 @@ pub fn core(points: usize, repeat: usize, json: bool) -> Result<()> {
                 "ns_per_point": per_point_ns,
                 "target_samples_per_s": 5.0e6,
             })
-        );
+        )?;
     } else {
-        println!(
+        outln!(
             "core: {n} samples ({produced} points, {} effects), {} runs, one thread",
             cal.effects.len(),
             rates.len()
-        );
-        println!(
+        )?;
+        outln!(
             "  samples/s  median {:.3e}  best {:.3e}  (target ≥ 5e6)",
-            median, best
-        );
-        println!(
+            median,
+            best
+        )?;
+        outln!(
             "  points/s   median {:.3e}  ({per_point_ns:.0} ns per point)",
             median * produced as f64 / n as f64
-        );
+        )?;
     }
     Ok(())
 }
@@ -107,7 +108,7 @@ pub fn correct(repeat: usize, json: bool) -> Result<()> {
     let median = rates[rates.len() / 2];
     let best = *rates.last().unwrap();
     if json {
-        println!(
+        outln!(
             "{}",
             serde_json::json!({
                 "bench": "correct",
@@ -121,10 +122,10 @@ pub fn correct(repeat: usize, json: bool) -> Result<()> {
                 "samples_per_s_best": best,
                 "target_samples_per_s": 1.0e6,
             })
-        );
+        )?;
     } else {
-        println!("correct (campaign bag {:.1} MB → {:.1} MB): {} samples → {} points, {} effects, {} runs", in_bytes as f64 / 1e6, out_bytes as f64 / 1e6, s.samples, s.points, cal.effects.len(), rates.len());
-        println!("  samples/s  median {median:.3e}  best {best:.3e}  (target ≥ 1e6; read, decode, correct, encode, write)");
+        outln!("correct (campaign bag {:.1} MB → {:.1} MB): {} samples → {} points, {} effects, {} runs", in_bytes as f64 / 1e6, out_bytes as f64 / 1e6, s.samples, s.points, cal.effects.len(), rates.len())?;
+        outln!("  samples/s  median {median:.3e}  best {best:.3e}  (target ≥ 1e6; read, decode, correct, encode, write)")?;
     }
     Ok(())
 }

@@ -479,17 +479,17 @@ pub fn run(p: Params) -> Result<()> {
             "targets": {"machines": 1000, "state_bytes_per_machine": 65536},
         });
         if p.json {
-            println!("{out}");
+            outln!("{out}")?;
         } else {
             let kib = |b: f64| b / 1024.0;
-            println!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace);
-            println!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)");
-            println!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, dropped {:?}", r.points, r.gaps, drops);
-            println!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)");
-            println!("  kept up                {}", if kept_up { "yes" } else { "NO" });
-            println!("  service memory         idle {:.1} MiB, served {:.1} MiB, steady {:.1} MiB, peak {:.1} MiB", rss_idle as f64 / 1048576.0, rss_served as f64 / 1048576.0, rss_steady as f64 / 1048576.0, rss_peak as f64 / 1048576.0);
-            println!("  per machine            {:.1} KiB resident ({:.1} KiB before data); core state {:.1} KiB mean, {:.1} KiB max   (target ≤ 64 KiB)", kib(per_machine_rss), kib(per_machine_served), kib(state_mean), kib(state_max));
-            println!("  CPU                    service {:.2} cores, controllers + consumer {:.2} cores; service {us_per_point:.2} µs per point → {cores_for_target:.2} cores for 1000 machines at 1 kHz", svc_cpu / span_s.max(1e-9), self_cpu / span_s.max(1e-9));
+            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace)?;
+            outln!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
+            outln!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, dropped {:?}", r.points, r.gaps, drops)?;
+            outln!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;
+            outln!("  kept up                {}", if kept_up { "yes" } else { "NO" })?;
+            outln!("  service memory         idle {:.1} MiB, served {:.1} MiB, steady {:.1} MiB, peak {:.1} MiB", rss_idle as f64 / 1048576.0, rss_served as f64 / 1048576.0, rss_steady as f64 / 1048576.0, rss_peak as f64 / 1048576.0)?;
+            outln!("  per machine            {:.1} KiB resident ({:.1} KiB before data); core state {:.1} KiB mean, {:.1} KiB max   (target ≤ 64 KiB)", kib(per_machine_rss), kib(per_machine_served), kib(state_mean), kib(state_max))?;
+            outln!("  CPU                    service {:.2} cores, controllers + consumer {:.2} cores; service {us_per_point:.2} µs per point → {cores_for_target:.2} cores for 1000 machines at 1 kHz", svc_cpu / span_s.max(1e-9), self_cpu / span_s.max(1e-9))?;
         }
         Ok(())
     })

@@ -310,7 +310,7 @@ pub fn run(points: usize, json: bool) -> Result<()> {
         let batch_rate = samples.len() as f64 / batch_run.seconds;
         let batching = if std::env::var_os("SCANCORR_ZENOH_NO_BATCHING").is_some() { "off" } else { "on" };
         if json {
-            println!(
+            outln!(
                 "{}",
                 serde_json::json!({
                     "bench": "live",
@@ -329,15 +329,15 @@ pub fn run(points: usize, json: bool) -> Result<()> {
                     "p99_added_latency_us": p99 - r99,
                     "targets": {"ratio": 0.7, "service_batched_samples_per_s": 1.0e6, "p99_added_latency_us": 1000.0},
                 })
-            );
+            )?;
         } else {
-            println!("live (loopback; relay and scancorrd each in their own process, publisher and subscriber in this one; zenoh batching {batching}):");
-            println!("  bare relay, single-sample messages   {relay_rate:>12.0} samples/s");
-            println!("  scancorrd,  single-sample messages   {svc_rate:>12.0} samples/s   ratio {:.2} (target ≥ 0.70)", svc_rate / relay_rate);
-            println!("  scancorrd,  100-sample batches       {batch_rate:>12.0} samples/s   (target ≥ 1e6)");
-            println!("  latency at half load ({load:.0} samples/s, half the slower path's maximum):");
-            println!("    relay      p50 {r50:>7.0} µs   p99 {r99:>7.0} µs");
-            println!("    scancorrd  p50 {p50:>7.0} µs   p99 {p99:>7.0} µs   added p99 {:.0} µs (target ≤ 1000 µs)", p99 - r99);
+            outln!("live (loopback; relay and scancorrd each in their own process, publisher and subscriber in this one; zenoh batching {batching}):")?;
+            outln!("  bare relay, single-sample messages   {relay_rate:>12.0} samples/s")?;
+            outln!("  scancorrd,  single-sample messages   {svc_rate:>12.0} samples/s   ratio {:.2} (target ≥ 0.70)", svc_rate / relay_rate)?;
+            outln!("  scancorrd,  100-sample batches       {batch_rate:>12.0} samples/s   (target ≥ 1e6)")?;
+            outln!("  latency at half load ({load:.0} samples/s, half the slower path's maximum):")?;
+            outln!("    relay      p50 {r50:>7.0} µs   p99 {r99:>7.0} µs")?;
+            outln!("    scancorrd  p50 {p50:>7.0} µs   p99 {p99:>7.0} µs   added p99 {:.0} µs (target ≤ 1000 µs)", p99 - r99)?;
         }
         Ok(())
     })

@@ -1,6 +1,18 @@
 //! The bus commands: `calib put|get|history|status`, `replay`, `record`, `tail`.
-//! Each opens a zenoh session (peer mode, connecting to `--connect`), does its job and closes.
+//!
+//! Each opens a zenoh session in client mode, connected to `--connect` (scancorrd, which runs
+//! as a peer, or a router), does its job and closes. Client mode matters: a peer forwards
+//! what its clients publish to every other client and peer, but not what one peer publishes
+//! to another peer (peers are expected to reach each other directly). CLI sessions opened as
+//! peers without listening endpoints could not reach each other, so `record` saw nothing of
+//! what `sim --live` published through scancorrd. A client also fails at once when nothing
+//! listens at the endpoint, where a peer would keep trying in the background.
+//!
+//! Nothing fails silently: an endpoint with nothing listening, a publisher nobody subscribes
+//! to, a recording or a tail that received nothing, a machine the service does not serve —
+//! each is an error on stderr and a non-zero exit.
 
+use crate::output::AtomicOutput;
 use anyhow::{bail, Context, Result};
 use scancorr_bag::{BagHeader, BagReader, BagWriter, Stream};
 use scancorr_proto::Message;
@@ -11,12 +23,67 @@ use zenoh::qos::CongestionControl;
 /// Where the bus is.
 #[derive(clap::Args, Clone, Debug)]
 pub struct Bus {
-    /// Zenoh endpoint of scancorrd or a router.
+    /// Zenoh endpoint of scancorrd or a router (PROTOCOL/HOST:PORT).
     #[arg(long, default_value = "tcp/127.0.0.1:7447")]
     pub connect: Vec<String>,
     /// Key-expression prefix.
     #[arg(long, default_value = scancorr_proto::DEFAULT_PREFIX)]
     pub prefix: String,
+}
+
+/// Zenoh's link protocols.
+const PROTOCOLS: [&str; 10] = [
+    "tcp",
+    "udp",
+    "tls",
+    "quic",
+    "ws",
+    "unixsock-stream",
+    "unixpipe",
+    "serial",
+    "vsock",
+    "quic_datagram",
+];
+
+impl Bus {
+    /// Checks `--prefix` and every `--connect` endpoint before anything is done.
+    pub fn check(&self) -> Result<()> {
+        crate::output::check_prefix(&self.prefix)?;
+        if self.connect.is_empty() {
+            bail!("--connect: give an endpoint, e.g. tcp/127.0.0.1:7447");
+        }
+        for e in &self.connect {
+            check_endpoint(e)?;
+        }
+        Ok(())
+    }
+
+    fn endpoints(&self) -> String {
+        self.connect.join(", ")
+    }
+}
+
+/// An endpoint is `PROTOCOL/ADDRESS` (`tcp/127.0.0.1:7447`), optionally with `?` or `#`
+/// parameters.
+fn check_endpoint(e: &str) -> Result<()> {
+    let shown = scancorr_proto::names::shown(e);
+    match e.split_once('/') {
+        Some((proto, addr)) if PROTOCOLS.contains(&proto) => {
+            if addr.is_empty() || addr.starts_with(['?', '#']) {
+                bail!("--connect {shown}: no address after `{proto}/`; use {proto}/HOST:PORT, e.g. tcp/127.0.0.1:7447");
+            }
+            Ok(())
+        }
+        Some((proto, _)) => bail!(
+            "--connect {shown}: unknown protocol `{}` (zenoh knows {}); use tcp/HOST:PORT, e.g. tcp/127.0.0.1:7447",
+            proto.escape_debug(),
+            PROTOCOLS.join(", ")
+        ),
+        None => bail!(
+            "--connect {shown}: an endpoint names its protocol; use tcp/HOST:PORT, e.g. tcp/{}",
+            if e.contains(':') { e.to_string() } else { "127.0.0.1:7447".into() }
+        ),
+    }
 }
 
 fn rt() -> Result<tokio::runtime::Runtime> {
@@ -26,11 +93,50 @@ fn rt() -> Result<tokio::runtime::Runtime> {
         .build()?)
 }
 
+fn z(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("{e}")
+}
+
 async fn open(bus: &Bus) -> Result<zenoh::Session> {
-    let cfg = scancorrd::config::zenoh_config("peer", &[], &bus.connect, false)?;
-    zenoh::open(cfg)
-        .await
-        .map_err(|e| anyhow::anyhow!("opening a zenoh session to {:?}: {e}", bus.connect))
+    bus.check()?;
+    let cfg = scancorrd::config::zenoh_config("client", &[], &bus.connect, false)?;
+    // A client tries each endpoint once and fails when none answers (zenoh's client defaults,
+    // made explicit): the CLI never waits in silence for a service that is not there.
+    let mut cfg = cfg;
+    for (k, v) in [
+        ("connect/timeout_ms", "0"),
+        ("connect/exit_on_failure", "true"),
+    ] {
+        cfg.insert_json5(k, v)
+            .map_err(|e| anyhow::anyhow!("zenoh configuration `{k}`: {e}"))?;
+    }
+    let open = zenoh::open(cfg);
+    match tokio::time::timeout(Duration::from_secs(8), open).await {
+        Ok(Ok(s)) => Ok(s),
+        Ok(Err(e)) => bail!(
+            "cannot connect to {}: nothing answers there (is scancorrd or a zenoh router running and listening on it?) [zenoh: {}]",
+            bus.endpoints(),
+            one_line(&e.to_string())
+        ),
+        Err(_) => bail!(
+            "cannot connect to {}: no answer within 8 s (is scancorrd or a zenoh router running and listening on it?)",
+            bus.endpoints()
+        ),
+    }
+}
+
+/// A zenoh error on one line, without the source location zenoh appends (` at FILE:LINE.`).
+fn one_line(s: &str) -> String {
+    let s = match s.rfind(" at /") {
+        Some(i) if s.trim_end().ends_with('.') => &s[..i],
+        _ => s,
+    };
+    let s = s.split_whitespace().collect::<Vec<_>>().join(" ");
+    if s.chars().count() > 300 {
+        format!("{}…", s.chars().take(300).collect::<String>())
+    } else {
+        s
+    }
 }
 
 /// One query to the calibration/status queryable; returns the reply text.
@@ -39,16 +145,16 @@ async fn ask(
     selector: String,
     payload: Option<Vec<u8>>,
 ) -> Result<String> {
-    let mut last_err = None;
     // The route to the queryable may take a moment after connecting.
-    for _ in 0..20 {
+    let t0 = Instant::now();
+    loop {
         let mut g = session
             .get(selector.as_str())
-            .timeout(Duration::from_secs(5));
+            .timeout(Duration::from_secs(3));
         if let Some(p) = &payload {
             g = g.payload(p.clone());
         }
-        let replies = g.await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let replies = g.await.map_err(z)?;
         if let Ok(r) = replies.recv_async().await {
             return match r.into_result() {
                 Ok(s) => Ok(s
@@ -65,15 +171,16 @@ async fn ask(
                 ),
             };
         }
-        last_err = Some(());
+        if t0.elapsed() > Duration::from_secs(6) {
+            bail!("no scancorrd answered on `{selector}` (is it running, reachable and serving this prefix?)")
+        }
         tokio::time::sleep(Duration::from_millis(250)).await;
     }
-    let _ = last_err;
-    bail!("no scancorrd answered on `{selector}` (is it running and reachable?)")
 }
 
 /// `calib put`.
 pub fn calib_put(bus: &Bus, machine: &str, file: &Path) -> Result<String> {
+    crate::output::check_machine("--machine", machine)?;
     let text = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
     rt()?.block_on(async {
         let s = open(bus).await?;
@@ -98,100 +205,293 @@ pub fn query(bus: &Bus, selector: String) -> Result<String> {
     })
 }
 
-/// `replay`: bag → bus, paced by sample time (`rate` × real time; None = as fast as possible).
-pub fn replay(bus: &Bus, bag: &Path, rate: Option<f64>, looping: bool) -> Result<u64> {
-    let reader = BagReader::open(bag).with_context(|| format!("reading bag {}", bag.display()))?;
-    rt()?.block_on(async {
-        let s = open(bus).await?;
-        let mut pubs = std::collections::BTreeMap::new();
-        for ch in reader.channels() {
-            if Stream::RAW.contains(&ch.stream) {
-                let key = ch.stream.key(&bus.prefix, &ch.machine);
-                let p = s
-                    .declare_publisher(key.clone())
-                    .congestion_control(CongestionControl::Block)
-                    .await
-                    .map_err(|e| anyhow::anyhow!("{e}"))?;
-                pubs.insert(ch.topic.clone(), p);
+/// `status`: the machine's status document; an error when the service does not serve it.
+pub fn status(bus: &Bus, machine: &str) -> Result<String> {
+    crate::output::check_machine("--machine", machine)?;
+    let text = query(bus, format!("{}/{machine}/status", bus.prefix))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("the status reply is not JSON: {}", one_line(&text)))?;
+    if v.get("served").and_then(|s| s.as_bool()) == Some(false) {
+        let refused = v
+            .get("refused_samples")
+            .and_then(|r| r.as_u64())
+            .unwrap_or(0);
+        bail!(
+            "scancorrd at {} does not serve machine `{machine}` (no calibration stored for it and no samples accepted{}); \
+             `scancorr calib put --machine {machine} --file CAL.json` starts serving it",
+            bus.endpoints(),
+            if refused > 0 {
+                format!("; {refused} sample(s) refused")
+            } else {
+                String::new()
             }
-        }
-        // Wait until someone listens (the route is set up), at most 10 s.
-        let t0 = Instant::now();
-        loop {
-            let mut all = true;
-            for p in pubs.values() {
-                all &= p
-                    .matching_status()
-                    .await
-                    .map(|m| m.matching())
-                    .unwrap_or(false);
-            }
-            if all || t0.elapsed() > Duration::from_secs(10) {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-        let mut sent = 0u64;
-        loop {
-            let start = Instant::now();
-            let mut first: Option<u64> = None;
-            for m in reader.messages()? {
-                let m = m?;
-                let Some(p) = pubs.get(&*m.topic) else {
-                    continue;
-                };
-                if let Some(r) = rate {
-                    let f = *first.get_or_insert(m.publish_time);
-                    let due = Duration::from_secs_f64(
-                        (m.publish_time.saturating_sub(f)) as f64 * 1e-9 / r,
-                    );
-                    if let Some(wait) = due.checked_sub(start.elapsed()) {
-                        tokio::time::sleep(wait).await;
-                    }
-                }
-                p.put(m.data).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-                sent += 1;
-            }
-            if !looping {
-                break;
-            }
-        }
-        // Let the last messages leave before closing.
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        s.close().await.ok();
-        Ok(sent)
-    })
+        );
+    }
+    Ok(text)
 }
 
-/// `record`: bus → bag until `seconds` pass, or `idle` seconds without a message after the
-/// first one, or Ctrl-C.
-pub fn record(
-    bus: &Bus,
-    keys: &str,
-    out: &Path,
-    seconds: Option<f64>,
-    idle: Option<f64>,
-) -> Result<u64> {
-    rt()?.block_on(async {
-        let s = open(bus).await?;
-        let sub = s.declare_subscriber(keys).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-        let mut w = BagWriter::create(out, BagHeader { compression: scancorr_bag::Compression::Lz4, ..BagHeader::default() })?;
+/// An open session to the bus, with its runtime: connect first (failing at once when nothing
+/// is there), then do the work.
+pub struct Conn {
+    rt: tokio::runtime::Runtime,
+    session: zenoh::Session,
+}
+
+/// Connects to the bus.
+pub fn connect(bus: &Bus) -> Result<Conn> {
+    let rt = rt()?;
+    let session = rt.block_on(open(bus))?;
+    Ok(Conn { rt, session })
+}
+
+impl Drop for Conn {
+    fn drop(&mut self) {
+        let s = self.session.clone();
+        self.rt.block_on(async move {
+            let _ = tokio::time::timeout(Duration::from_secs(2), s.close()).await;
+        });
+    }
+}
+
+/// How long a publisher waits for a subscriber before giving up.
+const MATCH_WAIT: Duration = Duration::from_secs(5);
+
+/// `replay`: bag → bus, paced by sample time (`rate` × real time; None = as fast as possible).
+pub fn replay(bus: &Bus, bag: &Path, rate: Option<f64>, looping: bool) -> Result<u64> {
+    bus.check()?;
+    // Read the bag before connecting: a bad bag is reported as such.
+    BagReader::open(bag).with_context(|| format!("reading bag {}", bag.display()))?;
+    connect(bus)?.replay(bus, bag, rate, looping)
+}
+
+impl Conn {
+    /// Publishes a bag's raw streams; fails when nobody subscribes to them.
+    pub fn replay(&self, bus: &Bus, bag: &Path, rate: Option<f64>, looping: bool) -> Result<u64> {
+        let reader =
+            BagReader::open(bag).with_context(|| format!("reading bag {}", bag.display()))?;
+        let s = &self.session;
+        self.rt.block_on(async {
+            let mut pubs = std::collections::BTreeMap::new();
+            for ch in reader.channels() {
+                if Stream::RAW.contains(&ch.stream) {
+                    crate::output::check_machine("the bag's machine", &ch.machine)?;
+                    let key = ch.stream.key(&bus.prefix, &ch.machine);
+                    let p = s
+                        .declare_publisher(key.clone())
+                        .congestion_control(CongestionControl::Block)
+                        .await
+                        .map_err(z)?;
+                    pubs.insert(ch.topic.clone(), (key, p));
+                }
+            }
+            if pubs.is_empty() {
+                bail!("{}: no raw streams to publish", bag.display());
+            }
+            // Wait until someone listens (the route is set up).
+            let t0 = Instant::now();
+            let matched = loop {
+                let mut matched = vec![];
+                for (key, p) in pubs.values() {
+                    if p.matching_status().await.map(|m| m.matching()).unwrap_or(false) {
+                        matched.push(key.clone());
+                    }
+                }
+                if matched.len() == pubs.len() || t0.elapsed() > MATCH_WAIT {
+                    break matched;
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            };
+            if matched.is_empty() {
+                bail!(
+                    "nobody subscribes to {} on {} (waited {} s): is scancorrd running there with prefix `{}`?",
+                    pubs.values().map(|(k, _)| format!("`{k}`")).collect::<Vec<_>>().join(", "),
+                    bus.endpoints(),
+                    MATCH_WAIT.as_secs(),
+                    bus.prefix
+                );
+            }
+            for (key, _) in pubs.values() {
+                if !matched.contains(key) {
+                    eprintln!("warning: nobody subscribes to `{key}`; its messages go nowhere");
+                }
+            }
+            let mut sent = 0u64;
+            loop {
+                let start = Instant::now();
+                let mut first: Option<u64> = None;
+                for m in reader.messages()? {
+                    let m = m?;
+                    let Some((_, p)) = pubs.get(&*m.topic) else {
+                        continue;
+                    };
+                    if let Some(r) = rate {
+                        let f = *first.get_or_insert(m.publish_time);
+                        let due = Duration::from_secs_f64(
+                            (m.publish_time.saturating_sub(f)) as f64 * 1e-9 / r,
+                        );
+                        if let Some(wait) = due.checked_sub(start.elapsed()) {
+                            tokio::time::sleep(wait).await;
+                        }
+                    }
+                    // Bags recorded before scancorr.v1.1 hold untagged batches; their
+                    // channel names the stream, so the tag is added on the way out.
+                    let data = match scancorr_core::wire::stream_id(m.stream) {
+                        Some(sid) => scancorr_core::wire::tagged(sid, &m.data)
+                            .map(|b| b.into_owned())
+                            .with_context(|| format!("{}: message on `{}`", bag.display(), m.topic))?,
+                        None => m.data.to_vec(),
+                    };
+                    p.put(data).await.map_err(z)?;
+                    sent += 1;
+                }
+                if !looping {
+                    break;
+                }
+            }
+            // Let the last messages leave before closing.
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            // A subscriber that went away (the service stopped) did not get everything.
+            let mut still = false;
+            for (_, p) in pubs.values() {
+                still |= p.matching_status().await.map(|m| m.matching()).unwrap_or(false);
+            }
+            if !still {
+                bail!(
+                    "the subscribers on {} went away during the replay: some of the {sent} message(s) were not delivered",
+                    bus.endpoints()
+                );
+            }
+            Ok(sent)
+        })
+    }
+}
+
+/// How `record` and `tail` stop.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Bound {
+    /// After this many seconds.
+    pub seconds: Option<f64>,
+    /// After this many seconds without a message, once one arrived.
+    pub idle: Option<f64>,
+    /// After this many messages.
+    pub count: Option<u64>,
+}
+
+impl Bound {
+    fn check(&self) -> Result<()> {
+        for (flag, v) in [("--seconds", self.seconds), ("--idle", self.idle)] {
+            if let Some(v) = v {
+                if !(v.is_finite() && v > 0.0) {
+                    bail!("{flag} must be a number > 0");
+                }
+            }
+        }
+        if self.count == Some(0) {
+            bail!("--count must be > 0");
+        }
+        Ok(())
+    }
+
+    fn done(&self, t0: Instant, last: Option<Instant>, n: u64) -> bool {
+        self.seconds.is_some_and(|s| t0.elapsed().as_secs_f64() > s)
+            || self.count.is_some_and(|c| n >= c)
+            || matches!((self.idle, last), (Some(i), Some(l)) if l.elapsed().as_secs_f64() > i)
+    }
+
+    fn waited(&self, t0: Instant) -> String {
+        format!("in {:.1} s", t0.elapsed().as_secs_f64())
+    }
+}
+
+/// Samples missing between recorded ones: per (machine, stream), a `seq` more than one past
+/// the last one seen. (A `seq` going back is a controller restart or a looped replay, not a
+/// loss; samples before the first one recorded are not counted.)
+#[derive(Default)]
+struct Gaps {
+    last: std::collections::BTreeMap<(String, Stream), u64>,
+    missing: std::collections::BTreeMap<(String, Stream), u64>,
+}
+
+impl Gaps {
+    fn see(&mut self, machine: &str, stream: Stream, seq: u64) {
+        let key = (machine.to_string(), stream);
+        if let Some(l) = self.last.get(&key) {
+            if seq > l + 1 {
+                *self.missing.entry(key.clone()).or_default() += seq - l - 1;
+            }
+        }
+        self.last.insert(key, seq);
+    }
+
+    /// Notes the seqs in one message's payload.
+    fn message(&mut self, stream: Stream, bytes: &[u8]) {
+        if let Some(sid) = scancorr_core::wire::stream_id(stream) {
+            if let Ok(d) = scancorr_core::wire::decode(sid, bytes) {
+                for (m, s) in &d.samples {
+                    self.see(m, stream, s.seq());
+                }
+            }
+        } else if stream == Stream::Points {
+            if let Ok(b) = scancorr_proto::v1::CorrectedPointBatch::decode(bytes) {
+                for p in &b.points {
+                    self.see(&p.machine_id, stream, p.seq);
+                }
+            }
+        }
+    }
+
+    fn total(&self) -> u64 {
+        self.missing.values().sum()
+    }
+
+    fn describe(&self, prefix: &str) -> String {
+        self.missing
+            .iter()
+            .map(|((m, st), n)| format!("{n} in {}", st.key(prefix, m)))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
+/// `record`: bus → bag until the bound, or Ctrl-C. An error, and no file, when nothing of the
+/// scancorr streams arrived; an error (with the bag kept) when samples are missing between
+/// recorded ones — the bus dropped them for this recorder.
+pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
+    bus.check()?;
+    bound.check()?;
+    zenoh::key_expr::KeyExpr::try_from(keys).map_err(|e| {
+        anyhow::anyhow!(
+            "--keys {}: not a key expression: {}",
+            scancorr_proto::names::shown(keys),
+            one_line(&e.to_string())
+        )
+    })?;
+    let file = AtomicOutput::new("--out", out)?;
+    let conn = connect(bus)?;
+    let (n, gaps) = conn.rt.block_on(async {
+        let s = &conn.session;
+        let sub = s.declare_subscriber(keys).await.map_err(z)?;
+        let mut w = BagWriter::create(file.path(), BagHeader { compression: scancorr_bag::Compression::Lz4, ..BagHeader::default() })
+            .with_context(|| format!("creating {}", out.display()))?;
         let t0 = Instant::now();
         let mut last = None::<Instant>;
-        let mut n = 0u64;
+        let (mut n, mut other) = (0u64, 0u64);
+        let mut gaps = Gaps::default();
         let mut last_flush = Instant::now();
-        eprintln!("recording `{keys}` → {}", out.display());
+        eprintln!("recording `{keys}` from {} → {}", bus.endpoints(), out.display());
+        let ctrl_c = tokio::signal::ctrl_c();
+        tokio::pin!(ctrl_c);
         loop {
-            let wait = Duration::from_millis(200);
             tokio::select! {
                 r = sub.recv_async() => {
                     let Ok(sample) = r else { break };
                     let key = sample.key_expr().as_str();
-                    let Some((machine, stream)) = Stream::parse_key(&bus.prefix, key) else { continue };
+                    let Some((machine, stream)) = Stream::parse_key(&bus.prefix, key) else { other += 1; continue };
                     let bytes = sample.payload().to_bytes();
                     let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
                     let publish = scancorr_bag::peek(stream, &bytes).and_then(|p| p.first_t_ns).map(|t| t.max(0) as u64).unwrap_or(now);
                     w.write(stream, machine, &bus.prefix, now, publish, &bytes)?;
+                    gaps.message(stream, &bytes);
                     n += 1;
                     last = Some(Instant::now());
                     if last_flush.elapsed() > Duration::from_secs(1) {
@@ -199,31 +499,51 @@ pub fn record(
                         last_flush = Instant::now();
                     }
                 }
-                _ = tokio::time::sleep(wait) => {}
-                _ = tokio::signal::ctrl_c() => break,
+                _ = tokio::time::sleep(Duration::from_millis(200)) => {}
+                _ = &mut ctrl_c => break,
             }
-            if seconds.is_some_and(|s| t0.elapsed().as_secs_f64() > s) {
+            if bound.done(t0, last, n) {
                 break;
             }
-            if let (Some(i), Some(l)) = (idle, last) {
-                if l.elapsed().as_secs_f64() > i {
-                    break;
-                }
-            }
         }
-        w.finish()?;
-        s.close().await.ok();
-        Ok(n)
-    })
+        if n == 0 {
+            if other > 0 {
+                bail!("received nothing on `{keys}` that is a scancorr stream under prefix `{}` ({other} other message(s)) {}; nothing written", bus.prefix, bound.waited(t0));
+            }
+            bail!("received nothing on `{keys}` from {} {} (is anything publishing there?); nothing written", bus.endpoints(), bound.waited(t0));
+        }
+        w.finish().with_context(|| format!("finishing {}", out.display()))?;
+        Ok::<_, anyhow::Error>((n, gaps))
+    })?;
+    file.commit()?;
+    if gaps.total() > 0 {
+        bail!(
+            "recorded {n} message(s) → {}, but {} sample(s) are missing between them (seq gaps: {}): the bus dropped them on the way to this recorder (a publisher faster than real time?)",
+            out.display(),
+            gaps.total(),
+            gaps.describe(&bus.prefix)
+        );
+    }
+    Ok(n)
 }
 
-/// `tail`: prints points and alarms as they arrive.
-pub fn tail(bus: &Bus, machine: &str, seconds: Option<f64>) -> Result<()> {
-    rt()?.block_on(async {
-        let s = open(bus).await?;
-        let sub = s.declare_subscriber(format!("{}/{machine}/**", bus.prefix)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+/// `tail`: prints points and alarms as they arrive, until the bound or Ctrl-C; an error when
+/// nothing arrived.
+pub fn tail(bus: &Bus, machine: &str, bound: Bound) -> Result<()> {
+    crate::output::check_machine("--machine", machine)?;
+    bus.check()?;
+    bound.check()?;
+    let conn = connect(bus)?;
+    let key = format!("{}/{machine}/**", bus.prefix);
+    conn.rt.block_on(async {
+        let s = &conn.session;
+        let sub = s.declare_subscriber(key.as_str()).await.map_err(z)?;
         let t0 = Instant::now();
         let mut last_seq: Option<u64> = None;
+        let mut last = None::<Instant>;
+        let mut n = 0u64;
+        let ctrl_c = tokio::signal::ctrl_c();
+        tokio::pin!(ctrl_c);
         loop {
             tokio::select! {
                 r = sub.recv_async() => {
@@ -233,31 +553,68 @@ pub fn tail(bus: &Bus, machine: &str, seconds: Option<f64>) -> Result<()> {
                     match stream {
                         Stream::Points => {
                             let Ok(b) = scancorr_proto::v1::CorrectedPointBatch::decode(&*bytes) else { continue };
+                            n += 1;
+                            last = Some(Instant::now());
                             for p in &b.points {
-                                if let Some(l) = last_seq { if p.seq != l + 1 { println!("!! {m}: missed {} point(s)", p.seq.saturating_sub(l + 1)); } }
+                                if let Some(l) = last_seq { if p.seq != l + 1 { outln!("!! {m}: missed {} point(s)", p.seq.saturating_sub(l + 1))?; } }
                                 last_seq = Some(p.seq);
                             }
                             if let Some(p) = b.points.last() {
-                                let s = p.surface.clone().unwrap_or_default();
-                                println!("{m} #{:<9} t={:.3}s  surface ({:9.4} {:9.4} {:9.4}) mm  v{} {}{}", p.seq, p.t_ns as f64 * 1e-9, s.x, s.y, s.z, p.calibration_version, if p.estimator_valid { "" } else { "FLAGGED " }, if b.points.len() > 1 { format!("(+{} in batch)", b.points.len() - 1) } else { String::new() });
+                                let s = p.surface.unwrap_or_default();
+                                outln!("{m} #{:<9} t={:.3}s  surface ({:9.4} {:9.4} {:9.4}) mm  v{} {}{}", p.seq, p.t_ns as f64 * 1e-9, s.x, s.y, s.z, p.calibration_version, if p.estimator_valid { "" } else { "FLAGGED " }, if b.points.len() > 1 { format!("(+{} in batch)", b.points.len() - 1) } else { String::new() })?;
                             }
                         }
                         Stream::Alarms => {
                             if let Ok(a) = scancorr_proto::v1::EstimatorAlarm::decode(&*bytes) {
-                                println!("{m} ALARM {} axis {:?} t={:.3}s estimated {:.1} measured {:.1} mm/s² (threshold {:.0})", if a.raised { "RAISED" } else { "cleared" }, a.axis(), a.t_ns as f64 * 1e-9, a.estimated_accel, a.measured_accel, a.threshold);
+                                n += 1;
+                                last = Some(Instant::now());
+                                outln!("{m} ALARM {} axis {:?} t={:.3}s estimated {:.1} measured {:.1} mm/s² (threshold {:.0})", if a.raised { "RAISED" } else { "cleared" }, a.axis(), a.t_ns as f64 * 1e-9, a.estimated_accel, a.measured_accel, a.threshold)?;
                             }
                         }
                         _ => {}
                     }
                 }
                 _ = tokio::time::sleep(Duration::from_millis(200)) => {}
-                _ = tokio::signal::ctrl_c() => break,
+                _ = &mut ctrl_c => break,
             }
-            if seconds.is_some_and(|s| t0.elapsed().as_secs_f64() > s) {
+            if bound.done(t0, last, n) {
                 break;
             }
         }
-        s.close().await.ok();
+        if n == 0 {
+            bail!(
+                "received nothing on `{key}` from {} {} (are machine `{machine}`'s raw streams reaching scancorrd?)",
+                bus.endpoints(),
+                bound.waited(t0)
+            );
+        }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gaps_count_missing_samples_not_restarts() {
+        let mut g = Gaps::default();
+        for seq in [5, 6, 7, 10, 11, 0, 1, 3] {
+            g.see("m1", Stream::Scale, seq);
+        }
+        g.see("m2", Stream::Scale, 100);
+        g.see("m1", Stream::Probe, 4);
+        assert_eq!(g.total(), 3);
+        assert_eq!(g.describe("cmm"), "3 in cmm/m1/raw/scale");
+    }
+
+    #[test]
+    fn endpoints_name_their_protocol() {
+        assert!(check_endpoint("tcp/127.0.0.1:7447").is_ok());
+        assert!(check_endpoint("tls/host.example:7447").is_ok());
+        let e = check_endpoint("127.0.0.1:7447").unwrap_err().to_string();
+        assert!(e.contains("use tcp/HOST:PORT"), "{e}");
+        assert!(check_endpoint("tcp/").is_err());
+        assert!(check_endpoint("http/x:1").is_err());
+    }
 }

@@ -20,14 +20,15 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
         std::env::temp_dir().join(format!("scancorr-demo-{}", std::process::id()))
     });
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let say = |s: String| {
+    let say = |s: String| -> Result<()> {
         if !json {
-            println!("{s}");
+            outln!("{s}")?;
         }
+        Ok(())
     };
     let p = |f: &str| dir.join(f);
-    say(format!("scancorr demo — the model lab on a simulated CMM with `{hide}` hidden from its calibration\n"));
-    say("1. simulating the calibration campaign (rings at 3 positions × 4 speeds × 2 directions, sphere with 2 styli, straightedge, drifting temperature) …".into());
+    say(format!("scancorr demo — the model lab on a simulated CMM with `{hide}` hidden from its calibration\n"))?;
+    say("1. simulating the calibration campaign (rings at 3 positions × 4 speeds × 2 directions, sphere with 2 styli, straightedge, drifting temperature) …".into())?;
     sim(
         "campaign",
         1,
@@ -37,7 +38,7 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
         Some(&p("truth.json")),
         Some(&p("v1.json")),
     )?;
-    say("   and a held-out ring-speeds run at (550, 300, −250), another seed …".into());
+    say("   and a held-out ring-speeds run at (550, 300, −250), another seed …".into())?;
     sim(
         "ring-speeds",
         2,
@@ -69,15 +70,15 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
         cmp.rms_um,
         cmp.pv_um,
         cmp.noise_floor_um
-    ));
+    ))?;
     for b in cmp.failures.iter().take(4) {
         say(format!(
             "   fails at {:<20} {:<28} RMS {:.3} µm",
             b.feature, b.bin, b.rms_um
-        ));
+        ))?;
     }
     let dg = analysis::diagnose(&ds1)?;
-    say("\n3. diagnose: candidates ranked by the held-out residual they explain".into());
+    say("\n3. diagnose: candidates ranked by the held-out residual they explain".into())?;
     for c in dg.candidates.iter().take(5) {
         say(format!(
             "   {:<36} explains {:>5.1} %  held-out {:.3} → {:.3} µm  {}",
@@ -86,7 +87,7 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
             c.heldout_rms_before_um,
             c.heldout_rms_after_um,
             if c.significant { "significant" } else { "" }
-        ));
+        ))?;
     }
     for c in &dg.confounded {
         say(format!(
@@ -94,7 +95,7 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
             c.effects[0],
             c.effects[1],
             c.separate_by.join("; ")
-        ));
+        ))?;
     }
     for s in &dg.unexplained {
         say(format!(
@@ -103,7 +104,7 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
             s.axis,
             s.amplitude_um,
             s.custom_terms.join(" ")
-        ));
+        ))?;
     }
     let best = dg
         .candidates
@@ -113,7 +114,7 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
     say(format!(
         "\n4. add {} and fit it (with the artifact placements, held-out data kept apart)",
         best.effect
-    ));
+    ))?;
     let prep = analysis::prepare(&ds1)?;
     let cfg = analysis::candidate(&best.effect, &ds1)?;
     let fit = analysis::fit_effects(&ds1, &prep, &[cfg])?;
@@ -133,20 +134,20 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
         ("heldout_rms_um".to_string(), after.rms_held_um),
     ]
     .into();
-    std::fs::write(p("v2.json"), cal2.to_json())?;
+    crate::output::write_file("v2.json", &p("v2.json"), cal2.to_json())?;
     for prm in fit.params.last().into_iter().flatten().take(6) {
         match prm.sigma {
             Some(s) => say(format!(
                 "   {:<44} {:>11.4e} ± {:.1e}",
                 prm.name, prm.value, s
-            )),
+            ))?,
             None => say(format!(
                 "   {:<44} {:>11.4e} (not determined by this data)",
                 prm.name, prm.value
-            )),
+            ))?,
         }
     }
-    say("\n5. the error falls (held-out ring-speeds run, deviation RMS):".into());
+    say("\n5. the error falls (held-out ring-speeds run, deviation RMS):".into())?;
     let max = prep.rms_held_um.max(after.rms_held_um).max(1e-9);
     let bar = |v: f64| "█".repeat(((v / max) * 48.0).round().max(1.0) as usize);
     say(format!(
@@ -154,25 +155,25 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
         cal1.effects.len(),
         prep.rms_held_um,
         bar(prep.rms_held_um)
-    ));
+    ))?;
     say(format!(
         "   v2 + {:<21} {:>7.3} µm {}",
         best.effect.split(':').next().unwrap_or(""),
         after.rms_held_um,
         bar(after.rms_held_um)
-    ));
+    ))?;
     say(format!(
         "   noise floor               {:>7.3} µm",
         ds1.noise_floor_um
-    ));
+    ))?;
     let (s1, _) = offline::correct(&p("heldout.mcap"), &cal1, None)?;
     let (s2, _) = offline::correct(&p("heldout.mcap"), &cal2, None)?;
     say(format!(
         "   (corrected {} points of the held-out bag with each version; no alarm: {} / {})",
         s2.points, s1.alarms, s2.alarms
-    ));
+    ))?;
     if json {
-        println!(
+        outln!(
             "{}",
             serde_json::json!({
                 "hidden": hide,
@@ -182,10 +183,10 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
                 "noise_floor_um": ds1.noise_floor_um,
                 "dir": if keep { Some(dir.display().to_string()) } else { None },
             })
-        );
+        )?;
     }
     if keep {
-        say(format!("\nfiles in {} (bags, truth.json, v1.json, v2.json); try: scancorr lab diagnose --bag {} --calib {} --report report.html", dir.display(), p("campaign.mcap").display(), p("v1.json").display()));
+        say(format!("\nfiles in {} (bags, truth.json, v1.json, v2.json); try: scancorr lab diagnose --bag {} --calib {} --report report.html", dir.display(), p("campaign.mcap").display(), p("v1.json").display()))?;
     } else {
         std::fs::remove_dir_all(&dir).ok();
     }

@@ -2,6 +2,7 @@
 //! new calibration versions and reports. The logic is `scancorr_core::lab`.
 
 use crate::offline;
+use crate::output::{commit_all, refuse_same_file, AtomicOutput};
 use crate::report;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
@@ -212,6 +213,42 @@ fn um(x: f64) -> String {
     format!("{x:.3}")
 }
 
+impl DataArgs {
+    /// Every input file, with its flag.
+    fn inputs(&self) -> Vec<(&'static str, &Path)> {
+        let mut v: Vec<(&'static str, &Path)> = vec![("--calib", self.calib.as_path())];
+        v.extend(self.bag.iter().map(|b| ("--bag", b.as_path())));
+        v.extend(self.validate.iter().map(|b| ("--validate", b.as_path())));
+        v
+    }
+}
+
+/// Refuses outputs that are inputs (or each other), then prepares every output (a temporary
+/// file next to each, so an unwritable folder fails before the work).
+fn outputs<const N: usize>(
+    outs: [(&str, Option<&Path>); N],
+    inputs: &[(&str, &Path)],
+) -> Result<[Option<AtomicOutput>; N]> {
+    let named: Vec<(&str, &Path)> = outs
+        .iter()
+        .filter_map(|(f, p)| p.map(|p| (*f, p)))
+        .collect();
+    refuse_same_file(&named, inputs)?;
+    let mut v = Vec::with_capacity(N);
+    for (f, p) in outs {
+        v.push(p.map(|p| AtomicOutput::new(f, p)).transpose()?);
+    }
+    Ok(v.try_into().unwrap_or_else(|_| unreachable!("N outputs")))
+}
+
+/// Writes `text` to a prepared output.
+fn put(o: &Option<AtomicOutput>, text: impl AsRef<[u8]>) -> Result<()> {
+    if let Some(o) = o {
+        o.write_all(text)?;
+    }
+    Ok(())
+}
+
 /// Runs a lab command.
 pub fn run(cmd: LabCmd) -> Result<()> {
     match cmd {
@@ -221,6 +258,11 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             json,
             report,
         } => {
+            let mut inputs = data.inputs();
+            if let Some(b) = &before {
+                inputs.push(("--before", b));
+            }
+            let [report_out] = outputs([("--report", report.as_deref())], &inputs)?;
             let l = load(&data)?;
             let ds = dataset_for(&l, &l.cal)?;
             let cmp = analysis::compare(&ds)?;
@@ -233,32 +275,34 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 }
                 None => None,
             };
-            if json {
-                println!("{}", serde_json::to_string_pretty(&cmp)?);
-            } else {
-                print_compare(&cmp, &l.cal);
-            }
-            if let Some(p) = report {
+            if let Some(p) = &report {
                 let html = report::compare(&l.cal, &ds, &cmp, before.as_ref().map(|(d, c)| (d, c)));
-                std::fs::write(&p, html).with_context(|| format!("writing {}", p.display()))?;
+                put(&report_out, html)?;
+                commit_all([report_out])?;
                 eprintln!("report: {}", p.display());
+            }
+            if json {
+                outln!("{}", serde_json::to_string_pretty(&cmp)?)?;
+            } else {
+                print_compare(&cmp, &l.cal)?;
             }
             Ok(())
         }
         LabCmd::Diagnose { data, json, report } => {
+            let [report_out] = outputs([("--report", report.as_deref())], &data.inputs())?;
             let l = load(&data)?;
             let ds = dataset_for(&l, &l.cal)?;
             let dg = analysis::diagnose(&ds)?;
-            if json {
-                println!("{}", serde_json::to_string_pretty(&dg)?);
-            } else {
-                print_diagnosis(&dg);
-            }
-            if let Some(p) = report {
+            if let Some(p) = &report {
                 let cmp = analysis::compare(&ds)?;
-                std::fs::write(&p, report::diagnose(&l.cal, &ds, &cmp, &dg))
-                    .with_context(|| format!("writing {}", p.display()))?;
+                put(&report_out, report::diagnose(&l.cal, &ds, &cmp, &dg))?;
+                commit_all([report_out])?;
                 eprintln!("report: {}", p.display());
+            }
+            if json {
+                outln!("{}", serde_json::to_string_pretty(&dg)?)?;
+            } else {
+                print_diagnosis(&dg)?;
             }
             Ok(())
         }
@@ -272,6 +316,13 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             json,
             report,
         } => {
+            let [out_file, report_out] = outputs(
+                [
+                    ("--out", Some(out.as_path())),
+                    ("--report", report.as_deref()),
+                ],
+                &data.inputs(),
+            )?;
             let l = load(&data)?;
             let ds = dataset_for(&l, &l.cal)?;
             let prep = analysis::prepare(&ds)?;
@@ -380,8 +431,20 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             ]
             .into();
             new.build().context("the fitted calibration")?;
-            std::fs::write(&out, new.to_json())
-                .with_context(|| format!("writing {}", out.display()))?;
+            put(&out_file, new.to_json())?;
+            if report.is_some() {
+                let cmp_b = analysis::compare(&ds)?;
+                let cmp_a = analysis::compare(&ds_after)?;
+                put(
+                    &report_out,
+                    report::add(&l.cal, &new, &ds, &cmp_b, &ds_after, &cmp_a),
+                )?;
+            }
+            // Every output complete: only now do they replace anything.
+            commit_all([out_file, report_out])?;
+            if let Some(p) = &report {
+                eprintln!("report: {}", p.display());
+            }
             let summary = serde_json::json!({
                 "effect": vname,
                 "version": new.version,
@@ -396,54 +459,46 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 "out": out,
             });
             if json {
-                println!("{}", serde_json::to_string_pretty(&summary)?);
+                outln!("{}", serde_json::to_string_pretty(&summary)?)?;
             } else {
-                println!(
+                outln!(
                     "added {vname} → {} (version {}, parent {})",
                     out.display(),
                     new.version,
                     l.cal.version
-                );
-                println!(
+                )?;
+                outln!(
                     "  RMS on fit data   {:>8} → {:>8} µm",
                     um(prep.rms_fit_um),
                     um(after.rms_fit_um)
-                );
-                println!(
+                )?;
+                outln!(
                     "  RMS held out      {:>8} → {:>8} µm   (noise floor {} µm)",
                     um(prep.rms_held_um),
                     um(after.rms_held_um),
                     um(ds.noise_floor_um)
-                );
+                )?;
                 for p in o.params.last().into_iter().flatten().take(12) {
                     match p.sigma {
-                        Some(s) => println!("    {:<44} {:>12.4e} ± {:.1e}", p.name, p.value, s),
-                        None => println!(
+                        Some(s) => outln!("    {:<44} {:>12.4e} ± {:.1e}", p.name, p.value, s)?,
+                        None => outln!(
                             "    {:<44} {:>12.4e} (not determined by this data)",
-                            p.name, p.value
-                        ),
+                            p.name,
+                            p.value
+                        )?,
                     }
                 }
                 if !o.unidentifiable.is_empty() {
-                    println!(
+                    outln!(
                         "  {} parameter(s) not determined by this data (minimum-norm values)",
                         o.unidentifiable.len()
-                    );
+                    )?;
                 }
-            }
-            if let Some(p) = report {
-                let cmp_b = analysis::compare(&ds)?;
-                let cmp_a = analysis::compare(&ds_after)?;
-                std::fs::write(
-                    &p,
-                    report::add(&l.cal, &new, &ds, &cmp_b, &ds_after, &cmp_a),
-                )
-                .with_context(|| format!("writing {}", p.display()))?;
-                eprintln!("report: {}", p.display());
             }
             Ok(())
         }
         LabCmd::Fit { data, out, json } => {
+            let [out_file] = outputs([("--out", Some(out.as_path()))], &data.inputs())?;
             let l = load(&data)?;
             let raw: Vec<Vec<scancorr_core::Sample>> = l
                 .bags
@@ -478,8 +533,8 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 ("noise_floor_um".to_string(), ds.noise_floor_um),
             ]
             .into();
-            std::fs::write(&out, new.to_json())
-                .with_context(|| format!("writing {}", out.display()))?;
+            put(&out_file, new.to_json())?;
+            commit_all([out_file])?;
             let s = serde_json::json!({
                 "version": new.version,
                 "nominal": axes,
@@ -490,22 +545,26 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 "unidentifiable": unident,
             });
             if json {
-                println!("{}", serde_json::to_string_pretty(&s)?);
+                outln!("{}", serde_json::to_string_pretty(&s)?)?;
             } else {
-                println!("refit → {} (version {})", out.display(), new.version);
+                outln!("refit → {} (version {})", out.display(), new.version)?;
                 for a in &axes {
-                    println!(
+                    outln!(
                         "  axis {}: τ {:.5} → {:.5} s, tracking RMS {:.2} → {:.2} µm",
-                        a.axis, a.tau_before_s, a.tau_after_s, a.rms_before_um, a.rms_after_um
-                    );
+                        a.axis,
+                        a.tau_before_s,
+                        a.tau_after_s,
+                        a.rms_before_um,
+                        a.rms_after_um
+                    )?;
                 }
-                println!(
+                outln!(
                     "  RMS fit {} → {} µm, held out {} → {} µm",
                     um(p0.rms_fit_um),
                     um(after.rms_fit_um),
                     um(p0.rms_held_um),
                     um(after.rms_held_um)
-                );
+                )?;
             }
             Ok(())
         }
@@ -518,6 +577,24 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             report,
             bus,
         } => {
+            if let Some(m) = &machine {
+                crate::output::check_machine("--machine", m)?;
+                bus.check()?;
+            }
+            let dir_files: Vec<PathBuf> = match &calib_dir {
+                Some(d) => std::fs::read_dir(d)
+                    .with_context(|| format!("reading {}", d.display()))?
+                    .flatten()
+                    .map(|e| e.path())
+                    .collect(),
+                None => vec![],
+            };
+            let inputs: Vec<(&str, &Path)> = bag
+                .iter()
+                .map(|b| ("--bag", b.as_path()))
+                .chain(dir_files.iter().map(|p| ("--calib-dir", p.as_path())))
+                .collect();
+            let [report_out] = outputs([("--report", report.as_deref())], &inputs)?;
             let mut cals: Vec<(PathBuf, Calibration)> = vec![];
             match (&machine, &calib_dir) {
                 (Some(m), None) => {
@@ -603,47 +680,47 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                     heldout_rms_um: held,
                 });
             }
-            if json {
-                println!("{}", serde_json::to_string_pretty(&rows)?);
-            } else {
-                print!("{}", report::history_text(&rows));
-            }
-            if let Some(p) = report {
-                std::fs::write(&p, report::history(&rows))
-                    .with_context(|| format!("writing {}", p.display()))?;
+            if let Some(p) = &report {
+                put(&report_out, report::history(&rows))?;
+                commit_all([report_out])?;
                 eprintln!("report: {}", p.display());
+            }
+            if json {
+                outln!("{}", serde_json::to_string_pretty(&rows)?)?;
+            } else {
+                out!("{}", report::history_text(&rows))?;
             }
             Ok(())
         }
     }
 }
 
-fn print_compare(c: &Comparison, cal: &Calibration) {
-    println!(
+fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
+    outln!(
         "calibration v{} ({} effects): {} points",
         cal.version,
         cal.effects.len(),
         c.points
-    );
-    println!(
+    )?;
+    outln!(
         "  deviation RMS {} µm, peak-to-valley {} µm, noise floor {} µm",
         um(c.rms_um),
         um(c.pv_um),
         um(c.noise_floor_um)
-    );
+    )?;
     if c.failures.is_empty() {
-        println!("  no bin stands out (every bin within 1.3 × the RMS or 2 × the noise floor)");
+        outln!("  no bin stands out (every bin within 1.3 × the RMS or 2 × the noise floor)")?;
     } else {
-        println!("  where it fails (bins standing out):");
+        outln!("  where it fails (bins standing out):")?;
         for b in c.failures.iter().take(10) {
-            println!(
+            outln!(
                 "    {:<22} {:<28} RMS {:>7} µm  mean {:>7} µm  ({} points)",
                 b.feature,
                 b.bin,
                 um(b.rms_um),
                 um(b.mean_um),
                 b.n
-            );
+            )?;
         }
     }
     for h in &c.harmonics {
@@ -653,30 +730,36 @@ fn print_compare(c: &Comparison, cal: &Calibration) {
             .enumerate()
             .map(|(k, a)| format!("{}θ {:.3}", k + 1, a))
             .collect();
-        println!(
+        outln!(
             "  {} {} harmonics (µm): {}",
             h.artifact,
             h.feature + 1,
             a.join("  ")
-        );
+        )?;
     }
+    Ok(())
 }
 
-fn print_diagnosis(d: &Diagnosis) {
-    println!(
+fn print_diagnosis(d: &Diagnosis) -> Result<()> {
+    outln!(
         "residual RMS {} µm (held out {} µm), noise floor {} µm, {} fit / {} held-out points",
         um(d.rms_um),
         um(d.heldout_rms_um),
         um(d.noise_floor_um),
         d.points[0],
         d.points[1]
-    );
-    println!(
+    )?;
+    outln!(
         "  {:<34} {:>9} {:>4} {:>11} {:>11} {:>9}",
-        "candidate", "explained", "sig", "held-out µm", "fit µm", "ΔBIC"
-    );
+        "candidate",
+        "explained",
+        "sig",
+        "held-out µm",
+        "fit µm",
+        "ΔBIC"
+    )?;
     for c in d.candidates.iter().take(12) {
-        println!(
+        outln!(
             "  {:<34} {:>8.1}% {:>4} {:>5}→{:<5} {:>5}→{:<5} {:>9.0}",
             c.effect,
             c.explained * 100.0,
@@ -686,18 +769,18 @@ fn print_diagnosis(d: &Diagnosis) {
             format!("{:.3}", c.rms_before_um),
             format!("{:.3}", c.rms_after_um),
             c.delta_bic
-        );
+        )?;
     }
     if !d.candidates.iter().any(|c| c.significant) {
-        println!("  no candidate is significant (none removes half the noise floor from held-out data and pays for its parameters)");
+        outln!("  no candidate is significant (none removes half the noise floor from held-out data and pays for its parameters)")?;
     }
     for s in &d.skipped {
-        println!("  not tested: {s}");
+        outln!("  not tested: {s}")?;
     }
     for c in &d.confounded {
-        println!("  confounded: {} and {} (each reproduces {:.0} % / {:.0} % of the other) — to separate them:", c.effects[0], c.effects[1], c.r2[0] * 100.0, c.r2[1] * 100.0);
+        outln!("  confounded: {} and {} (each reproduces {:.0} % / {:.0} % of the other) — to separate them:", c.effects[0], c.effects[1], c.r2[0] * 100.0, c.r2[1] * 100.0)?;
         for s in &c.separate_by {
-            println!("    · {s}");
+            outln!("    · {s}")?;
         }
     }
     for s in &d.unexplained {
@@ -705,8 +788,9 @@ fn print_diagnosis(d: &Diagnosis) {
             Some(p) => format!("a period of {p:.3} mm along {}", s.axis),
             None => format!("the sign of the {} velocity (reversal)", s.axis),
         };
-        println!("  unexplained: {what}, amplitude {:.3} µm, {:.0} % of the residual → lab add custom {}", s.amplitude_um, s.explained * 100.0, s.custom_terms.iter().map(|t| format!("--term '{t}'")).collect::<Vec<_>>().join(" "));
+        outln!("  unexplained: {what}, amplitude {:.3} µm, {:.0} % of the residual → lab add custom {}", s.amplitude_um, s.explained * 100.0, s.custom_terms.iter().map(|t| format!("--term '{t}'")).collect::<Vec<_>>().join(" "))?;
     }
+    Ok(())
 }
 
 #[allow(dead_code)]

@@ -4,6 +4,8 @@
 //! Thin by design: every command parses arguments, calls the libraries and prints. Errors are
 //! reported once, here, with their context chain.
 
+#[macro_use]
+mod output;
 mod bench;
 mod benchfleet;
 mod benchlive;
@@ -103,6 +105,9 @@ enum Cmd {
         /// Stop after this many seconds without a message (once something arrived).
         #[arg(long)]
         idle: Option<f64>,
+        /// Stop after this many messages.
+        #[arg(long)]
+        count: Option<u64>,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -114,6 +119,9 @@ enum Cmd {
         /// Stop after this many seconds.
         #[arg(long)]
         seconds: Option<f64>,
+        /// Stop after this many messages (point batches and alarms).
+        #[arg(long)]
+        count: Option<u64>,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -343,6 +351,9 @@ enum CalibCmd {
 fn main() -> std::process::ExitCode {
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
+        // The reader of stdout went away (`scancorr … | head`): stop quietly, as a command
+        // whose output is no longer wanted. Every file was committed before printing.
+        Err(e) if e.is::<output::StdoutClosed>() => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
             std::process::ExitCode::FAILURE
@@ -360,7 +371,10 @@ fn run(cli: Cli) -> Result<()> {
         }) => bench::core(points, repeat, json),
         Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
         Cmd::Bench(BenchCmd::Live { json, points }) => benchlive::run(points, json),
-        Cmd::Bench(BenchCmd::Relay { port, prefix }) => benchlive::relay(port, &prefix),
+        Cmd::Bench(BenchCmd::Relay { port, prefix }) => {
+            output::check_prefix(&prefix)?;
+            benchlive::relay(port, &prefix)
+        }
         Cmd::Bench(BenchCmd::Fleet {
             json,
             machines,
@@ -377,6 +391,9 @@ fn run(cli: Cli) -> Result<()> {
             json,
         }),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
+            if let Some(m) = &machine {
+                output::check_machine("--machine", m)?;
+            }
             let text = std::fs::read_to_string(&file)
                 .with_context(|| format!("reading {}", file.display()))?;
             let cal =
@@ -385,19 +402,18 @@ fn run(cli: Cli) -> Result<()> {
             if let Some(m) = machine {
                 cal.check_machine(&m)?;
             }
-            println!(
+            outln!(
                 "{}: valid — machine {}, version {}, {} effect(s)",
                 file.display(),
                 cal.machine_id,
                 cal.version,
                 cal.effects.len()
-            );
+            )?;
             Ok(())
         }
         Cmd::Lab(c) => labcmd::run(c),
         Cmd::Proto { out } => {
-            std::fs::write(&out, scancorr_proto::FILE_DESCRIPTOR_SET)
-                .with_context(|| format!("writing {}", out.display()))?;
+            output::write_file("--out", &out, scancorr_proto::FILE_DESCRIPTOR_SET)?;
             eprintln!(
                 "{}: FileDescriptorSet of package {} ({} bytes)",
                 out.display(),
@@ -407,7 +423,7 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Cmd::Calib(CalibCmd::Put { machine, file, bus }) => {
-            println!("{}", bus::calib_put(&bus, &machine, &file)?);
+            outln!("{}", bus::calib_put(&bus, &machine, &file)?)?;
             Ok(())
         }
         Cmd::Calib(CalibCmd::Get {
@@ -416,30 +432,36 @@ fn run(cli: Cli) -> Result<()> {
             file,
             bus,
         }) => {
+            output::check_machine("--machine", &machine)?;
+            bus.check()?;
             let key = scancorr_proto::calibration_key(&bus.prefix, &machine);
             let sel = match version {
                 Some(v) => format!("{key}?version={v}"),
                 None => key,
             };
+            // The file is prepared (its folder checked) before asking.
+            let out = file
+                .as_deref()
+                .map(|f| output::AtomicOutput::new("--file", f))
+                .transpose()?;
             let doc = bus::query(&bus, sel)?;
-            match file {
-                Some(f) => {
-                    std::fs::write(&f, doc).with_context(|| format!("writing {}", f.display()))?
+            match out {
+                Some(o) => {
+                    o.write_all(doc)?;
+                    o.commit()?;
                 }
-                None => println!("{doc}"),
+                None => outln!("{doc}")?,
             }
             Ok(())
         }
         Cmd::Calib(CalibCmd::History { machine, bus }) => {
+            output::check_machine("--machine", &machine)?;
             let key = scancorr_proto::calibration_key(&bus.prefix, &machine);
-            println!("{}", bus::query(&bus, format!("{key}?history"))?);
+            outln!("{}", bus::query(&bus, format!("{key}?history"))?)?;
             Ok(())
         }
         Cmd::Status { machine, bus } => {
-            println!(
-                "{}",
-                bus::query(&bus, format!("{}/{machine}/status", bus.prefix))?
-            );
+            outln!("{}", bus::status(&bus, &machine)?)?;
             Ok(())
         }
         Cmd::Replay {
@@ -466,19 +488,36 @@ fn run(cli: Cli) -> Result<()> {
             out,
             seconds,
             idle,
+            count,
             bus,
         } => {
-            let n = bus::record(&bus, &keys, &out, seconds, idle)?;
+            let bound = bus::Bound {
+                seconds,
+                idle,
+                count,
+            };
+            let n = bus::record(&bus, &keys, &out, bound)?;
             eprintln!("recorded {n} message(s) → {}", out.display());
             Ok(())
         }
         Cmd::Tail {
             machine,
             seconds,
+            count,
             bus,
-        } => bus::tail(&bus, &machine, seconds),
+        } => bus::tail(
+            &bus,
+            &machine,
+            bus::Bound {
+                seconds,
+                idle: None,
+                count,
+            },
+        ),
         Cmd::Shape(ShapeCmd::Fit { kind, points, json }) => shapecmd::run(&kind, &points, json),
         Cmd::Sim(a) => {
+            output::check_machine("--machine", &a.machine)?;
+            output::check_prefix(&a.bus.prefix)?;
             let mut effects = std::collections::BTreeMap::new();
             for e in &a.effect {
                 let (k, v) = simcmd::parse_effect(e)?;
@@ -506,38 +545,49 @@ fn run(cli: Cli) -> Result<()> {
                 ..Default::default()
             };
             let live = a.live;
+            let rate = if !live || a.live_rate == "max" {
+                None
+            } else {
+                let v: f64 = a
+                    .live_rate
+                    .parse()
+                    .with_context(|| format!("--live-rate {}: a number or max", a.live_rate))?;
+                anyhow::ensure!(v.is_finite() && v > 0.0, "--live-rate must be > 0");
+                Some(v)
+            };
+            let keep = a.out.is_some();
             let out = match (&a.out, live) {
                 (Some(p), _) => p.clone(),
+                // Removed when done (never committed).
                 (None, true) => {
                     std::env::temp_dir().join(format!("scancorr-live-{}.mcap", std::process::id()))
                 }
                 (None, false) => anyhow::bail!("give --out FILE (or --live to publish on the bus)"),
             };
-            let keep = a.out.is_some();
-            let (rate, bus_args) = (a.live_rate.clone(), a.bus.clone());
-            simcmd::run(simcmd::SimArgs {
-                options,
-                out: out.clone(),
-                truth: a.truth,
-                calib_out: a.calib_out,
-                batch: a.batch,
-                prefix: a.bus.prefix.clone(),
-                json: a.json,
-            })?;
-            if live {
-                let r = if rate == "max" {
-                    None
-                } else {
-                    Some(
-                        rate.parse::<f64>()
-                            .with_context(|| format!("--live-rate {rate}"))?,
-                    )
-                };
-                let n = bus::replay(&bus_args, &out, r, false)?;
+            // Live: the bus first, so that a missing service fails before the simulation.
+            let conn = if live {
+                a.bus.check()?;
+                Some(bus::connect(&a.bus)?)
+            } else {
+                None
+            };
+            let written = simcmd::simulate(
+                simcmd::SimArgs {
+                    options,
+                    out: out.clone(),
+                    truth: a.truth,
+                    calib_out: a.calib_out,
+                    batch: a.batch,
+                    prefix: a.bus.prefix.clone(),
+                    json: a.json,
+                },
+                true,
+            )?;
+            let unkept = written.commit(keep)?;
+            if let Some(conn) = conn {
+                let bag = unkept.as_ref().map(|o| o.path()).unwrap_or(&out);
+                let n = conn.replay(&a.bus, bag, rate, false)?;
                 eprintln!("published {n} message(s) live");
-                if !keep {
-                    std::fs::remove_file(&out).ok();
-                }
             }
             Ok(())
         }
@@ -547,15 +597,18 @@ fn run(cli: Cli) -> Result<()> {
             out,
             json,
         } => {
+            if let Some(o) = &out {
+                output::refuse_same_file(&[("--out", o)], &[("--bag", &bag), ("--calib", &calib)])?;
+            }
             let cal = offline::load_calibration(&calib)?;
             let (s, warnings) = offline::correct(&bag, &cal, out.as_deref())?;
             for w in warnings {
                 eprintln!("warning: {w}");
             }
             if json {
-                println!("{}", serde_json::to_string_pretty(&s)?);
+                outln!("{}", serde_json::to_string_pretty(&s)?)?;
             } else {
-                println!(
+                outln!(
                     "{}: machine {}, calibration v{}: {} samples → {} points ({} flagged), {} alarm(s), dropped {:?}{} in {:.2} s ({:.2e} samples/s)",
                     bag.display(),
                     s.machine,
@@ -569,7 +622,7 @@ fn run(cli: Cli) -> Result<()> {
                         + &if s.clock_resets > 0 { format!(", {} controller clock reset(s)", s.clock_resets) } else { String::new() },
                     s.seconds,
                     s.samples_per_s
-                );
+                )?;
             }
             Ok(())
         }
@@ -577,12 +630,13 @@ fn run(cli: Cli) -> Result<()> {
             machine,
             all_effects,
         }) => {
+            output::check_machine("--machine", &machine)?;
             let cal = if all_effects {
                 synth::all_effects_calibration(&machine)
             } else {
                 Calibration::example(&machine)
             };
-            println!("{}", cal.to_json());
+            outln!("{}", cal.to_json())?;
             Ok(())
         }
     }

@@ -189,7 +189,8 @@ enum ToWriter {
     },
 }
 
-/// `scancorr correct`: streams a bag through the core and writes points and alarms to `out`.
+/// `scancorr correct`: streams a bag through the core and writes points and alarms to `out`
+/// (a temporary file renamed when complete; `out` may not be the input bag).
 /// Reading, decoding and correcting run on this thread; encoding and writing on another.
 pub fn correct(
     bag: &Path,
@@ -197,6 +198,12 @@ pub fn correct(
     out: Option<&Path>,
 ) -> Result<(Summary, Vec<String>)> {
     let t0 = std::time::Instant::now();
+    if let Some(o) = out {
+        crate::output::refuse_same_file(&[("--out", o)], &[("--bag", bag)])?;
+    }
+    let out_file = out
+        .map(|p| crate::output::AtomicOutput::new("--out", p))
+        .transpose()?;
     let (reader, machine, warnings) = open(bag, Some(&cal.machine_id)).map_err(|e| {
         // Name the mismatch plainly when the bag is simply of another machine.
         match BagReader::open(bag) {
@@ -229,16 +236,16 @@ pub fn correct(
     let ids = corr.effect_ids();
     // Corrected points are written at the corrector's pace: lz4 keeps up where zstd would be
     // the bottleneck.
-    let writer = match out {
-        Some(p) => Some(
+    let writer = match &out_file {
+        Some(f) => Some(
             BagWriter::create(
-                p,
+                f.path(),
                 BagHeader {
                     compression: scancorr_bag::Compression::Lz4,
                     ..BagHeader::default()
                 },
             )
-            .with_context(|| format!("creating {}", p.display()))?,
+            .with_context(|| format!("creating {}", f.shown().display()))?,
         ),
         None => None,
     };
@@ -330,6 +337,9 @@ pub fn correct(
             .into(),
         )?;
         w.finish()?;
+    }
+    if let Some(f) = out_file {
+        f.commit()?;
     }
     let secs = t0.elapsed().as_secs_f64();
     Ok((

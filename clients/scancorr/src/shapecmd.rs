@@ -34,9 +34,9 @@ pub fn run(kind: &str, points_file: &Path, json: bool) -> Result<()> {
     let summary =
         fit(kind, &points).with_context(|| format!("{kind} fit of {}", points_file.display()))?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&to_json(&summary))?);
+        outln!("{}", serde_json::to_string_pretty(&to_json(&summary))?)?;
     } else {
-        print_human(&summary, points_file);
+        print_human(&summary, points_file)?;
     }
     Ok(())
 }
@@ -134,13 +134,13 @@ fn fixed(x: f64, decimals: usize) -> String {
     format!("{s:>16}")
 }
 
-fn print_human(s: &Summary, file: &Path) {
-    println!(
+fn print_human(s: &Summary, file: &Path) -> Result<()> {
+    outln!(
         "{} fit of {} points from {}",
         s.kind,
         s.points,
         file.display()
-    );
+    )?;
     let center_label = match s.kind {
         ShapeKind::Circle | ShapeKind::Sphere => "center",
         ShapeKind::Line | ShapeKind::Plane => "centroid",
@@ -153,22 +153,23 @@ fn print_human(s: &Summary, file: &Path) {
             fixed(v.z, decimals)
         )
     };
-    println!("  {center_label:<16} {}  mm", v(&s.center, 6));
+    outln!("  {center_label:<16} {}  mm", v(&s.center, 6))?;
     if let Some(n) = &s.normal {
         let label = match s.kind {
             ShapeKind::Line => "direction",
             _ => "normal",
         };
-        println!("  {label:<16} {}", v(n, 9));
+        outln!("  {label:<16} {}", v(n, 9))?;
     }
     if let Some(d) = s.diameter {
-        println!("  {:<16} {}  mm", "diameter", fixed(d, 6));
-        println!("  {:<16} {}  mm", "radius", fixed(d / 2.0, 6));
+        outln!("  {:<16} {}  mm", "diameter", fixed(d, 6))?;
+        outln!("  {:<16} {}  mm", "radius", fixed(d / 2.0, 6))?;
     }
-    println!("  {:<16} {}  mm", "rms residual", fixed(s.rms, 6));
-    println!(
+    outln!("  {:<16} {}  mm", "rms residual", fixed(s.rms, 6))?;
+    outln!(
         "  {:<16} {}  mm",
         "max |residual|",
         fixed(s.max_abs_residual, 6)
-    );
+    )?;
+    Ok(())
 }

@@ -1,5 +1,6 @@
 //! `scancorr sim`: the simulator writing a bag, its ground truth and its starting calibration.
 
+use crate::output::AtomicOutput;
 use anyhow::{bail, Context, Result};
 use scancorr_bag::{Artifact, ArtifactKind, BagHeader, BagWriter, Stream};
 use scancorr_core::sample::{Sample, StreamId};
@@ -58,19 +59,78 @@ fn stream_of(s: StreamId) -> Stream {
     }
 }
 
-/// Runs the simulator into a bag and reports on stderr.
+/// What a simulation wrote, not yet committed: the bag, the ground truth, the calibration,
+/// and the JSON summary (with `--json`).
+pub struct Written {
+    pub bag: AtomicOutput,
+    truth: Option<AtomicOutput>,
+    calib: Option<AtomicOutput>,
+    json: Option<serde_json::Value>,
+}
+
+impl Written {
+    /// Commits the truth and the calibration, and the bag when `keep_bag` (otherwise it is
+    /// returned, uncommitted: removed when dropped); then prints the JSON summary.
+    pub fn commit(self, keep_bag: bool) -> Result<Option<AtomicOutput>> {
+        let Written {
+            bag,
+            truth,
+            calib,
+            json,
+        } = self;
+        crate::output::commit_all([truth, calib])?;
+        let bag = if keep_bag {
+            bag.commit()?;
+            None
+        } else {
+            Some(bag)
+        };
+        if let Some(j) = json {
+            outln!("{j}")?;
+        }
+        Ok(bag)
+    }
+}
+
+/// Runs the simulator into a bag, reports on stderr, and commits every output.
 pub fn run(a: SimArgs) -> Result<()> {
-    run_inner(a, true)
+    simulate(a, true)?.commit(true).map(|_| ())
 }
 
 /// Runs the simulator into a bag without a report.
 pub fn run_quiet(a: SimArgs) -> Result<()> {
-    run_inner(a, false)
+    simulate(a, false)?.commit(true).map(|_| ())
 }
 
-fn run_inner(a: SimArgs, report: bool) -> Result<()> {
+/// Runs the simulator: every output goes to a temporary file next to its final name, made
+/// before the simulation starts (so an unwritable folder fails at once) and committed by
+/// [`Written::commit`]. On an error nothing that existed is touched.
+pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
+    {
+        let mut outs: Vec<(&str, &Path)> = vec![("--out", a.out.as_path())];
+        if let Some(p) = &a.truth {
+            outs.push(("--truth", p));
+        }
+        if let Some(p) = &a.calib_out {
+            outs.push(("--calib-out", p));
+        }
+        crate::output::refuse_same_file(&outs, &[])?;
+    }
+    crate::output::check_machine("--machine", &a.options.machine_id)?;
+    crate::output::check_prefix(&a.prefix)?;
+    let bag_out = AtomicOutput::new("--out", &a.out)?;
+    let truth_out = a
+        .truth
+        .as_deref()
+        .map(|p| AtomicOutput::new("--truth", p))
+        .transpose()?;
+    let calib_out = a
+        .calib_out
+        .as_deref()
+        .map(|p| AtomicOutput::new("--calib-out", p))
+        .transpose()?;
     let machine = a.options.machine_id.clone();
-    let mut w = BagWriter::create(&a.out, BagHeader::default())
+    let mut w = BagWriter::create(bag_out.path(), BagHeader::default())
         .with_context(|| format!("creating {}", a.out.display()))?;
     let mut b = Batcher::new(&machine, a.batch);
     let mut err: Option<anyhow::Error> = None;
@@ -161,17 +221,17 @@ fn run_inner(a: SimArgs, report: bool) -> Result<()> {
     }
     w.finish()
         .with_context(|| format!("finishing {}", a.out.display()))?;
-    write_json(a.truth.as_deref(), &res.truth)?;
-    if let Some(p) = &a.calib_out {
-        std::fs::write(p, res.start_calibration.to_json())
-            .with_context(|| format!("writing {}", p.display()))?;
+    if let Some(t) = &truth_out {
+        t.write_all(serde_json::to_string_pretty(&res.truth)?)?;
+    }
+    if let Some(c) = &calib_out {
+        c.write_all(res.start_calibration.to_json())?;
     }
     let secs = t_start.elapsed().as_secs_f64();
     let total: u64 = res.counts.iter().sum();
+    let mut json = None;
     if a.json {
-        println!(
-            "{}",
-            serde_json::json!({
+        json = Some(serde_json::json!({
                 "out": a.out,
                 "machine": machine,
                 "program": o.program,
@@ -180,8 +240,7 @@ fn run_inner(a: SimArgs, report: bool) -> Result<()> {
                 "noise_floor_um": res.truth.noise_floor_um,
                 "hidden": o.hide,
                 "faults": res.truth.faults,
-            })
-        );
+        }));
     } else if report {
         eprintln!(
             "simulated {} on machine {} (machine seed {}, seed {}): {:.1} s of scanning, {total} samples → {} in {secs:.1} s",
@@ -206,13 +265,10 @@ fn run_inner(a: SimArgs, report: bool) -> Result<()> {
             );
         }
     }
-    Ok(())
-}
-
-fn write_json<T: serde::Serialize>(path: Option<&Path>, v: &T) -> Result<()> {
-    if let Some(p) = path {
-        std::fs::write(p, serde_json::to_string_pretty(v)?)
-            .with_context(|| format!("writing {}", p.display()))?;
-    }
-    Ok(())
+    Ok(Written {
+        bag: bag_out,
+        truth: truth_out,
+        calib: calib_out,
+        json,
+    })
 }

@@ -45,6 +45,10 @@ pub struct Calibration {
     /// Stream-join settings.
     #[serde(default)]
     pub join: Join,
+    /// Plausibility ranges of the machine: input outside them is refused and counted, and no
+    /// point outside the machine's volume is ever published.
+    #[serde(default)]
+    pub limits: Limits,
     /// Figures the model lab measured for this version (e.g. `heldout_rms_um`), so the history
     /// of versions can show the error falling without re-reading the data.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
@@ -145,6 +149,40 @@ pub struct Join {
     /// corrected, not lost. Fewer, followed by a sample in the old time base, are counted as
     /// `out_of_order`.
     pub clock_reset_samples: usize,
+    /// A sample whose seq is not above its stream's last while its time runs on is a counter
+    /// that wrapped or restarted (or an earlier sample's bogus jump), not a duplicate, once
+    /// this many such samples in a row confirm it: the stream's sequence restarts there and
+    /// the samples held while confirming are taken. Counted as `seq_resets`.
+    pub seq_reset_samples: usize,
+}
+
+/// The machine's plausible ranges. Inputs outside are dropped as `implausible`; a point whose
+/// surface or tip centre is not finite or lies outside the travel (widened by the longest
+/// stylus reach) is dropped as `implausible_output`, never published.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Limits {
+    /// Axis travel, [min, max] per axis (x, y, z), mm: commanded positions, arc centres and
+    /// scale readings must lie inside it.
+    pub travel_mm: [[f64; 2]; 3],
+    /// Largest stylus deflection the probe can measure (each component), mm.
+    pub probe_range_mm: f64,
+    /// Temperatures any sensor can plausibly read, [min, max], °C.
+    pub temperature_c: [f64; 2],
+    /// Largest correction of one effect on one axis, mm (a model that predicts more is
+    /// broken: its point is dropped as `implausible_output`).
+    pub max_correction_mm: f64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            travel_mm: [[-5000.0, 5000.0]; 3],
+            probe_range_mm: 5.0,
+            temperature_c: [-20.0, 80.0],
+            max_correction_mm: 5.0,
+        }
+    }
 }
 
 impl Default for Join {
@@ -156,6 +194,7 @@ impl Default for Join {
             max_pending: 20_000,
             clock_reset_s: 1.0,
             clock_reset_samples: 50,
+            seq_reset_samples: 5,
         }
     }
 }
@@ -223,20 +262,29 @@ pub struct Model {
     pub clock_reset_ns: i64,
     /// Temperature maximum age, ns.
     pub temperature_max_age_ns: i64,
+    /// The travel widened by the longest reach of a tip (offset + radius + probe range +
+    /// largest total correction): where a surface point or tip centre can plausibly be, mm.
+    pub volume_mm: [[f64; 2]; 3],
 }
 
 impl Calibration {
     /// Parses a JSON document, naming the field on error. Does not validate values; see
     /// [`Calibration::build`].
+    /// Anything after the document but white space is refused.
     pub fn from_json(text: &str) -> Result<Calibration, CalibError> {
-        let de = &mut serde_json::Deserializer::from_str(text);
-        serde_path_to_error::deserialize(de).map_err(|e| {
+        let mut de = serde_json::Deserializer::from_str(text);
+        let c = serde_path_to_error::deserialize(&mut de).map_err(|e| {
             let path = e.path().to_string();
             CalibError::Parse {
                 path,
                 msg: e.into_inner().to_string(),
             }
-        })
+        })?;
+        de.end().map_err(|e| CalibError::Parse {
+            path: ".".into(),
+            msg: format!("text after the end of the document ({e})"),
+        })?;
+        Ok(c)
     }
 
     /// Pretty JSON.
@@ -265,9 +313,8 @@ impl Calibration {
 
     /// Validates every value and builds the runnable model.
     pub fn build(&self) -> Result<Model, CalibError> {
-        if self.machine_id.trim().is_empty() {
-            return Err(invalid("machine_id", "must not be empty"));
-        }
+        scancorr_proto::names::check_machine(&self.machine_id)
+            .map_err(|e| invalid("machine_id", e.to_string()))?;
         if let Some((k, _)) = self.metrics.iter().find(|(_, v)| !v.is_finite()) {
             return Err(invalid(format!("metrics.{k}"), "must be a finite number"));
         }
@@ -298,6 +345,8 @@ impl Calibration {
         }
         let mut nominal = BTreeMap::new();
         for (probe, tf) in &self.nominal.probes {
+            scancorr_proto::names::check("probe type", probe)
+                .map_err(|e| invalid("nominal.probes", e.to_string()))?;
             let field = format!("nominal.probes.{probe}");
             let g2 = tf.rational().map_err(|e| invalid(&field, e.to_string()))?;
             let mut d = vec![];
@@ -354,6 +403,8 @@ impl Calibration {
                 };
                 invalid(f, reason)
             })?;
+            scancorr_proto::names::check("effect id", &b.id)
+                .map_err(|e| invalid(format!("effects[{i}]"), e.to_string()))?;
             if !ids.insert(b.id.clone()) {
                 return Err(invalid(
                     format!("effects[{i}]"),
@@ -361,6 +412,10 @@ impl Calibration {
                 ));
             }
             effects.push(b);
+        }
+        for name in sensors.names() {
+            scancorr_proto::names::check("temperature sensor", name)
+                .map_err(|e| invalid("effects", e.to_string()))?;
         }
         // Judgement.
         let j = &self.judgement;
@@ -418,6 +473,45 @@ impl Calibration {
         if !(1..=1000).contains(&jn.clock_reset_samples) {
             return Err(invalid("join.clock_reset_samples", "must be 1 … 1000"));
         }
+        if !(1..=1000).contains(&jn.seq_reset_samples) {
+            return Err(invalid("join.seq_reset_samples", "must be 1 … 1000"));
+        }
+        // Limits.
+        let l = &self.limits;
+        for (i, [lo, hi]) in l.travel_mm.iter().enumerate() {
+            if !(lo.is_finite() && hi.is_finite() && lo < hi && lo.abs() <= 1e6 && hi.abs() <= 1e6)
+            {
+                return Err(invalid(
+                    format!("limits.travel_mm[{i}]"),
+                    "must be [min, max] with min < max, finite, within ±1 000 000 mm",
+                ));
+            }
+        }
+        for (n, v) in [
+            ("probe_range_mm", l.probe_range_mm),
+            ("max_correction_mm", l.max_correction_mm),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
+                return Err(invalid(
+                    format!("limits.{n}"),
+                    "must be a number in (0, 1000] mm",
+                ));
+            }
+        }
+        let [tlo, thi] = l.temperature_c;
+        if !(tlo.is_finite() && thi.is_finite() && tlo < thi && tlo >= -273.15 && thi <= 2000.0) {
+            return Err(invalid(
+                "limits.temperature_c",
+                "must be [min, max] with −273.15 ≤ min < max ≤ 2000 °C",
+            ));
+        }
+        let reach = tips
+            .values()
+            .map(|t| t.l1_mm.abs() + t.l2_mm.abs() + t.l3_mm.abs() + t.radius_mm.abs())
+            .fold(0.0, f64::max)
+            + l.probe_range_mm * 3f64.sqrt()
+            + l.max_correction_mm * effects.len() as f64 * 3f64.sqrt();
+        let volume_mm = l.travel_mm.map(|[lo, hi]| [lo - reach, hi + reach]);
         let ns = |s: f64| (s * 1e9).round() as i64;
         Ok(Model {
             doc: self.clone(),
@@ -432,6 +526,7 @@ impl Calibration {
             temperature_delay_ns: ns(jn.temperature_delay_s),
             clock_reset_ns: ns(jn.clock_reset_s),
             temperature_max_age_ns: ns(jn.temperature_max_age_s),
+            volume_mm,
         })
     }
 
@@ -473,6 +568,7 @@ impl Calibration {
             effects: vec![],
             judgement: Judgement::default(),
             join: Join::default(),
+            limits: Limits::default(),
             metrics: BTreeMap::new(),
         }
     }
@@ -560,5 +656,28 @@ mod tests {
         let e = Calibration::from_json(&text).unwrap_err().to_string();
         assert!(e.contains("sample_period_s"), "{e}");
         assert!(Calibration::example("m1").check_machine("m2").is_err());
+
+        // Trailing garbage after a valid document.
+        for tail in ["x", "{}", "\"", "]"] {
+            let text = format!("{}{tail}", doc());
+            let e = Calibration::from_json(&text).unwrap_err().to_string();
+            assert!(e.contains("after the end of the document"), "{e}");
+        }
+        assert!(Calibration::from_json(&format!("{}  \n", doc())).is_ok());
+
+        // A machine id that would be a key-expression wildcard.
+        for bad in ["*", "**", "a/b", "m$*"] {
+            let mut v = doc();
+            v["machine_id"] = bad.into();
+            let e = err(v);
+            assert!(e.contains("machine_id"), "{e}");
+        }
+
+        let mut v = doc();
+        v["limits"]["travel_mm"][1] = serde_json::json!([10.0, -10.0]);
+        assert!(err(v).contains("limits.travel_mm[1]"));
+        let mut v = doc();
+        v["join"]["seq_reset_samples"] = serde_json::json!(0);
+        assert!(err(v).contains("join.seq_reset_samples"));
     }
 }

@@ -11,6 +11,20 @@
 //! on the samples' times, the output does not depend on how the streams were interleaved on
 //! arrival (as long as no buffer reaches `join.max_pending`).
 //!
+//! Sequence numbers are evidence, not law: a sample whose seq is not above its stream's last
+//! while its time runs on (a 32-bit counter that wrapped, a controller that restarted its
+//! counter, or the aftermath of one bogus jump) is held; `join.seq_reset_samples` of them in a
+//! row restart the stream's sequence and are taken (counted as `seq_resets`). A sample that
+//! repeats both seq and time is a duplicate.
+//!
+//! Plausibility (`limits` of the calibration): commands, arc centres and scales outside the
+//! travel, deflections beyond the probe range, head angles beyond a turn, temperatures outside
+//! the range are dropped as `implausible`; of the sensors the calibration does not use only the
+//! latest reading is kept, for at most [`MAX_KEPT_SENSORS`] names (so a new calibration that
+//! needs them has them at once), readings of further names are dropped as `unknown_sensor`; names outside the
+//! [`scancorr_proto::names`] grammar are dropped as `bad_name`. A point that is not finite or
+//! lies outside the machine's volume is dropped as `implausible_output`: never published.
+//!
 //! Synthesis: tip centre = scales + Σ corrections + R·deflection + R·tip offset;
 //! surface point = tip centre − tip radius · n, n = deflection direction (out of the material).
 
@@ -48,11 +62,19 @@ pub enum DropReason {
     UnknownTip,
     /// A stream buffer was full (another stream stalled).
     BufferOverflow,
+    /// A value outside the calibration's plausible ranges (`limits`).
+    Implausible,
+    /// A temperature of a sensor the calibration does not use, beyond the names kept.
+    UnknownSensor,
+    /// A sensor name outside the names grammar.
+    BadName,
+    /// A point that is not finite or lies outside the machine's volume (not published).
+    ImplausibleOutput,
 }
 
 impl DropReason {
     /// All reasons, in index order.
-    pub const ALL: [DropReason; 11] = [
+    pub const ALL: [DropReason; 15] = [
         DropReason::NonFinite,
         DropReason::Duplicate,
         DropReason::OutOfOrder,
@@ -64,6 +86,10 @@ impl DropReason {
         DropReason::TemperatureStale,
         DropReason::UnknownTip,
         DropReason::BufferOverflow,
+        DropReason::Implausible,
+        DropReason::UnknownSensor,
+        DropReason::BadName,
+        DropReason::ImplausibleOutput,
     ];
     /// snake_case name used in JSON output and logs.
     pub fn name(self) -> &'static str {
@@ -79,6 +105,10 @@ impl DropReason {
             "temperature_stale",
             "unknown_tip",
             "buffer_overflow",
+            "implausible",
+            "unknown_sensor",
+            "bad_name",
+            "implausible_output",
         ][self as usize]
     }
 }
@@ -95,7 +125,9 @@ pub struct Stats {
     /// Points produced while the estimate was not valid.
     pub points_invalid: u64,
     /// Drops by reason ([`DropReason`] index).
-    pub dropped: [u64; 11],
+    pub dropped: [u64; 15],
+    /// Stream sequences restarted (a counter wrap or restart, confirmed).
+    pub seq_resets: u64,
     /// Seq jumps (missing samples) seen per stream.
     pub seq_gaps: [u64; 4],
     /// Alarms raised.
@@ -132,6 +164,7 @@ impl Stats {
         self.points_invalid += o.points_invalid;
         self.alarms_raised += o.alarms_raised;
         self.clock_resets += o.clock_resets;
+        self.seq_resets += o.seq_resets;
     }
 }
 
@@ -169,6 +202,9 @@ struct PendingTemp {
     celsius: f64,
 }
 
+/// Most names of temperature sensors the calibration does not use whose last reading is kept.
+pub const MAX_KEPT_SENSORS: usize = 64;
+
 /// One machine's correction pipeline.
 #[derive(Debug)]
 pub struct Corrector {
@@ -182,7 +218,7 @@ pub struct Corrector {
     held_valid: u16,
     /// Last reading of every sensor seen (also those the calibration does not use, so a new
     /// calibration that needs them has them at once).
-    held_all: Vec<(String, f64, i64)>,
+    held_all: std::collections::HashMap<String, (f64, i64)>,
     estimator: Option<Estimator>,
     probe_type: String,
     e0: Option<Estimate>,
@@ -200,6 +236,9 @@ pub struct Corrector {
     /// sample in the old time base proves them late); count per stream.
     probation: Vec<Sample>,
     probation_n: [usize; 4],
+    /// Samples whose seq went back while their time runs on, per stream, held until they
+    /// prove a sequence restart (or a sample of the old sequence proves them duplicates).
+    seq_hold: [Vec<Sample>; 4],
 }
 
 impl Corrector {
@@ -226,7 +265,7 @@ impl Corrector {
             temp_q: VecDeque::new(),
             held: [(0.0, 0); MAX_SENSORS],
             held_valid: 0,
-            held_all: vec![],
+            held_all: Default::default(),
             estimator: None,
             probe_type: String::new(),
             e0: None,
@@ -240,6 +279,7 @@ impl Corrector {
             pending_limit: None,
             probation: Vec::new(),
             probation_n: [0; 4],
+            seq_hold: Default::default(),
         }
     }
 
@@ -309,7 +349,7 @@ impl Corrector {
         // Temperature slots may differ: re-resolve the held values by name.
         self.held_valid = 0;
         for (i, name) in model.sensors.names().iter().enumerate() {
-            if let Some((_, v, t)) = self.held_all.iter().find(|(n, _, _)| n == name) {
+            if let Some((v, t)) = self.held_all.get(name) {
                 self.held[i] = (*v, *t);
                 self.held_valid |= 1 << i;
             }
@@ -347,8 +387,13 @@ impl Corrector {
                 .iter()
                 .map(|p| p.sensor.capacity())
                 .sum::<usize>()
-            + self.held_all.capacity() * size_of::<(String, f64, i64)>()
-            + self.held_all.iter().map(|h| h.0.capacity()).sum::<usize>()
+            + self.held_all.capacity() * size_of::<(String, (f64, i64))>()
+            + self.held_all.keys().map(|k| k.capacity()).sum::<usize>()
+            + self
+                .seq_hold
+                .iter()
+                .map(|h| h.capacity() * size_of::<Sample>())
+                .sum::<usize>()
             + self.probe_type.capacity()
             + self.judge.heap_bytes()
     }
@@ -375,6 +420,27 @@ impl Corrector {
             self.stats.dropped[DropReason::OutOfOrder as usize] += self.probation_n[k] as u64;
             self.probation_n[k] = 0;
         }
+        let st = self.intake[k];
+        let seq_back = st.last_seq.is_some_and(|l| sample.seq() <= l);
+        let time_on = st.last_t.is_some_and(|l| t > l);
+        if seq_back && time_on && sample.is_finite() {
+            // The sequence went back while time runs on: a wrap or restart of the counter,
+            // or the samples after a bogus jump; held until enough in a row confirm it.
+            self.seq_hold[k].push(sample);
+            if self.seq_hold[k].len() >= self.model.doc.join.seq_reset_samples {
+                self.stats.seq_resets += 1;
+                self.intake[k].last_seq = None;
+                for s in std::mem::take(&mut self.seq_hold[k]) {
+                    self.take(s, out);
+                }
+            }
+            return;
+        }
+        if !self.seq_hold[k].is_empty() {
+            // The old sequence goes on: what was held repeated its numbers.
+            self.stats.dropped[DropReason::Duplicate as usize] += self.seq_hold[k].len() as u64;
+            self.seq_hold[k].clear();
+        }
         self.take(sample, out);
     }
 
@@ -397,6 +463,11 @@ impl Corrector {
         self.last_judged_t = None;
         self.stats.clock_resets += 1;
         self.probation_n = [0; 4];
+        for h in self.seq_hold.iter_mut() {
+            // Held in the old time base; with the new one they are late.
+            self.stats.dropped[DropReason::OutOfOrder as usize] += h.len() as u64;
+            h.clear();
+        }
         for s in std::mem::take(&mut self.probation) {
             self.take(s, out);
         }
@@ -430,11 +501,22 @@ impl Corrector {
                     self.probe_q.push_back(p);
                 }
                 Sample::Temperature(t) => {
+                    let slot = self.model.sensors.find(&t.sensor);
+                    if slot.is_none() {
+                        // Not used by this calibration: only its last reading is kept (for a
+                        // calibration that needs it), for a bounded number of names.
+                        self.hold(&PendingTemp {
+                            t_ns: t.t_ns,
+                            sensor: t.sensor,
+                            slot: None,
+                            celsius: t.celsius,
+                        });
+                        return self.emit(false, out);
+                    }
                     if self.temp_q.len() >= max {
                         let p = self.temp_q.pop_front().expect("non-empty");
                         self.hold(&p);
                     }
-                    let slot = self.model.sensors.find(&t.sensor);
                     self.temp_q.push_back(PendingTemp {
                         t_ns: t.t_ns,
                         slot,
@@ -458,6 +540,11 @@ impl Corrector {
     pub fn flush(&mut self, out: &mut Output) {
         self.stats.dropped[DropReason::OutOfOrder as usize] += self.probation.len() as u64;
         self.probation.clear();
+        for h in self.seq_hold.iter_mut() {
+            // Never confirmed as a new sequence: they repeated the old one's numbers.
+            self.stats.dropped[DropReason::Duplicate as usize] += h.len() as u64;
+            h.clear();
+        }
         self.probation_n = [0; 4];
         self.emit(true, out);
     }
@@ -472,6 +559,10 @@ impl Corrector {
         let st = &mut self.intake[k];
         if !finite {
             self.stats.dropped[DropReason::NonFinite as usize] += 1;
+            return false;
+        }
+        if let Err(r) = plausible(s, &self.model.doc.limits) {
+            self.stats.dropped[r as usize] += 1;
             return false;
         }
         if st.last_seq.is_some_and(|l| seq <= l) {
@@ -497,9 +588,13 @@ impl Corrector {
     }
 
     fn hold(&mut self, p: &PendingTemp) {
-        match self.held_all.iter_mut().find(|(n, _, _)| *n == p.sensor) {
-            Some(h) => (h.1, h.2) = (p.celsius, p.t_ns),
-            None => self.held_all.push((p.sensor.clone(), p.celsius, p.t_ns)),
+        let room = self.held_all.len() < MAX_KEPT_SENSORS || p.slot.is_some();
+        match self.held_all.get_mut(&p.sensor) {
+            Some(h) => *h = (p.celsius, p.t_ns),
+            None if room => {
+                self.held_all.insert(p.sensor.clone(), (p.celsius, p.t_ns));
+            }
+            None => self.drop(DropReason::UnknownSensor),
         }
         if let Some(slot) = p.slot {
             self.held[slot] = (p.celsius, p.t_ns);
@@ -705,6 +800,9 @@ impl Corrector {
             suspend,
             model.doc.geometry.min_contact_deflection_mm,
         );
+        if !inside(&point, &model) {
+            return Err(DropReason::ImplausibleOutput);
+        }
         let valid = settled && !alarm;
         out.points.push(CorrectedPoint {
             seq: self.point_seq,
@@ -729,6 +827,58 @@ impl Corrector {
         }
         Ok(())
     }
+}
+
+/// Whether a sample's values lie in the machine's plausible ranges; its name in the grammar.
+fn plausible(s: &Sample, l: &crate::calib::Limits) -> Result<(), DropReason> {
+    let in_travel =
+        |p: &Vec3| (0..3).all(|i| p[i] >= l.travel_mm[i][0] && p[i] <= l.travel_mm[i][1]);
+    let ok = match s {
+        Sample::Command(c) => {
+            in_travel(&c.pos)
+                && (c.arc_radius == 0.0
+                    || (in_travel(&c.arc_center) && c.arc_radius <= diagonal(l)))
+        }
+        Sample::Scale(c) => in_travel(&c.pos),
+        Sample::Probe(p) => {
+            p.deflection.iter().all(|d| d.abs() <= l.probe_range_mm)
+                && p.head_a1_deg.abs() <= 360.0
+                && p.head_a2_deg.abs() <= 360.0
+        }
+        Sample::Temperature(t) => {
+            if !scancorr_proto::names::is_valid(&t.sensor) {
+                return Err(DropReason::BadName);
+            }
+            t.celsius >= l.temperature_c[0] && t.celsius <= l.temperature_c[1]
+        }
+    };
+    if ok {
+        Ok(())
+    } else {
+        Err(DropReason::Implausible)
+    }
+}
+
+fn diagonal(l: &crate::calib::Limits) -> f64 {
+    l.travel_mm
+        .iter()
+        .map(|[lo, hi]| (hi - lo).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// Whether a corrected point is finite, inside the machine's volume and every correction
+/// within `limits.max_correction_mm`.
+fn inside(p: &Synthesis, m: &Model) -> bool {
+    let vol = &m.volume_mm;
+    let within = |v: &Vec3| (0..3).all(|i| v[i] >= vol[i][0] && v[i] <= vol[i][1]);
+    let max_c = m.doc.limits.max_correction_mm;
+    within(&p.surface)
+        && within(&p.tip_center)
+        && p.normal.iter().all(|v| v.is_finite())
+        && p.corrections
+            .iter()
+            .all(|c| c.iter().all(|v| v.abs() <= max_c))
 }
 
 /// The geometric result of one point.

@@ -142,6 +142,7 @@ impl Judge {
             }
             self.primed = true;
         }
+        let mut broken = false;
         for (i, st) in self.axes.iter_mut().enumerate() {
             let mut e = a_mid[i];
             let mut m = a_meas[i];
@@ -150,8 +151,12 @@ impl Judge {
                 m = c.run(&mut st.meas[k], m);
             }
             let d = (e - m).abs();
+            // A difference that is not a number (an overflow in the estimate or the filters)
+            // means the estimate cannot be judged: it counts as exceeding, even while settling.
+            let nan = !d.is_finite();
+            broken |= nan;
             if !st.raised {
-                st.above = if judge && d > self.threshold {
+                st.above = if (judge && d > self.threshold) || nan {
                     st.above + 1
                 } else {
                     0
@@ -183,6 +188,11 @@ impl Judge {
                     });
                 }
             }
+        }
+        if broken {
+            // The filters hold a non-finite state: start them again from the next samples, so
+            // the alarm can clear once the data are sane again.
+            self.primed = false;
         }
     }
 }
@@ -221,6 +231,33 @@ mod tests {
         assert!((500..530).contains(&k_up), "raised at {k_up}");
         assert!((700..800).contains(&k_down), "cleared at {k_down}");
         assert!(up.measured - up.estimated > 100.0);
+    }
+
+    #[test]
+    fn a_non_finite_estimate_raises_and_then_clears() {
+        let sections = Coefficients::butterworth(1000.0, 40.0, 4).unwrap();
+        let mut j = Judge::new(sections, 100.0, 0.5, 4, 50);
+        let mut events = vec![];
+        for k in 0..400i64 {
+            let a = if (100..110).contains(&k) {
+                f64::INFINITY
+            } else {
+                0.0
+            };
+            j.update(
+                k * 1_000_000,
+                Vec3::zeros(),
+                Vec3::new(a, 0.0, 0.0),
+                false,
+                &mut |t| events.push((k, t.raised)),
+            );
+        }
+        assert_eq!(events.len(), 2, "{events:?}");
+        assert!(
+            events[0].1 && (100..115).contains(&events[0].0),
+            "{events:?}"
+        );
+        assert!(!events[1].1, "{events:?}");
     }
 
     #[test]

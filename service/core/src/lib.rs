@@ -36,7 +36,7 @@ pub mod transfer;
 pub mod wire;
 
 pub use calib::{CalibError, Calibration};
-pub use corrector::{Corrector, DropReason, Output, Stats};
+pub use corrector::{Corrector, DropReason, Output, Stats, MAX_KEPT_SENSORS};
 pub use sample::{
     Alarm, AlarmAction, Axis, CommandSample, CorrectedPoint, PointContext, ProbeSample, Sample,
     ScaleSample, TemperatureSample, Vec3,

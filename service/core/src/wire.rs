@@ -22,6 +22,86 @@ pub enum WireError {
     /// A batch with no samples.
     #[error("empty {0}")]
     Empty(&'static str),
+    /// A batch that names another stream than the key it came on (v1.1 stream tag).
+    #[error("a {found} batch on the {expected} stream")]
+    WrongStream {
+        /// The stream of the key.
+        expected: &'static str,
+        /// The stream the batch names.
+        found: String,
+    },
+    /// A batch without the v1.1 stream tag where one is required.
+    #[error(
+        "{0} without its stream tag (a producer older than scancorr.v1.1, or another message type)"
+    )]
+    Untagged(&'static str),
+}
+
+/// Whether a raw batch must carry its v1.1 stream tag.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Tags {
+    /// A batch without the tag is refused ([`WireError::Untagged`]): the live service, where
+    /// nothing but the key says what a payload is.
+    Require,
+    /// A batch without the tag is taken as the key's stream: bags, whose channel names the
+    /// message type, and producers older than v1.1.
+    AllowUntagged,
+}
+
+/// The v1.1 tag value of a stream.
+pub fn stream_kind(stream: StreamId) -> v1::StreamKind {
+    match stream {
+        StreamId::Command => v1::StreamKind::Command,
+        StreamId::Scale => v1::StreamKind::Scale,
+        StreamId::Probe => v1::StreamKind::Probe,
+        StreamId::Temperature => v1::StreamKind::Temperature,
+    }
+}
+
+fn check_tag(stream: StreamId, tag: i32, tags: Tags, name: &'static str) -> Result<(), WireError> {
+    if tag == stream_kind(stream) as i32 {
+        return Ok(());
+    }
+    if tag == v1::StreamKind::Unspecified as i32 {
+        return match tags {
+            Tags::AllowUntagged => Ok(()),
+            Tags::Require => Err(WireError::Untagged(name)),
+        };
+    }
+    Err(WireError::WrongStream {
+        expected: stream.name(),
+        found: v1::StreamKind::try_from(tag)
+            .map(|k| {
+                k.as_str_name()
+                    .trim_start_matches("STREAM_KIND_")
+                    .to_ascii_lowercase()
+            })
+            .unwrap_or_else(|_| format!("unknown ({tag})")),
+    })
+}
+
+/// The bytes of a raw batch with its v1.1 stream tag: appended when missing (protobuf merges
+/// a field written after the others), refused when it names another stream. For replaying
+/// bags recorded before v1.1 into a service that requires the tag.
+pub fn tagged(stream: StreamId, bytes: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, WireError> {
+    let tag = match stream {
+        StreamId::Command => v1::CommandBatch::decode(bytes).map(|b| b.stream),
+        StreamId::Scale => v1::ScaleBatch::decode(bytes).map(|b| b.stream),
+        StreamId::Probe => v1::ProbeBatch::decode(bytes).map(|b| b.stream),
+        StreamId::Temperature => v1::TemperatureBatch::decode(bytes).map(|b| b.stream),
+    }
+    .map_err(|e| WireError::Malformed {
+        message: "raw batch",
+        reason: e.to_string(),
+    })?;
+    check_tag(stream, tag, Tags::AllowUntagged, "raw batch")?;
+    if tag != 0 {
+        return Ok(std::borrow::Cow::Borrowed(bytes));
+    }
+    let mut v = Vec::with_capacity(bytes.len() + 2);
+    v.extend_from_slice(bytes);
+    put_u64(2, stream_kind(stream) as u64, &mut v);
+    Ok(std::borrow::Cow::Owned(v))
 }
 
 /// Decoded samples of one raw message with the machine id each named.
@@ -86,15 +166,26 @@ pub fn decode(stream: StreamId, bytes: &[u8]) -> Result<Decoded, WireError> {
 }
 
 /// Decodes a raw payload of one machine: samples naming `machine` are appended to `out`, the
-/// number of samples naming another machine is returned.
+/// number of samples naming another machine is returned. Untagged batches are taken (bags).
 pub fn decode_machine(
     stream: StreamId,
     bytes: &[u8],
     machine: &str,
     out: &mut Vec<Sample>,
 ) -> Result<u64, WireError> {
+    decode_machine_tagged(stream, bytes, machine, Tags::AllowUntagged, out)
+}
+
+/// [`decode_machine`] with a choice about batches without the v1.1 stream tag.
+pub fn decode_machine_tagged(
+    stream: StreamId,
+    bytes: &[u8],
+    machine: &str,
+    tags: Tags,
+    out: &mut Vec<Sample>,
+) -> Result<u64, WireError> {
     let mut foreign = 0;
-    decode_with(stream, bytes, |m, s| {
+    decode_with_tags(stream, bytes, tags, |m, s| {
         if m == machine {
             out.push(s)
         } else {
@@ -104,10 +195,22 @@ pub fn decode_machine(
     Ok(foreign)
 }
 
-/// Decodes a raw payload and hands each (machine id, sample) to `f`, in batch order.
+/// Decodes a raw payload and hands each (machine id, sample) to `f`, in batch order. Untagged
+/// batches are taken; a batch tagged with another stream is refused.
 pub fn decode_with(
     stream: StreamId,
     bytes: &[u8],
+    f: impl FnMut(&str, Sample),
+) -> Result<usize, WireError> {
+    decode_with_tags(stream, bytes, Tags::AllowUntagged, f)
+}
+
+/// [`decode_with`] with a choice about batches without the v1.1 stream tag. Nothing is handed
+/// to `f` unless the whole batch decodes and its tag fits.
+pub fn decode_with_tags(
+    stream: StreamId,
+    bytes: &[u8],
+    tags: Tags,
     mut f: impl FnMut(&str, Sample),
 ) -> Result<usize, WireError> {
     let malformed = |message, e: scancorr_proto::prost::DecodeError| WireError::Malformed {
@@ -117,22 +220,26 @@ pub fn decode_with(
     let (n, name) = match stream {
         StreamId::Command => {
             let b = v1::CommandBatch::decode(bytes).map_err(|e| malformed("CommandBatch", e))?;
+            check_tag(stream, b.stream, tags, "CommandBatch")?;
             b.samples.iter().for_each(|s| f(&s.machine_id, command(s)));
             (b.samples.len(), "CommandBatch")
         }
         StreamId::Scale => {
             let b = v1::ScaleBatch::decode(bytes).map_err(|e| malformed("ScaleBatch", e))?;
+            check_tag(stream, b.stream, tags, "ScaleBatch")?;
             b.samples.iter().for_each(|s| f(&s.machine_id, scale(s)));
             (b.samples.len(), "ScaleBatch")
         }
         StreamId::Probe => {
             let b = v1::ProbeBatch::decode(bytes).map_err(|e| malformed("ProbeBatch", e))?;
+            check_tag(stream, b.stream, tags, "ProbeBatch")?;
             b.samples.iter().for_each(|s| f(&s.machine_id, probe(s)));
             (b.samples.len(), "ProbeBatch")
         }
         StreamId::Temperature => {
             let b = v1::TemperatureBatch::decode(bytes)
                 .map_err(|e| malformed("TemperatureBatch", e))?;
+            check_tag(stream, b.stream, tags, "TemperatureBatch")?;
             b.samples
                 .iter()
                 .for_each(|s| f(&s.machine_id, temperature(s)));
@@ -441,21 +548,25 @@ impl Batcher {
         }
         match stream {
             StreamId::Command => {
+                self.command.stream = v1::StreamKind::Command as i32;
                 let fl = ends(self.command.samples.iter().map(|s| s.t_ns));
                 let empty = self.command.samples.is_empty();
                 t(&mut self.command, fl, empty)
             }
             StreamId::Scale => {
+                self.scale.stream = v1::StreamKind::Scale as i32;
                 let fl = ends(self.scale.samples.iter().map(|s| s.t_ns));
                 let empty = self.scale.samples.is_empty();
                 t(&mut self.scale, fl, empty)
             }
             StreamId::Probe => {
+                self.probe.stream = v1::StreamKind::Probe as i32;
                 let fl = ends(self.probe.samples.iter().map(|s| s.t_ns));
                 let empty = self.probe.samples.is_empty();
                 t(&mut self.probe, fl, empty)
             }
             StreamId::Temperature => {
+                self.temperature.stream = v1::StreamKind::Temperature as i32;
                 let fl = ends(self.temperature.samples.iter().map(|s| s.t_ns));
                 let empty = self.temperature.samples.is_empty();
                 t(&mut self.temperature, fl, empty)
@@ -520,6 +631,55 @@ mod tests {
             decode(StreamId::Scale, &[]),
             Err(WireError::Empty(_))
         ));
+    }
+
+    #[test]
+    fn a_batch_on_another_streams_key_is_refused() {
+        let cmd = Sample::Command(CommandSample {
+            seq: 1,
+            t_ns: 5,
+            pos: Vec3::new(100.0, 2.0, 3.0),
+            arc_center: Vec3::zeros(),
+            arc_radius: 0.0,
+            segment_id: 0,
+        });
+        let mut b = Batcher::new("m1", 10);
+        b.push(&cmd);
+        let (bytes, _, _) = b.take(StreamId::Command).unwrap();
+        // Without its tag a command batch decodes as a valid scale batch (fields 1–6 agree).
+        let untagged = v1::CommandBatch {
+            samples: v1::CommandBatch::decode(&bytes[..]).unwrap().samples,
+            stream: 0,
+        }
+        .encode_to_vec();
+        assert_eq!(decode(StreamId::Scale, &untagged).unwrap().samples.len(), 1);
+        // With it, the mismatch is detected whatever the policy.
+        for tags in [Tags::Require, Tags::AllowUntagged] {
+            let e = decode_with_tags(StreamId::Scale, &bytes, tags, |_, _| panic!("decoded"))
+                .unwrap_err();
+            assert_eq!(
+                e,
+                WireError::WrongStream {
+                    expected: "scale",
+                    found: "command".into()
+                }
+            );
+        }
+        assert_eq!(
+            decode_with_tags(StreamId::Command, &untagged, Tags::Require, |_, _| {}),
+            Err(WireError::Untagged("CommandBatch"))
+        );
+        // Tagging an old batch gives the bytes a v1.1 producer writes.
+        assert_eq!(&*tagged(StreamId::Command, &untagged).unwrap(), &bytes[..]);
+        assert_eq!(&*tagged(StreamId::Command, &bytes).unwrap(), &bytes[..]);
+        assert!(tagged(StreamId::Scale, &bytes).is_err());
+        let mut n = 0;
+        decode_with_tags(StreamId::Command, &bytes, Tags::Require, |m, s| {
+            assert_eq!((m, &s), ("m1", &cmd));
+            n += 1;
+        })
+        .unwrap();
+        assert_eq!(n, 1);
     }
 
     #[test]

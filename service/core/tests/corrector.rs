@@ -469,3 +469,175 @@ fn a_few_samples_far_back_are_late_not_a_clock_reset() {
     assert_eq!(stats.dropped_by_name(), vec![("out_of_order", 5)]);
     assert_eq!(out.points.len(), clean.points.len());
 }
+
+/// The same streams with every sample's seq mapped by `f` (per stream index).
+fn reseq(streams: &[Vec<Sample>; 4], f: impl Fn(usize, u64) -> u64) -> [Vec<Sample>; 4] {
+    let mut out = streams.clone();
+    for (k, st) in out.iter_mut().enumerate() {
+        for s in st.iter_mut() {
+            match s {
+                Sample::Command(c) => c.seq = f(k, c.seq),
+                Sample::Scale(c) => c.seq = f(k, c.seq),
+                Sample::Probe(c) => c.seq = f(k, c.seq),
+                Sample::Temperature(c) => c.seq = f(k, c.seq),
+            }
+        }
+    }
+    out
+}
+
+/// The same points but for the scale seq each was made from (`sample_seq`); names the first
+/// difference.
+fn same_points(got: &[CorrectedPoint], want: &[CorrectedPoint]) {
+    assert_eq!(got.len(), want.len(), "number of points");
+    for (g, w) in got.iter().zip(want) {
+        let g = CorrectedPoint {
+            sample_seq: w.sample_seq,
+            ..g.clone()
+        };
+        assert!(
+            g == *w,
+            "first difference at point seq {}: {g:?} vs {w:?}",
+            w.seq
+        );
+    }
+}
+
+#[test]
+fn a_wrapping_32_bit_counter_restarts_the_sequence_and_loses_nothing() {
+    let streams = ring_streams(1500, 25.0, 1.5, 0.3);
+    let (want, _) = run(&calibration(), time_ordered(&streams));
+    // Command, scale and probe counters are 32-bit and wrap 700 samples in.
+    let base = (1u64 << 32) - 700;
+    let wrapped = reseq(
+        &streams,
+        |k, seq| if k < 3 { (base + seq) % (1 << 32) } else { seq },
+    );
+    let (got, st) = run(&calibration(), time_ordered(&wrapped));
+    assert_eq!(st.seq_resets, 3, "{st:?}");
+    assert_eq!(st.dropped_total(), 0, "{st:?}");
+    same_points(&got.points, &want.points);
+}
+
+#[test]
+fn one_bogus_seq_jump_is_recovered_from() {
+    let streams = ring_streams(1500, 25.0, 1.5, 0.3);
+    let (want, _) = run(&calibration(), time_ordered(&streams));
+    // One scale sample and one probe sample carry a wild seq; the counters go on as before.
+    let jumped = reseq(&streams, |k, seq| match (k, seq) {
+        (1, 300) | (2, 900) => 1 << 40,
+        _ => seq,
+    });
+    let (got, st) = run(&calibration(), time_ordered(&jumped));
+    assert_eq!(st.seq_resets, 2, "{st:?}");
+    assert_eq!(st.dropped_total(), 0, "{st:?}");
+    same_points(&got.points, &want.points);
+    // True duplicates (same seq, same time) are still duplicates, not a restart.
+    let mut dup = time_ordered(&streams);
+    let again: Vec<Sample> = dup
+        .iter()
+        .filter(|s| (500..510).contains(&(s.t_ns() / T_NS)))
+        .cloned()
+        .collect();
+    let at = dup.iter().position(|s| s.t_ns() / T_NS == 510).unwrap();
+    dup.splice(at..at, again.clone());
+    let (got, st) = run(&calibration(), dup);
+    assert_eq!(st.seq_resets, 0);
+    assert_eq!(
+        st.dropped[DropReason::Duplicate as usize] + st.dropped[DropReason::OutOfOrder as usize],
+        again.len() as u64,
+        "{st:?}"
+    );
+    same_points(&got.points, &want.points);
+}
+
+#[test]
+fn sensors_the_calibration_does_not_use_are_bounded() {
+    let streams = ring_streams(1500, 25.0, 1.5, 0.3);
+    let (want, _) = run(&calibration(), time_ordered(&streams));
+    let mut all = time_ordered(&streams);
+    // One burst of 100 000 distinct sensor names (and a few bad names) early in the run.
+    let at = all.iter().position(|s| s.t_ns() / T_NS == 20).unwrap();
+    let burst: Vec<Sample> = (0..100_000u64)
+        .map(|i| {
+            Sample::Temperature(TemperatureSample {
+                seq: 100 + i,
+                t_ns: 10 * T_NS,
+                sensor: if i % 10_000 == 7 {
+                    format!("bad/name*{i}")
+                } else {
+                    format!("s{i}")
+                },
+                celsius: 20.0,
+            })
+        })
+        .collect();
+    all.splice(at..at, burst);
+    // Later temperatures continue the stylus sensor's sequence above the burst.
+    for s in all.iter_mut() {
+        if let Sample::Temperature(t) = s {
+            if t.sensor == "stylus" && t.t_ns > 10 * T_NS {
+                t.seq += 200_000;
+            }
+        }
+    }
+    let mut corr = Corrector::new(&calibration()).unwrap();
+    let mut out = Output::default();
+    corr.push_all(all, &mut out);
+    corr.flush(&mut out);
+    let st = corr.stats();
+    assert_eq!(st.dropped[DropReason::BadName as usize], 10, "{st:?}");
+    let unknown = st.dropped[DropReason::UnknownSensor as usize];
+    // The stylus sensor is kept with 63 others.
+    let kept = MAX_KEPT_SENSORS as u64 - 1;
+    assert_eq!(unknown, 100_000 - 10 - kept, "{st:?}");
+    assert!(
+        corr.state_bytes() < 64 * 1024,
+        "{} bytes",
+        corr.state_bytes()
+    );
+    same_points(&out.points, &want.points);
+}
+
+#[test]
+fn absurd_but_finite_input_never_becomes_a_point() {
+    let streams = ring_streams(1500, 25.0, 1.5, 0.3);
+    let mut bad = streams.clone();
+    if let Sample::Command(c) = &mut bad[0][700] {
+        c.pos.x = 1e308;
+    }
+    if let Sample::Probe(p) = &mut bad[2][900] {
+        p.head_a2_deg = 1e308;
+    }
+    if let Sample::Scale(s) = &mut bad[1][1100] {
+        s.pos.y = -1e12;
+    }
+    if let Sample::Temperature(t) = &mut bad[3][5] {
+        t.celsius = 1e300;
+    }
+    let (out, st) = run(&calibration(), time_ordered(&bad));
+    assert_eq!(st.dropped[DropReason::Implausible as usize], 4, "{st:?}");
+    let c = Vec3::new(300.0, 200.0, -100.0);
+    assert!(out.points.len() > 1400);
+    for p in &out.points {
+        let uncorrected = p.surface - p.corrections.iter().sum::<Vec3>();
+        assert!(
+            ((uncorrected - c).norm() - 25.0).abs() < 1e-6,
+            "seq {}",
+            p.seq
+        );
+    }
+    // A model that predicts a 10-mm correction is broken: no point is published.
+    let mut cal = calibration();
+    if let EffectConfig::AccelDeflection(ad) = &mut cal.effects[0] {
+        ad.p[0] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    }
+    let (out, st) = run(&cal, time_ordered(&streams));
+    let n = st.dropped[DropReason::ImplausibleOutput as usize];
+    assert!(n > 1000, "{st:?}");
+    assert!(out
+        .points
+        .iter()
+        .all(|p| p.corrections[0].norm() <= 5.0 * 3f64.sqrt()));
+    assert_eq!(out.points.len() as u64 + n, 1500);
+}

@@ -36,6 +36,18 @@ pub struct Config {
     /// A zenoh configuration file (JSON5) for everything else — TLS certificates, user
     /// authentication — used as the base; mode and endpoints above override it.
     pub zenoh_config: Option<PathBuf>,
+    /// Largest message the service accepts from the bus, bytes (zenoh drops larger ones at
+    /// reassembly, before they take memory); also the largest calibration document put.
+    pub max_message_bytes: usize,
+    /// Corrected output waiting to be published per machine, bytes. Publishing never blocks
+    /// correction: a machine whose subscribers do not keep up has its newest batches dropped
+    /// past this bound, counted as `points_dropped_backpressure` (a `seq` gap for the
+    /// subscriber); other machines are not affected.
+    pub max_queued_bytes_per_machine: usize,
+    /// Take raw batches without the scancorr.v1.1 stream tag (producers older than v1.1).
+    /// Off: an untagged batch is refused and counted (`untagged`), because nothing else tells
+    /// a command batch published on the scale key from a scale batch.
+    pub accept_untagged_batches: bool,
 }
 
 impl Default for Config {
@@ -53,6 +65,9 @@ impl Default for Config {
             stall_after_ms: 1000,
             scouting: false,
             zenoh_config: None,
+            max_message_bytes: 16 << 20,
+            max_queued_bytes_per_machine: 8 << 20,
+            accept_untagged_batches: false,
         }
     }
 }
@@ -76,6 +91,9 @@ pub enum ConfigError {
         /// What is wrong.
         msg: String,
     },
+    /// A value out of range or a name outside the grammar.
+    #[error("configuration: {0}")]
+    Invalid(String),
     /// A value zenoh refused.
     #[error("zenoh configuration `{key}`: {msg}")]
     Zenoh {
@@ -97,13 +115,39 @@ impl Config {
             path: path.into(),
             msg: e.to_string(),
         })?;
-        if !["peer", "client", "router"].contains(&c.mode.as_str()) {
-            return Err(ConfigError::Parse {
-                path: path.into(),
-                msg: format!("mode `{}`: peer, client or router", c.mode),
-            });
-        }
+        c.validate().map_err(|msg| ConfigError::Parse {
+            path: path.into(),
+            msg,
+        })?;
         Ok(c)
+    }
+
+    /// Checks values and names (the prefix and every machine id follow the
+    /// `scancorr_proto::names` grammar, so none becomes a wildcard in a key expression).
+    pub fn validate(&self) -> Result<(), String> {
+        if !["peer", "client", "router"].contains(&self.mode.as_str()) {
+            return Err(format!(
+                "mode {}: peer, client or router",
+                scancorr_proto::names::shown(&self.mode)
+            ));
+        }
+        scancorr_proto::names::check_prefix(&self.prefix).map_err(|e| format!("prefix: {e}"))?;
+        for (i, m) in self.machines.iter().enumerate() {
+            scancorr_proto::names::check_machine(m).map_err(|e| format!("machines[{i}]: {e}"))?;
+        }
+        if self.max_machines == 0 || self.max_machines > 1_000_000 {
+            return Err("max_machines: 1 … 1 000 000".into());
+        }
+        if !(1024..=(1 << 30)).contains(&self.max_message_bytes) {
+            return Err("max_message_bytes: 1 KiB … 1 GiB".into());
+        }
+        if self.max_queued_bytes_per_machine < 64 * 1024 {
+            return Err("max_queued_bytes_per_machine: at least 64 KiB".into());
+        }
+        if self.max_pending_samples == 0 {
+            return Err("max_pending_samples: at least 1".into());
+        }
+        Ok(())
     }
 
     /// The zenoh session configuration.
@@ -115,7 +159,38 @@ impl Config {
             })?,
             None => zenoh::Config::default(),
         };
-        apply(base, &self.mode, &self.listen, &self.connect, self.scouting)
+        let mut z = apply(base, &self.mode, &self.listen, &self.connect, self.scouting)?;
+        let mut set = |k: &str, v: String| {
+            z.insert_json5(k, &v).map_err(|e| ConfigError::Zenoh {
+                key: k.into(),
+                msg: e.to_string(),
+            })
+        };
+        set(
+            "transport/link/rx/max_message_size",
+            self.max_message_bytes.to_string(),
+        )?;
+        // Raw streams that this session forwards to other clients (as a peer it routes for
+        // them) may be dropped for a consumer that does not keep up (after zenoh's 1 ms), and
+        // travel
+        // in their own priority lane (`data_low`): a controller's `Block` publication
+        // forwarded to a subscriber that stopped reading would otherwise hold the receiving
+        // thread — every machine's input — for up to 5 s, and so would a droppable one
+        // queued behind the service's own blocked output in the same lane (zenoh locks a
+        // link's lane while a `Block` message waits for room). The service's own output keeps
+        // `Block` and is queued per machine (outbox), off the receiving and correcting paths.
+        set(
+            "qos/network",
+            format!(
+                r#"[{{ id: "scancorrd_forwarded_raw", messages: ["put", "delete"], flows: ["egress"],
+                      key_exprs: ["{}/*/raw/**"], overwrite: {{ congestion_control: "drop", priority: "data_low" }} }}]"#,
+                self.prefix
+            ),
+        )?;
+        // 16 batches of queue per link in the lanes the service sends in, for bursts.
+        set("transport/link/tx/queue/size/data", "16".into())?;
+        set("transport/link/tx/queue/size/data_low", "16".into())?;
+        Ok(z)
     }
 
     /// Whether `machine` may be served.

@@ -22,8 +22,24 @@ struct Args {
     data_dir: Option<PathBuf>,
 }
 
-#[tokio::main]
-async fn main() -> Result<()> {
+/// zenoh's runtimes unless `ZENOH_RUNTIME` says otherwise: four transmit workers. A link
+/// whose subscriber stopped reading holds its queue lock while a publication waits for room,
+/// and zenoh's transmit task for that link then blocks its worker; with one worker (zenoh's
+/// default) every other link would wait too.
+const ZENOH_RUNTIME_DEFAULT: &str = "(tx: (worker_threads: 4))";
+
+fn main() -> Result<()> {
+    // Read once by zenoh at its first use, so set before any thread or runtime exists.
+    if std::env::var_os("ZENOH_RUNTIME").is_none() {
+        std::env::set_var("ZENOH_RUNTIME", ZENOH_RUNTIME_DEFAULT);
+    }
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?
+        .block_on(serve())
+}
+
+async fn serve() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()

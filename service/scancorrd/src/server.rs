@@ -1,6 +1,14 @@
 //! The async shell: zenoh in, the pure core, zenoh out. One task owns every machine's state;
 //! each raw message is decoded, pushed through that machine's [`Corrector`] and whatever it
-//! completes is published at once.
+//! completes is handed to that machine's [`Outbox`], which publishes it off the correcting
+//! task: a subscriber that stops reading can delay or cost only the points of the machines it
+//! subscribes to (dropped newest-first past `max_queued_bytes_per_machine`, counted), never
+//! another machine's correction.
+//!
+//! Everything from outside is checked before it is used: key expressions and machine ids
+//! (`scancorr_proto::names`), the stream tag of every raw batch, message and document sizes.
+//! What is refused is counted per reason, never per name (a stranger cannot grow the
+//! service's memory by inventing names), and logged at most once per [`LOG_EVERY`].
 
 use crate::config::Config;
 use crate::store::Store;
@@ -8,12 +16,16 @@ use scancorr_core::wire;
 use scancorr_core::{Calibration, Corrector, Output};
 use scancorr_proto::{Message, Stream};
 use serde_json::json;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::future::Future;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 use zenoh::qos::CongestionControl;
+use zenoh::Wait;
+
+/// Refusals of one reason are logged at most this often (with the count since the last line).
+pub const LOG_EVERY: Duration = Duration::from_secs(10);
 
 /// Why the service stopped.
 #[derive(Debug, thiserror::Error)]
@@ -27,6 +39,9 @@ pub enum ServiceError {
     /// Zenoh.
     #[error("zenoh: {0}")]
     Zenoh(String),
+    /// A name or a request refused (the message says which and why).
+    #[error("{0}")]
+    Refused(String),
 }
 
 fn z<E: std::fmt::Display>(e: E) -> ServiceError {
@@ -38,15 +53,177 @@ fn z<E: std::fmt::Display>(e: E) -> ServiceError {
 struct Extra {
     malformed: u64,
     empty: u64,
+    /// Batches tagged with another stream than their key's (v1.1 tag).
+    wrong_stream: u64,
+    /// Batches without the v1.1 stream tag (refused unless `accept_untagged_batches`).
+    untagged: u64,
     wrong_machine: u64,
     no_calibration: u64,
     messages: u64,
 }
 
-struct Machine {
-    corrector: Option<Corrector>,
+/// Messages and requests refused before they reached a machine, counted per reason.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+struct Refused {
+    /// Raw samples of a machine this service does not serve.
+    not_served: u64,
+    /// Raw samples or puts of a new machine beyond `max_machines`.
+    over_capacity: u64,
+    /// Messages on a key whose machine id or stream is not valid (wildcards included).
+    bad_key: u64,
+    /// Queries whose key names no valid machine.
+    bad_query: u64,
+}
+
+/// A rate-limited warning per refusal reason.
+#[derive(Default)]
+struct LogGate {
+    last: BTreeMap<&'static str, (Instant, u64)>,
+}
+
+impl LogGate {
+    /// Whether to log now; with the number of events since the last line logged.
+    fn pass(&mut self, reason: &'static str) -> Option<u64> {
+        let now = Instant::now();
+        match self.last.get_mut(reason) {
+            Some((t, n)) if now.duration_since(*t) < LOG_EVERY => {
+                *n += 1;
+                None
+            }
+            Some((t, n)) => {
+                let since = *n + 1;
+                (*t, *n) = (now, 0);
+                Some(since)
+            }
+            None => {
+                self.last.insert(reason, (now, 0));
+                Some(1)
+            }
+        }
+    }
+}
+
+/// A machine's output on its way to the bus: a bounded queue drained by a blocking task, so
+/// that a zenoh `put` never holds up the correcting task.
+///
+/// Points and alarms are published with `CongestionControl::Block`, so a subscriber that is
+/// only busy loses nothing. A subscriber that stops reading holds up the drain of the machines
+/// it subscribes to (zenoh waits up to 5 s, then closes that link); their outboxes fill, and
+/// past `max_queued_bytes_per_machine` the newest batches are dropped and counted. Other
+/// machines are not affected: their outboxes drain on their own threads, and zenoh's transmit
+/// runtime has several workers (see `main.rs`: one worker would be held by the stalled
+/// link's queue lock and stall every link).
+struct Outbox {
     points: zenoh::pubsub::Publisher<'static>,
     alarms: zenoh::pubsub::Publisher<'static>,
+    machine: String,
+    max_bytes: usize,
+    state: Mutex<OutState>,
+}
+
+#[derive(Default)]
+struct OutState {
+    queue: VecDeque<Outgoing>,
+    bytes: usize,
+    draining: bool,
+    published_points: u64,
+    dropped_points: u64,
+    dropped_alarms: u64,
+    failed: u64,
+}
+
+enum Outgoing {
+    Points(Vec<u8>, u64),
+    Alarm(Vec<u8>),
+}
+
+impl Outgoing {
+    fn len(&self) -> usize {
+        match self {
+            Outgoing::Points(b, _) | Outgoing::Alarm(b) => b.len(),
+        }
+    }
+}
+
+impl Outbox {
+    fn lock(&self) -> std::sync::MutexGuard<'_, OutState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Queues `o`; drops it (newest first, counted) when the queue is over its bound.
+    fn send(self: &Arc<Self>, o: Outgoing) {
+        let mut st = self.lock();
+        if st.bytes + o.len() > self.max_bytes && !st.queue.is_empty() {
+            match o {
+                Outgoing::Points(_, n) => st.dropped_points += n,
+                Outgoing::Alarm(_) => st.dropped_alarms += 1,
+            }
+            return;
+        }
+        st.bytes += o.len();
+        st.queue.push_back(o);
+        if !st.draining {
+            st.draining = true;
+            let me = self.clone();
+            tokio::task::spawn_blocking(move || me.drain());
+        }
+    }
+
+    fn drain(&self) {
+        loop {
+            let o = {
+                let mut st = self.lock();
+                match st.queue.pop_front() {
+                    Some(o) => {
+                        st.bytes -= o.len();
+                        o
+                    }
+                    None => {
+                        st.draining = false;
+                        return;
+                    }
+                }
+            };
+            let (r, n) = match o {
+                Outgoing::Points(b, n) => (self.points.put(b).wait(), n),
+                Outgoing::Alarm(b) => (self.alarms.put(b).wait(), 0),
+            };
+            let mut st = self.lock();
+            match r {
+                Ok(()) => st.published_points += n,
+                Err(e) => {
+                    if st.failed == 0 {
+                        warn!(machine = %self.machine, error = %e, "publishing failed");
+                    }
+                    st.failed += 1;
+                }
+            }
+        }
+    }
+
+    fn idle(&self) -> bool {
+        let st = self.lock();
+        !st.draining && st.queue.is_empty()
+    }
+
+    fn figures(&self) -> serde_json::Value {
+        let st = self.lock();
+        json!({
+            "points_published": st.published_points,
+            "points_dropped_backpressure": st.dropped_points,
+            "alarms_dropped_backpressure": st.dropped_alarms,
+            "queued_bytes": st.bytes,
+            "publish_failures": st.failed,
+        })
+    }
+}
+
+struct Machine {
+    corrector: Option<Corrector>,
+    /// Why the stored calibration cannot be used (damaged in the store, or no longer valid):
+    /// the machine is not corrected until a new calibration is put; the others are served.
+    quarantined: Option<String>,
+    outbox: Arc<Outbox>,
     _token: zenoh::liveliness::LivelinessToken,
     /// The machine's raw key expressions, declared so that zenoh resolves an incoming
     /// message's route once, not by matching every key of every machine per message.
@@ -63,7 +240,8 @@ struct State {
     session: zenoh::Session,
     store: Store,
     machines: BTreeMap<String, Machine>,
-    refused: BTreeMap<String, u64>,
+    refused: Refused,
+    log: LogGate,
     /// What the core completed for the message in hand; published and cleared before the
     /// next message, so one buffer serves every machine.
     out: Output,
@@ -72,6 +250,8 @@ struct State {
 /// Runs the service until `shutdown` resolves; then flushes every machine and closes the
 /// session.
 pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), ServiceError> {
+    cfg.validate()
+        .map_err(crate::config::ConfigError::Invalid)?;
     let store = Store::open(&cfg.data_dir)?;
     let session = zenoh::open(cfg.zenoh()?).await.map_err(z)?;
     let prefix = cfg.prefix.clone();
@@ -93,12 +273,15 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         session: session.clone(),
         store,
         machines: BTreeMap::new(),
-        refused: BTreeMap::new(),
+        refused: Refused::default(),
+        log: LogGate::default(),
         out: Output::default(),
     };
-    // Machines with a stored calibration are served from the start.
+    // Machines with a stored calibration are served from the start; one whose stored
+    // calibration is damaged is quarantined (named in the log and on its status) while the
+    // others start.
     for m in st.store.machines()? {
-        if st.cfg.serves(&m) {
+        if st.cfg.serves(&m) && st.machines.len() < st.cfg.max_machines {
             st.machine(&m).await?;
         }
     }
@@ -125,8 +308,20 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     for m in names {
         st.flush(&m).await;
     }
+    // What was corrected is published before the session closes (bounded: a subscriber that
+    // does not read cannot keep the service from stopping).
+    let t0 = Instant::now();
+    while !st.machines.values().all(|m| m.outbox.idle()) && t0.elapsed() < Duration::from_secs(5) {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
     drop(st);
-    session.close().await.map_err(z)?;
+    // A peer that stopped reading cannot be told goodbye: closing is bounded, and a close
+    // that times out is not a failure of the service.
+    match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => warn!(error = %e, "zenoh session did not close cleanly"),
+        Err(_) => warn!("zenoh session did not close within 5 s"),
+    }
     info!("scancorrd stopped");
     Ok(())
 }
@@ -141,6 +336,10 @@ impl State {
 
     async fn machine(&mut self, name: &str) -> Result<&mut Machine, ServiceError> {
         if !self.machines.contains_key(name) {
+            // Every name that reaches here passed the grammar; checked again because it
+            // becomes part of key expressions.
+            scancorr_proto::names::check_machine(name)
+                .map_err(|e| ServiceError::Refused(e.to_string()))?;
             let p = &self.cfg.prefix;
             let points = self
                 .session
@@ -179,30 +378,44 @@ impl State {
                         .map_err(z)?,
                 );
             }
-            let corrector = match self.store.current(name)? {
-                Some(c) => match c.build() {
-                    Ok(m) => Some(self.corrector(Arc::new(m))),
-                    Err(e) => {
-                        warn!(machine = name, error = %e, "stored calibration is not valid; waiting for a new one");
-                        None
-                    }
+            let (corrector, quarantined) = match self.store.current(name) {
+                Ok(Some(c)) => match c.build() {
+                    Ok(m) => (Some(self.corrector(Arc::new(m))), None),
+                    Err(e) => (
+                        None,
+                        Some(format!(
+                            "stored calibration version {} is not valid: {e}",
+                            c.version
+                        )),
+                    ),
                 },
-                None => {
+                Ok(None) => {
                     warn!(machine = name, "no calibration for this machine yet: samples are counted, not corrected, until one is put");
-                    None
+                    (None, None)
                 }
+                Err(e) => (None, Some(e.to_string())),
             };
+            if let Some(q) = &quarantined {
+                error!(machine = name, reason = %q, "machine quarantined: not corrected until a new calibration is put; the other machines are served");
+            }
             let ids = corrector
                 .as_ref()
                 .map(|c| c.effect_ids())
                 .unwrap_or_default();
             info!(machine = name, version = ?corrector.as_ref().map(|c| c.calibration().version), "serving machine");
+            let outbox = Arc::new(Outbox {
+                points,
+                alarms,
+                machine: name.to_string(),
+                max_bytes: self.cfg.max_queued_bytes_per_machine,
+                state: Mutex::new(OutState::default()),
+            });
             self.machines.insert(
                 name.to_string(),
                 Machine {
                     corrector,
-                    points,
-                    alarms,
+                    quarantined,
+                    outbox,
                     _token: token,
                     _raw_keys: raw_keys,
                     ids,
@@ -216,24 +429,42 @@ impl State {
         Ok(self.machines.get_mut(name).expect("inserted"))
     }
 
+    /// Counts a refusal and logs it at most once per [`LOG_EVERY`] per reason.
+    fn refuse(&mut self, reason: &'static str, what: &str) {
+        let r = &mut self.refused;
+        match reason {
+            "not_served" => r.not_served += 1,
+            "over_capacity" => r.over_capacity += 1,
+            "bad_key" => r.bad_key += 1,
+            _ => r.bad_query += 1,
+        }
+        if let Some(n) = self.log.pass(reason) {
+            warn!(
+                reason,
+                count = n,
+                latest = %scancorr_proto::names::shown(what),
+                "refused (logged at most once per {} s per reason)",
+                LOG_EVERY.as_secs()
+            );
+        }
+    }
+
     async fn on_raw(&mut self, s: zenoh::sample::Sample) {
-        let key = s.key_expr().as_str().to_string();
-        let Some((machine, stream)) = Stream::parse_key(&self.cfg.prefix, &key) else {
+        let key = s.key_expr().as_str();
+        // A wildcard or otherwise invalid machine id, or an unknown stream, is refused here.
+        let Some((machine, sid)) = Stream::parse_key(&self.cfg.prefix, key)
+            .and_then(|(m, st)| Some((m.to_string(), wire::stream_id(st)?)))
+        else {
+            let key = key.to_string();
+            self.refuse("bad_key", &key);
             return;
         };
-        let Some(sid) = wire::stream_id(stream) else {
+        if !self.cfg.serves(&machine) {
+            self.refuse("not_served", &machine);
             return;
-        };
-        let machine = machine.to_string();
-        if !self.cfg.serves(&machine)
-            || (!self.machines.contains_key(&machine)
-                && self.machines.len() >= self.cfg.max_machines)
-        {
-            let n = self.refused.entry(machine.clone()).or_insert(0);
-            if *n == 0 {
-                warn!(machine = %machine, "refusing samples of a machine this service does not serve");
-            }
-            *n += 1;
+        }
+        if !self.machines.contains_key(&machine) && self.machines.len() >= self.cfg.max_machines {
+            self.refuse("over_capacity", &machine);
             return;
         }
         if let Err(e) = self.machine(&machine).await {
@@ -252,26 +483,39 @@ impl State {
         }
         let bytes = s.payload().to_bytes();
         let mut samples = Vec::new();
-        match wire::decode_machine(sid, &bytes, &machine, &mut samples) {
+        let tags = if self.cfg.accept_untagged_batches {
+            wire::Tags::AllowUntagged
+        } else {
+            wire::Tags::Require
+        };
+        match wire::decode_machine_tagged(sid, &bytes, &machine, tags, &mut samples) {
             Ok(f) => m.extra.wrong_machine += f,
             Err(wire::WireError::Empty(_)) => m.extra.empty += 1,
             Err(e) => {
-                if m.extra.malformed == 0 {
-                    warn!(machine = %machine, stream = sid.name(), error = %e, "malformed message dropped");
+                let count = match e {
+                    wire::WireError::WrongStream { .. } => &mut m.extra.wrong_stream,
+                    wire::WireError::Untagged(_) => &mut m.extra.untagged,
+                    _ => &mut m.extra.malformed,
+                };
+                *count += 1;
+                if *count == 1 {
+                    warn!(machine = %machine, stream = sid.name(), error = %e, "message dropped (further ones are counted on the status)");
                 }
-                m.extra.malformed += 1;
             }
         }
         let Some(corr) = m.corrector.as_mut() else {
             m.extra.no_calibration += samples.len() as u64;
             return;
         };
-        let resets = corr.stats().clock_resets;
+        let (resets, seq_resets) = (corr.stats().clock_resets, corr.stats().seq_resets);
         for x in samples {
             corr.push(x, out);
         }
         if corr.stats().clock_resets > resets {
             warn!(machine = %machine, "controller clock reset: the machine's join, estimator and judgement restarted in the new time base");
+        }
+        if corr.stats().seq_resets > seq_resets {
+            warn!(machine = %machine, stream = sid.name(), "sequence numbers restarted (a counter wrap or restart): the stream's sequence continues from the new numbers");
         }
         if let Some(t) = corr.watermarks()[1] {
             let now_ns = std::time::SystemTime::now()
@@ -280,14 +524,14 @@ impl State {
                 .unwrap_or(0);
             m.last_lag_ms = (now_ns - t) as f64 * 1e-6;
         }
-        publish(m, out, &machine).await;
+        publish(m, out, &machine);
     }
 
     async fn flush(&mut self, machine: &str) {
         if let Some(m) = self.machines.get_mut(machine) {
             if let Some(c) = m.corrector.as_mut() {
                 c.flush(&mut self.out);
-                publish(m, &mut self.out, machine).await;
+                publish(m, &mut self.out, machine);
             }
         }
     }
@@ -313,13 +557,21 @@ impl State {
 
     async fn on_status(&mut self, q: zenoh::query::Query) {
         let key = q.key_expr().as_str().to_string();
-        let machine = key
-            .trim_start_matches(&format!("{}/", self.cfg.prefix))
-            .trim_end_matches("/status")
-            .to_string();
+        let Some(machine) = scancorr_proto::machine_of(&self.cfg.prefix, &key, "status") else {
+            self.refuse("bad_query", &key);
+            let _ = q
+                .reply_err(format!(
+                    "{}: not the status key of one machine ({}/<machine>/status)",
+                    scancorr_proto::names::shown(&key),
+                    self.cfg.prefix
+                ))
+                .await;
+            return;
+        };
+        let machine = machine.to_string();
         let body = match self.machines.get(&machine) {
             None => {
-                json!({"machine": machine, "served": false, "refused_samples": self.refused.get(&machine).copied().unwrap_or(0)})
+                json!({"machine": machine, "served": false, "refused": self.refused})
             }
             Some(m) => {
                 let (stats, version, pending, wm) = match &m.corrector {
@@ -338,6 +590,7 @@ impl State {
                 json!({
                     "machine": machine,
                     "served": true,
+                    "quarantined": m.quarantined,
                     "calibration_version": version,
                     "samples_in": stats.as_ref().map(|s| s.samples()).unwrap_or(0),
                     "points_out": stats.as_ref().map(|s| s.points_out).unwrap_or(0),
@@ -345,7 +598,9 @@ impl State {
                     "dropped": stats.as_ref().map(|s| s.dropped_by_name().into_iter().map(|(k, v)| (k.to_string(), v)).collect::<BTreeMap<_, _>>()).unwrap_or_default(),
                     "alarms_raised": stats.as_ref().map(|s| s.alarms_raised).unwrap_or(0),
                     "clock_resets": stats.as_ref().map(|s| s.clock_resets).unwrap_or(0),
+                    "seq_resets": stats.as_ref().map(|s| s.seq_resets).unwrap_or(0),
                     "messages": m.extra,
+                    "output": m.outbox.figures(),
                     "pending": {"command": pending[0], "scale": pending[1], "probe": pending[2], "temperature": pending[3]},
                     "watermarks_ns": wm,
                     "stalled": stalled,
@@ -360,10 +615,20 @@ impl State {
 
     async fn on_calibration(&mut self, q: zenoh::query::Query) {
         let key = q.key_expr().as_str().to_string();
-        let machine = key
-            .trim_start_matches(&format!("{}/", self.cfg.prefix))
-            .trim_end_matches("/calibration")
-            .to_string();
+        let Some(machine) = scancorr_proto::machine_of(&self.cfg.prefix, &key, "calibration")
+        else {
+            self.refuse("bad_query", &key);
+            let _ = q
+                .reply_err(format!(
+                    "{}: not the calibration key of one machine ({}/<machine>/calibration; machine ids are 1–{} characters of A–Z a–z 0–9 _ - .)",
+                    scancorr_proto::names::shown(&key),
+                    self.cfg.prefix,
+                    scancorr_proto::names::MAX_NAME_LEN
+                ))
+                .await;
+            return;
+        };
+        let machine = machine.to_string();
         let reply = match q.payload() {
             Some(p) => self.put_calibration(&machine, &p.to_bytes()).await,
             None => {
@@ -400,6 +665,13 @@ impl State {
     }
 
     async fn put_calibration(&mut self, machine: &str, bytes: &[u8]) -> Result<String, String> {
+        let max = self.cfg.max_message_bytes.min(crate::store::MAX_DOC_BYTES);
+        if bytes.len() > max {
+            return Err(format!(
+                "the calibration document has {} bytes, more than the {max} this service accepts",
+                bytes.len()
+            ));
+        }
         let text = std::str::from_utf8(bytes)
             .map_err(|_| "the calibration document is not UTF-8 text".to_string())?;
         let cal = Calibration::from_json(text).map_err(|e| e.to_string())?;
@@ -408,11 +680,21 @@ impl State {
         if !self.cfg.serves(machine) {
             return Err(format!("this service does not serve machine `{machine}`"));
         }
+        if !self.machines.contains_key(machine) && self.machines.len() >= self.cfg.max_machines {
+            self.refuse("over_capacity", machine);
+            return Err(format!(
+                "this service serves its maximum of {} machines; `{machine}` is not one of them",
+                self.cfg.max_machines
+            ));
+        }
         let stored = self.store.put(cal).map_err(|e| e.to_string())?;
         let model = Arc::new(stored.build().map_err(|e| e.to_string())?);
         self.machine(machine).await.map_err(|e| e.to_string())?;
         let fresh = self.corrector(model.clone());
         let m = self.machines.get_mut(machine).expect("served");
+        if m.quarantined.take().is_some() {
+            info!(machine, "quarantine lifted: a valid calibration was put");
+        }
         match m.corrector.as_mut() {
             Some(c) => c.set_model(model),
             None => m.corrector = Some(fresh),
@@ -427,14 +709,14 @@ impl State {
     }
 }
 
-async fn publish(m: &mut Machine, out: &mut Output, machine: &str) {
+/// Hands what the core completed to the machine's outbox (never waits on the bus).
+fn publish(m: &mut Machine, out: &mut Output, machine: &str) {
     if !out.points.is_empty() {
         // Written straight to protobuf (the same bytes prost makes, without a message per point).
         let mut bytes = Vec::with_capacity(out.points.len() * 320);
         wire::encode_points(&out.points, machine, &m.ids, &mut bytes);
-        if let Err(e) = m.points.put(bytes).await {
-            warn!(machine, error = %e, "publishing points failed");
-        }
+        m.outbox
+            .send(Outgoing::Points(bytes, out.points.len() as u64));
     }
     for a in &out.alarms {
         if a.raised {
@@ -448,9 +730,8 @@ async fn publish(m: &mut Machine, out: &mut Output, machine: &str) {
         } else {
             info!(machine, axis = a.axis.name(), "estimator alarm cleared");
         }
-        if let Err(e) = m.alarms.put(wire::alarm(a, machine).encode_to_vec()).await {
-            warn!(machine, error = %e, "publishing alarm failed");
-        }
+        m.outbox
+            .send(Outgoing::Alarm(wire::alarm(a, machine).encode_to_vec()));
     }
     out.clear();
 }

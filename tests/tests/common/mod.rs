@@ -141,14 +141,34 @@ pub struct Service {
 impl Service {
     /// Starts it in `dir` (data in `dir/data`) and waits until it listens.
     pub fn start(dir: &Path, port: u16) -> Service {
+        let mut c = Command::new(scancorrd());
+        c.args([
+            "--listen",
+            &format!("tcp/127.0.0.1:{port}"),
+            "--data-dir",
+            "data",
+        ]);
+        Service::spawn(c, dir, port)
+    }
+
+    /// Starts it with a JSON5 configuration: listening on `port`, data in `dir/data`, and
+    /// `extra` spliced in (which may name its own `listen`).
+    pub fn start_with(dir: &Path, port: u16, extra: &str) -> Service {
+        let cfg = dir.join(format!("scancorrd-{port}.json5"));
+        let listen = if extra.contains("listen:") {
+            String::new()
+        } else {
+            format!("listen: ['tcp/127.0.0.1:{port}'],")
+        };
+        std::fs::write(&cfg, format!("{{ {listen} data_dir: 'data', {extra} }}")).unwrap();
+        let mut c = Command::new(scancorrd());
+        c.args(["--config", cfg.to_str().unwrap()]);
+        Service::spawn(c, dir, port)
+    }
+
+    fn spawn(mut c: Command, dir: &Path, port: u16) -> Service {
         let log = dir.join(format!("scancorrd-{port}.log"));
-        let child = Command::new(scancorrd())
-            .args([
-                "--listen",
-                &format!("tcp/127.0.0.1:{port}"),
-                "--data-dir",
-                "data",
-            ])
+        let child = c
             .current_dir(dir)
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(&log).unwrap())
@@ -164,6 +184,20 @@ impl Service {
             std::thread::sleep(Duration::from_millis(50));
         }
         Service { child, log }
+    }
+
+    /// What it logged so far.
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Its resident memory, KiB.
+    pub fn rss_kib(&self) -> u64 {
+        let s = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).unwrap();
+        s.lines()
+            .find_map(|l| l.strip_prefix("VmRSS:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+            .unwrap()
     }
 
     /// SIGTERM: flush and close; waits for the exit.
@@ -183,7 +217,8 @@ impl Service {
             }
             assert!(
                 t0.elapsed() < Duration::from_secs(20),
-                "scancorrd did not stop"
+                "scancorrd ignored SIGTERM for 20 s; its log:\n{}",
+                self.log()
             );
             std::thread::sleep(Duration::from_millis(50));
         }
@@ -235,4 +270,38 @@ pub fn copy_bag(src: &Path, dst: &Path, keep: impl Fn(scancorr_bag::Stream) -> b
         }
     }
     w.finish().unwrap();
+}
+
+/// A zenoh peer session connected to a service on a loopback port.
+pub async fn session(port: u16) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    c.insert_json5("mode", "\"peer\"").unwrap();
+    c.insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
+        .unwrap();
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    zenoh::open(c).await.unwrap()
+}
+
+/// The status queryable's answer for `machine` (retried while the service is starting).
+pub async fn status(s: &zenoh::Session, machine: &str) -> serde_json::Value {
+    for _ in 0..40 {
+        let r = s
+            .get(format!("cmm/{machine}/status"))
+            .timeout(Duration::from_secs(10))
+            .await
+            .unwrap();
+        if let Ok(reply) = r.recv_async().await {
+            let t = reply
+                .into_result()
+                .unwrap()
+                .payload()
+                .try_to_string()
+                .unwrap()
+                .to_string();
+            return serde_json::from_str(&t).unwrap();
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    panic!("no status reply");
 }

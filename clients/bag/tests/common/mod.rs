@@ -51,6 +51,8 @@ pub fn batch(
                     ..Default::default()
                 })
                 .collect(),
+            // Later fields (e.g. the v1.1 stream tag) keep their defaults.
+            ..Default::default()
         }
         .encode_to_vec(),
         Stream::Scale => ScaleBatch {
@@ -64,6 +66,8 @@ pub fn batch(
                     z: rng.f(),
                 })
                 .collect(),
+            // Later fields (e.g. the v1.1 stream tag) keep their defaults.
+            ..Default::default()
         }
         .encode_to_vec(),
         Stream::Probe => ProbeBatch {
@@ -79,6 +83,8 @@ pub fn batch(
                     ..Default::default()
                 })
                 .collect(),
+            // Later fields (e.g. the v1.1 stream tag) keep their defaults.
+            ..Default::default()
         }
         .encode_to_vec(),
         Stream::Temperature => TemperatureBatch {
@@ -91,6 +97,8 @@ pub fn batch(
                     celsius: 20.0 + rng.f(),
                 })
                 .collect(),
+            // Later fields (e.g. the v1.1 stream tag) keep their defaults.
+            ..Default::default()
         }
         .encode_to_vec(),
         Stream::Points => CorrectedPointBatch {
