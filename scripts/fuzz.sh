@@ -63,6 +63,7 @@ list_findings() { # the crash/timeout/oom/leak files of a target's artifact dire
 
 summary=()
 failed=0
+runfail=0
 for t in "${targets[@]}"; do
     corpus="$root/fuzz/corpus/$t"
     seeds="$root/fuzz/seeds/$t"
@@ -85,9 +86,12 @@ for t in "${targets[@]}"; do
     after=$(list_findings "$t")
     new=$(comm -13 <(printf '%s\n' "$before" | sed '/^$/d') <(printf '%s\n' "$after" | sed '/^$/d'))
     crashes=$(printf '%s\n' "$new" | sed '/^$/d' | wc -l)
+    shown=$crashes
     if [ "$rc" -ne 0 ] && [ "$crashes" -eq 0 ]; then
-        # libFuzzer stopped without leaving an input (e.g. the build failed): a failure too.
-        crashes=1
+        # libFuzzer did not run to the end and left no input (e.g. the build failed): not a
+        # crash, but a failed run all the same.
+        shown="run failed"
+        runfail=1
         echo "fuzz.sh: $t exited with $rc and left no input; see $log" >&2
         tail -n 30 "$log" >&2
     fi
@@ -102,7 +106,7 @@ for t in "${targets[@]}"; do
             "$log" >&2 || tail -n 40 "$log" >&2
     fi
     [ "$crashes" -eq 0 ] || failed=1
-    summary+=("$(printf '%-12s %12s %8s %8s' "$t" "$execs" "$size" "$crashes")")
+    summary+=("$(printf '%-12s %12s %8s %8s' "$t" "$execs" "$size" "$shown")")
 done
 
 printf '%-12s %12s %8s %8s\n' target executions corpus crashes
@@ -110,5 +114,9 @@ printf '%s\n' "${summary[@]}"
 if [ "$failed" -ne 0 ]; then
     echo "fuzz.sh: crashes found: their inputs are in fuzz/regressions/<target>/ (run" \
         "'cargo test --release -p scancorr-tests --test fuzz_regressions'); fix, then commit them" >&2
+    exit 1
+fi
+if [ "$runfail" -ne 0 ]; then
+    echo "fuzz.sh: a target did not run (see its log above)" >&2
     exit 1
 fi

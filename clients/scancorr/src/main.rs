@@ -188,6 +188,10 @@ struct SimCli {
     /// Repeat the program until this many minutes have passed.
     #[arg(long)]
     minutes: Option<f64>,
+    /// Stream circles as points: command samples without arc centre and radius (the
+    /// machine moves the same; the corrector takes arcs from the estimated path).
+    #[arg(long)]
+    no_arcs: bool,
     /// Command, scale and probe rate, Hz.
     #[arg(long, default_value_t = 1000.0)]
     rate: f64,
@@ -542,6 +546,7 @@ fn run(cli: Cli) -> Result<()> {
                 fault: a.fault.as_deref().map(simcmd::parse_fault).transpose()?,
                 fault_at_s: a.fault_at,
                 minutes: a.minutes,
+                no_arcs: a.no_arcs,
                 ..Default::default()
             };
             let live = a.live;

@@ -187,6 +187,10 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
     ]
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
+    .chain(
+        o.no_arcs
+            .then(|| ("command_arcs".to_string(), "none".to_string())),
+    )
     .collect();
     w.write_metadata(scancorr_bag::RUN_METADATA, &run_meta)?;
     let program_json = serde_json::to_string(&res.program)?;
@@ -239,6 +243,7 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
                 "duration_s": res.counts[1] as f64 / o.rate_hz,
                 "noise_floor_um": res.truth.noise_floor_um,
                 "hidden": o.hide,
+                "no_arcs": o.no_arcs,
                 "faults": res.truth.faults,
         }));
     } else if report {
@@ -251,6 +256,9 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
             res.counts[1] as f64 / o.rate_hz,
             a.out.display()
         );
+        if o.no_arcs {
+            eprintln!("  circles streamed as points (commands without arc centre and radius)");
+        }
         if !o.hide.is_empty() {
             eprintln!(
                 "  hidden from the starting calibration: {}",

@@ -93,6 +93,10 @@ pub struct Options {
     pub fault_at_s: Option<f64>,
     /// Repeat the program until this many minutes have passed.
     pub minutes: Option<f64>,
+    /// Stream circles as points: every command sample without arc centre and radius (a
+    /// controller that interpolates arcs itself). The machine moves the same.
+    #[serde(default)]
+    pub no_arcs: bool,
 }
 
 impl Default for Options {
@@ -110,6 +114,7 @@ impl Default for Options {
             fault: None,
             fault_at_s: None,
             minutes: None,
+            no_arcs: false,
         }
     }
 }
@@ -625,12 +630,18 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
                 nz.scale_resolution_mm,
             );
         }
+        // The machine follows the arc either way; only what the controller says differs.
+        let (cmd_arc_c, cmd_arc_r) = if o.no_arcs {
+            (V3::zeros(), 0.0)
+        } else {
+            (arc_c, arc_r)
+        };
         sink(Sample::Command(CommandSample {
             seq: k,
             t_ns,
             pos: c,
-            arc_center: arc_c,
-            arc_radius: arc_r,
+            arc_center: cmd_arc_c,
+            arc_radius: cmd_arc_r,
             segment_id: seg_id,
         }));
         sink(Sample::Scale(ScaleSample {

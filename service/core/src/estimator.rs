@@ -7,6 +7,19 @@
 //! velocity — equal to |A| at constant speed, and still right while the scan speeds up or
 //! slows down, when A gains a tangential part.
 //!
+//! Commands without an arc (a controller streaming circles as points): the arc is taken from
+//! the estimated path itself, its osculating circle — curvature κ = |V × A|/|V|³, radius
+//! 1/κ, centre E + n̂/κ (n̂ the unit part of A normal to V), so f = |V|·κ/(2π) =
+//! |V × A|/(2π|V|²) and the axis (V × A)/|V × A|. [`Estimator::step`] fills the estimate's
+//! command with that arc when the command carries none, the path bends (radius between
+//! [`MIN_ESTIMATED_RADIUS_MM`] and [`MAX_ESTIMATED_RADIUS_MM`]) and the speed is above
+//! [`MIN_ESTIMATED_ARC_SPEED_MM_S`]; at constant speed on a commanded circle of radius R the
+//! estimate is a circle of radius R·|G(jω)| about the same centre, so the estimated centre is
+//! the commanded one and f = ω/2π (the commanded-arc formula gives ω·sqrt(|G(jω)|)/2π, below
+//! by half the servo's amplitude loss, about ω²(τ1² + τ2²)/4 for two lags: 0.04 % at 80 mm/s
+//! on a 25 mm ring with 12 and 2 ms). The polygon bias of A (above) enters f fully here and
+//! by half through the square root there.
+//!
 //! Accuracy: the discretised model sees the command as a polygon through its samples, so at
 //! the sample instants A carries a relative bias of about T²·h'(0)/12 (T the period, h the
 //! impulse response of G_N; T²/(12·τ1·τ2) for two lags: 0.35 % for 12 ms and 2 ms at 1 kHz).
@@ -21,10 +34,20 @@ use crate::sample::{CommandSample, Vec3};
 use crate::transfer::{Discrete, DiscreteState};
 use std::sync::Arc;
 
+/// Slowest estimated speed at which an arc is taken from the path's curvature, mm/s.
+pub const MIN_ESTIMATED_ARC_SPEED_MM_S: f64 = 0.5;
+/// Smallest radius of an arc taken from the path's curvature, mm (tighter bends are
+/// corners, not scanned circles).
+pub const MIN_ESTIMATED_RADIUS_MM: f64 = 0.5;
+/// Largest radius of an arc taken from the path's curvature, mm (flatter bends are lines).
+pub const MAX_ESTIMATED_RADIUS_MM: f64 = 2000.0;
+
 /// The estimate at one command instant.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Estimate {
-    /// The command it was computed from.
+    /// The command it was computed from; when it carries no arc (`arc_radius` 0) and the
+    /// estimated path bends, its arc centre and radius are the estimated path's osculating
+    /// circle ([`osculating_arc`]).
     pub cmd: CommandSample,
     /// Estimated position, mm.
     pub pos: Vec3,
@@ -106,6 +129,12 @@ impl Estimator {
             e.acc[i] = d.ddy;
         }
         self.steps += 1;
+        if c.arc_radius <= 0.0 {
+            if let Some((center, radius)) = osculating_arc(&e.pos, &e.vel, &e.acc) {
+                e.cmd.arc_center = center;
+                e.cmd.arc_radius = radius;
+            }
+        }
         e
     }
 
@@ -136,6 +165,30 @@ pub fn rotation(pos: &Vec3, vel: &Vec3, acc: &Vec3, center: &Vec3, radius: f64) 
     let vhat = vel / vn;
     let a_n = (acc - vhat * acc.dot(&vhat)).norm();
     ((a_n / radius).sqrt() / (2.0 * std::f64::consts::PI), w / wn)
+}
+
+/// The osculating circle of the estimated path at `pos` (centre, radius in mm), for commands
+/// that carry no arc: radius 1/κ with κ = |V × A|/|V|³, centre `pos` + n̂/κ with n̂ the unit
+/// component of A normal to V. `None` below [`MIN_ESTIMATED_ARC_SPEED_MM_S`] (near a stop the
+/// direction of travel means nothing) and outside [`MIN_ESTIMATED_RADIUS_MM`] ..=
+/// [`MAX_ESTIMATED_RADIUS_MM`] (corners, lines). With it, [`rotation`] gives
+/// f = |V × A|/(2π|V|²) and the axis (V × A)/|V × A|.
+#[inline]
+pub fn osculating_arc(pos: &Vec3, vel: &Vec3, acc: &Vec3) -> Option<(Vec3, f64)> {
+    let v2 = vel.norm_squared();
+    if v2.is_nan() || v2 < MIN_ESTIMATED_ARC_SPEED_MM_S * MIN_ESTIMATED_ARC_SPEED_MM_S {
+        return None;
+    }
+    // Normal acceleration: |a_n| = |V × A|/|V| = |V|²·κ.
+    let a_n = acc - vel * (acc.dot(vel) / v2);
+    let a_nn = a_n.norm();
+    // radius = |V|²/|a_n|, checked without dividing by a vanishing |a_n|.
+    if a_nn.is_nan() || a_nn * MAX_ESTIMATED_RADIUS_MM < v2 || a_nn * MIN_ESTIMATED_RADIUS_MM > v2 {
+        return None;
+    }
+    let radius = v2 / a_nn;
+    let center = pos + a_n * (radius / a_nn);
+    (center.iter().all(|x| x.is_finite()) && radius.is_finite()).then_some((center, radius))
 }
 
 #[cfg(test)]
@@ -252,6 +305,145 @@ mod tests {
                 (a_t - exact).abs() < 0.02 * 600.0,
                 "t={tt}: {a_t} vs {exact}"
             );
+        }
+    }
+
+    /// f and axis from a command stream without arcs (the osculating circle filled in).
+    fn rotation_of(e: &Estimate) -> (f64, Vec3) {
+        rotation(&e.pos, &e.vel, &e.acc, &e.cmd.arc_center, e.cmd.arc_radius)
+    }
+
+    #[test]
+    fn osculating_arc_of_an_exact_circle() {
+        // Position, velocity and acceleration of a circle of radius 25 mm at 40 mm/s, tilted
+        // out of the XY plane: f = v/(2πR), the centre, and the axis by the right-hand rule.
+        let (r, v) = (25.0, 40.0);
+        let w = v / r;
+        let c0 = Vec3::new(300.0, -20.0, 7.0);
+        let (u1, u2) = (
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.0, 0.6, 0.8), // u1 × u2 = (0, −0.8, 0.6)
+        );
+        for dir in [1.0, -1.0] {
+            for th in [0.0f64, 1.0, 2.5, 4.0] {
+                let p = c0 + (u1 * th.cos() + u2 * th.sin()) * r;
+                let vel = (-u1 * th.sin() + u2 * th.cos()) * (dir * v);
+                let acc = (p - c0) * (-w * w);
+                let (c, rr) = osculating_arc(&p, &vel, &acc).unwrap();
+                assert!(
+                    (c - c0).norm() < 1e-9 && (rr - r).abs() < 1e-9,
+                    "{c:?} {rr}"
+                );
+                let (f, axis) = rotation(&p, &vel, &acc, &c, rr);
+                assert!((f / (v / (2.0 * PI * r)) - 1.0).abs() < 1e-3, "{f}");
+                assert!((axis - u1.cross(&u2) * dir).norm() < 1e-9, "{axis:?}");
+                // A tangential part (speeding up) changes neither.
+                let (c2, r2) = osculating_arc(&p, &vel, &(acc + vel * 3.0)).unwrap();
+                assert!((c2 - c0).norm() < 1e-9 && (r2 - r).abs() < 1e-9);
+            }
+        }
+        // Lines, stops and corners carry no arc.
+        let x = Vec3::x();
+        assert_eq!(osculating_arc(&c0, &(x * 40.0), &Vec3::zeros()), None);
+        assert_eq!(osculating_arc(&c0, &(x * 40.0), &(x * 500.0)), None);
+        assert_eq!(
+            osculating_arc(&c0, &(x * 40.0), &Vec3::new(0.0, 0.5, 0.0)),
+            None
+        );
+        assert_eq!(
+            osculating_arc(&c0, &(x * 0.3), &Vec3::new(0.0, 0.01, 0.0)),
+            None
+        );
+        assert_eq!(osculating_arc(&c0, &Vec3::zeros(), &Vec3::y()), None);
+        assert_eq!(
+            osculating_arc(&c0, &(x * 1.0), &Vec3::new(0.0, 1e4, 0.0)),
+            None
+        );
+        let nan = Vec3::new(f64::NAN, 0.0, 0.0);
+        assert_eq!(osculating_arc(&c0, &nan, &Vec3::y()), None);
+        assert_eq!(osculating_arc(&c0, &(x * 40.0), &nan), None);
+        let inf = Vec3::y() * f64::INFINITY;
+        assert_eq!(osculating_arc(&c0, &(x * 40.0), &inf), None);
+    }
+
+    #[test]
+    fn circle_streamed_as_points_gets_its_rotation_from_the_estimated_path() {
+        // R = 25 mm at 40 mm/s, CCW and CW, commanded without centre and radius.
+        let (tau, taup, t) = (0.012, 0.002, 0.001);
+        let (r, v) = (25.0, 40.0);
+        let w = v / r;
+        let c0 = Vec3::new(100.0, 200.0, 50.0);
+        for dir in [1.0, -1.0] {
+            let mut est = Estimator::new(model(tau, taup, t));
+            let mut with_arc = Estimator::new(model(tau, taup, t));
+            let (mut e, mut ea) = (None, None);
+            for k in 0..3000 {
+                let th = dir * w * k as f64 * t;
+                let p = c0 + Vec3::new(r * th.cos(), r * th.sin(), 0.0);
+                e = Some(est.step(&cmd(k as f64 * t, p, Vec3::zeros(), 0.0)));
+                ea = Some(with_arc.step(&cmd(k as f64 * t, p, c0, r)));
+            }
+            let (e, ea) = (e.unwrap(), ea.unwrap());
+            // The estimated centre is the commanded one (the estimate's circle is smaller by
+            // |G(jω)|, about the same centre), but for the polygon bias of A (see the module
+            // doc), which lengthens the radius |V|²/|A_n| by `bias` and moves the centre by as
+            // much along the normal.
+            let bias = t * t / (12.0 * tau * taup);
+            let g = 1.0 / ((1.0 + (w * tau).powi(2)) * (1.0 + (w * taup).powi(2))).sqrt();
+            let rr = e.cmd.arc_radius;
+            assert!((rr / (r * g) - (1.0 + bias)).abs() < 2e-4, "{rr}");
+            let off = e.cmd.arc_center - c0;
+            assert!(off.norm() < 1.2 * bias * r, "{off:?}");
+            assert!(off.dot(&(c0 - e.pos).normalize()) > 0.99 * off.norm());
+            let (f, axis) = rotation_of(&e);
+            let exact = v / (2.0 * PI * r);
+            // Within 0.1 % of v/(2πR) apart from the polygon bias of A, which the
+            // estimator-independent test above does not have.
+            assert!(
+                (f / exact - (1.0 - bias)).abs() < 1e-3,
+                "f = {f}, v/(2πR) = {exact}"
+            );
+            assert!((f / exact - 1.0).abs() < 5e-3);
+            assert!((axis - Vec3::z() * dir).norm() < 1e-9, "{axis:?}");
+            // And the commanded arc agrees to well within 1 %.
+            let (fa, axa) = rotation_of(&ea);
+            assert_eq!(ea.cmd.arc_radius, r);
+            assert!(
+                (f / fa - 1.0).abs() < 3e-3 && (axa - axis).norm() < 1e-9,
+                "{f} vs {fa}"
+            );
+        }
+    }
+
+    #[test]
+    fn lines_and_stops_streamed_as_points_have_no_rotation() {
+        let (tau, taup, t) = (0.012, 0.002, 0.001);
+        let mut est = Estimator::new(model(tau, taup, t));
+        let (p0, u) = (Vec3::new(10.0, 20.0, 30.0), Vec3::new(0.6, 0.0, -0.8));
+        // Speeding up along a line, cruising, then a stop.
+        let s = |tt: f64| {
+            if tt < 0.2 {
+                0.5 * 200.0 * tt * tt
+            } else if tt < 1.0 {
+                4.0 + 40.0 * (tt - 0.2)
+            } else {
+                36.0
+            }
+        };
+        for k in 0..1500 {
+            let tt = k as f64 * t;
+            let e = est.step(&cmd(tt, p0 + u * s(tt), Vec3::zeros(), 0.0));
+            assert_eq!(e.cmd.arc_radius, 0.0, "t = {tt}");
+            assert_eq!(rotation_of(&e), (0.0, Vec3::zeros()));
+        }
+        // A near-stop on a circle (R = 25 mm at 0.2 mm/s) is not an arc either.
+        let mut est = Estimator::new(model(tau, taup, t));
+        let w = 0.2 / 25.0;
+        for k in 0..2000 {
+            let th = w * k as f64 * t;
+            let p = Vec3::new(25.0 * th.cos(), 25.0 * th.sin(), 0.0);
+            let e = est.step(&cmd(k as f64 * t, p, Vec3::zeros(), 0.0));
+            assert_eq!(rotation_of(&e).0, 0.0);
         }
     }
 }

@@ -269,9 +269,10 @@ pub struct PointContext {
     pub est_vel: Vec3,
     /// Estimated acceleration, mm/s².
     pub est_acc: Vec3,
-    /// Commanded arc centre (zero when not on an arc), mm.
+    /// Arc centre, mm: the commanded one, or, when the command carries no arc, the centre of
+    /// the estimated path's curvature (zero when neither).
     pub arc_center: Vec3,
-    /// Commanded arc radius Rs, mm; 0 when not on an arc.
+    /// Arc radius Rs, mm: commanded, or estimated from the path's curvature; 0 off arcs.
     pub arc_radius: f64,
     /// Rotation frequency on arcs, Hz (0 off arcs).
     pub f_hz: f64,

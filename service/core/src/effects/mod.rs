@@ -12,6 +12,8 @@ pub mod accel_deflection;
 pub mod custom;
 pub mod guide_straightness;
 pub mod probe_force;
+pub mod probe_lobing;
+pub mod rigid_body;
 pub mod scale_thermal;
 pub mod servo_gain;
 pub mod servo_phase;
@@ -38,12 +40,16 @@ pub enum EffectConfig {
     ProbeForce(probe_force::Config),
     /// Guide straightness and pitch along an axis.
     GuideStraightness(guide_straightness::Config),
+    /// The 21 rigid-body errors of a three-axis machine through its kinematic chain.
+    RigidBody(rigid_body::Config),
+    /// Direction-dependent probe error (pre-travel variation, lobing).
+    ProbeLobing(probe_lobing::Config),
     /// User-defined regressors.
     Custom(custom::Config),
 }
 
 /// Names of the built-in kinds, as written in documents.
-pub const KINDS: [&str; 8] = [
+pub const KINDS: [&str; 10] = [
     "accel_deflection",
     "servo_phase",
     "servo_gain",
@@ -51,6 +57,8 @@ pub const KINDS: [&str; 8] = [
     "scale_thermal",
     "probe_force",
     "guide_straightness",
+    "rigid_body",
+    "probe_lobing",
     "custom",
 ];
 
@@ -128,6 +136,8 @@ impl EffectConfig {
             EffectConfig::ScaleThermal(_) => "scale_thermal",
             EffectConfig::ProbeForce(_) => "probe_force",
             EffectConfig::GuideStraightness(_) => "guide_straightness",
+            EffectConfig::RigidBody(_) => "rigid_body",
+            EffectConfig::ProbeLobing(_) => "probe_lobing",
             EffectConfig::Custom(_) => "custom",
         }
     }
@@ -142,6 +152,8 @@ impl EffectConfig {
             EffectConfig::ScaleThermal(c) => c.id.clone(),
             EffectConfig::ProbeForce(c) => c.id.clone(),
             EffectConfig::GuideStraightness(c) => c.id.clone(),
+            EffectConfig::RigidBody(c) => c.id.clone(),
+            EffectConfig::ProbeLobing(c) => c.id.clone(),
             EffectConfig::Custom(c) => Some(c.id.clone()),
         };
         id.unwrap_or_else(|| self.kind().to_string())
@@ -154,6 +166,8 @@ impl EffectConfig {
             | EffectConfig::ServoPhase(_)
             | EffectConfig::ServoGain(_) => true,
             EffectConfig::Custom(c) => c.dynamic,
+            // Geometry and probe direction: functions of position and deflection only.
+            EffectConfig::RigidBody(_) | EffectConfig::ProbeLobing(_) => false,
             _ => false,
         }
     }
@@ -169,6 +183,8 @@ impl EffectConfig {
             EffectConfig::ScaleThermal(c) => Box::new(c.build(sensors)?),
             EffectConfig::ProbeForce(c) => Box::new(c.build()?),
             EffectConfig::GuideStraightness(c) => Box::new(c.build()?),
+            EffectConfig::RigidBody(c) => Box::new(c.build()?),
+            EffectConfig::ProbeLobing(c) => Box::new(c.build()?),
             EffectConfig::Custom(c) => Box::new(c.build(sensors)?),
         };
         Ok(BuiltEffect {
@@ -188,6 +204,8 @@ impl EffectConfig {
             EffectConfig::ScaleThermal(c) => c.params(),
             EffectConfig::ProbeForce(c) => c.params(),
             EffectConfig::GuideStraightness(c) => c.params(),
+            EffectConfig::RigidBody(c) => c.params(),
+            EffectConfig::ProbeLobing(c) => c.params(),
             EffectConfig::Custom(c) => c.coefficients.clone(),
         }
     }
@@ -202,6 +220,8 @@ impl EffectConfig {
             EffectConfig::ScaleThermal(c) => c.param_names(),
             EffectConfig::ProbeForce(c) => c.param_names(),
             EffectConfig::GuideStraightness(c) => c.param_names(),
+            EffectConfig::RigidBody(c) => c.param_names(),
+            EffectConfig::ProbeLobing(c) => c.param_names(),
             EffectConfig::Custom(c) => c
                 .terms
                 .iter()
@@ -229,6 +249,8 @@ impl EffectConfig {
             EffectConfig::ScaleThermal(c) => c.set_params(p),
             EffectConfig::ProbeForce(c) => c.set_params(p),
             EffectConfig::GuideStraightness(c) => c.set_params(p),
+            EffectConfig::RigidBody(c) => c.set_params(p),
+            EffectConfig::ProbeLobing(c) => c.set_params(p),
             EffectConfig::Custom(c) => c.coefficients = p.to_vec(),
         }
         Ok(c)
