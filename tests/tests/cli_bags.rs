@@ -266,3 +266,38 @@ fn a_bag_cut_short_by_a_killed_simulator_is_still_readable() {
     assert!(s["points"].as_u64().unwrap() > 10_000, "{s}");
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn correct_names_an_effect_that_never_acts() {
+    let d = scratch("inactive-effect");
+    sim_ring(&d, "c.json");
+    // A custom effect whose signal never occurs in this run (speeds above 5 m/s).
+    let mut cal = json(&std::fs::read_to_string(d.join("c.json")).unwrap());
+    cal["effects"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({
+            "kind": "custom", "id": "overspeed",
+            "terms": [{"axis": "x", "expr": "max(0, speed - 5000)"}],
+            "coefficients": [1e-3]
+        }));
+    std::fs::write(d.join("c2.json"), cal.to_string()).unwrap();
+    let o = run(
+        &d,
+        &["correct", "--bag", "r.mcap", "--calib", "c2.json", "--json"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s = json(&String::from_utf8_lossy(&o.stdout));
+    assert_eq!(
+        s["inactive_effects"],
+        serde_json::json!(["overspeed"]),
+        "{s}"
+    );
+    assert_eq!(s["effect_points"]["overspeed"], 0, "{s}");
+    assert!(s["points"].as_u64().unwrap() > 1000);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("effect `overspeed`") && err.contains("inactive"),
+        "{err}"
+    );
+}

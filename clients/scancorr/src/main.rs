@@ -610,6 +610,12 @@ fn run(cli: Cli) -> Result<()> {
             for w in warnings {
                 eprintln!("warning: {w}");
             }
+            for e in &s.inactive_effects {
+                eprintln!(
+                    "warning: effect `{e}` of the calibration contributed to none of the {} points: inactive for lack of its signal (e.g. no rotation for servo effects, no deflection for probe effects)",
+                    s.points
+                );
+            }
             if json {
                 outln!("{}", serde_json::to_string_pretty(&s)?)?;
             } else {

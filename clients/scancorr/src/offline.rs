@@ -134,6 +134,10 @@ pub struct Summary {
     pub alarms: u64,
     pub clock_resets: u64,
     pub bad_messages: u64,
+    /// Points each effect contributed to, by effect id.
+    pub effect_points: BTreeMap<String, u64>,
+    /// Effects with parameters that contributed to no point: inactive for lack of a signal.
+    pub inactive_effects: Vec<String>,
     pub seconds: f64,
     pub samples_per_s: f64,
 }
@@ -141,11 +145,12 @@ pub struct Summary {
 fn summary(
     machine: &str,
     cal: &Calibration,
-    st: &Stats,
+    corr: &scancorr_core::Corrector,
     bad: u64,
     foreign: u64,
     secs: f64,
 ) -> Summary {
+    let st: &Stats = corr.stats();
     let mut dropped: BTreeMap<String, u64> = st
         .dropped_by_name()
         .into_iter()
@@ -164,6 +169,12 @@ fn summary(
         alarms: st.alarms_raised,
         clock_resets: st.clock_resets,
         bad_messages: bad,
+        effect_points: corr
+            .effect_ids()
+            .into_iter()
+            .zip(st.effect_points.iter().copied())
+            .collect(),
+        inactive_effects: corr.inactive_effects(),
         seconds: secs,
         samples_per_s: (st.samples() + foreign) as f64 / secs.max(1e-9),
     }
@@ -342,8 +353,5 @@ pub fn correct(
         f.commit()?;
     }
     let secs = t0.elapsed().as_secs_f64();
-    Ok((
-        summary(&machine, cal, corr.stats(), bad, foreign, secs),
-        warnings,
-    ))
+    Ok((summary(&machine, cal, &corr, bad, foreign, secs), warnings))
 }

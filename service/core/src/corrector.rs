@@ -128,6 +128,9 @@ pub struct Stats {
     pub dropped: [u64; 15],
     /// Stream sequences restarted (a counter wrap or restart, confirmed).
     pub seq_resets: u64,
+    /// Points to which each effect of the calibration in force contributed a non-zero
+    /// correction, in effect order (reset when the calibration changes).
+    pub effect_points: Vec<u64>,
     /// Seq jumps (missing samples) seen per stream.
     pub seq_gaps: [u64; 4],
     /// Alarms raised.
@@ -165,6 +168,12 @@ impl Stats {
         self.alarms_raised += o.alarms_raised;
         self.clock_resets += o.clock_resets;
         self.seq_resets += o.seq_resets;
+        if self.effect_points.len() < o.effect_points.len() {
+            self.effect_points.resize(o.effect_points.len(), 0);
+        }
+        for (a, b) in self.effect_points.iter_mut().zip(&o.effect_points) {
+            *a += b;
+        }
     }
 }
 
@@ -281,6 +290,30 @@ impl Corrector {
             probation_n: [0; 4],
             seq_hold: Default::default(),
         }
+        .with_effect_counters()
+    }
+
+    fn with_effect_counters(mut self) -> Corrector {
+        self.stats.effect_points = vec![0; self.model.effects.len()];
+        self
+    }
+
+    /// Effects of the calibration that have parameters but contributed nothing to any of the
+    /// points so far: inactive for lack of a signal (no arcs and no curvature for the servo
+    /// effects, no deflection for probe effects, positions outside a table, ...). Empty until
+    /// a point has been produced.
+    pub fn inactive_effects(&self) -> Vec<String> {
+        if self.stats.points_out == 0 {
+            return vec![];
+        }
+        self.model
+            .effects
+            .iter()
+            .zip(&self.model.doc.effects)
+            .zip(&self.stats.effect_points)
+            .filter(|((_, doc), n)| **n == 0 && doc.params().iter().any(|p| *p != 0.0))
+            .map(|((e, _), _)| e.id.clone())
+            .collect()
     }
 
     /// Also output each point's [`PointContext`] (for the model lab).
@@ -357,6 +390,7 @@ impl Corrector {
         for p in self.temp_q.iter_mut() {
             p.slot = model.sensors.find(&p.sensor);
         }
+        self.stats.effect_points = vec![0; model.effects.len()];
         self.model = model;
     }
 
@@ -802,6 +836,9 @@ impl Corrector {
         );
         if !inside(&point, &model) {
             return Err(DropReason::ImplausibleOutput);
+        }
+        for (n, c) in self.stats.effect_points.iter_mut().zip(&point.corrections) {
+            *n += u64::from(*c != Vec3::zeros());
         }
         let valid = settled && !alarm;
         out.points.push(CorrectedPoint {

@@ -641,3 +641,64 @@ fn absurd_but_finite_input_never_becomes_a_point() {
         .all(|p| p.corrections[0].norm() <= 5.0 * 3f64.sqrt()));
     assert_eq!(out.points.len() as u64 + n, 1500);
 }
+
+#[test]
+fn an_effect_without_its_signal_is_named_inactive() {
+    // servo_phase needs rotation: active on the ring, inactive on a straight scan.
+    let mut cal = Calibration::example("m1");
+    let mut sp = scancorr_core::effects::servo_phase::Config::zeros(0);
+    sp.y[0] = [0.0, 1e-3, 0.0];
+    cal.effects.push(EffectConfig::ServoPhase(sp));
+    let mut corr = Corrector::new(&cal).unwrap();
+    let mut out = Output::default();
+    assert!(
+        corr.inactive_effects().is_empty(),
+        "nothing said before any point"
+    );
+    corr.push_all(time_ordered(&ring_streams(1500, 25.0, 1.5, 0.3)), &mut out);
+    corr.flush(&mut out);
+    assert!(corr.inactive_effects().is_empty());
+    assert!(corr.stats().effect_points[0] > 1000, "{:?}", corr.stats());
+
+    // A straight scan along x at 20 mm/s, no arc anywhere.
+    let mut line: Vec<Sample> = vec![];
+    for k in 0..1500u64 {
+        let t = k as i64 * T_NS;
+        let x = 100.0 + 20.0 * (k as f64 * 1e-3 - 0.05).max(0.0);
+        let p = Vec3::new(x, 50.0, -100.0);
+        line.push(Sample::Command(CommandSample {
+            seq: k,
+            t_ns: t,
+            pos: p,
+            arc_center: Vec3::zeros(),
+            arc_radius: 0.0,
+            segment_id: 1,
+        }));
+        line.push(Sample::Scale(ScaleSample {
+            seq: k,
+            t_ns: t,
+            pos: p,
+        }));
+        line.push(Sample::Probe(ProbeSample {
+            seq: k,
+            t_ns: t,
+            deflection: Vec3::new(0.0, -0.3, 0.0),
+            tip_id: 1,
+            head_a1_deg: 0.0,
+            head_a2_deg: 0.0,
+        }));
+    }
+    let mut corr = Corrector::new(&cal).unwrap();
+    let mut out = Output::default();
+    corr.push_all(line, &mut out);
+    corr.flush(&mut out);
+    assert!(corr.stats().points_out > 1000);
+    assert_eq!(corr.inactive_effects(), vec!["servo_phase".to_string()]);
+    // An effect whose parameters are all zero is not reported (it has nothing to say).
+    let mut cal0 = Calibration::example("m1");
+    cal0.effects.push(EffectConfig::ServoPhase(
+        scancorr_core::effects::servo_phase::Config::zeros(0),
+    ));
+    let (_, st) = run(&cal0, time_ordered(&ring_streams(300, 25.0, 1.5, 0.3)));
+    assert_eq!(st.effect_points, vec![0]);
+}

@@ -599,6 +599,8 @@ impl State {
                     "alarms_raised": stats.as_ref().map(|s| s.alarms_raised).unwrap_or(0),
                     "clock_resets": stats.as_ref().map(|s| s.clock_resets).unwrap_or(0),
                     "seq_resets": stats.as_ref().map(|s| s.seq_resets).unwrap_or(0),
+                    "effect_points": m.ids.iter().cloned().zip(stats.as_ref().map(|s| s.effect_points.clone()).unwrap_or_default()).collect::<BTreeMap<_, _>>(),
+                    "inactive_effects": m.corrector.as_ref().map(|c| c.inactive_effects()).unwrap_or_default(),
                     "messages": m.extra,
                     "output": m.outbox.figures(),
                     "pending": {"command": pending[0], "scale": pending[1], "probe": pending[2], "temperature": pending[3]},
