@@ -33,6 +33,7 @@ pub fn all_effects_calibration(machine: &str) -> Calibration {
         .push(EffectConfig::ProbeForce(probe_force::Config {
             id: None,
             k: [0.01, 0.01, 0.005],
+            per_tip: Default::default(),
         }));
     let mut gs = guide_straightness::Config::zeros(Axis::X, 0.0, 1000.0, 11, true);
     gs.straightness.values_mut().for_each(|v| v[5] = 1e-3);

@@ -6,7 +6,8 @@
 //! a resonance, arc lag and gain, stylus and scale expansion following a temperature history
 //! measured by noisy sensors, stylus bending with probing force, guide straightness and pitch,
 //! sensor noise and quantisation — and optionally effects outside the correction library
-//! (an encoder's cyclic error, backlash) and faults.
+//! (an encoder's cyclic error, backlash, scale counters latching after the time stamp, a
+//! lobing probe, the 21 rigid-body errors of the kinematic chain) and faults.
 //!
 //! Every effect can be switched and scaled; a hidden effect stays in the machine but is left
 //! out of the starting calibration. Ground truth (every true parameter, the true surfaces, the
@@ -38,7 +39,13 @@ pub const LIBRARY_EFFECTS: [&str; 7] = [
     "guide_straightness",
 ];
 /// Effects outside the library (off unless switched on; never in a calibration).
-pub const EXTRA_EFFECTS: [&str; 2] = ["cyclic_error", "backlash"];
+pub const EXTRA_EFFECTS: [&str; 5] = [
+    "cyclic_error",
+    "backlash",
+    "latching",
+    "probe_lobing",
+    "rigid_body",
+];
 
 /// Faults for the judgement stage.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -237,6 +244,12 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
     }
     m.cyclic.amplitude *= k("cyclic_error");
     m.backlash_mm *= k("backlash");
+    m.latching
+        .tau_s
+        .iter_mut()
+        .for_each(|t| *t *= k("latching"));
+    m.lobing.scale(k("probe_lobing"));
+    m.rigid_body.scale(k("rigid_body"));
     m
 }
 
@@ -322,6 +335,7 @@ pub fn calibration_for(
             .push(EffectConfig::ProbeForce(fx::probe_force::Config {
                 id: None,
                 k: m.probe_k,
+                per_tip: Default::default(),
             }));
     }
     if on("guide_straightness") {
@@ -537,6 +551,9 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         blocked: [false; 3],
         stalled: [false; 3],
     };
+    let latching = m.latching.tau_s.iter().any(|t| *t != 0.0);
+    let lobing = m.lobing.is_on();
+    let rigid_body = factors["rigid_body"] != 0.0;
     for k in 0..n {
         let t = k as f64 * period;
         let t_ns = (k as i64) * (1e9 / o.rate_hz).round() as i64;
@@ -606,6 +623,10 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             backlash_dir = -1.0;
         }
         e.x -= 0.5 * m.backlash_mm * backlash_dir;
+        // Rigid-body errors: the tip through the exact transforms of the chain.
+        if rigid_body {
+            e += m.rigid_body.tip(&x, &offset_true) - (x + offset_true);
+        }
         let tip_free = x + e + offset_true;
         let d_total = match (seg.kind, seg.feature) {
             (SegmentKind::Scan | SegmentKind::Dwell, Some(fid)) => {
@@ -613,17 +634,40 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             }
             _ => V3::zeros(),
         };
-        let d_probe = rot.transpose() * d_total;
+        let mut d_probe = rot.transpose() * d_total;
+        if lobing {
+            d_probe = m.lobing.apply(&d_probe);
+        }
         let mut defl = V3::zeros();
         for i in 0..3 {
             let dm = d_probe[i] / (1.0 + m.probe_k[i]) + nz.probe_sigma_mm * noise.normal();
             defl[i] = quantise(dm, nz.probe_resolution_mm);
         }
+        // The counters latch the carriage where it is τ_i after the time stamp.
+        let mut x_read = x;
+        if latching {
+            let (c_next, _, _) = cmd_at(k + 1);
+            for i in 0..3 {
+                let tau = m.latching.tau_s[i];
+                if tau != 0.0 {
+                    let c_tau = c + (c_next - c) * (tau / period);
+                    let steps = (tau / (period / substeps as f64)).ceil().max(1.0) as usize;
+                    let h = tau / steps as f64;
+                    let mut s_tau = st;
+                    for j in 0..steps {
+                        let ca = c + (c_tau - c) * (j as f64 / steps as f64);
+                        let cb = c + (c_tau - c) * ((j + 1) as f64 / steps as f64);
+                        s_tau = phys.rk4(&s_tau, &ca, &cb, h);
+                    }
+                    x_read[i] = s_tau.x[i];
+                }
+            }
+        }
         let mut scale = V3::zeros();
         for i in 0..3 {
-            let mut s = x[i] / (1.0 + m.scale_alpha[i] * (t_scale[i] - 20.0));
+            let mut s = x_read[i] / (1.0 + m.scale_alpha[i] * (t_scale[i] - 20.0));
             if i == 0 {
-                s += m.cyclic.at(x[i]);
+                s += m.cyclic.at(x_read[i]);
             }
             scale[i] = quantise(
                 s + nz.scale_sigma_mm * noise.normal(),

@@ -9,7 +9,7 @@
 //! calibration document, so that it can write the true calibration for comparison.
 
 use crate::rng::Rng;
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix3, Matrix4, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 
 /// Vector in machine axes.
@@ -151,6 +151,269 @@ pub struct TrueMachine {
     pub styli: Vec<Stylus>,
     /// Sensor noise.
     pub noise: Noise,
+    /// Scale counters latching after the controller's time stamp (outside the library
+    /// physics of the corrector; zero unless `latching` is switched on).
+    #[serde(default)]
+    pub latching: Latching,
+    /// Direction-dependent probe error (zero unless `probe_lobing` is switched on).
+    #[serde(default)]
+    pub lobing: ProbeLobing,
+    /// The 21 rigid-body errors of the moving-bridge kinematic chain (zero unless
+    /// `rigid_body` is switched on).
+    #[serde(default)]
+    pub rigid_body: RigidBody,
+}
+
+/// Latching instants of the scale counters: the reading of axis i at controller time t is
+/// the carriage position at t + τ_i (the machine's own dynamics integrated over τ_i).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Latching {
+    /// τ_x, τ_y, τ_z, s.
+    pub tau_s: [f64; 3],
+}
+
+impl Latching {
+    fn from_seed(seed: u64) -> Latching {
+        let mut r = Rng::new(seed, "latching");
+        // Three different delays spread over 20–120 µs, in a seed-dependent order.
+        let base = [
+            r.range(20e-6, 50e-6),
+            r.range(55e-6, 85e-6),
+            r.range(90e-6, 120e-6),
+        ];
+        let k = (r.next_u64() % 6) as usize;
+        let perm = [
+            [0, 1, 2],
+            [0, 2, 1],
+            [1, 0, 2],
+            [1, 2, 0],
+            [2, 0, 1],
+            [2, 1, 0],
+        ][k];
+        Latching {
+            tau_s: perm.map(|i| base[i]),
+        }
+    }
+}
+
+/// Lobing of the probe: with φ the probing direction in the probe's u-v plane and sin θ =
+/// |d_uv|/|d| (d the true deflection in probe axes), the probe reports its deflection off
+/// along d by L = sin θ · Σ_k A_k cos(k(φ − φ_k)) (before stylus bending, i.e. the reported
+/// deflection is (d + L·d/|d|)/(1 + k_probe)). A positive L moves the measured point along
+/// the probing direction (out of the material).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct ProbeLobing {
+    /// Highest harmonic K; the series runs over k = 2…K (as in the calibration document).
+    pub max_harmonic: u8,
+    /// A_k, k = 2…K, mm.
+    pub amplitude_mm: Vec<f64>,
+    /// φ_k, k = 2…K, rad.
+    pub phase_rad: Vec<f64>,
+    /// The correction in the `probe_lobing` document's convention (δ along n = +Σ a_k cos kφ
+    /// + b_k sin kφ): a_k = −A_k cos kφ_k, mm.
+    pub a_mm: Vec<f64>,
+    /// b_k = −A_k sin kφ_k, mm.
+    pub b_mm: Vec<f64>,
+}
+
+impl ProbeLobing {
+    fn from_seed(seed: u64) -> ProbeLobing {
+        let mut r = Rng::new(seed, "probe_lobing");
+        let amp3 = r.range(0.3e-3, 1.0e-3);
+        let amplitude_mm = vec![r.range(0.05, 0.15) * amp3, amp3, r.range(0.05, 0.15) * amp3];
+        let phase_rad: Vec<f64> = (0..3)
+            .map(|_| r.range(0.0, std::f64::consts::TAU))
+            .collect();
+        let mut l = ProbeLobing {
+            max_harmonic: 4,
+            amplitude_mm,
+            phase_rad,
+            a_mm: vec![],
+            b_mm: vec![],
+        };
+        l.update_document();
+        l
+    }
+    fn update_document(&mut self) {
+        let k = |i: usize| (i + 2) as f64;
+        self.a_mm = (0..self.amplitude_mm.len())
+            .map(|i| -self.amplitude_mm[i] * (k(i) * self.phase_rad[i]).cos())
+            .collect();
+        self.b_mm = (0..self.amplitude_mm.len())
+            .map(|i| -self.amplitude_mm[i] * (k(i) * self.phase_rad[i]).sin())
+            .collect();
+    }
+    /// Scales every amplitude.
+    pub fn scale(&mut self, f: f64) {
+        self.amplitude_mm.iter_mut().for_each(|a| *a *= f);
+        self.update_document();
+    }
+    /// Whether the probe lobes at all.
+    pub fn is_on(&self) -> bool {
+        self.amplitude_mm.iter().any(|a| *a != 0.0)
+    }
+    /// The reported deflection (before stylus bending) for a true deflection `d` in probe axes.
+    pub fn apply(&self, d: &V3) -> V3 {
+        let dn = d.norm();
+        let uv = d.x.hypot(d.y);
+        if dn == 0.0 || uv == 0.0 {
+            return *d;
+        }
+        let phi = d.y.atan2(d.x);
+        let l: f64 = self
+            .amplitude_mm
+            .iter()
+            .zip(&self.phase_rad)
+            .enumerate()
+            .map(|(i, (a, p))| a * ((i + 2) as f64 * (phi - p)).cos())
+            .sum();
+        d + d / dn * (l * uv / dn)
+    }
+}
+
+/// One error component of an axis as a function of the axis position u, mm or rad:
+/// e(u) = c1·ξ + c2·ξ² + w(u), ξ = u / 1000 mm, w a [`Wave`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ErrorFn {
+    /// c1, c2.
+    pub poly: [f64; 2],
+    /// The wave term.
+    pub wave: Wave,
+}
+
+impl Default for ErrorFn {
+    fn default() -> Self {
+        ErrorFn {
+            poly: [0.0; 2],
+            wave: Wave {
+                amplitude: 0.0,
+                wavelength_mm: 1000.0,
+                phase: 0.0,
+            },
+        }
+    }
+}
+
+impl ErrorFn {
+    /// Value at position `u`.
+    pub fn at(&self, u: f64) -> f64 {
+        let xi = u / 1000.0;
+        self.poly[0] * xi + self.poly[1] * xi * xi + self.wave.at(u)
+    }
+    fn draw(r: &mut Rng, amp: f64) -> ErrorFn {
+        let sgn = |r: &mut Rng| if r.uniform() < 0.5 { -1.0 } else { 1.0 };
+        ErrorFn {
+            poly: [
+                amp * r.range(0.5, 1.5) * sgn(r),
+                amp * r.range(0.3, 1.0) * sgn(r),
+            ],
+            wave: Wave {
+                amplitude: amp * r.range(0.2, 0.5),
+                wavelength_mm: r.range(250.0, 700.0),
+                phase: r.range(0.0, std::f64::consts::TAU),
+            },
+        }
+    }
+    fn scale(&mut self, f: f64) {
+        self.poly[0] *= f;
+        self.poly[1] *= f;
+        self.wave.amplitude *= f;
+    }
+}
+
+/// The six errors of one axis, in machine axes: `translation[j]` is the displacement of the
+/// moving part along machine axis j (the axis's own component is its positioning error, the
+/// others its straightness), mm; `rotation[j]` its rotation about machine axis j (roll, pitch,
+/// yaw as the case may be), rad.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct AxisErrors {
+    /// Translations along x, y, z.
+    pub translation: [ErrorFn; 3],
+    /// Rotations about x, y, z.
+    pub rotation: [ErrorFn; 3],
+}
+
+impl AxisErrors {
+    /// The homogeneous transform of the moving part at position `u` along the unit direction
+    /// `dir`: Trans(u·dir + δ(u)) · Rz(γ)·Ry(β)·Rx(α).
+    pub fn transform(&self, u: f64, dir: &V3) -> Matrix4<f64> {
+        let d = dir * u + V3::from(self.translation.map(|f| f.at(u)));
+        let [a, b, g] = self.rotation.map(|f| f.at(u));
+        let r = nalgebra::Rotation3::from_axis_angle(&V3::z_axis(), g)
+            * nalgebra::Rotation3::from_axis_angle(&V3::y_axis(), b)
+            * nalgebra::Rotation3::from_axis_angle(&V3::x_axis(), a);
+        let mut t = Matrix4::identity();
+        t.fixed_view_mut::<3, 3>(0, 0).copy_from(r.matrix());
+        t.fixed_view_mut::<3, 1>(0, 3).copy_from(&d);
+        t
+    }
+}
+
+/// The rigid-body errors of a moving-bridge machine (Y carries the bridge over the table, X
+/// the carriage along the bridge, Z the ram in the carriage). The tip centre is
+/// T_Y(y)·T_X(x)·T_Z(z)·(offset, 1) with each T an exact homogeneous transform
+/// ([`AxisErrors::transform`]); the axes move along the unit directions ŷ = (0, 1, 0),
+/// x̂ = (1, s_xy, 0)/|·|, ẑ = (s_zx, s_zy, 1)/|·| (squareness errors, rad). With every error
+/// zero the tip is (x, y, z) + offset.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct RigidBody {
+    /// The chain, base first.
+    pub chain: [char; 3],
+    /// The bridge (Y axis).
+    pub y: AxisErrors,
+    /// The carriage (X axis).
+    pub x: AxisErrors,
+    /// The ram (Z axis).
+    pub z: AxisErrors,
+    /// Squareness of X to Y, rad.
+    pub s_xy: f64,
+    /// Squareness of Z to X, rad.
+    pub s_zx: f64,
+    /// Squareness of Z to Y, rad.
+    pub s_zy: f64,
+}
+
+impl RigidBody {
+    fn from_seed(seed: u64) -> RigidBody {
+        let mut r = Rng::new(seed, "rigid_body");
+        let axis = |r: &mut Rng| AxisErrors {
+            translation: [0, 1, 2].map(|_| ErrorFn::draw(r, 2.5e-3)),
+            rotation: [0, 1, 2].map(|_| ErrorFn::draw(r, 3.0e-6)),
+        };
+        let y = axis(&mut r);
+        let x = axis(&mut r);
+        let z = axis(&mut r);
+        let mut sq = || r.range(2e-6, 8e-6) * if r.uniform() < 0.5 { -1.0 } else { 1.0 };
+        RigidBody {
+            chain: ['y', 'x', 'z'],
+            y,
+            x,
+            z,
+            s_xy: sq(),
+            s_zx: sq(),
+            s_zy: sq(),
+        }
+    }
+    /// Scales every error.
+    pub fn scale(&mut self, f: f64) {
+        for a in [&mut self.y, &mut self.x, &mut self.z] {
+            a.translation.iter_mut().for_each(|e| e.scale(f));
+            a.rotation.iter_mut().for_each(|e| e.scale(f));
+        }
+        self.s_xy *= f;
+        self.s_zx *= f;
+        self.s_zy *= f;
+    }
+    /// The true tip centre for axis positions `p` and stylus offset `offset` (machine axes).
+    pub fn tip(&self, p: &V3, offset: &V3) -> V3 {
+        let dy = V3::y();
+        let dx = V3::new(1.0, self.s_xy, 0.0).normalize();
+        let dz = V3::new(self.s_zx, self.s_zy, 1.0).normalize();
+        let t =
+            self.y.transform(p.y, &dy) * self.x.transform(p.x, &dx) * self.z.transform(p.z, &dz);
+        let h = t * Vector4::new(offset.x, offset.y, offset.z, 1.0);
+        V3::new(h.x, h.y, h.z)
+    }
 }
 
 fn jitter(r: &mut Rng, x: f64, rel: f64) -> f64 {
@@ -283,6 +546,9 @@ impl TrueMachine {
                 temp_sigma_k: 0.002,
                 temp_resolution_k: 0.001,
             },
+            latching: Latching::from_seed(seed),
+            lobing: ProbeLobing::from_seed(seed),
+            rigid_body: RigidBody::from_seed(seed),
         }
     }
 

@@ -606,6 +606,20 @@ mod tests {
         assert_eq!(m.effects.len(), 2);
         assert_eq!(m.sensors.names(), &["stylus".to_string()]);
         assert_eq!(Calibration::from_json(&c.to_json()).unwrap(), c);
+        // Fitted parameters survive their JSON form to the last bit.
+        let mut c = c;
+        for v in [
+            9.999999999999999e-6_f64,
+            0.1 + 0.2,
+            1.0 / 3.0,
+            2.2250738585072014e-308,
+        ] {
+            c.sample_period_s = v.max(1e-9).min(0.5);
+            c.metrics.insert("x".into(), v);
+            let back = Calibration::from_json(&c.to_json()).unwrap();
+            assert_eq!(back.metrics["x"].to_bits(), v.to_bits());
+            assert_eq!(back.sample_period_s.to_bits(), c.sample_period_s.to_bits());
+        }
     }
 
     #[test]
