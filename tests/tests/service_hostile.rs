@@ -103,6 +103,17 @@ async fn publish(s: &zenoh::Session, machine: &str, msgs: &[(StreamId, Vec<Sampl
     }
 }
 
+/// A child process killed when the test ends, also when it fails (SIGKILL ends a stopped
+/// process too).
+struct KillOnDrop(std::process::Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 type Collected = std::sync::Arc<std::sync::Mutex<Vec<v1::CorrectedPoint>>>;
 
 /// Collects the corrected points of a key expression while the subscriber lives.
@@ -469,22 +480,24 @@ async fn a_subscriber_that_stops_reading_costs_only_its_machines_points() {
     put(&s, "cmm/m2/calibration", cal2).await.unwrap();
     // A consumer of m1 that stops reading (SIGSTOP), with a small receive buffer so that
     // back-pressure builds within the test.
-    let mut slow = Command::new(scancorr())
-        .args([
-            "tail",
-            "--machine",
-            "m1",
-            "--connect",
-            &format!("tcp/127.0.0.1:{port}#so_rcvbuf=4096"),
-        ])
-        .current_dir(&d)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut slow = KillOnDrop(
+        Command::new(scancorr())
+            .args([
+                "tail",
+                "--machine",
+                "m1",
+                "--connect",
+                &format!("tcp/127.0.0.1:{port}#so_rcvbuf=4096"),
+            ])
+            .current_dir(&d)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
     // It is stopped once it has shown that it receives m1's points.
     let (tx, rx) = std::sync::mpsc::channel();
-    let out = slow.stdout.take().unwrap();
+    let out = slow.0.stdout.take().unwrap();
     std::thread::spawn(move || {
         use std::io::BufRead;
         for line in std::io::BufReader::new(out).lines() {
@@ -514,7 +527,7 @@ async fn a_subscriber_that_stops_reading_costs_only_its_machines_points() {
         );
     }
     Command::new("kill")
-        .args(["-STOP", &slow.id().to_string()])
+        .args(["-STOP", &slow.0.id().to_string()])
         .status()
         .unwrap();
     // m2's consumer has a session of its own (the test's other sessions publish at full speed).
@@ -544,10 +557,9 @@ async fn a_subscriber_that_stops_reading_costs_only_its_machines_points() {
     eprintln!("m2: {st2:#}");
     svc.stop();
     let _ = Command::new("kill")
-        .args(["-CONT", &slow.id().to_string()])
+        .args(["-CONT", &slow.0.id().to_string()])
         .status();
-    let _ = slow.kill();
-    let _ = slow.wait();
+    drop(slow);
     drop(sub);
     eprintln!("m1: {st1:#}");
     // m1's consumer stopped reading: m1 was corrected throughout, and what could not be
