@@ -265,6 +265,8 @@ pub struct Model {
     /// The travel widened by the longest reach of a tip (offset + radius + probe range +
     /// largest total correction): where a surface point or tip centre can plausibly be, mm.
     pub volume_mm: [[f64; 2]; 3],
+    /// Largest plausible commanded arc radius: the diagonal of the travel, mm.
+    pub max_arc_radius_mm: f64,
 }
 
 impl Calibration {
@@ -512,6 +514,12 @@ impl Calibration {
             + l.probe_range_mm * 3f64.sqrt()
             + l.max_correction_mm * effects.len() as f64 * 3f64.sqrt();
         let volume_mm = l.travel_mm.map(|[lo, hi]| [lo - reach, hi + reach]);
+        let max_arc_radius_mm = l
+            .travel_mm
+            .iter()
+            .map(|[lo, hi]| (hi - lo).powi(2))
+            .sum::<f64>()
+            .sqrt();
         let ns = |s: f64| (s * 1e9).round() as i64;
         Ok(Model {
             doc: self.clone(),
@@ -527,6 +535,7 @@ impl Calibration {
             clock_reset_ns: ns(jn.clock_reset_s),
             temperature_max_age_ns: ns(jn.temperature_max_age_s),
             volume_mm,
+            max_arc_radius_mm,
         })
     }
 

@@ -595,7 +595,7 @@ impl Corrector {
             self.stats.dropped[DropReason::NonFinite as usize] += 1;
             return false;
         }
-        if let Err(r) = plausible(s, &self.model.doc.limits) {
+        if let Err(r) = plausible(s, &self.model) {
             self.stats.dropped[r as usize] += 1;
             return false;
         }
@@ -867,14 +867,15 @@ impl Corrector {
 }
 
 /// Whether a sample's values lie in the machine's plausible ranges; its name in the grammar.
-fn plausible(s: &Sample, l: &crate::calib::Limits) -> Result<(), DropReason> {
+fn plausible(s: &Sample, m: &Model) -> Result<(), DropReason> {
+    let l = &m.doc.limits;
     let in_travel =
         |p: &Vec3| (0..3).all(|i| p[i] >= l.travel_mm[i][0] && p[i] <= l.travel_mm[i][1]);
     let ok = match s {
         Sample::Command(c) => {
             in_travel(&c.pos)
                 && (c.arc_radius == 0.0
-                    || (in_travel(&c.arc_center) && c.arc_radius <= diagonal(l)))
+                    || (in_travel(&c.arc_center) && c.arc_radius <= m.max_arc_radius_mm))
         }
         Sample::Scale(c) => in_travel(&c.pos),
         Sample::Probe(p) => {
@@ -894,14 +895,6 @@ fn plausible(s: &Sample, l: &crate::calib::Limits) -> Result<(), DropReason> {
     } else {
         Err(DropReason::Implausible)
     }
-}
-
-fn diagonal(l: &crate::calib::Limits) -> f64 {
-    l.travel_mm
-        .iter()
-        .map(|[lo, hi]| (hi - lo).powi(2))
-        .sum::<f64>()
-        .sqrt()
 }
 
 /// Whether a corrected point is finite, inside the machine's volume and every correction

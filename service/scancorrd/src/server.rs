@@ -75,17 +75,37 @@ struct Refused {
     bad_query: u64,
 }
 
+/// Why a message or request was refused before it reached a machine.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Refusal {
+    NotServed,
+    OverCapacity,
+    BadKey,
+    BadQuery,
+}
+
+impl Refusal {
+    fn name(self) -> &'static str {
+        match self {
+            Refusal::NotServed => "not_served",
+            Refusal::OverCapacity => "over_capacity",
+            Refusal::BadKey => "bad_key",
+            Refusal::BadQuery => "bad_query",
+        }
+    }
+}
+
 /// A rate-limited warning per refusal reason.
 #[derive(Default)]
 struct LogGate {
-    last: BTreeMap<&'static str, (Instant, u64)>,
+    last: BTreeMap<Refusal, (Instant, u64)>,
 }
 
 impl LogGate {
     /// Whether to log now; with the number of events since the last line logged.
-    fn pass(&mut self, reason: &'static str) -> Option<u64> {
+    fn pass(&mut self, reason: Refusal) -> Option<u64> {
         let now = Instant::now();
-        match self.last.get_mut(reason) {
+        match self.last.get_mut(&reason) {
             Some((t, n)) if now.duration_since(*t) < LOG_EVERY => {
                 *n += 1;
                 None
@@ -430,17 +450,17 @@ impl State {
     }
 
     /// Counts a refusal and logs it at most once per [`LOG_EVERY`] per reason.
-    fn refuse(&mut self, reason: &'static str, what: &str) {
+    fn refuse(&mut self, reason: Refusal, what: &str) {
         let r = &mut self.refused;
-        match reason {
-            "not_served" => r.not_served += 1,
-            "over_capacity" => r.over_capacity += 1,
-            "bad_key" => r.bad_key += 1,
-            _ => r.bad_query += 1,
-        }
+        *match reason {
+            Refusal::NotServed => &mut r.not_served,
+            Refusal::OverCapacity => &mut r.over_capacity,
+            Refusal::BadKey => &mut r.bad_key,
+            Refusal::BadQuery => &mut r.bad_query,
+        } += 1;
         if let Some(n) = self.log.pass(reason) {
             warn!(
-                reason,
+                reason = reason.name(),
                 count = n,
                 latest = %scancorr_proto::names::shown(what),
                 "refused (logged at most once per {} s per reason)",
@@ -456,15 +476,15 @@ impl State {
             .and_then(|(m, st)| Some((m.to_string(), wire::stream_id(st)?)))
         else {
             let key = key.to_string();
-            self.refuse("bad_key", &key);
+            self.refuse(Refusal::BadKey, &key);
             return;
         };
         if !self.cfg.serves(&machine) {
-            self.refuse("not_served", &machine);
+            self.refuse(Refusal::NotServed, &machine);
             return;
         }
         if !self.machines.contains_key(&machine) && self.machines.len() >= self.cfg.max_machines {
-            self.refuse("over_capacity", &machine);
+            self.refuse(Refusal::OverCapacity, &machine);
             return;
         }
         if let Err(e) = self.machine(&machine).await {
@@ -558,7 +578,7 @@ impl State {
     async fn on_status(&mut self, q: zenoh::query::Query) {
         let key = q.key_expr().as_str().to_string();
         let Some(machine) = scancorr_proto::machine_of(&self.cfg.prefix, &key, "status") else {
-            self.refuse("bad_query", &key);
+            self.refuse(Refusal::BadQuery, &key);
             let _ = q
                 .reply_err(format!(
                     "{}: not the status key of one machine ({}/<machine>/status)",
@@ -619,7 +639,7 @@ impl State {
         let key = q.key_expr().as_str().to_string();
         let Some(machine) = scancorr_proto::machine_of(&self.cfg.prefix, &key, "calibration")
         else {
-            self.refuse("bad_query", &key);
+            self.refuse(Refusal::BadQuery, &key);
             let _ = q
                 .reply_err(format!(
                     "{}: not the calibration key of one machine ({}/<machine>/calibration; machine ids are 1–{} characters of A–Z a–z 0–9 _ - .)",
@@ -683,7 +703,7 @@ impl State {
             return Err(format!("this service does not serve machine `{machine}`"));
         }
         if !self.machines.contains_key(machine) && self.machines.len() >= self.cfg.max_machines {
-            self.refuse("over_capacity", machine);
+            self.refuse(Refusal::OverCapacity, machine);
             return Err(format!(
                 "this service serves its maximum of {} machines; `{machine}` is not one of them",
                 self.cfg.max_machines
