@@ -11,6 +11,7 @@ pub mod dataset;
 pub mod fit;
 pub mod nominal;
 pub mod program;
+pub mod structure;
 
 /// Why the lab cannot answer.
 #[derive(Debug, Clone, thiserror::Error)]
