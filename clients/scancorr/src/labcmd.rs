@@ -51,9 +51,13 @@ pub enum LabCmd {
         /// The new calibration version.
         #[arg(long)]
         out: PathBuf,
-        /// Refit every effect of the model, not only the new one.
-        #[arg(long)]
+        /// Refit every effect of the model with the new one (the default; kept for scripts).
+        #[arg(long, conflicts_with = "only_new")]
         refit_all: bool,
+        /// Fit only the new effect, keeping the others as they are (the others stay biased by
+        /// what they had absorbed; for comparison only).
+        #[arg(long)]
+        only_new: bool,
         /// Custom effect term AXIS:EXPR, e.g. 'x:sin(2*pi*x/4)' (repeatable).
         #[arg(long = "term")]
         terms: Vec<String>,
@@ -64,6 +68,38 @@ pub enum LabCmd {
         #[arg(long)]
         json: bool,
         /// Write a self-contained HTML report (before/after).
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Take an effect out of the model (by id), refit the rest, write a new version.
+    Remove {
+        /// The effect's id (as `lab diagnose` and `calib check` name it).
+        effect: String,
+        #[command(flatten)]
+        data: DataArgs,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The whole loop, unattended: refit the nominal model, then diagnose, add (or swap, or
+    /// drop) the best candidate and refit everything until no candidate is significant. Each
+    /// step is written as a calibration version in --out-dir.
+    Discover {
+        #[command(flatten)]
+        data: DataArgs,
+        /// Folder for the versions (v<N>.json, one per step) and the final `calibration.json`.
+        #[arg(long)]
+        out_dir: PathBuf,
+        /// Most steps.
+        #[arg(long, default_value_t = 20)]
+        max_steps: usize,
+        /// Print JSON (`steps`, `confounded`, `final`).
+        #[arg(long)]
+        json: bool,
+        /// Write a self-contained HTML report of the steps and the error fall.
         #[arg(long)]
         report: Option<PathBuf>,
     },
@@ -311,6 +347,7 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             data,
             out,
             refit_all,
+            only_new,
             terms,
             name,
             json,
@@ -326,8 +363,8 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             let l = load(&data)?;
             let ds = dataset_for(&l, &l.cal)?;
             let prep = analysis::prepare(&ds)?;
-            // Candidate configurations of the new effect.
-            let variants: Vec<(String, EffectConfig)> = if effect == "custom" {
+            // Candidate moves: the custom effect, one variant, or every variant of a kind.
+            let cands: Vec<analysis::Candidate> = if effect == "custom" {
                 if terms.is_empty() {
                     bail!("a custom effect needs terms: --term 'x:sin(2*pi*x/4)' --term 'x:cos(2*pi*x/4)'");
                 }
@@ -348,66 +385,44 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                     });
                 }
                 let id = name.clone().unwrap_or_else(|| "custom".into());
+                if l.cal.effects.iter().any(|e| e.id() == id) {
+                    bail!("an effect with id `{id}` is already in the model; give the new one another --name");
+                }
                 let n = ts.len();
-                vec![(
-                    id.clone(),
-                    EffectConfig::Custom(custom::Config {
+                vec![analysis::Candidate {
+                    action: analysis::Move::Add,
+                    effect: id.clone(),
+                    replaces: None,
+                    config: Some(EffectConfig::Custom(custom::Config {
                         id,
                         dynamic: false,
                         terms: ts,
                         coefficients: vec![0.0; n],
-                    }),
-                )]
-            } else if effect.contains(':') {
-                vec![(effect.clone(), analysis::candidate(&effect, &ds)?)]
+                    })),
+                }]
             } else {
-                let all: Vec<_> = analysis::library_candidates(&ds)
-                    .into_iter()
-                    .filter(|(n, _)| n.split(':').next() == Some(effect.as_str()))
-                    .collect();
-                if all.is_empty() {
-                    analysis::candidate(&effect, &ds)?; // names the problem (unknown effect)
-                    bail!("`{effect}` is already in the model (use `lab fit` to refit it)");
-                }
-                all
-            };
-            if l.cal
-                .effects
-                .iter()
-                .any(|e| variants.iter().any(|(_, v)| v.id() == e.id()))
-            {
-                bail!("an effect with id `{}` is already in the model; give the new one another --name", variants[0].1.id());
-            }
-            let mut best: Option<(String, analysis::FitOutcome)> = None;
-            for (vname, cfg) in &variants {
-                let mut configs: Vec<EffectConfig> = if refit_all {
-                    l.cal.effects.clone()
-                } else {
-                    vec![]
-                };
-                configs.push(cfg.clone());
-                let o = analysis::fit_effects(&ds, &prep, &configs)?;
-                let better = match &best {
-                    None => true,
-                    Some((_, b)) => {
-                        let score = |o: &analysis::FitOutcome| {
-                            o.heldout_rms_after_um * (1.0 + 0.002 * o.k as f64)
-                        };
-                        score(&o) < score(b)
+                let mut c = analysis::moves_named(&ds, &effect)?;
+                if let Some(n) = &name {
+                    scancorr_proto::names::check("--name", n).map_err(|e| anyhow::anyhow!("{e}"))?;
+                    for m in &mut c {
+                        if m.action == analysis::Move::Add {
+                            if let Some(cfg) = &mut m.config {
+                                cfg.set_id(Some(n.clone()));
+                            }
+                        }
                     }
-                };
-                if better {
-                    best = Some((vname.clone(), o));
                 }
-            }
-            let (vname, o) = best.expect("at least one variant");
+                c
+            };
+            let _ = refit_all;
+            let applied = analysis::apply(&ds, cands, only_new)?;
+            let o = applied.outcome;
+            let vname = match &applied.candidate.replaces {
+                Some(r) => format!("{} (replacing {r})", applied.candidate.effect),
+                None => applied.candidate.effect.clone(),
+            };
             let mut new = l.cal.clone();
-            if refit_all {
-                new.effects = o.configs.clone();
-            } else {
-                new.effects
-                    .push(o.configs.last().expect("the new effect").clone());
-            }
+            new.effects = applied.effects;
             new.parent_version = Some(l.cal.version);
             new.version = l.cal.version + 1;
             new.created = now_rfc3339();
@@ -416,7 +431,7 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             let after = analysis::prepare(&ds_after)?;
             new.note = format!(
                 "lab add {vname}{}: held-out RMS {} → {} µm (fit {} → {} µm)",
-                if refit_all { " (refit all)" } else { "" },
+                if only_new { " (only the new effect fitted)" } else { "" },
                 um(prep.rms_held_um),
                 um(after.rms_held_um),
                 um(prep.rms_fit_um),
@@ -494,6 +509,133 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                         o.unidentifiable.len()
                     )?;
                 }
+            }
+            Ok(())
+        }
+        LabCmd::Remove {
+            effect,
+            data,
+            out,
+            json,
+        } => {
+            let [out_file] = outputs([("--out", Some(out.as_path()))], &data.inputs())?;
+            let l = load(&data)?;
+            if !l.cal.effects.iter().any(|e| e.id() == effect) {
+                bail!(
+                    "the model has no effect `{effect}` (it has: {})",
+                    l.cal.effects.iter().map(|e| e.id()).collect::<Vec<_>>().join(", ")
+                );
+            }
+            let ds = dataset_for(&l, &l.cal)?;
+            let prep = analysis::prepare(&ds)?;
+            let applied = analysis::apply(
+                &ds,
+                vec![analysis::Candidate {
+                    action: analysis::Move::Drop,
+                    effect: effect.clone(),
+                    replaces: Some(effect.clone()),
+                    config: None,
+                }],
+                false,
+            )?;
+            let mut new = l.cal.clone();
+            new.effects = applied.effects;
+            new.parent_version = Some(l.cal.version);
+            new.version = l.cal.version + 1;
+            new.created = now_rfc3339();
+            let ds_after = dataset_for(&l, &new)?;
+            let after = analysis::prepare(&ds_after)?;
+            new.note = format!(
+                "lab remove {effect}: held-out RMS {} → {} µm (fit {} → {} µm)",
+                um(prep.rms_held_um),
+                um(after.rms_held_um),
+                um(prep.rms_fit_um),
+                um(after.rms_fit_um)
+            );
+            new.metrics = [
+                ("rms_um".to_string(), after.rms_fit_um),
+                ("heldout_rms_um".to_string(), after.rms_held_um),
+                ("noise_floor_um".to_string(), ds.noise_floor_um),
+                ("parent_rms_um".to_string(), prep.rms_fit_um),
+                ("parent_heldout_rms_um".to_string(), prep.rms_held_um),
+            ]
+            .into();
+            new.build().context("the refitted calibration")?;
+            put(&out_file, new.to_json())?;
+            commit_all([out_file])?;
+            let summary = serde_json::json!({
+                "removed": effect,
+                "version": new.version,
+                "parent_version": l.cal.version,
+                "rms_before_um": prep.rms_fit_um,
+                "rms_after_um": after.rms_fit_um,
+                "heldout_rms_before_um": prep.rms_held_um,
+                "heldout_rms_after_um": after.rms_held_um,
+                "noise_floor_um": ds.noise_floor_um,
+                "out": out,
+            });
+            if json {
+                outln!("{}", serde_json::to_string_pretty(&summary)?)?;
+            } else {
+                outln!("removed {effect} → {} (version {}, parent {})", out.display(), new.version, l.cal.version)?;
+                outln!("  RMS on fit data   {:>8} → {:>8} µm", um(prep.rms_fit_um), um(after.rms_fit_um))?;
+                outln!("  RMS held out      {:>8} → {:>8} µm   (noise floor {} µm)", um(prep.rms_held_um), um(after.rms_held_um), um(ds.noise_floor_um))?;
+            }
+            Ok(())
+        }
+        LabCmd::Discover {
+            data,
+            out_dir,
+            max_steps,
+            json,
+            report,
+        } => {
+            let [report_out] = outputs([("--report", report.as_deref())], &data.inputs())?;
+            std::fs::create_dir_all(&out_dir)
+                .with_context(|| format!("creating --out-dir {}", out_dir.display()))?;
+            let l = load(&data)?;
+            let opts = scancorr_core::lab::discover::Options {
+                build: l.opts.clone(),
+                max_steps,
+                created: now_rfc3339(),
+            };
+            let t0 = std::time::Instant::now();
+            let mut on_step = |st: &scancorr_core::lab::discover::Step| -> std::result::Result<(), scancorr_core::lab::LabError> {
+                let path = out_dir.join(format!("v{}.json", st.version));
+                crate::output::write_file("--out-dir", &path, st.calibration.to_json())
+                    .map_err(|e| scancorr_core::lab::LabError::Data(format!("{e:#}")))?;
+                if !json {
+                    let _ = outln!(
+                        "  step {:>2}  {:<5} {:<40} held-out {:>7} → {:>7} µm   v{} → {}",
+                        st.index,
+                        st.action,
+                        match &st.replaces {
+                            Some(r) => format!("{} (for {r})", st.effect),
+                            None => st.effect.clone(),
+                        },
+                        um(st.heldout_rms_before_um),
+                        um(st.heldout_rms_um),
+                        st.version,
+                        path.display()
+                    );
+                }
+                Ok(())
+            };
+            let mut on_progress = |m: &str| {
+                eprintln!("[{:>5.1} s] {m}", t0.elapsed().as_secs_f64());
+            };
+            let d = scancorr_core::lab::discover::discover(&l.bags, &l.cal, &opts, &mut on_step, &mut on_progress)?;
+            let last = &d.steps.last().expect("step 0 exists").calibration;
+            crate::output::write_file("--out-dir", &out_dir.join("calibration.json"), last.to_json())?;
+            if let Some(p) = &report {
+                put(&report_out, report::discover(&l.cal, &d))?;
+                commit_all([report_out])?;
+                eprintln!("report: {}", p.display());
+            }
+            if json {
+                outln!("{}", serde_json::to_string_pretty(&d)?)?;
+            } else {
+                print_discovery(&d, &out_dir)?;
             }
             Ok(())
         }
@@ -793,5 +935,29 @@ fn print_diagnosis(d: &Diagnosis) -> Result<()> {
     Ok(())
 }
 
-#[allow(dead_code)]
-fn _unused(_: &Path) {}
+fn print_discovery(d: &scancorr_core::lab::discover::Discovery, dir: &Path) -> Result<()> {
+    let f = &d.r#final;
+    outln!(
+        "stopped: {} — held-out RMS {} → {} µm, noise floor {} µm ({:.2}× the floor), cross-validated {} µm",
+        d.stopped,
+        um(d.start_heldout_rms_um),
+        um(f.heldout_rms_um),
+        um(f.noise_floor_um),
+        f.heldout_rms_um / f.noise_floor_um.max(1e-9),
+        um(f.cv_rms_um)
+    )?;
+    outln!("  final model v{} ({}): {}", f.version, dir.join("calibration.json").display(), f.effects.join(", "))?;
+    for c in &d.confounded {
+        outln!("  confounded on this campaign: {} and {} — to separate them:", c.effects[0], c.effects[1])?;
+        for s in &c.separate_by {
+            outln!("    · {s}")?;
+        }
+    }
+    if !d.unidentifiable.is_empty() {
+        outln!("  {} parameter(s) the campaign cannot determine (kept at their minimum-norm values), e.g. {}", d.unidentifiable.len(), d.unidentifiable.iter().take(3).cloned().collect::<Vec<_>>().join("; "))?;
+    }
+    for s in &d.unexplained {
+        outln!("  left unexplained: {} along {} ({:.3} µm, {:.0} % of the residual)", s.kind, s.axis, s.amplitude_um, s.explained * 100.0)?;
+    }
+    Ok(())
+}

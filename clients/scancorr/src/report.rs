@@ -391,3 +391,65 @@ pub fn history(rows: &[HistoryRow]) -> String {
     body += "</table>";
     page("scancorr lab — history", &body)
 }
+
+/// `lab discover --report`: the steps, the error fall against the noise floor, what the
+/// campaign could not separate or determine.
+pub fn discover(start: &Calibration, d: &scancorr_core::lab::discover::Discovery) -> String {
+    let f = &d.r#final;
+    let mut rows: Vec<(String, f64, bool)> = vec![(
+        format!("start v{} ({} effects)", start.version, start.effects.len()),
+        d.start_heldout_rms_um,
+        false,
+    )];
+    for s in &d.steps {
+        let what = match &s.replaces {
+            Some(r) => format!("{} {} for {r}", s.action, s.effect),
+            None => format!("{} {}", s.action, s.effect),
+        };
+        rows.push((format!("{} v{} {}", s.index, s.version, what), s.heldout_rms_um, false));
+    }
+    let mut body = format!(
+        "<p>Stopped: {}. Held-out RMS {:.3} → <b>{:.3} µm</b> against a noise floor of {:.3} µm ({:.2}×); cross-validated {:.3} µm. Final model v{}: {}.</p>",
+        esc(&d.stopped),
+        d.start_heldout_rms_um,
+        f.heldout_rms_um,
+        f.noise_floor_um,
+        f.heldout_rms_um / f.noise_floor_um.max(1e-9),
+        f.cv_rms_um,
+        f.version,
+        esc(&f.effects.join(", "))
+    );
+    let _ = write!(
+        body,
+        "<figure>{}<figcaption>Error fall: held-out RMS after each step (dashed: 1.5× the noise floor)</figcaption></figure>",
+        bars("error-fall", &rows, "µm", Some((1.5 * f.noise_floor_um, "1.5× noise floor")))
+    );
+    body += "<table><tr><th>step</th><th>action</th><th>effect</th><th>version</th><th>held-out µm</th><th>cross-validated µm</th><th>fit µm</th><th>confounded with</th></tr>";
+    for s in &d.steps {
+        let _ = write!(
+            body,
+            "<tr><td>{}</td><td>{}</td><td>{}{}</td><td>v{}</td><td>{:.3} → {:.3}</td><td>{:.3}</td><td>{:.3}</td><td>{}</td></tr>",
+            s.index,
+            esc(&s.action),
+            esc(&s.effect),
+            s.replaces.as_ref().map(|r| format!(" (for {})", esc(r))).unwrap_or_default(),
+            s.version,
+            s.heldout_rms_before_um,
+            s.heldout_rms_um,
+            s.cv_rms_um,
+            s.rms_um,
+            esc(&s.confounded_with.join(", "))
+        );
+    }
+    body += "</table>";
+    for c in &d.confounded {
+        let _ = write!(body, "<p><b>Confounded on this campaign:</b> {} and {}. To separate them: {}.</p>", esc(&c.effects[0]), esc(&c.effects[1]), esc(&c.separate_by.join("; ")));
+    }
+    if !d.unidentifiable.is_empty() {
+        let _ = write!(body, "<p><b>Not determined by this campaign</b> ({} parameters, kept at their minimum-norm values): {}</p>", d.unidentifiable.len(), esc(&d.unidentifiable.iter().take(12).cloned().collect::<Vec<_>>().join("; ")));
+    }
+    for s in &d.unexplained {
+        let _ = write!(body, "<p><b>Left unexplained:</b> {} along {} ({:.3} µm, {:.0} % of the residual): <code>{}</code></p>", esc(&s.kind), esc(&s.axis), s.amplitude_um, s.explained * 100.0, esc(&s.custom_terms.join(" ")));
+    }
+    page("scancorr lab — discover", &body)
+}

@@ -159,6 +159,22 @@ impl EffectConfig {
         id.unwrap_or_else(|| self.kind().to_string())
     }
 
+    /// Sets the effect's id (`None`: named by its kind).
+    pub fn set_id(&mut self, id: Option<String>) {
+        match self {
+            EffectConfig::AccelDeflection(c) => c.id = id,
+            EffectConfig::ServoPhase(c) => c.id = id,
+            EffectConfig::ServoGain(c) => c.id = id,
+            EffectConfig::StylusThermal(c) => c.id = id,
+            EffectConfig::ScaleThermal(c) => c.id = id,
+            EffectConfig::ProbeForce(c) => c.id = id,
+            EffectConfig::GuideStraightness(c) => c.id = id,
+            EffectConfig::RigidBody(c) => c.id = id,
+            EffectConfig::ProbeLobing(c) => c.id = id,
+            EffectConfig::Custom(c) => c.id = id.unwrap_or_else(|| "custom".into()),
+        }
+    }
+
     /// Dynamic effects depend on the estimated motion.
     pub fn is_dynamic(&self) -> bool {
         match self {

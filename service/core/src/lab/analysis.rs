@@ -2,6 +2,7 @@
 
 use super::dataset::{Dataset, Phase};
 use super::fit::{fit_artifacts, nuisance_row, ArtifactFit, Normal};
+use super::select::{predicted, Score, Space, Spec};
 use super::program::FeatureKind;
 use super::LabError;
 use crate::effects::{self as fx, Effect, EffectConfig};
@@ -176,6 +177,10 @@ pub struct FitOutcome {
     pub explained: f64,
     /// RMS of the residual component removed on held-out data, µm.
     pub explained_component_um: f64,
+    /// Cross-validated RMS (alternate scans predicted from the others) before, µm.
+    pub cv_rms_before_um: f64,
+    /// After.
+    pub cv_rms_after_um: f64,
     /// Change of the Bayesian information criterion on the fit set (negative: better).
     pub delta_bic: f64,
     /// Fitted correction per point (for confounding checks), projected on the normal.
@@ -184,149 +189,172 @@ pub struct FitOutcome {
 }
 
 /// Fits the parameters of `configs` (their current values are the starting point; the
-/// change is fitted) jointly with the artifact placements.
+/// change is fitted) jointly with the artifact placements, every effect refitted, tables
+/// smoothed as cross-validation chooses. `configs` are the model's effects (already in the
+/// data) and possibly new ones with zero parameters.
 pub fn fit_effects(
     ds: &Dataset,
     prep: &Prepared,
     configs: &[EffectConfig],
 ) -> Result<FitOutcome, LabError> {
-    let art = &prep.art;
-    let (cols, k, _) = columns(ds, art, configs)?;
-    let mut ne = Normal::new(k + art.n_cols);
-    let mut row = vec![];
-    for (i, p) in ds.points.iter().enumerate() {
-        if prep.fit_mask[i] {
-            nuisance_row(art, p, &p.surface, &mut row);
-            ne.add(&cols[i * k..(i + 1) * k], &row, art.residual[i]);
-        }
-    }
-    // A column far weaker than its effect's strongest (e.g. z acceleration when every scan is
-    // horizontal) carries only numerical noise: it is not fitted and reported as undetermined.
-    let mut weak = vec![];
-    let mut c0 = 0;
-    for cfg in configs {
-        let kc = cfg.params().len();
-        let rms: Vec<f64> = (c0..c0 + kc)
-            .map(|c| ne.m[(c, c)].max(0.0).sqrt())
-            .collect();
-        let top = rms.iter().cloned().fold(0.0, f64::max);
-        for (j, r) in rms.iter().enumerate() {
-            if *r <= 1e-6 * top {
-                weak.push(c0 + j);
-            }
-        }
-        c0 += kc;
-    }
-    for &c in &weak {
-        for j in 0..ne.b.len() {
-            ne.m[(c, j)] = 0.0;
-            ne.m[(j, c)] = 0.0;
-        }
-        ne.b[c] = 0.0;
-    }
-    let n = ne.n;
-    let mut sol = ne.solve();
-    sol.unidentifiable.extend(weak.iter().copied());
-    let theta: Vec<f64> = sol.x.iter().take(k).copied().collect();
-    let (ss0, _) = nuisance_ss(ds, art, &art.residual, &prep.fit_mask);
-    // Held-out: apply θ, refit placements there.
-    let predicted: Vec<f64> = (0..ds.points.len())
-        .map(|i| (0..k).map(|c| cols[i * k + c] * theta[c]).sum())
-        .collect();
-    let y: Vec<f64> = art
-        .residual
-        .iter()
-        .zip(&predicted)
-        .map(|(e, d)| e + d)
-        .collect();
-    let (ssh0, nh) = nuisance_ss(ds, art, &art.residual, &prep.held_mask);
-    let (ssh1, _) = nuisance_ss(ds, art, &y, &prep.held_mask);
-    // Effective number of points and uncertainties.
-    let n_eff = (n as f64 * (1.0 - prep.rho) / (1.0 + prep.rho)).max(k as f64 + 2.0);
-    let dof = (n as f64 - (k + art.n_cols) as f64).max(1.0);
-    let sigma2 = sol.ss / dof * (n as f64 / n_eff);
-    let bic = |ss: f64, kk: usize| n_eff * (ss.max(1e-30) / n as f64).ln() + kk as f64 * n_eff.ln();
-    let delta_bic = bic(sol.ss, k) - bic(ss0, 0);
-    // Parameters: current + change.
-    let mut out_cfgs = vec![];
-    let mut params = vec![];
-    let mut unident = vec![];
-    let mut c = 0;
-    for cfg in configs {
-        let names = cfg.param_names();
-        let mut cur = cfg.params();
-        let mut ps = vec![];
-        for (j, name) in names.iter().enumerate() {
-            let col = c + j;
-            // The pseudo-inverse gives the minimum-norm change: parameters the data cannot
-            // determine get no more than the data asks of them, and are reported.
-            let ident = !sol.unidentifiable.contains(&col);
-            cur[j] += theta[col];
-            if !ident {
-                unident.push(format!("{}: {name}", cfg.id()));
-            }
-            let s = (sol.cov[(col, col)] * sigma2).sqrt();
-            ps.push(Param {
-                name: name.clone(),
-                value: cur[j],
-                sigma: (ident && s.is_finite()).then_some(s),
-            });
-        }
-        c += names.len();
-        out_cfgs.push(cfg.with_params(&cur).map_err(LabError::Data)?);
-        params.push(ps);
-    }
-    let explained = if ssh0 > 0.0 {
-        ((ssh0 - ssh1) / ssh0).max(0.0)
-    } else {
-        0.0
+    let space = Space::build(
+        ds,
+        prep,
+        configs.iter().map(|c| (c.id(), c.clone(), true)).collect(),
+    )?;
+    let spec = Spec {
+        fitted: (0..configs.len()).collect(),
+        removed: vec![],
     };
-    Ok(FitOutcome {
-        configs: out_cfgs,
-        params,
-        unidentifiable: unident,
-        k,
-        rms_before_um: rms_um(ss0, n),
-        rms_after_um: rms_um(sol.ss, n),
-        heldout_rms_before_um: rms_um(ssh0, nh),
-        heldout_rms_after_um: rms_um(ssh1, nh),
-        explained,
-        explained_component_um: rms_um((ssh0 - ssh1).max(0.0), nh),
-        delta_bic: if delta_bic.is_finite() {
-            delta_bic
-        } else {
-            0.0
-        },
-        predicted,
-    })
+    let base = space.score(&Spec::default());
+    let score = space.score(&spec);
+    let mut o = space.fit(ds, prep, &spec, &score, &base)?;
+    let pairs: Vec<(EffectConfig, Vec<f64>)> = configs
+        .iter()
+        .zip(&o.configs)
+        .map(|(b, a)| (a.clone(), delta(b, a)))
+        .collect();
+    o.predicted = predicted(ds, prep, &pairs)?;
+    Ok(o)
+}
+
+fn delta(before: &EffectConfig, after: &EffectConfig) -> Vec<f64> {
+    after
+        .params()
+        .iter()
+        .zip(before.params())
+        .map(|(a, b)| a - b)
+        .collect()
+}
+
+/// A change to the model: what `lab diagnose` proposes and `lab add` / `lab remove` make.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Move {
+    /// Add a library effect (with variant).
+    Add,
+    /// Replace a model effect (by id) with another variant.
+    Swap,
+    /// Take a model effect (by id) out.
+    Drop,
+}
+
+/// A candidate move with the configuration it brings in.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    /// The move.
+    pub action: Move,
+    /// The effect brought in (name with variant) or dropped (id).
+    pub effect: String,
+    /// The model effect replaced or dropped (its id).
+    pub replaces: Option<String>,
+    /// The configuration brought in (zero parameters); none for a drop.
+    pub config: Option<EffectConfig>,
 }
 
 /// The candidate effects of the library not in the calibration, with their variants.
 pub fn library_candidates(ds: &Dataset) -> Vec<(String, EffectConfig)> {
-    let present: Vec<&str> = ds.calibration.effects.iter().map(|e| e.kind()).collect();
+    moves(ds, &ds.calibration.effects)
+        .into_iter()
+        .filter(|c| c.action == Move::Add)
+        .filter_map(|c| c.config.map(|cfg| (c.effect, cfg)))
+        .collect()
+}
+
+/// The variant structure of a config: its parameter names (two configs with the same names
+/// are the same variant).
+fn same_variant(a: &EffectConfig, b: &EffectConfig) -> bool {
+    a.kind() == b.kind() && a.param_names() == b.param_names()
+}
+
+fn guide_axis(c: &EffectConfig) -> Option<Axis> {
+    match c {
+        EffectConfig::GuideStraightness(g) => Some(g.axis),
+        _ => None,
+    }
+}
+
+/// Every move the lab considers from `model`: library effects (all variants) not in it,
+/// other variants of those in it, and dropping each.
+pub fn moves(ds: &Dataset, model: &[EffectConfig]) -> Vec<Candidate> {
     let mut v = vec![];
     for kind in fx::KINDS {
-        if present.contains(&kind) || kind == "custom" {
+        if kind == "custom" {
             continue;
         }
+        let present: Vec<&EffectConfig> = model.iter().filter(|e| e.kind() == kind).collect();
         for name in variants(kind, ds) {
-            if let Ok(c) = candidate(&name, ds) {
-                v.push((name, c));
+            let Ok(mut cfg) = candidate(&name, ds) else {
+                continue;
+            };
+            // Guides of different axes are different effects; every other kind is one.
+            let same: Vec<&&EffectConfig> = present
+                .iter()
+                .filter(|e| guide_axis(e) == guide_axis(&cfg))
+                .collect();
+            match same.first() {
+                None => {
+                    if !present.is_empty() {
+                        if let Some(a) = guide_axis(&cfg) {
+                            cfg.set_id(Some(format!("guide_straightness_{}", a.name())));
+                        }
+                    }
+                    if model.iter().any(|e| e.id() == cfg.id()) {
+                        continue;
+                    }
+                    v.push(Candidate {
+                        action: Move::Add,
+                        effect: name,
+                        replaces: None,
+                        config: Some(cfg),
+                    });
+                }
+                Some(e) if !same_variant(e, &cfg) => {
+                    let id = e.id();
+                    cfg.set_id((id != cfg.kind()).then(|| id.clone()));
+                    v.push(Candidate {
+                        action: Move::Swap,
+                        effect: name,
+                        replaces: Some(id),
+                        config: Some(cfg),
+                    });
+                }
+                Some(_) => {}
             }
         }
+    }
+    for e in model {
+        v.push(Candidate {
+            action: Move::Drop,
+            effect: e.id(),
+            replaces: Some(e.id()),
+            config: None,
+        });
     }
     v
 }
 
+fn tips(ds: &Dataset) -> Vec<u32> {
+    let t: std::collections::BTreeSet<u32> = ds.points.iter().map(|p| p.ctx.tip_id).collect();
+    t.into_iter().collect()
+}
+
 fn variants(kind: &str, ds: &Dataset) -> Vec<String> {
-    match kind {
+    let several_tips = tips(ds).len() > 1;
+    let mut v: Vec<String> = match kind {
         "accel_deflection" => vec![
             "accel_deflection".into(),
             "accel_deflection:full".into(),
             "accel_deflection:full,order=1".into(),
         ],
         "servo_gain" => vec!["servo_gain".into(), "servo_gain:powers=1+2".into()],
+        "servo_phase" => vec![
+            "servo_phase".into(),
+            "servo_phase:static".into(),
+            "servo_phase:static,direction".into(),
+        ],
         "stylus_thermal" => vec!["stylus_thermal".into(), "stylus_thermal:split".into()],
+        "probe_force" => vec!["probe_force".into()],
         "guide_straightness" => Axis::ALL
             .iter()
             .filter(|a| axis_span(ds, **a).1 - axis_span(ds, **a).0 > 100.0)
@@ -338,8 +366,14 @@ fn variants(kind: &str, ds: &Dataset) -> Vec<String> {
                     .collect::<Vec<_>>()
             })
             .collect(),
+        "rigid_body" => vec!["rigid_body:order=2".into(), "rigid_body:order=3".into()],
+        "probe_lobing" => vec!["probe_lobing".into()],
         k => vec![k.to_string()],
+    };
+    if several_tips && matches!(kind, "probe_force" | "stylus_thermal") {
+        v.push(format!("{kind}:per_tip"));
     }
+    v
 }
 
 pub(crate) fn axis_span(ds: &Dataset, a: Axis) -> (f64, f64) {
@@ -353,8 +387,11 @@ pub(crate) fn axis_span(ds: &Dataset, a: Axis) -> (f64, f64) {
 
 /// A zero-parameter effect from a candidate name: `kind[:option,option=value…]`.
 /// Options: accel_deflection `full`, `order=0|1|2`; servo_gain `powers=1+2`; stylus_thermal
-/// `split`; guide_straightness `axis=x|y|z`, `about=x|y|z` (rotation axis of its angular
-/// term), `knots=N`; servo_phase `order=0|1`.
+/// `split`, `per_tip`; probe_force `per_tip`; guide_straightness `axis=x|y|z`, `about=x|y|z`
+/// (rotation axis of its angular term), `knots=N`; servo_phase `order=0|1`, `static` (the
+/// term that keeps its sign with the scan direction), `static,direction` (both); rigid_body
+/// `order=1…4`, `chain=moving_bridge|fixed_bridge|cantilever|horizontal_arm`; probe_lobing
+/// `harmonics=2…8`.
 pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
     let (kind, opts) = name.split_once(':').unwrap_or((name, ""));
     let mut o = std::collections::BTreeMap::new();
@@ -378,7 +415,11 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
             order(&o)?,
             !o.contains_key("full"),
         )),
-        "servo_phase" => EffectConfig::ServoPhase(fx::servo_phase::Config::zeros(order(&o)?)),
+        "servo_phase" => EffectConfig::ServoPhase(fx::servo_phase::Config::zeros_variant(
+            order(&o)?,
+            !o.contains_key("static") || o.contains_key("direction"),
+            o.contains_key("static"),
+        )),
         "servo_gain" => {
             let powers = match o.get("powers") {
                 None => vec![2],
@@ -389,11 +430,54 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
             };
             EffectConfig::ServoGain(fx::servo_gain::Config::zeros(order(&o)?, powers))
         }
-        "stylus_thermal" => {
-            EffectConfig::StylusThermal(fx::stylus_thermal::Config::zeros(o.contains_key("split")))
-        }
+        "stylus_thermal" => EffectConfig::StylusThermal(if o.contains_key("per_tip") {
+            fx::stylus_thermal::Config::zeros_per_tip(&tips(ds), o.contains_key("split"))
+        } else {
+            fx::stylus_thermal::Config::zeros(o.contains_key("split"))
+        }),
         "scale_thermal" => EffectConfig::ScaleThermal(fx::scale_thermal::Config::zeros()),
-        "probe_force" => EffectConfig::ProbeForce(fx::probe_force::Config::zeros()),
+        "probe_force" => EffectConfig::ProbeForce(if o.contains_key("per_tip") {
+            fx::probe_force::Config::zeros_per_tip(&tips(ds))
+        } else {
+            fx::probe_force::Config::zeros()
+        }),
+        "probe_lobing" => {
+            let h = match o.get("harmonics") {
+                None => 5,
+                Some(s) => s
+                    .parse::<u8>()
+                    .ok()
+                    .filter(|h| (2..=8).contains(h))
+                    .ok_or_else(|| bad("harmonics must be 2…8".into()))?,
+            };
+            EffectConfig::ProbeLobing(fx::probe_lobing::Config::zeros(h, 0))
+        }
+        "rigid_body" => {
+            let ord = match o.get("order") {
+                None => 2,
+                Some(s) => s
+                    .parse::<u8>()
+                    .ok()
+                    .filter(|v| (1..=4).contains(v))
+                    .ok_or_else(|| bad("order must be 1…4".into()))?,
+            };
+            let chain = match o.get("chain").map(|s| s.as_str()).unwrap_or("moving_bridge") {
+                "moving_bridge" => fx::rigid_body::Chain::MovingBridge,
+                "fixed_bridge" => fx::rigid_body::Chain::FixedBridge,
+                "cantilever" => fx::rigid_body::Chain::Cantilever,
+                "horizontal_arm" => fx::rigid_body::Chain::HorizontalArm,
+                c => return Err(bad(format!("chain `{c}` (moving_bridge, fixed_bridge, cantilever, horizontal_arm)"))),
+            };
+            let ranges = Axis::ALL.map(|a| {
+                let (lo, hi) = axis_span(ds, a);
+                if hi - lo > 1.0 {
+                    [lo.floor(), hi.ceil()]
+                } else {
+                    [lo.floor() - 1.0, lo.floor() + 1.0]
+                }
+            });
+            EffectConfig::RigidBody(fx::rigid_body::Config::zeros(chain, ord, ranges))
+        }
         "guide_straightness" => {
             let axis = match o.get("axis").map(|s| s.as_str()).unwrap_or("x") {
                 "x" => Axis::X,
@@ -500,10 +584,19 @@ pub use super::structure::Structure;
 /// One candidate of a diagnosis.
 #[derive(Debug, Clone, Serialize)]
 pub struct CandidateReport {
-    /// Effect (with variant).
+    /// What the move does: `add`, `swap` (replaces a model effect) or `drop`.
+    pub action: Move,
+    /// Effect (with variant) brought in, or the id dropped.
     pub effect: String,
-    /// Fraction of the held-out residual explained.
+    /// The model effect it replaces or drops.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub replaces: Option<String>,
+    /// Fraction of the cross-validated residual it removes (negative: what dropping costs).
     pub explained: f64,
+    /// Cross-validated RMS of the model refitted as it is, µm.
+    pub cv_rms_before_um: f64,
+    /// With the move, every effect refitted, µm.
+    pub cv_rms_after_um: f64,
     /// Explains more than noise and pays for its parameters (see [`diagnose`]).
     pub significant: bool,
     /// RMS before, µm (fit data).
@@ -529,6 +622,8 @@ pub struct CandidateReport {
 pub struct Diagnosis {
     /// Residual RMS of the current model on fit data, µm.
     pub rms_um: f64,
+    /// Cross-validated RMS of the current model refitted, µm (alternate scans predicted).
+    pub cv_rms_um: f64,
     /// On held-out data, µm.
     pub heldout_rms_um: f64,
     /// Noise floor, µm.
@@ -546,10 +641,24 @@ pub struct Diagnosis {
     pub skipped: Vec<String>,
 }
 
-fn significant(o: &FitOutcome, noise_um: f64) -> bool {
-    o.explained_component_um >= 0.5 * noise_um.max(0.01)
-        && o.delta_bic < -10.0
-        && o.heldout_rms_after_um < o.heldout_rms_before_um
+/// Whether a move should be made: an addition or swap must remove, on scans it was not fitted
+/// on, a residual component of at least half the noise floor and at least 1 % of the
+/// cross-validated sum of squares, and not make the held-out data worse; a drop must cost
+/// less than 0.15 of the noise floor.
+fn significant(action: &Move, base: &Score, s: &Score, o: &FitOutcome, noise_um: f64) -> bool {
+    let n = s.cv_n.max(1) as f64;
+    let noise = noise_um.max(0.01) * 1e-3;
+    let gain = base.cv_ss - s.cv_ss;
+    let held_ok = o.heldout_rms_after_um <= 1.02 * o.heldout_rms_before_um + 0.05 * noise_um;
+    match action {
+        Move::Add | Move::Swap => {
+            gain > 0.0
+                && (gain / n).sqrt() >= 0.5 * noise
+                && gain >= 0.01 * base.cv_ss
+                && held_ok
+        }
+        Move::Drop => gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise,
+    }
 }
 
 fn r2_explains(
@@ -647,61 +756,295 @@ fn separating(a: &str, b: &str, cov: &[Lever]) -> Vec<String> {
     out
 }
 
-/// Diagnoses the residual of the dataset's calibration: fits every library effect not in
-/// the model (all variants) and ranks them by the held-out residual they explain.
-///
-/// A candidate is `significant` when, on held-out data, it removes a residual component of at
-/// least half the noise floor, and its fit pays for its parameters (ΔBIC < −10, with the
-/// number of points discounted for correlated residuals).
+/// The candidate model of a move: which blocks are fitted and removed, given the model's
+/// blocks `0..n_model` and the move's own block.
+fn spec_of(c: &Candidate, model: &[EffectConfig], block: Option<usize>) -> Spec {
+    let out = c
+        .replaces
+        .as_ref()
+        .and_then(|id| model.iter().position(|e| &e.id() == id));
+    let mut fitted: Vec<usize> = (0..model.len()).filter(|i| Some(*i) != out).collect();
+    if let Some(b) = block {
+        fitted.push(b);
+    }
+    Spec {
+        fitted,
+        removed: out.into_iter().collect(),
+    }
+}
+
+/// Scored moves on one dataset.
+struct Scored {
+    space: Space,
+    base_spec: Spec,
+    base: Score,
+    /// (candidate, its block, spec, score)
+    moves: Vec<(Candidate, Option<usize>, Spec, Score)>,
+    skipped: Vec<String>,
+}
+
+fn score_moves(ds: &Dataset, prep: &Prepared, cands: Vec<Candidate>) -> Result<Scored, LabError> {
+    let model = &ds.calibration.effects;
+    let mut blocks: Vec<(String, EffectConfig, bool)> =
+        model.iter().map(|e| (e.id(), e.clone(), true)).collect();
+    let mut kept = vec![];
+    let mut skipped = vec![];
+    for c in cands {
+        let block = match &c.config {
+            Some(cfg) => {
+                let mut sensors = ds.sensors.clone();
+                match cfg.build(&mut sensors) {
+                    Err(e) => {
+                        skipped.push(format!("{}: {e}", c.effect));
+                        continue;
+                    }
+                    Ok(_) if sensors.names().len() != ds.sensors.names().len() => {
+                        skipped.push(format!(
+                            "{}: the bags have no readings of temperature sensor(s) {:?}: record them",
+                            c.effect,
+                            &sensors.names()[ds.sensors.names().len()..]
+                        ));
+                        continue;
+                    }
+                    Ok(_) => {}
+                }
+                blocks.push((c.effect.clone(), cfg.clone(), false));
+                Some(blocks.len() - 1)
+            }
+            None => None,
+        };
+        kept.push((c, block));
+    }
+    let space = Space::build(ds, prep, blocks)?;
+    let base_spec = Spec {
+        fitted: (0..model.len()).collect(),
+        removed: vec![],
+    };
+    let base = space.score(&base_spec);
+    let moves = kept
+        .into_iter()
+        .map(|(c, b)| {
+            let spec = spec_of(&c, model, b);
+            let score = space.score(&spec);
+            (c, b, spec, score)
+        })
+        .collect();
+    Ok(Scored {
+        space,
+        base_spec,
+        base,
+        moves,
+        skipped,
+    })
+}
+
+/// The model after a move, in the model's order (a swap in place, an addition at the end).
+fn model_after(model: &[EffectConfig], spec: &Spec, fitted: &[EffectConfig]) -> Vec<EffectConfig> {
+    let mut out: Vec<EffectConfig> = vec![];
+    let mut it = spec.fitted.iter().zip(fitted);
+    let mut by_block: std::collections::BTreeMap<usize, EffectConfig> =
+        it.by_ref().map(|(b, c)| (*b, c.clone())).collect();
+    for (i, _) in model.iter().enumerate() {
+        if spec.removed.contains(&i) {
+            // A swap takes the place of the effect it replaces.
+            if let Some((&b, _)) = by_block.iter().find(|(b, _)| **b >= model.len()) {
+                out.push(by_block.remove(&b).expect("present"));
+            }
+        } else if let Some(c) = by_block.remove(&i) {
+            out.push(c);
+        }
+    }
+    out.extend(by_block.into_values());
+    out
+}
+
+/// The change a fitted move makes to the correction along the normal, per point.
+fn move_prediction(
+    ds: &Dataset,
+    prep: &Prepared,
+    space: &Space,
+    spec: &Spec,
+    o: &FitOutcome,
+    only_new: bool,
+) -> Result<Vec<f64>, LabError> {
+    let mut pairs = vec![];
+    for (b, after) in spec.fitted.iter().zip(&o.configs) {
+        let blk = &space.blocks[*b];
+        if only_new && blk.in_model {
+            continue;
+        }
+        pairs.push((after.clone(), delta(&blk.config, after)));
+    }
+    if !only_new {
+        for &r in &spec.removed {
+            let c = &space.blocks[r].config;
+            pairs.push((c.clone(), c.params().iter().map(|v| -v).collect()));
+        }
+    }
+    predicted(ds, prep, &pairs)
+}
+
+/// What a move made: the new model (every effect refitted) and the fit.
+#[derive(Debug, Clone)]
+pub struct Applied {
+    /// The candidate applied.
+    pub candidate: Candidate,
+    /// The model's effects after the move.
+    pub effects: Vec<EffectConfig>,
+    /// The fit.
+    pub outcome: FitOutcome,
+}
+
+/// Makes the best of `cands` (by cross-validated error) on the dataset's model: adds, swaps or
+/// drops it and refits every effect (or, with `only_new`, fits only the new effect). This is
+/// what `lab add` / `lab remove` do and each step of `lab discover`.
+pub fn apply(ds: &Dataset, cands: Vec<Candidate>, only_new: bool) -> Result<Applied, LabError> {
+    let prep = prepare(ds)?;
+    let model = &ds.calibration.effects;
+    let sc = score_moves(ds, &prep, cands)?;
+    let Some((c, b, spec, score)) = sc
+        .moves
+        .into_iter()
+        .min_by(|a, b| a.3.cv_ss.total_cmp(&b.3.cv_ss).then(a.3.k.cmp(&b.3.k)))
+    else {
+        return Err(LabError::Data(match sc.skipped.first() {
+            Some(s) => s.clone(),
+            None => "nothing to add".into(),
+        }));
+    };
+    let spec = if only_new {
+        Spec {
+            fitted: b.into_iter().collect(),
+            removed: spec.removed,
+        }
+    } else {
+        spec
+    };
+    let score = if only_new { sc.space.score(&spec) } else { score };
+    let o = sc.space.fit(ds, &prep, &spec, &score, &sc.base)?;
+    let effects = if only_new {
+        let mut m: Vec<EffectConfig> = model
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !spec.removed.contains(i))
+            .map(|(_, e)| e.clone())
+            .collect();
+        m.extend(o.configs.iter().cloned());
+        m
+    } else {
+        model_after(model, &spec, &o.configs)
+    };
+    Ok(Applied {
+        candidate: c,
+        effects,
+        outcome: o,
+    })
+}
+
+/// The moves `lab add NAME` considers: a variant (`kind:options`) or every variant of a kind,
+/// each an addition or, when the model has that effect, a swap.
+pub fn moves_named(ds: &Dataset, name: &str) -> Result<Vec<Candidate>, LabError> {
+    let model = &ds.calibration.effects;
+    let all = moves(ds, model);
+    let picked: Vec<Candidate> = all
+        .into_iter()
+        .filter(|c| c.action != Move::Drop)
+        .filter(|c| {
+            if name.contains(':') {
+                c.effect == name
+            } else {
+                c.effect.split(':').next() == Some(name)
+            }
+        })
+        .collect();
+    if !picked.is_empty() {
+        return Ok(picked);
+    }
+    let cfg = candidate(name, ds)?; // names the problem (unknown effect, bad option)
+    if model.iter().any(|e| same_variant(e, &cfg)) {
+        return Err(LabError::Data(format!(
+            "`{name}` is already in the model in this variant (use `lab fit` to refit it)"
+        )));
+    }
+    Ok(vec![Candidate {
+        action: Move::Add,
+        effect: name.to_string(),
+        replaces: None,
+        config: Some(cfg),
+    }])
+}
+
+/// Diagnoses the residual of the dataset's calibration: tries every library effect not in the
+/// model (all variants), every other variant of the effects in it, and dropping each; each
+/// candidate model is refitted as a whole and ranked by its cross-validated error (see
+/// [`super::select`]), the information criterion breaking near-ties.
 pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
     let prep = prepare(ds)?;
     let noise = ds.noise_floor_um;
-    let mut results: Vec<(String, EffectConfig, FitOutcome)> = vec![];
-    let mut skipped = vec![];
-    for (name, cfg) in library_candidates(ds) {
-        match fit_effects(ds, &prep, std::slice::from_ref(&cfg)) {
-            Ok(o) => results.push((name, cfg, o)),
-            Err(e) => skipped.push(format!("{name}: {e}")),
-        }
+    let model = ds.calibration.effects.clone();
+    let sc = score_moves(ds, &prep, moves(ds, &model))?;
+    let mut results = vec![];
+    for (c, b, spec, score) in &sc.moves {
+        let o = sc.space.fit(ds, &prep, spec, score, &sc.base)?;
+        let sig = significant(&c.action, &sc.base, score, &o, noise);
+        results.push((c.clone(), *b, spec.clone(), score.clone(), o, sig));
     }
+    let base_cv = sc.base.cv_ss;
     results.sort_by(|a, b| {
-        let (sa, sb) = (significant(&a.2, noise), significant(&b.2, noise));
-        sb.cmp(&sa)
-            .then(b.2.explained.total_cmp(&a.2.explained))
-            .then(a.2.k.cmp(&b.2.k))
+        let tie = (a.3.cv_ss - b.3.cv_ss).abs() < 0.002 * base_cv;
+        b.5.cmp(&a.5).then(if tie {
+            a.4.delta_bic.total_cmp(&b.4.delta_bic).then(a.3.k.cmp(&b.3.k))
+        } else {
+            a.3.cv_ss.total_cmp(&b.3.cv_ss)
+        })
     });
-    // Confounding: the best candidate against the other kinds that explain nearly as much.
+    // Confounding: the best addition against additions of other kinds that explain nearly as
+    // much, each judged by its own correction.
     let mut confounded = vec![];
     let cov = coverage(ds);
-    if let Some((best_name, best_cfg, best)) = results.first() {
-        if significant(best, noise) {
+    if let Some((bc, _, bspec, _, bo, true)) = results.first() {
+        if bc.action != Move::Drop {
+            let best_pred = move_prediction(ds, &prep, &sc.space, bspec, bo, true)?;
+            let best_cfg = bc.config.clone().expect("an addition has a config");
             let mut seen = std::collections::BTreeSet::new();
-            for (name, cfg, o) in results.iter().skip(1) {
+            for (c, _, spec, _, o, _) in results.iter().skip(1) {
+                let Some(cfg) = &c.config else { continue };
                 if cfg.kind() == best_cfg.kind()
+                    || c.action != Move::Add
                     || !seen.insert(cfg.kind())
-                    || o.explained < 0.5 * best.explained
+                    || o.explained < 0.5 * bo.explained
                 {
                     continue;
                 }
-                let r_ab = r2_explains(ds, &prep, &best.predicted, cfg)?;
-                let r_ba = r2_explains(ds, &prep, &o.predicted, best_cfg)?;
+                let pred = move_prediction(ds, &prep, &sc.space, spec, o, true)?;
+                let r_ab = r2_explains(ds, &prep, &best_pred, cfg)?;
+                let r_ba = r2_explains(ds, &prep, &pred, &best_cfg)?;
                 if r_ab > 0.8 && r_ba > 0.8 {
                     confounded.push(Confounded {
-                        effects: [best_name.clone(), name.clone()],
+                        effects: [bc.effect.clone(), c.effect.clone()],
                         r2: [r_ab, r_ba],
-                        separate_by: separating(best_name, name, &cov),
+                        separate_by: separating(&bc.effect, &c.effect, &cov),
                     });
                 }
             }
         }
     }
-    let best_left = results
-        .first()
-        .filter(|r| significant(&r.2, noise))
-        .map(|r| r.2.heldout_rms_after_um);
-    let unexplained = match best_left {
-        Some(left) if left < 1.5 * noise.max(0.01) => vec![],
-        _ => super::structure::structure(ds, &prep, &prep.art.residual)?,
+    // Structure: in the residual the best move leaves (or the refitted model's).
+    let (left_spec, left_o, left_cv) = match results.first() {
+        Some((c, _, spec, score, o, true)) if c.action != Move::Drop => {
+            (spec.clone(), o.clone(), score.rms_um())
+        }
+        _ => {
+            let o = sc.space.fit(ds, &prep, &sc.base_spec, &sc.base, &sc.base)?;
+            (sc.base_spec.clone(), o, sc.base.rms_um())
+        }
+    };
+    let unexplained = if left_cv < 1.5 * noise.max(0.01) {
+        vec![]
+    } else {
+        let pred = move_prediction(ds, &prep, &sc.space, &left_spec, &left_o, false)?;
+        let resid: Vec<f64> = prep.art.residual.iter().zip(&pred).map(|(e, d)| e + d).collect();
+        super::structure::structure(ds, &prep, &resid)?
     };
     let npts = [
         prep.fit_mask.iter().filter(|m| **m).count(),
@@ -709,14 +1052,23 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
     ];
     Ok(Diagnosis {
         rms_um: prep.rms_fit_um,
+        cv_rms_um: sc.base.rms_um(),
         heldout_rms_um: prep.rms_held_um,
         noise_floor_um: noise,
         candidates: results
             .into_iter()
-            .map(|(name, _, o)| CandidateReport {
-                significant: significant(&o, noise),
-                effect: name,
-                explained: o.explained,
+            .map(|(c, _, _, score, o, sig)| CandidateReport {
+                action: c.action,
+                significant: sig,
+                effect: c.effect,
+                replaces: c.replaces,
+                explained: if sc.base.cv_ss > 0.0 {
+                    (sc.base.cv_ss - score.cv_ss) / sc.base.cv_ss
+                } else {
+                    0.0
+                },
+                cv_rms_before_um: sc.base.rms_um(),
+                cv_rms_after_um: score.rms_um(),
                 rms_before_um: o.rms_before_um,
                 rms_after_um: o.rms_after_um,
                 heldout_rms_before_um: o.heldout_rms_before_um,
@@ -730,7 +1082,7 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         confounded,
         unexplained,
         points: npts,
-        skipped,
+        skipped: sc.skipped,
     })
 }
 

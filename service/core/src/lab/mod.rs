@@ -8,9 +8,11 @@
 
 pub mod analysis;
 pub mod dataset;
+pub mod discover;
 pub mod fit;
 pub mod nominal;
 pub mod program;
+pub mod select;
 pub mod structure;
 
 /// Why the lab cannot answer.

@@ -1,0 +1,568 @@
+//! Model selection by cross-validated error.
+//!
+//! A candidate model is scored by how well it predicts scans it was not fitted on: the fit
+//! points are split in two folds by alternate scans of each artifact placement (every other
+//! scan, so both folds cover the same travel, speeds and directions); the parameters fitted
+//! on one fold, with the placements refitted on the other, predict that other fold. The
+//! cross-validated sum of squares of both folds is the score. A table of fifty values that
+//! describes a real guide error predicts the other scans and wins; a spurious one does not,
+//! however few its parameters. An information criterion is only a tie-breaker.
+//!
+//! Equation: with y the deviations of the current model, C the columns g·r of the effects'
+//! parameters and N the placement columns, a fold's fit is
+//! θ̂ = argmin ‖y + Cθ + Nν‖² + λ‖D(θ₀ + θ)‖², D the second differences of each table
+//! (smoothness, λ chosen by cross-validation from a short ladder), and the other fold's score
+//! is min_ν ‖y' + C'θ̂ + N'ν‖². Everything is computed from the folds' normal equations, so a
+//! candidate costs a small solve once the Gram matrices are accumulated.
+//!
+//! Source idea: cross-validated model selection (Stone 1974) and smoothing splines /
+//! Tikhonov regularisation of tables (Whittaker 1923; Reinsch 1967).
+
+use super::analysis::{FitOutcome, Param, Prepared};
+use super::dataset::Dataset;
+use super::fit::{nuisance_row, Normal};
+use super::LabError;
+use crate::effects::{Effect, EffectConfig};
+use crate::sample::Vec3;
+use nalgebra::{DMatrix, DVector};
+
+/// Smoothness weights tried for tables, relative to the mean diagonal of their columns.
+const SMOOTHNESS_LADDER: [f64; 4] = [1e-3, 1e-2, 1e-1, 1.0];
+
+/// One effect in a [`Space`]: a configuration and its columns.
+#[derive(Debug, Clone)]
+pub struct Block {
+    /// Name (with variant) for reports.
+    pub name: String,
+    /// The configuration (current parameters).
+    pub config: EffectConfig,
+    /// Part of the current model (its correction is in the data).
+    pub in_model: bool,
+    off: usize,
+    n: usize,
+    /// Second-difference rows (local column indices) of each table.
+    smooth: Vec<Vec<(usize, f64)>>,
+}
+
+#[derive(Debug, Clone)]
+struct Gram {
+    m: DMatrix<f64>,
+    b: DVector<f64>,
+    yy: f64,
+    n: usize,
+}
+
+impl Gram {
+    fn new(k: usize) -> Gram {
+        Gram {
+            m: DMatrix::zeros(k, k),
+            b: DVector::zeros(k),
+            yy: 0.0,
+            n: 0,
+        }
+    }
+    /// Adds the products of `a` with itself (lower triangle) and of `a` with `base`.
+    #[inline]
+    fn add_block(&mut self, a: &[(usize, f64)], base: Option<&[(usize, f64)]>, y: f64) {
+        for (i, &(ca, va)) in a.iter().enumerate() {
+            self.b[ca] += va * y;
+            for &(cb, vb) in &a[..=i] {
+                let (r, c) = if ca >= cb { (ca, cb) } else { (cb, ca) };
+                self.m[(r, c)] += va * vb;
+            }
+            if let Some(base) = base {
+                for &(cb, vb) in base {
+                    let (r, c) = if ca >= cb { (ca, cb) } else { (cb, ca) };
+                    self.m[(r, c)] += va * vb;
+                }
+            }
+        }
+    }
+    fn symmetrise(&mut self) {
+        let k = self.b.len();
+        for i in 0..k {
+            for j in 0..i {
+                self.m[(j, i)] = self.m[(i, j)];
+            }
+        }
+    }
+}
+
+/// Which blocks a candidate model fits and which model blocks it removes.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Spec {
+    /// Blocks whose parameters are fitted (current value + change).
+    pub fitted: Vec<usize>,
+    /// Model blocks taken out (their current correction is undone).
+    pub removed: Vec<usize>,
+}
+
+/// The score of a candidate model.
+#[derive(Debug, Clone)]
+pub struct Score {
+    /// Cross-validated sum of squares (both folds), mm².
+    pub cv_ss: f64,
+    /// Points scored.
+    pub cv_n: usize,
+    /// Smoothness weight used per fitted block (0 for blocks without tables).
+    pub lambda: Vec<f64>,
+    /// Parameters fitted.
+    pub k: usize,
+}
+
+impl Score {
+    /// Cross-validated RMS, µm.
+    pub fn rms_um(&self) -> f64 {
+        if self.cv_n == 0 {
+            0.0
+        } else {
+            (self.cv_ss / self.cv_n as f64).sqrt() * 1e3
+        }
+    }
+}
+
+/// The columns of a set of effects on a prepared dataset, accumulated per fold.
+///
+/// Products between two blocks that are not in the model are not accumulated: a candidate
+/// model is the current model with at most one new block.
+pub struct Space {
+    /// The blocks: the model's first, then the candidates.
+    pub blocks: Vec<Block>,
+    n_fx: usize,
+    n_nu: usize,
+    /// 0, 1: the folds of the fit points; 2: the held-out points.
+    g: [Gram; 3],
+    /// Pseudo-inverse of the placement block per gram.
+    nn_pinv: [DMatrix<f64>; 3],
+}
+
+fn smooth_rows(cfg: &EffectConfig) -> Vec<Vec<(usize, f64)>> {
+    let mut rows = vec![];
+    if let EffectConfig::GuideStraightness(g) = cfg {
+        let n = g.knots_mm.len();
+        let tables = g.straightness.len() + g.pitch_rad.is_some() as usize;
+        for t in 0..tables {
+            for j in 1..n.saturating_sub(1) {
+                let c = t * n + j;
+                rows.push(vec![(c - 1, 1.0), (c, -2.0), (c + 1, 1.0)]);
+            }
+        }
+    }
+    rows
+}
+
+/// Fold of every point: 0 or 1 for fit points (alternate scans of each placement), 2 for
+/// held-out points, `None` for points not used.
+pub fn folds(ds: &Dataset, prep: &Prepared) -> Vec<Option<u8>> {
+    let mut scan_no: std::collections::BTreeMap<(usize, usize, u32), usize> = Default::default();
+    let mut count: std::collections::BTreeMap<usize, usize> = Default::default();
+    ds.points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            if prep.held_mask[i] {
+                Some(2)
+            } else if prep.fit_mask[i] {
+                let key = (p.feature, p.bag, p.segment);
+                let n = match scan_no.get(&key) {
+                    Some(n) => *n,
+                    None => {
+                        let c = count.entry(p.feature).or_insert(0);
+                        let n = *c;
+                        *c += 1;
+                        scan_no.insert(key, n);
+                        n
+                    }
+                };
+                Some((n % 2) as u8)
+            } else {
+                None
+            }
+        })
+        .collect()
+}
+
+impl Space {
+    /// Accumulates the folds' normal equations of `blocks` (model blocks first).
+    pub fn build(ds: &Dataset, prep: &Prepared, blocks: Vec<(String, EffectConfig, bool)>) -> Result<Space, LabError> {
+        let art = &prep.art;
+        let mut sensors = ds.sensors.clone();
+        let mut models: Vec<Box<dyn Effect>> = vec![];
+        let mut out = vec![];
+        let mut off = 0;
+        for (name, cfg, in_model) in blocks {
+            let b = cfg
+                .build(&mut sensors)
+                .map_err(|e| LabError::Data(format!("{name}: {e}")))?;
+            let n = b.model.n_params();
+            if sensors.names().len() != ds.sensors.names().len() {
+                return Err(LabError::Data(format!(
+                    "{name}: the bags have no readings of the temperature sensor(s) it uses: record them"
+                )));
+            }
+            models.push(b.model);
+            out.push(Block {
+                smooth: smooth_rows(&cfg),
+                name,
+                config: cfg,
+                in_model,
+                off,
+                n,
+            });
+            off += n;
+        }
+        let n_fx = off;
+        let n_nu = art.n_cols;
+        let k = n_fx + n_nu;
+        let mut g = [Gram::new(k), Gram::new(k), Gram::new(k)];
+        let fold = folds(ds, prep);
+        let mut r = vec![Vec3::zeros(); out.iter().map(|b| b.n).max().unwrap_or(0)];
+        let mut nu = vec![];
+        let mut base: Vec<(usize, f64)> = vec![];
+        let mut cand: Vec<(usize, f64)> = vec![];
+        for (i, p) in ds.points.iter().enumerate() {
+            let Some(f) = fold[i] else { continue };
+            let gi = art.grad[i];
+            let y = art.residual[i];
+            base.clear();
+            nuisance_row(art, p, &p.surface, &mut nu);
+            let gram = &mut g[f as usize];
+            for (b, m) in out.iter().zip(&models).filter(|(b, _)| b.in_model) {
+                m.regressors(&p.ctx, &mut r[..b.n]);
+                for (j, v) in r[..b.n].iter().enumerate() {
+                    let x = gi.dot(v);
+                    if x != 0.0 && x.is_finite() {
+                        base.push((b.off + j, x));
+                    }
+                }
+            }
+            base.extend(nu.iter().map(|(c, v)| (c + n_fx, *v)));
+            gram.add_block(&base, None, y);
+            for (b, m) in out.iter().zip(&models).filter(|(b, _)| !b.in_model) {
+                cand.clear();
+                m.regressors(&p.ctx, &mut r[..b.n]);
+                for (j, v) in r[..b.n].iter().enumerate() {
+                    let x = gi.dot(v);
+                    if x != 0.0 && x.is_finite() {
+                        cand.push((b.off + j, x));
+                    }
+                }
+                gram.add_block(&cand, Some(&base), 0.0);
+                // add_block adds va*y to b for the candidate; y was passed as 0 to keep the
+                // base's b untouched, so add the candidate's b here.
+                for &(c, v) in &cand {
+                    gram.b[c] += v * y;
+                }
+            }
+            gram.yy += y * y;
+            gram.n += 1;
+        }
+        for gr in &mut g {
+            gr.symmetrise();
+        }
+        let nn_pinv = [0, 1, 2].map(|f| {
+            let m = g[f].m.view((n_fx, n_fx), (n_nu, n_nu)).clone_owned();
+            pinv(&m)
+        });
+        Ok(Space {
+            blocks: out,
+            n_fx,
+            n_nu,
+            g,
+            nn_pinv,
+        })
+    }
+
+    fn cols(&self, blocks: &[usize]) -> Vec<usize> {
+        blocks
+            .iter()
+            .flat_map(|&b| self.blocks[b].off..self.blocks[b].off + self.blocks[b].n)
+            .collect()
+    }
+
+    /// The fixed change of removed blocks: minus their current parameters.
+    fn removal(&self, spec: &Spec) -> Vec<(usize, f64)> {
+        spec.removed
+            .iter()
+            .flat_map(|&b| {
+                let blk = &self.blocks[b];
+                blk.config
+                    .params()
+                    .into_iter()
+                    .enumerate()
+                    .map(move |(j, v)| (blk.off + j, -v))
+            })
+            .collect()
+    }
+
+    /// Sum of the normal equations of grams `gs`, restricted to `cols` + placements, with the
+    /// removed blocks' fixed change folded into the right-hand side.
+    fn system(&self, gs: &[usize], cols: &[usize], fixed: &[(usize, f64)]) -> (DMatrix<f64>, DVector<f64>, f64, usize) {
+        let idx: Vec<usize> = cols
+            .iter()
+            .copied()
+            .chain(self.n_fx..self.n_fx + self.n_nu)
+            .collect();
+        let k = idx.len();
+        let mut a = DMatrix::zeros(k, k);
+        let mut b = DVector::zeros(k);
+        let mut yy = 0.0;
+        let mut n = 0;
+        for &gi in gs {
+            let g = &self.g[gi];
+            for (r, &ir) in idx.iter().enumerate() {
+                for (c, &ic) in idx.iter().enumerate() {
+                    a[(r, c)] += g.m[(ir, ic)];
+                }
+                let mut br = g.b[ir];
+                for &(fc, fv) in fixed {
+                    br += g.m[(ir, fc)] * fv;
+                }
+                b[r] += br;
+            }
+            let mut y2 = g.yy;
+            for &(fc, fv) in fixed {
+                y2 += 2.0 * fv * g.b[fc];
+                for &(fc2, fv2) in fixed {
+                    y2 += fv * fv2 * g.m[(fc, fc2)];
+                }
+            }
+            yy += y2;
+            n += g.n;
+        }
+        (a, b, yy, n)
+    }
+
+    /// Adds the smoothness penalty of the fitted blocks (weights `lambda`, relative to the
+    /// mean diagonal of each block's columns) to a system over `fitted` blocks.
+    fn penalise(&self, a: &mut DMatrix<f64>, b: &mut DVector<f64>, fitted: &[usize], lambda: &[f64]) {
+        let mut c0 = 0;
+        for (bi, &blk) in fitted.iter().enumerate() {
+            let block = &self.blocks[blk];
+            if lambda[bi] > 0.0 && !block.smooth.is_empty() {
+                let diag: f64 = (0..block.n).map(|j| a[(c0 + j, c0 + j)]).sum::<f64>() / block.n as f64;
+                let w = lambda[bi] * diag.max(1e-300);
+                let p0 = block.config.params();
+                for row in &block.smooth {
+                    let d0: f64 = row.iter().map(|(j, v)| v * p0[*j]).sum();
+                    for &(j1, v1) in row {
+                        b[c0 + j1] += w * v1 * d0;
+                        for &(j2, v2) in row {
+                            a[(c0 + j1, c0 + j2)] += w * v1 * v2;
+                        }
+                    }
+                }
+            }
+            c0 += block.n;
+        }
+    }
+
+    /// Sum of squares of gram `e` with change `theta` on `cols` (and the fixed change), the
+    /// placements refitted.
+    fn eval(&self, e: usize, cols: &[usize], theta: &[f64], fixed: &[(usize, f64)]) -> f64 {
+        let g = &self.g[e];
+        let mut full: Vec<(usize, f64)> = cols.iter().copied().zip(theta.iter().copied()).collect();
+        full.extend_from_slice(fixed);
+        let mut ss = g.yy;
+        for &(c, v) in &full {
+            ss += 2.0 * v * g.b[c];
+            for &(c2, v2) in &full {
+                ss += v * v2 * g.m[(c, c2)];
+            }
+        }
+        let mut r = DVector::zeros(self.n_nu);
+        for j in 0..self.n_nu {
+            let mut s = g.b[self.n_fx + j];
+            for &(c, v) in &full {
+                s += g.m[(self.n_fx + j, c)] * v;
+            }
+            r[j] = s;
+        }
+        (ss - r.dot(&(&self.nn_pinv[e] * &r))).max(0.0)
+    }
+
+    /// Scores a candidate model by cross-validation, choosing the tables' smoothness.
+    pub fn score(&self, spec: &Spec) -> Score {
+        let cols = self.cols(&spec.fitted);
+        let fixed = self.removal(spec);
+        let has_table = spec.fitted.iter().any(|&b| !self.blocks[b].smooth.is_empty());
+        let ladder: Vec<f64> = if has_table { SMOOTHNESS_LADDER.to_vec() } else { vec![0.0] };
+        let mut best: Option<Score> = None;
+        let cv_n = self.g[0].n + self.g[1].n;
+        for &lam in &ladder {
+            let lambda: Vec<f64> = spec
+                .fitted
+                .iter()
+                .map(|&b| if self.blocks[b].smooth.is_empty() { 0.0 } else { lam })
+                .collect();
+            let mut ss = 0.0;
+            for (train, test) in [(0usize, 1usize), (1, 0)] {
+                if self.g[test].n == 0 {
+                    continue;
+                }
+                let (mut a, mut b, _, _) = self.system(&[train], &cols, &fixed);
+                self.penalise(&mut a, &mut b, &spec.fitted, &lambda);
+                let x = solve_ridge(&a, &b);
+                ss += self.eval(test, &cols, &x.as_slice()[..cols.len()], &fixed);
+            }
+            let s = Score {
+                cv_ss: ss,
+                cv_n,
+                lambda: lambda.clone(),
+                k: cols.len(),
+            };
+            if best.as_ref().is_none_or(|b| s.cv_ss < b.cv_ss) {
+                best = Some(s);
+            }
+        }
+        best.expect("a ladder has at least one rung")
+    }
+
+    /// Fits a candidate model on all fit points (with the smoothness `score` chose) and
+    /// reports it as a [`FitOutcome`]: the fitted configs in `spec.fitted` order.
+    pub fn fit(&self, ds: &Dataset, prep: &Prepared, spec: &Spec, score: &Score, base: &Score) -> Result<FitOutcome, LabError> {
+        let cols = self.cols(&spec.fitted);
+        let fixed = self.removal(spec);
+        let k = cols.len();
+        let (mut a, mut b, yy, n) = self.system(&[0, 1], &cols, &fixed);
+        // The sum of squares before any change, placements refitted.
+        let ss0 = self.eval(0, &[], &[], &[]) + self.eval(1, &[], &[], &[]);
+        self.penalise(&mut a, &mut b, &spec.fitted, &score.lambda);
+        let mut ne = Normal::new(a.nrows());
+        ne.m = a;
+        ne.b = b;
+        ne.yy = yy;
+        ne.n = n;
+        let sol = ne.solve();
+        let theta: Vec<f64> = sol.x.iter().take(k).copied().collect();
+        let ss1 = self.eval(0, &cols, &theta, &fixed) + self.eval(1, &cols, &theta, &fixed);
+        let (ssh0, ssh1, nh) = (
+            self.eval(2, &[], &[], &[]),
+            self.eval(2, &cols, &theta, &fixed),
+            self.g[2].n,
+        );
+        let n_eff = (n as f64 * (1.0 - prep.rho) / (1.0 + prep.rho)).max(k as f64 + 2.0);
+        let dof = (n as f64 - (k + self.n_nu) as f64).max(1.0);
+        let sigma2 = ss1 / dof * (n as f64 / n_eff);
+        let bic = |ss: f64, kk: usize| n_eff * (ss.max(1e-30) / n.max(1) as f64).ln() + kk as f64 * n_eff.ln();
+        let delta_bic = bic(ss1, k) - bic(ss0, 0);
+        let mut configs = vec![];
+        let mut params = vec![];
+        let mut unidentifiable = vec![];
+        let mut c = 0;
+        for &blk in &spec.fitted {
+            let block = &self.blocks[blk];
+            let names = block.config.param_names();
+            let mut cur = block.config.params();
+            let mut ps = vec![];
+            for (j, name) in names.iter().enumerate() {
+                let col = c + j;
+                cur[j] += theta[col];
+                let ident = !sol.unidentifiable.contains(&col);
+                if !ident {
+                    unidentifiable.push(format!("{}: {name}", block.config.id()));
+                }
+                let s = (sol.cov[(col, col)] * sigma2).sqrt();
+                ps.push(Param {
+                    name: name.clone(),
+                    value: cur[j],
+                    sigma: (ident && s.is_finite()).then_some(s),
+                });
+            }
+            c += names.len();
+            configs.push(block.config.with_params(&cur).map_err(LabError::Data)?);
+            params.push(ps);
+        }
+        let rms = |ss: f64, n: usize| if n == 0 { 0.0 } else { (ss / n as f64).sqrt() * 1e3 };
+        let explained = if base.cv_ss > 0.0 {
+            ((base.cv_ss - score.cv_ss) / base.cv_ss).max(0.0)
+        } else {
+            0.0
+        };
+        let _ = ds;
+        Ok(FitOutcome {
+            configs,
+            params,
+            unidentifiable,
+            k,
+            rms_before_um: rms(ss0, n),
+            rms_after_um: rms(ss1, n),
+            heldout_rms_before_um: rms(ssh0, nh),
+            heldout_rms_after_um: rms(ssh1, nh),
+            explained,
+            explained_component_um: rms((base.cv_ss - score.cv_ss).max(0.0), score.cv_n),
+            cv_rms_before_um: base.rms_um(),
+            cv_rms_after_um: score.rms_um(),
+            delta_bic: if delta_bic.is_finite() { delta_bic } else { 0.0 },
+            predicted: vec![],
+        })
+    }
+}
+
+/// The change of the correction along the normal per point (for confounding checks and the
+/// residual a move leaves): Σ Δθ·g·r over `(config, Δθ)` pairs.
+pub fn predicted(ds: &Dataset, prep: &Prepared, pairs: &[(EffectConfig, Vec<f64>)]) -> Result<Vec<f64>, LabError> {
+    let mut sensors = ds.sensors.clone();
+    let mut built = vec![];
+    for (c, d) in pairs {
+        built.push((c.build(&mut sensors).map_err(LabError::Data)?.model, d));
+    }
+    let mut r = vec![Vec3::zeros(); built.iter().map(|(m, _)| m.n_params()).max().unwrap_or(0)];
+    Ok(ds
+        .points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let mut s = 0.0;
+            for (m, d) in &built {
+                let n = m.n_params();
+                m.regressors(&p.ctx, &mut r[..n]);
+                for (v, dj) in r[..n].iter().zip(d.iter()) {
+                    s += prep.art.grad[i].dot(v) * dj;
+                }
+            }
+            s
+        })
+        .collect())
+}
+
+/// Pseudo-inverse of a symmetric positive semi-definite matrix.
+fn pinv(m: &DMatrix<f64>) -> DMatrix<f64> {
+    let k = m.nrows();
+    if k == 0 {
+        return DMatrix::zeros(0, 0);
+    }
+    let eig = nalgebra::SymmetricEigen::new(m.clone());
+    let lmax = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+    let mut p = DMatrix::zeros(k, k);
+    for (l, &lam) in eig.eigenvalues.iter().enumerate() {
+        if lam > lmax * 1e-12 && lam > 0.0 {
+            let v = eig.eigenvectors.column(l);
+            p += v * v.transpose() / lam;
+        }
+    }
+    p
+}
+
+/// x minimising ‖y + A x‖² from the normal equations (a, b): a x = −b, with the columns
+/// scaled to unit diagonal and a tiny ridge so that directions the data does not determine
+/// stay near zero.
+fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>) -> DVector<f64> {
+    let k = b.len();
+    let s: Vec<f64> = (0..k)
+        .map(|i| if a[(i, i)] > 0.0 { 1.0 / a[(i, i)].sqrt() } else { 0.0 })
+        .collect();
+    let mut m = DMatrix::zeros(k, k);
+    for i in 0..k {
+        for j in 0..k {
+            m[(i, j)] = a[(i, j)] * s[i] * s[j];
+        }
+        m[(i, i)] += 1e-9 + if s[i] == 0.0 { 1.0 } else { 0.0 };
+    }
+    let rhs = DVector::from_iterator(k, (0..k).map(|i| -b[i] * s[i]));
+    let z = match nalgebra::Cholesky::new(m.clone()) {
+        Some(ch) => ch.solve(&rhs),
+        None => pinv(&m) * rhs,
+    };
+    DVector::from_iterator(k, (0..k).map(|i| z[i] * s[i]))
+}
