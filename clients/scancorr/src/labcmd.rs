@@ -338,7 +338,7 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             if json {
                 outln!("{}", serde_json::to_string_pretty(&dg)?)?;
             } else {
-                print_diagnosis(&dg)?;
+                print_diagnosis(&dg, &data)?;
             }
             Ok(())
         }
@@ -882,10 +882,55 @@ fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
     Ok(())
 }
 
-fn print_diagnosis(d: &Diagnosis) -> Result<()> {
+/// What a structure is, in words.
+fn structure_text(s: &scancorr_core::lab::analysis::Structure) -> String {
+    match (s.kind.as_str(), s.period_mm, s.harmonic) {
+        ("probe_direction", _, Some(k)) => format!("the {k}θ harmonic of the probing direction (probe lobing)"),
+        (_, Some(p), _) => format!("a period of {p:.4} mm along {}", s.axis),
+        ("reversal", _, _) => format!("the sign of the {} velocity (reversal)", s.axis),
+        (k, _, _) => format!("{k} along {}", s.axis),
+    }
+}
+
+/// A complete `lab add custom` command for a structure: it runs as it is.
+fn custom_command(s: &scancorr_core::lab::analysis::Structure, d: &DataArgs) -> String {
+    let q = |p: &Path| {
+        let t = p.display().to_string();
+        if t.chars().all(|c| c.is_ascii_alphanumeric() || "._-/+=,".contains(c)) {
+            t
+        } else {
+            format!("'{}'", t.replace('\'', "'\\''"))
+        }
+    };
+    let name = match (s.kind.as_str(), s.harmonic) {
+        ("probe_direction", Some(k)) => format!("probe_direction_{k}"),
+        (k, _) => format!("{k}_{}", s.axis),
+    };
+    let mut c = format!("scancorr lab add custom --name {name}");
+    for t in &s.custom_terms {
+        c += &format!(" --term '{t}'");
+    }
+    for b in &d.bag {
+        c += &format!(" --bag {}", q(b));
+    }
+    for b in &d.validate {
+        c += &format!(" --validate {}", q(b));
+    }
+    if let Some(a) = &d.artifact {
+        c += &format!(" --artifact {a}");
+    }
+    if d.stride != 4 {
+        c += &format!(" --stride {}", d.stride);
+    }
+    c += &format!(" --calib {} --out next.json", q(&d.calib));
+    c
+}
+
+fn print_diagnosis(d: &Diagnosis, data: &DataArgs) -> Result<()> {
     outln!(
-        "residual RMS {} µm (held out {} µm), noise floor {} µm, {} fit / {} held-out points",
+        "residual RMS {} µm (cross-validated {} µm, held out {} µm), noise floor {} µm, {} fit / {} held-out points",
         um(d.rms_um),
+        um(d.cv_rms_um),
         um(d.heldout_rms_um),
         um(d.noise_floor_um),
         d.points[0],
@@ -903,7 +948,11 @@ fn print_diagnosis(d: &Diagnosis) -> Result<()> {
     for c in d.candidates.iter().take(12) {
         outln!(
             "  {:<34} {:>8.1}% {:>4} {:>5}→{:<5} {:>5}→{:<5} {:>9.0}",
-            c.effect,
+            match (&c.action, &c.replaces) {
+                (analysis::Move::Swap, Some(r)) => format!("{} for {r}", c.effect),
+                (analysis::Move::Drop, _) => format!("drop {}", c.effect),
+                _ => c.effect.clone(),
+            },
             c.explained * 100.0,
             if c.significant { "yes" } else { "no" },
             format!("{:.3}", c.heldout_rms_before_um),
@@ -914,7 +963,7 @@ fn print_diagnosis(d: &Diagnosis) -> Result<()> {
         )?;
     }
     if !d.candidates.iter().any(|c| c.significant) {
-        outln!("  no candidate is significant (none removes half the noise floor from held-out data and pays for its parameters)")?;
+        outln!("  no candidate is significant (none removes half the noise floor from scans it was not fitted on)")?;
     }
     for s in &d.skipped {
         outln!("  not tested: {s}")?;
@@ -926,11 +975,13 @@ fn print_diagnosis(d: &Diagnosis) -> Result<()> {
         }
     }
     for s in &d.unexplained {
-        let what = match s.period_mm {
-            Some(p) => format!("a period of {p:.3} mm along {}", s.axis),
-            None => format!("the sign of the {} velocity (reversal)", s.axis),
-        };
-        outln!("  unexplained: {what}, amplitude {:.3} µm, {:.0} % of the residual → lab add custom {}", s.amplitude_um, s.explained * 100.0, s.custom_terms.iter().map(|t| format!("--term '{t}'")).collect::<Vec<_>>().join(" "))?;
+        outln!(
+            "  unexplained: {}, amplitude {:.3} µm, {:.0} % of the residual →\n    {}",
+            structure_text(s),
+            s.amplitude_um,
+            s.explained * 100.0,
+            custom_command(s, data)
+        )?;
     }
     Ok(())
 }

@@ -29,6 +29,9 @@ use nalgebra::{DMatrix, DVector};
 /// Smoothness weights tried for tables, relative to the mean diagonal of their columns.
 const SMOOTHNESS_LADDER: [f64; 4] = [1e-3, 1e-2, 1e-1, 1.0];
 
+/// A column whose RMS is below this fraction of its effect's strongest is not fitted.
+const WEAK_COLUMN: f64 = 1e-3;
+
 /// One effect in a [`Space`]: a configuration and its columns.
 #[derive(Debug, Clone)]
 pub struct Block {
@@ -134,6 +137,9 @@ pub struct Space {
     g: [Gram; 3],
     /// Pseudo-inverse of the placement block per gram.
     nn_pinv: [DMatrix<f64>; 3],
+    /// Columns far weaker than their effect's strongest (e.g. z acceleration when every scan
+    /// is horizontal): numerical noise, not fitted, reported as undetermined.
+    weak: Vec<bool>,
 }
 
 fn smooth_rows(cfg: &EffectConfig) -> Vec<Vec<(usize, f64)>> {
@@ -264,7 +270,21 @@ impl Space {
             let m = g[f].m.view((n_fx, n_fx), (n_nu, n_nu)).clone_owned();
             pinv(&m)
         });
+        let mut weak = vec![false; n_fx];
+        for b in &out {
+            if !b.smooth.is_empty() {
+                continue;
+            }
+            let rms: Vec<f64> = (b.off..b.off + b.n)
+                .map(|c| (g[0].m[(c, c)] + g[1].m[(c, c)]).max(0.0).sqrt())
+                .collect();
+            let top = rms.iter().cloned().fold(0.0, f64::max);
+            for (j, r) in rms.iter().enumerate() {
+                weak[b.off + j] = *r <= WEAK_COLUMN * top;
+            }
+        }
         Ok(Space {
+            weak,
             blocks: out,
             n_fx,
             n_nu,
@@ -273,10 +293,12 @@ impl Space {
         })
     }
 
+    /// The fitted columns of `blocks` (weak ones left out).
     fn cols(&self, blocks: &[usize]) -> Vec<usize> {
         blocks
             .iter()
             .flat_map(|&b| self.blocks[b].off..self.blocks[b].off + self.blocks[b].n)
+            .filter(|c| !self.weak[*c])
             .collect()
     }
 
@@ -353,7 +375,7 @@ impl Space {
                     }
                 }
             }
-            c0 += block.n;
+            c0 += (block.off..block.off + block.n).filter(|c| !self.weak[*c]).count();
         }
     }
 
@@ -456,7 +478,17 @@ impl Space {
             let mut cur = block.config.params();
             let mut ps = vec![];
             for (j, name) in names.iter().enumerate() {
-                let col = c + j;
+                if self.weak[block.off + j] {
+                    unidentifiable.push(format!("{}: {name}", block.config.id()));
+                    ps.push(Param {
+                        name: name.clone(),
+                        value: cur[j],
+                        sigma: None,
+                    });
+                    continue;
+                }
+                let col = c;
+                c += 1;
                 cur[j] += theta[col];
                 let ident = !sol.unidentifiable.contains(&col);
                 if !ident {
@@ -469,7 +501,6 @@ impl Space {
                     sigma: (ident && s.is_finite()).then_some(s),
                 });
             }
-            c += names.len();
             configs.push(block.config.with_params(&cur).map_err(LabError::Data)?);
             params.push(ps);
         }
