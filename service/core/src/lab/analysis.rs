@@ -643,13 +643,17 @@ pub struct Diagnosis {
 
 /// Whether a move should be made: an addition or swap must remove, on scans it was not fitted
 /// on, a residual component of at least half the noise floor and at least 1 % of the
-/// cross-validated sum of squares, and not make the held-out data worse; a drop must cost
-/// less than 0.15 of the noise floor.
-fn significant(action: &Move, base: &Score, s: &Score, o: &FitOutcome, noise_um: f64) -> bool {
+/// cross-validated sum of squares, and improve the held-out data (unless that is already at
+/// the noise floor); a drop must cost less than 0.15 of the noise floor.
+fn significant(action: &Move, base: &Score, s: &Score, o: &FitOutcome, base_held_um: f64, noise_um: f64) -> bool {
     let n = s.cv_n.max(1) as f64;
     let noise = noise_um.max(0.01) * 1e-3;
     let gain = base.cv_ss - s.cv_ss;
-    let held_ok = o.heldout_rms_after_um <= 1.02 * o.heldout_rms_before_um + 0.05 * noise_um;
+    // Held-out data at another position or run (when given) must not get worse than with the
+    // model refitted as it is: an effect that only predicts the alternate scans of the same
+    // placements is not kept.
+    let held_ok = o.heldout_rms_after_um <= 1.01 * base_held_um + 0.02 * noise_um
+        || base_held_um == 0.0;
     match action {
         Move::Add | Move::Swap => {
             gain > 0.0
@@ -659,6 +663,20 @@ fn significant(action: &Move, base: &Score, s: &Score, o: &FitOutcome, noise_um:
         }
         Move::Drop => gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise,
     }
+}
+
+/// How well a candidate model generalises, smaller is better: the cross-validated mean square
+/// relative to the model refitted as it is, times the same ratio on held-out data (another
+/// position or run) when there is any — a model must predict both the other scans and the
+/// other place. Drops rank by the same key.
+fn rank_key(base: &Score, s: &Score, o: &FitOutcome, base_held_um: f64) -> f64 {
+    let cv = if base.cv_ss > 0.0 { s.cv_ss / base.cv_ss } else { 1.0 };
+    let held = if base_held_um > 0.0 && o.heldout_rms_after_um.is_finite() {
+        (o.heldout_rms_after_um / base_held_um).powi(2)
+    } else {
+        1.0
+    };
+    cv * held
 }
 
 fn r2_explains(
@@ -902,10 +920,18 @@ pub fn apply(ds: &Dataset, cands: Vec<Candidate>, only_new: bool) -> Result<Appl
     let prep = prepare(ds)?;
     let model = &ds.calibration.effects;
     let sc = score_moves(ds, &prep, cands)?;
-    let Some((c, b, spec, score)) = sc
-        .moves
+    let base_held = sc
+        .space
+        .fit(ds, &prep, &sc.base_spec, &sc.base, &sc.base)?
+        .heldout_rms_after_um;
+    let mut ranked = vec![];
+    for (c, b, spec, score) in sc.moves {
+        let o = sc.space.fit(ds, &prep, &spec, &score, &sc.base)?;
+        ranked.push((rank_key(&sc.base, &score, &o, base_held), c, b, spec, score));
+    }
+    let Some((_, c, b, spec, score)) = ranked
         .into_iter()
-        .min_by(|a, b| a.3.cv_ss.total_cmp(&b.3.cv_ss).then(a.3.k.cmp(&b.3.k)))
+        .min_by(|a, b| a.0.total_cmp(&b.0).then(a.4.k.cmp(&b.4.k)))
     else {
         return Err(LabError::Data(match sc.skipped.first() {
             Some(s) => s.clone(),
@@ -984,18 +1010,25 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
     let model = ds.calibration.effects.clone();
     let sc = score_moves(ds, &prep, moves(ds, &model))?;
     let mut results = vec![];
+    let base_held = sc
+        .space
+        .fit(ds, &prep, &sc.base_spec, &sc.base, &sc.base)?
+        .heldout_rms_after_um;
     for (c, b, spec, score) in &sc.moves {
         let o = sc.space.fit(ds, &prep, spec, score, &sc.base)?;
-        let sig = significant(&c.action, &sc.base, score, &o, noise);
+        let sig = significant(&c.action, &sc.base, score, &o, base_held, noise);
         results.push((c.clone(), *b, spec.clone(), score.clone(), o, sig));
     }
-    let base_cv = sc.base.cv_ss;
     results.sort_by(|a, b| {
-        let tie = (a.3.cv_ss - b.3.cv_ss).abs() < 0.002 * base_cv;
+        let (ka, kb) = (
+            rank_key(&sc.base, &a.3, &a.4, base_held),
+            rank_key(&sc.base, &b.3, &b.4, base_held),
+        );
+        let tie = (ka - kb).abs() < 0.002;
         b.5.cmp(&a.5).then(if tie {
             a.4.delta_bic.total_cmp(&b.4.delta_bic).then(a.3.k.cmp(&b.3.k))
         } else {
-            a.3.cv_ss.total_cmp(&b.3.cv_ss)
+            ka.total_cmp(&kb)
         })
     });
     // Confounding: the best addition against additions of other kinds that explain nearly as

@@ -29,6 +29,11 @@ use nalgebra::{DMatrix, DVector};
 /// Smoothness weights tried for tables, relative to the mean diagonal of their columns.
 const SMOOTHNESS_LADDER: [f64; 4] = [1e-3, 1e-2, 1e-1, 1.0];
 
+/// Ridge weights tried on the effects' parameters (columns scaled to unit diagonal): nearly
+/// collinear effects (a rigid-body positioning error and a scale's expansion on a campaign at
+/// one temperature) must not trade huge opposite values that only fit the noise.
+const RIDGE_LADDER: [f64; 3] = [1e-9, 1e-5, 1e-3];
+
 /// A column whose RMS is below this fraction of its effect's strongest is not fitted.
 const WEAK_COLUMN: f64 = 1e-3;
 
@@ -109,6 +114,8 @@ pub struct Score {
     pub cv_n: usize,
     /// Smoothness weight used per fitted block (0 for blocks without tables).
     pub lambda: Vec<f64>,
+    /// Ridge weight on the scaled parameters.
+    pub ridge: f64,
     /// Parameters fitted.
     pub k: usize,
 }
@@ -409,32 +416,40 @@ impl Space {
         let fixed = self.removal(spec);
         let has_table = spec.fitted.iter().any(|&b| !self.blocks[b].smooth.is_empty());
         let ladder: Vec<f64> = if has_table { SMOOTHNESS_LADDER.to_vec() } else { vec![0.0] };
-        let mut best: Option<Score> = None;
         let cv_n = self.g[0].n + self.g[1].n;
+        let folds: Vec<(usize, DMatrix<f64>, DVector<f64>)> = [(0usize, 1usize), (1, 0)]
+            .into_iter()
+            .filter(|(_, test)| self.g[*test].n > 0)
+            .map(|(train, test)| {
+                let (a, b, _, _) = self.system(&[train], &cols, &fixed);
+                (test, a, b)
+            })
+            .collect();
+        let mut best: Option<Score> = None;
         for &lam in &ladder {
             let lambda: Vec<f64> = spec
                 .fitted
                 .iter()
                 .map(|&b| if self.blocks[b].smooth.is_empty() { 0.0 } else { lam })
                 .collect();
-            let mut ss = 0.0;
-            for (train, test) in [(0usize, 1usize), (1, 0)] {
-                if self.g[test].n == 0 {
-                    continue;
+            for &ridge in &RIDGE_LADDER {
+                let mut ss = 0.0;
+                for (test, a, b) in &folds {
+                    let (mut a, mut b) = (a.clone(), b.clone());
+                    self.penalise(&mut a, &mut b, &spec.fitted, &lambda);
+                    let x = solve_ridge(&a, &b, cols.len(), ridge);
+                    ss += self.eval(*test, &cols, &x.as_slice()[..cols.len()], &fixed);
                 }
-                let (mut a, mut b, _, _) = self.system(&[train], &cols, &fixed);
-                self.penalise(&mut a, &mut b, &spec.fitted, &lambda);
-                let x = solve_ridge(&a, &b);
-                ss += self.eval(test, &cols, &x.as_slice()[..cols.len()], &fixed);
-            }
-            let s = Score {
-                cv_ss: ss,
-                cv_n,
-                lambda: lambda.clone(),
-                k: cols.len(),
-            };
-            if best.as_ref().is_none_or(|b| s.cv_ss < b.cv_ss) {
-                best = Some(s);
+                let s = Score {
+                    cv_ss: ss,
+                    cv_n,
+                    lambda: lambda.clone(),
+                    ridge,
+                    k: cols.len(),
+                };
+                if best.as_ref().is_none_or(|b| s.cv_ss < b.cv_ss) {
+                    best = Some(s);
+                }
             }
         }
         best.expect("a ladder has at least one rung")
@@ -450,6 +465,9 @@ impl Space {
         // The sum of squares before any change, placements refitted.
         let ss0 = self.eval(0, &[], &[], &[]) + self.eval(1, &[], &[], &[]);
         self.penalise(&mut a, &mut b, &spec.fitted, &score.lambda);
+        for i in 0..k {
+            a[(i, i)] *= 1.0 + score.ridge;
+        }
         let mut ne = Normal::new(a.nrows());
         ne.m = a;
         ne.b = b;
@@ -576,9 +594,10 @@ fn pinv(m: &DMatrix<f64>) -> DMatrix<f64> {
 }
 
 /// x minimising ‖y + A x‖² from the normal equations (a, b): a x = −b, with the columns
-/// scaled to unit diagonal and a tiny ridge so that directions the data does not determine
+/// scaled to unit diagonal and a ridge (`ridge` on the first `k_fx` columns, the effects'
+/// parameters; a tiny one on the placements) so that directions the data does not determine
 /// stay near zero.
-fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>) -> DVector<f64> {
+fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>, k_fx: usize, ridge: f64) -> DVector<f64> {
     let k = b.len();
     let s: Vec<f64> = (0..k)
         .map(|i| if a[(i, i)] > 0.0 { 1.0 / a[(i, i)].sqrt() } else { 0.0 })
@@ -588,7 +607,7 @@ fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>) -> DVector<f64> {
         for j in 0..k {
             m[(i, j)] = a[(i, j)] * s[i] * s[j];
         }
-        m[(i, i)] += 1e-9 + if s[i] == 0.0 { 1.0 } else { 0.0 };
+        m[(i, i)] += if i < k_fx { ridge.max(1e-9) } else { 1e-9 } + if s[i] == 0.0 { 1.0 } else { 0.0 };
     }
     let rhs = DVector::from_iterator(k, (0..k).map(|i| -b[i] * s[i]));
     let z = match nalgebra::Cholesky::new(m.clone()) {
