@@ -155,6 +155,8 @@ fn library_case(hidden: &str, wrong: &str) {
         "start_wrong.json",
         "--out",
         &c.path("wrong.json"),
+        // The wrong effect alone: refitting the others would let them absorb the hidden one.
+        "--only-new",
     ]);
     let wa = w["heldout_rms_after_um"].as_f64().unwrap();
     eprintln!("{hidden}: wrong effect {wrong}: held-out → {wa:.3} µm");

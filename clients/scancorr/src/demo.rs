@@ -1,25 +1,40 @@
 //! `scancorr demo`: the main job on embedded defaults — the model lab's loop on a simulated
-//! machine with one effect hidden from its calibration.
+//! machine from the start a user has: its nominal model.
 //!
-//! 1. Simulate the calibration campaign on machine m1 with the effect hidden, and a held-out
-//!    `ring-speeds` run at a position the campaign did not use.
-//! 2. Compare the starting calibration with the artifacts: where it fails.
-//! 3. Diagnose: rank the missing effects by the held-out residual they explain.
-//! 4. Add the best one, fit it, write calibration version 2.
-//! 5. Show the error falling, and correct the held-out bag with each version.
+//! 1. Simulate the calibration campaign on machine m1 (every effect of the library active in
+//!    the machine) and a held-out `ring-speeds` run at a position the campaign did not use.
+//! 2. The starting calibration is the machine's nominal model only: the data sheet's axis time
+//!    constants (30 % off) and catalogue stylus lengths, no effects.
+//! 3. Compare it with the artifacts: where it fails.
+//! 4. `lab discover`: refit the nominal model, then diagnose, add (swap, drop) the best
+//!    candidate and refit everything until nothing significant is left; each step a version.
+//! 5. Show the error falling to the noise floor, what the campaign could not separate, and
+//!    correct the held-out bag with the first and the last version.
 
 use crate::{labcmd, offline, simcmd};
 use anyhow::{Context, Result};
 use scancorr_core::lab::analysis;
 use scancorr_core::lab::dataset::{self, BuildOptions};
+use scancorr_core::lab::discover::{self, Step};
+use scancorr_core::transfer::TransferFunction;
 use std::path::{Path, PathBuf};
 
-pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
+/// Runs the demo. `with` switches on physics the default machine does not have
+/// (e.g. `probe_lobing`, `cyclic_error`).
+pub fn run(with: &[String], dir: Option<PathBuf>, json: bool) -> Result<()> {
     let keep = dir.is_some();
     let dir = dir.unwrap_or_else(|| {
         std::env::temp_dir().join(format!("scancorr-demo-{}", std::process::id()))
     });
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let result = run_in(with, &dir, keep, json);
+    if !keep {
+        std::fs::remove_dir_all(&dir).ok();
+    }
+    result
+}
+
+fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<()> {
     let say = |s: String| -> Result<()> {
         if !json {
             outln!("{s}")?;
@@ -27,168 +42,150 @@ pub fn run(hide: &str, dir: Option<PathBuf>, json: bool) -> Result<()> {
         Ok(())
     };
     let p = |f: &str| dir.join(f);
-    say(format!("scancorr demo — the model lab on a simulated CMM with `{hide}` hidden from its calibration\n"))?;
+    say("scancorr demo — the model lab from a nominal model to the noise floor, on a simulated CMM\n".into())?;
     say("1. simulating the calibration campaign (rings at 3 positions × 4 speeds × 2 directions, sphere with 2 styli, straightedge, drifting temperature) …".into())?;
-    sim(
-        "campaign",
-        1,
-        None,
-        hide,
-        &p("campaign.mcap"),
-        Some(&p("truth.json")),
-        Some(&p("v1.json")),
-    )?;
+    sim("campaign", 1, None, with, &p("campaign.mcap"), Some(&p("truth.json")), Some(&p("sim-start.json")))?;
     say("   and a held-out ring-speeds run at (550, 300, −250), another seed …".into())?;
-    sim(
-        "ring-speeds",
-        2,
-        Some([550.0, 300.0, -250.0]),
-        hide,
-        &p("heldout.mcap"),
-        None,
-        None,
-    )?;
+    sim("ring-speeds", 2, Some([550.0, 300.0, -250.0]), with, &p("heldout.mcap"), None, None)?;
 
-    let cal1 = offline::load_calibration(&p("v1.json"))?;
-    let bags = labcmd::load_bags(
-        &[p("campaign.mcap")],
-        &[p("heldout.mcap")],
-        &cal1.machine_id,
-    )?;
-    let opts = BuildOptions {
+    // The user's start: the nominal model with data-sheet time constants (30 % off).
+    let mut start = offline::load_calibration(&p("sim-start.json"))?;
+    for tf in [&mut start.nominal.axes.x, &mut start.nominal.axes.y, &mut start.nominal.axes.z] {
+        if let TransferFunction::FirstOrder { tau_s } = tf {
+            *tau_s *= 1.3;
+        }
+    }
+    start.note = "nominal model: data-sheet time constants, catalogue styli, no effects".into();
+    crate::output::write_file("v1.json", &p("v1.json"), start.to_json())?;
+    say(format!(
+        "\n2. the start: the nominal model only ({} styli, time constants from the data sheet), no effects",
+        start.geometry.tips.len()
+    ))?;
+
+    let bags = labcmd::load_bags(&[p("campaign.mcap")], &[p("heldout.mcap")], &start.machine_id)?;
+    let build = BuildOptions {
         sensors: ["stylus", "scale_x", "scale_y", "scale_z", "air"]
             .iter()
             .map(|s| s.to_string())
             .collect(),
         ..Default::default()
     };
-    let ds1 = dataset::build(&bags, &cal1, &opts)?;
+    let ds1 = dataset::build(&bags, &start, &build)?;
     let cmp = analysis::compare(&ds1)?;
     say(format!(
-        "\n2. compare v1 ({} effects) with the artifacts: deviation RMS {:.3} µm, PV {:.3} µm, noise floor {:.3} µm",
-        cal1.effects.len(),
-        cmp.rms_um,
-        cmp.pv_um,
-        cmp.noise_floor_um
+        "\n3. compare v1 with the artifacts: deviation RMS {:.3} µm, PV {:.3} µm, noise floor {:.3} µm",
+        cmp.rms_um, cmp.pv_um, cmp.noise_floor_um
     ))?;
     for b in cmp.failures.iter().take(4) {
+        say(format!("   fails at {:<20} {:<28} RMS {:.3} µm", b.feature, b.bin, b.rms_um))?;
+    }
+
+    say("\n4. lab discover: refit the nominal model; then diagnose, add the best candidate, refit everything — until nothing significant is left".into())?;
+    let t0 = std::time::Instant::now();
+    let opts = discover::Options {
+        build,
+        max_steps: 20,
+        created: String::new(),
+    };
+    let out_dir = p("steps");
+    std::fs::create_dir_all(&out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    let mut on_step = |s: &Step| -> std::result::Result<(), scancorr_core::lab::LabError> {
+        crate::output::write_file("steps", &out_dir.join(format!("v{}.json", s.version)), s.calibration.to_json())
+            .map_err(|e| scancorr_core::lab::LabError::Data(format!("{e:#}")))?;
+        if !json {
+            let what = match &s.replaces {
+                Some(r) => format!("{} {} for {r}", s.action, s.effect),
+                None => format!("{} {}", s.action, s.effect),
+            };
+            let _ = outln!(
+                "   step {:>2} (v{:<2}) {:<44} held-out {:>7.3} → {:>7.3} µm",
+                s.index,
+                s.version,
+                what,
+                s.heldout_rms_before_um,
+                s.heldout_rms_um
+            );
+        }
+        Ok(())
+    };
+    let mut on_progress = |_: &str| {};
+    let d = discover::discover(&bags, &start, &opts, &mut on_step, &mut on_progress)?;
+    let secs = t0.elapsed().as_secs_f64();
+    let f = &d.r#final;
+    say(format!("   stopped after {secs:.1} s: {}", d.stopped))?;
+
+    say("\n5. the error falls (held-out ring-speeds run, deviation RMS):".into())?;
+    let max = d.start_heldout_rms_um.max(1e-9);
+    let bar = |v: f64| "█".repeat(((v / max) * 48.0).round().max(1.0) as usize);
+    say(format!("   v1  {:<29} {:>7.3} µm {}", "nominal model (start)", d.start_heldout_rms_um, bar(d.start_heldout_rms_um)))?;
+    for s in &d.steps {
         say(format!(
-            "   fails at {:<20} {:<28} RMS {:.3} µm",
-            b.feature, b.bin, b.rms_um
+            "   v{:<2} {:<29} {:>7.3} µm {}",
+            s.version,
+            format!("{} {}", s.action, s.effect.split(':').next().unwrap_or("")),
+            s.heldout_rms_um,
+            bar(s.heldout_rms_um)
         ))?;
     }
-    let dg = analysis::diagnose(&ds1)?;
-    say("\n3. diagnose: candidates ranked by the held-out residual they explain".into())?;
-    for c in dg.candidates.iter().take(5) {
+    say(format!(
+        "   {:<33} {:>7.3} µm   (final: {:.2}× the floor)",
+        "noise floor",
+        f.noise_floor_um,
+        f.heldout_rms_um / f.noise_floor_um.max(1e-9)
+    ))?;
+    for c in &d.confounded {
         say(format!(
-            "   {:<36} explains {:>5.1} %  held-out {:.3} → {:.3} µm  {}",
-            c.effect,
-            c.explained * 100.0,
-            c.heldout_rms_before_um,
-            c.heldout_rms_after_um,
-            if c.significant { "significant" } else { "" }
-        ))?;
-    }
-    for c in &dg.confounded {
-        say(format!(
-            "   confounded: {} / {} — separate them by {}",
+            "   confounded on this campaign: {} and {} — to separate them: {}",
             c.effects[0],
             c.effects[1],
             c.separate_by.join("; ")
         ))?;
     }
-    for s in &dg.unexplained {
+    if !d.unidentifiable.is_empty() {
         say(format!(
-            "   unexplained structure: {} along {} ({:.3} µm) → custom terms {}",
+            "   {} parameter(s) this campaign cannot determine (kept at minimum-norm values)",
+            d.unidentifiable.len()
+        ))?;
+    }
+    for s in &d.unexplained {
+        say(format!(
+            "   left unexplained: {} along {} ({:.3} µm) → custom terms {}",
             s.kind,
             s.axis,
             s.amplitude_um,
             s.custom_terms.join(" ")
         ))?;
     }
-    let best = dg
-        .candidates
-        .iter()
-        .find(|c| c.significant)
-        .context("no significant candidate: nothing to add")?;
+    let last = &d.steps.last().context("the loop made no version")?.calibration;
+    crate::output::write_file("calibration.json", &p("calibration.json"), last.to_json())?;
+    let (s1, _) = offline::correct(&p("heldout.mcap"), &start, None)?;
+    let (s2, _) = offline::correct(&p("heldout.mcap"), last, None)?;
     say(format!(
-        "\n4. add {} and fit it (with the artifact placements, held-out data kept apart)",
-        best.effect
-    ))?;
-    let prep = analysis::prepare(&ds1)?;
-    let cfg = analysis::candidate(&best.effect, &ds1)?;
-    let fit = analysis::fit_effects(&ds1, &prep, &[cfg])?;
-    let mut cal2 = cal1.clone();
-    cal2.effects
-        .push(fit.configs.last().expect("one effect").clone());
-    cal2.version = 2;
-    cal2.parent_version = Some(1);
-    let ds2 = dataset::build(&bags, &cal2, &opts)?;
-    let after = analysis::prepare(&ds2)?;
-    cal2.note = format!(
-        "demo: lab add {}: held-out RMS {:.3} → {:.3} µm",
-        best.effect, prep.rms_held_um, after.rms_held_um
-    );
-    cal2.metrics = [
-        ("rms_um".to_string(), after.rms_fit_um),
-        ("heldout_rms_um".to_string(), after.rms_held_um),
-    ]
-    .into();
-    crate::output::write_file("v2.json", &p("v2.json"), cal2.to_json())?;
-    for prm in fit.params.last().into_iter().flatten().take(6) {
-        match prm.sigma {
-            Some(s) => say(format!(
-                "   {:<44} {:>11.4e} ± {:.1e}",
-                prm.name, prm.value, s
-            ))?,
-            None => say(format!(
-                "   {:<44} {:>11.4e} (not determined by this data)",
-                prm.name, prm.value
-            ))?,
-        }
-    }
-    say("\n5. the error falls (held-out ring-speeds run, deviation RMS):".into())?;
-    let max = prep.rms_held_um.max(after.rms_held_um).max(1e-9);
-    let bar = |v: f64| "█".repeat(((v / max) * 48.0).round().max(1.0) as usize);
-    say(format!(
-        "   v1 nominal + {} effects   {:>7.3} µm {}",
-        cal1.effects.len(),
-        prep.rms_held_um,
-        bar(prep.rms_held_um)
-    ))?;
-    say(format!(
-        "   v2 + {:<21} {:>7.3} µm {}",
-        best.effect.split(':').next().unwrap_or(""),
-        after.rms_held_um,
-        bar(after.rms_held_um)
-    ))?;
-    say(format!(
-        "   noise floor               {:>7.3} µm",
-        ds1.noise_floor_um
-    ))?;
-    let (s1, _) = offline::correct(&p("heldout.mcap"), &cal1, None)?;
-    let (s2, _) = offline::correct(&p("heldout.mcap"), &cal2, None)?;
-    say(format!(
-        "   (corrected {} points of the held-out bag with each version; no alarm: {} / {})",
-        s2.points, s1.alarms, s2.alarms
+        "   (corrected {} points of the held-out bag with v1 and v{}; alarms: {} / {})",
+        s2.points, last.version, s1.alarms, s2.alarms
     ))?;
     if json {
         outln!(
             "{}",
             serde_json::json!({
-                "hidden": hide,
-                "best": best.effect,
-                "heldout_rms_before_um": prep.rms_held_um,
-                "heldout_rms_after_um": after.rms_held_um,
-                "noise_floor_um": ds1.noise_floor_um,
+                "with": with,
+                "steps": d.steps,
+                "confounded": d.confounded,
+                "final": d.r#final,
+                "start_heldout_rms_um": d.start_heldout_rms_um,
+                "seconds": secs,
                 "dir": if keep { Some(dir.display().to_string()) } else { None },
             })
         )?;
     }
     if keep {
-        say(format!("\nfiles in {} (bags, truth.json, v1.json, v2.json); try: scancorr lab diagnose --bag {} --calib {} --report report.html", dir.display(), p("campaign.mcap").display(), p("v1.json").display()))?;
-    } else {
-        std::fs::remove_dir_all(&dir).ok();
+        say(format!(
+            "\nfiles in {} (bags, truth.json, v1.json, steps/, calibration.json); try: scancorr lab diagnose --bag {} --validate {} --calib {} --report report.html",
+            dir.display(),
+            p("campaign.mcap").display(),
+            p("heldout.mcap").display(),
+            p("calibration.json").display()
+        ))?;
     }
     Ok(())
 }
@@ -197,25 +194,25 @@ fn sim(
     program: &str,
     seed: u64,
     position: Option<[f64; 3]>,
-    hide: &str,
+    with: &[String],
     out: &Path,
     truth: Option<&Path>,
     calib: Option<&Path>,
 ) -> Result<()> {
+    for w in with {
+        anyhow::ensure!(
+            scancorr_sim::EXTRA_EFFECTS.contains(&w.as_str()),
+            "--with {w}: known physics beyond the default machine: {}",
+            scancorr_sim::EXTRA_EFFECTS.join(", ")
+        );
+    }
     let options = scancorr_sim::Options {
         program: program.into(),
         seed,
         position,
-        hide: if scancorr_sim::LIBRARY_EFFECTS.contains(&hide) {
-            vec![hide.to_string()]
-        } else {
-            vec![]
-        },
-        effects: if scancorr_sim::EXTRA_EFFECTS.contains(&hide) {
-            [(hide.to_string(), 1.0)].into()
-        } else {
-            Default::default()
-        },
+        // The start the demo builds is the nominal model: every library effect left out.
+        hide: scancorr_sim::LIBRARY_EFFECTS.iter().map(|s| s.to_string()).collect(),
+        effects: with.iter().map(|w| (w.clone(), 1.0)).collect(),
         ..Default::default()
     };
     simcmd::run_quiet(simcmd::SimArgs {

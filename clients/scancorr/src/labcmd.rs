@@ -217,7 +217,11 @@ fn load(d: &DataArgs) -> Result<Loaded> {
 }
 
 fn dataset_for(l: &Loaded, cal: &Calibration) -> Result<Dataset> {
-    Ok(dataset::build(&l.bags, cal, &l.opts)?)
+    let ds = dataset::build(&l.bags, cal, &l.opts)?;
+    for w in &ds.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(ds)
 }
 
 fn now_rfc3339() -> String {
@@ -594,6 +598,8 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             std::fs::create_dir_all(&out_dir)
                 .with_context(|| format!("creating --out-dir {}", out_dir.display()))?;
             let l = load(&data)?;
+            // The start's points: warnings (drops, bags without samples) once, up front.
+            dataset_for(&l, &l.cal)?;
             let opts = scancorr_core::lab::discover::Options {
                 build: l.opts.clone(),
                 max_steps,

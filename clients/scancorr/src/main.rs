@@ -39,10 +39,10 @@ enum Cmd {
     /// The main job on embedded defaults: the model lab's loop on a simulated machine with a
     /// hidden effect — compare, diagnose, add, and the error falling.
     Demo {
-        /// The effect hidden from the starting calibration (a library effect, or
-        /// cyclic_error / backlash, which the library does not have).
-        #[arg(long, default_value = "accel_deflection")]
-        hide: String,
+        /// Switch on physics the default machine does not have (repeatable): probe_lobing,
+        /// rigid_body, cyclic_error, backlash, latching.
+        #[arg(long)]
+        with: Vec<String>,
         /// Keep the bags and calibrations in this folder.
         #[arg(long)]
         dir: Option<PathBuf>,
@@ -367,7 +367,7 @@ fn main() -> std::process::ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
-        Cmd::Demo { hide, dir, json } => demo::run(&hide, dir, json),
+        Cmd::Demo { with, dir, json } => demo::run(&with, dir, json),
         Cmd::Bench(BenchCmd::Core {
             json,
             points,

@@ -611,9 +611,9 @@ pub struct CandidateReport {
     pub delta_bic: f64,
     /// Number of parameters.
     pub k: usize,
-    /// Fitted parameters.
+    /// Fitted parameters of the effect brought in.
     pub params: Vec<Param>,
-    /// Parameters the data cannot determine.
+    /// Parameters the data cannot determine (of every effect refitted).
     pub unidentifiable: Vec<String>,
 }
 
@@ -1090,7 +1090,7 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         noise_floor_um: noise,
         candidates: results
             .into_iter()
-            .map(|(c, _, _, score, o, sig)| CandidateReport {
+            .map(|(c, b, spec, score, o, sig)| CandidateReport {
                 action: c.action,
                 significant: sig,
                 effect: c.effect,
@@ -1108,7 +1108,13 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
                 heldout_rms_after_um: o.heldout_rms_after_um,
                 delta_bic: o.delta_bic,
                 k: o.k,
-                params: o.params.into_iter().flatten().collect(),
+                // The parameters of the effect brought in (the others are refitted too).
+                params: spec
+                    .fitted
+                    .iter()
+                    .position(|x| Some(*x) == b)
+                    .and_then(|i| o.params.get(i).cloned())
+                    .unwrap_or_default(),
                 unidentifiable: o.unidentifiable,
             })
             .collect(),

@@ -3,7 +3,7 @@
 use super::program::{FeatureKind, FeatureSpec, ProgramSpec, SegmentKind, SegmentSpec};
 use super::LabError;
 use crate::calib::{Calibration, Model};
-use crate::corrector::Corrector;
+use crate::corrector::{Corrector, DropReason};
 use crate::sample::{PointContext, Sample, Vec3};
 use std::sync::Arc;
 
@@ -72,6 +72,44 @@ pub struct Dataset {
     pub tracking: Vec<(usize, u32, f64)>,
     /// The calibration the points were corrected with.
     pub calibration: Calibration,
+    /// What the user should know about the points: samples the corrector dropped (by reason,
+    /// with counts), bags without samples, scans not evaluated.
+    pub warnings: Vec<String>,
+}
+
+/// What a drop reason means for a lab user, and what to do.
+fn drop_advice(r: DropReason) -> &'static str {
+    match r {
+        DropReason::UnknownTip => "the active tip is not in the calibration's geometry: add it to `geometry.tips`",
+        DropReason::Duplicate | DropReason::OutOfOrder => {
+            "sequence counters or times that do not increase (e.g. one counter shared by several temperature sensors, or bags of two runs mixed)"
+        }
+        DropReason::TemperatureMissing => "a temperature the calibration needs was never recorded",
+        DropReason::TemperatureStale => "a temperature the calibration needs is older than `join.temperature_max_age_s`",
+        DropReason::NoCommand | DropReason::CommandGap => "the command stream is missing or has gaps",
+        DropReason::NoProbe | DropReason::ProbeGap => "the probe stream is missing or has gaps",
+        DropReason::Implausible | DropReason::ImplausibleOutput => "values outside the calibration's `limits`",
+        DropReason::NonFinite => "NaN or infinite values",
+        DropReason::BufferOverflow => "a stream stalled while the others went on",
+        DropReason::UnknownSensor | DropReason::BadName => "temperature sensors with unknown or invalid names",
+    }
+}
+
+fn describe_drops(bag: &str, st: &crate::corrector::Stats) -> Option<String> {
+    let total = st.samples();
+    let dropped = st.dropped_total();
+    if dropped == 0 || (dropped as f64) < 1e-3 * total as f64 {
+        return None;
+    }
+    let reasons: Vec<String> = DropReason::ALL
+        .iter()
+        .filter(|r| st.dropped[**r as usize] > 0)
+        .map(|r| format!("{} {} ({})", st.dropped[*r as usize], r.name(), drop_advice(*r)))
+        .collect();
+    Some(format!(
+        "{bag}: the corrector dropped {dropped} of {total} samples: {}",
+        reasons.join("; ")
+    ))
 }
 
 fn scan_phase(seg: &SegmentSpec, t_s: f64, speed_now: f64) -> Phase {
@@ -128,6 +166,7 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
     let mut tracking = vec![];
     let mut noise_acc = (0.0, 0usize);
     let any_validation = bags.iter().any(|b| b.validation);
+    let mut warnings = vec![];
     for (bi, bag) in bags.iter().enumerate() {
         let program = match (&bag.program, &o.artifact) {
             (Some(p), _) => p.clone(),
@@ -148,6 +187,14 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
         let mut out = crate::corrector::Output::default();
         corr.push_all(bag.samples.iter().cloned(), &mut out);
         corr.flush(&mut out);
+        if bag.samples.is_empty() {
+            warnings.push(format!(
+                "{}: no samples of machine `{}` (the calibration's machine id): is it the right machine's bag?",
+                bag.name, cal.machine_id
+            ));
+        }
+        warnings.extend(describe_drops(&bag.name, corr.stats()));
+        let mut unknown_segments = 0usize;
         // Group by segment, keep valid contact points of scans.
         let seg_of = |id: u32| program.segments.iter().find(|s| s.id == id);
         let mut scan_index: std::collections::BTreeMap<u32, usize> = Default::default();
@@ -169,7 +216,10 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
                 Some(_) => (None, None),
                 // No program segments: every contact point belongs to the one artifact.
                 None if program.segments.is_empty() => (Some(base), None),
-                None => (None, None),
+                None => {
+                    unknown_segments += 1;
+                    (None, None)
+                }
             };
             // Tracking residual of the nominal model on this segment.
             let tr: f64 = out.contexts[i..j]
@@ -238,11 +288,22 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
             }
             i = j;
         }
+        if unknown_segments > 0 {
+            warnings.push(format!(
+                "{}: {unknown_segments} segment(s) of points are not in the bag's program record: not evaluated",
+                bag.name
+            ));
+        }
     }
     if points.is_empty() {
-        return Err(LabError::Data(
-            "no scan points in contact with a known artifact: scan the artifact (ring gauge, sphere, straightedge) with the probe deflected".into(),
-        ));
+        let why = if warnings.is_empty() {
+            String::new()
+        } else {
+            format!(" — {}", warnings.join("; "))
+        };
+        return Err(LabError::Data(format!(
+            "no scan points in contact with a known artifact: scan the artifact (ring gauge, sphere, straightedge) with the probe deflected{why}"
+        )));
     }
     let noise = if noise_acc.1 > 0 {
         (noise_acc.0 / noise_acc.1 as f64).sqrt() * 1e3
@@ -256,5 +317,6 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
         noise_floor_um: noise,
         tracking,
         calibration: cal.clone(),
+        warnings,
     })
 }

@@ -644,6 +644,7 @@ mod tests {
             noise_floor_um: 0.1,
             tracking: vec![],
             calibration: Calibration::example("m1"),
+            warnings: vec![],
         }
     }
 
