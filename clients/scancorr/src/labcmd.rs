@@ -168,7 +168,7 @@ pub fn load_bags(paths: &[PathBuf], validation: &[PathBuf], machine: &str) -> Re
         .map(|p| (p, false))
         .chain(validation.iter().map(|p| (p, true)))
     {
-        let input = offline::read(p, Some(machine))?;
+        let input = offline::read_lazy(p, Some(machine))?;
         for w in &input.warnings {
             eprintln!("warning: {w}");
         }
@@ -184,7 +184,7 @@ pub fn load_bags(paths: &[PathBuf], validation: &[PathBuf], machine: &str) -> Re
             })?;
         out.push(BagData {
             name: p.display().to_string(),
-            samples: input.samples.into_iter().map(|(_, s)| s).collect(),
+            samples: std::sync::Arc::new(input.samples),
             program,
             validation: v,
         });
@@ -648,11 +648,11 @@ pub fn run(cmd: LabCmd) -> Result<()> {
         LabCmd::Fit { data, out, json } => {
             let [out_file] = outputs([("--out", Some(out.as_path()))], &data.inputs())?;
             let l = load(&data)?;
-            let raw: Vec<Vec<scancorr_core::Sample>> = l
+            let raw: Vec<&dyn dataset::Samples> = l
                 .bags
                 .iter()
                 .filter(|b| !b.validation)
-                .map(|b| b.samples.clone())
+                .map(|b| &*b.samples)
                 .collect();
             let (mut new, axes) = scancorr_core::lab::nominal::fit_nominal(&raw, &l.cal)?;
             let ds0 = dataset_for(&l, &l.cal)?;

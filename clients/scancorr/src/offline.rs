@@ -7,20 +7,6 @@ use scancorr_core::{Calibration, Corrector, Output, Sample, Stats};
 use std::collections::BTreeMap;
 use std::path::Path;
 
-/// Raw samples of one machine read from a bag, in the bag's (receive) order.
-pub struct BagInput {
-    /// Samples with the log time of the message that carried them.
-    pub samples: Vec<(u64, Sample)>,
-    /// Metadata records (name, entries) in file order.
-    pub metadata: Vec<(String, BTreeMap<String, String>)>,
-    /// Messages that could not be decoded (malformed or empty).
-    pub bad_messages: u64,
-    /// Samples naming another machine inside this machine's channels.
-    pub foreign_samples: u64,
-    /// Warnings for the user (truncation, unknown channels).
-    pub warnings: Vec<String>,
-}
-
 /// Opens a bag and checks it holds the raw streams of `machine` (or of its only machine).
 pub fn open(path: &Path, machine: Option<&str>) -> Result<(BagReader, String, Vec<String>)> {
     let reader =
@@ -88,20 +74,58 @@ fn list(v: &[String]) -> String {
     }
 }
 
-/// Reads every raw sample of `machine` from a bag.
-pub fn read(path: &Path, machine: Option<&str>) -> Result<BagInput> {
-    let (reader, machine, warnings) = open(path, machine)?;
-    let mut input = BagInput {
-        samples: vec![],
-        metadata: reader
-            .metadata()
-            .iter()
-            .map(|m| (m.name.clone(), m.entries.clone()))
-            .collect(),
-        bad_messages: 0,
-        foreign_samples: 0,
-        warnings,
-    };
+/// A bag's samples of one machine, decoded again on each replay: the lab corrects a bag many
+/// times (each step of `lab discover`), and a 30-minute capture decoded would take gigabytes.
+pub struct BagSamples {
+    reader: BagReader,
+    machine: String,
+    sensors: Vec<String>,
+}
+
+impl scancorr_core::lab::dataset::Samples for BagSamples {
+    fn replay(&self, f: &mut dyn FnMut(Sample)) -> std::result::Result<(), String> {
+        let mut batch = vec![];
+        for msg in self.reader.messages().map_err(|e| format!("{e:#}"))? {
+            let msg = msg.map_err(|e| format!("{e:#}"))?;
+            if &*msg.machine != self.machine.as_str() {
+                continue;
+            }
+            let Some(stream) = wire::stream_id(msg.stream) else {
+                continue;
+            };
+            batch.clear();
+            if wire::decode_machine(stream, &msg.data, &self.machine, &mut batch).is_ok() {
+                for x in batch.drain(..) {
+                    f(x);
+                }
+            }
+        }
+        Ok(())
+    }
+    fn sensors(&self) -> Vec<String> {
+        self.sensors.clone()
+    }
+}
+
+/// What a first pass over a bag found, and the replayable samples.
+pub struct LazyBag {
+    pub samples: BagSamples,
+    pub metadata: Vec<(String, BTreeMap<String, String>)>,
+    pub warnings: Vec<String>,
+}
+
+/// Opens a bag for the lab: one pass checks it (bad messages, samples of other machines,
+/// temperature sensors); the samples are decoded again on each replay.
+pub fn read_lazy(path: &Path, machine: Option<&str>) -> Result<LazyBag> {
+    let (reader, machine, mut warnings) = open(path, machine)?;
+    let metadata = reader
+        .metadata()
+        .iter()
+        .map(|m| (m.name.clone(), m.entries.clone()))
+        .collect();
+    let (mut bad, mut foreign) = (0u64, 0u64);
+    let mut sensors: Vec<String> = vec![];
+    let mut batch = vec![];
     for msg in reader.messages()? {
         let msg = msg.with_context(|| format!("reading {}", path.display()))?;
         if &*msg.machine != machine.as_str() {
@@ -110,16 +134,37 @@ pub fn read(path: &Path, machine: Option<&str>) -> Result<BagInput> {
         let Some(stream) = wire::stream_id(msg.stream) else {
             continue;
         };
-        let mut batch = vec![];
+        batch.clear();
         match wire::decode_machine(stream, &msg.data, &machine, &mut batch) {
-            Ok(f) => input.foreign_samples += f,
-            Err(_) => input.bad_messages += 1,
+            Ok(f) => foreign += f,
+            Err(_) => bad += 1,
         }
-        input
-            .samples
-            .extend(batch.into_iter().map(|s| (msg.log_time, s)));
+        for x in &batch {
+            if let Sample::Temperature(t) = x {
+                if !sensors.contains(&t.sensor) {
+                    sensors.push(t.sensor.clone());
+                }
+            }
+        }
     }
-    Ok(input)
+    if bad > 0 {
+        warnings.push(format!("{}: {bad} message(s) could not be decoded: skipped", path.display()));
+    }
+    if foreign > 0 {
+        warnings.push(format!(
+            "{}: {foreign} sample(s) inside `{machine}`'s messages name another machine: skipped",
+            path.display()
+        ));
+    }
+    Ok(LazyBag {
+        samples: BagSamples {
+            reader,
+            machine,
+            sensors,
+        },
+        metadata,
+        warnings,
+    })
 }
 
 /// Summary of an offline correction.

@@ -43,17 +43,203 @@ pub struct LabPoint {
     pub held_out: bool,
 }
 
+/// A bag's raw samples of one machine, replayed in bag order each time the lab corrects
+/// them (so a long capture need not be held in memory decoded).
+pub trait Samples: Send + Sync {
+    /// Calls `f` with every sample, in bag order.
+    fn replay(&self, f: &mut dyn FnMut(Sample)) -> Result<(), String>;
+    /// Names of the temperature sensors that appear.
+    fn sensors(&self) -> Vec<String>;
+}
+
+impl Samples for Vec<Sample> {
+    fn replay(&self, f: &mut dyn FnMut(Sample)) -> Result<(), String> {
+        for s in self {
+            f(s.clone());
+        }
+        Ok(())
+    }
+    fn sensors(&self) -> Vec<String> {
+        let mut v: Vec<String> = vec![];
+        for s in self {
+            if let Sample::Temperature(t) = s {
+                if !v.contains(&t.sensor) {
+                    v.push(t.sensor.clone());
+                }
+            }
+        }
+        v
+    }
+}
+
 /// A bag's content, as the lab needs it.
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct BagData {
     /// A name for messages (the file name).
     pub name: String,
     /// Raw samples of one machine in bag order.
-    pub samples: Vec<Sample>,
+    pub samples: Arc<dyn Samples>,
     /// The program, if the bag has one.
     pub program: Option<ProgramSpec>,
     /// Held out: used only to validate.
     pub validation: bool,
+}
+
+impl std::fmt::Debug for BagData {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BagData")
+            .field("name", &self.name)
+            .field("program", &self.program.as_ref().map(|p| &p.program))
+            .field("validation", &self.validation)
+            .finish()
+    }
+}
+
+/// The run of points being collected: consecutive points of one segment.
+struct Run {
+    seg_id: u32,
+    feature: Option<usize>,
+    seg: Option<SegmentSpec>,
+    held: bool,
+    track_ss: f64,
+    track_n: usize,
+    valid: usize,
+}
+
+/// Collects corrected points into lab points as they stream out of the corrector.
+struct Runs<'a> {
+    bag: usize,
+    base: usize,
+    program: &'a ProgramSpec,
+    features: &'a [(usize, FeatureSpec)],
+    stride: usize,
+    held_default: bool,
+    any_validation: bool,
+    holdout_by_segment: bool,
+    current: Option<Run>,
+    scan_index: std::collections::BTreeMap<usize, usize>,
+    /// Index of the next point in the bag (for the noise windows' adjacency).
+    index: usize,
+    /// The last two valid points of the run: (index, coordinate).
+    last_two: [Option<(usize, f64)>; 2],
+    unknown_segments: usize,
+    points: &'a mut Vec<LabPoint>,
+    tracking: &'a mut Vec<(usize, u32, f64)>,
+    noise: &'a mut (f64, usize),
+}
+
+impl Runs<'_> {
+    fn finish(&mut self) {
+        if let Some(r) = self.current.take() {
+            if r.track_n > 0 {
+                self.tracking
+                    .push((self.bag, r.seg_id, (r.track_ss / r.track_n as f64).sqrt() * 1e3));
+            }
+        }
+        self.last_two = [None, None];
+    }
+
+    fn start(&mut self, seg_id: u32) {
+        let program = self.program;
+        let (feature, seg) = match program.segments.iter().find(|s| s.id == seg_id) {
+            Some(s) if s.kind == SegmentKind::Scan => match s
+                .feature
+                .and_then(|f| program.features.iter().position(|x| x.id == f))
+            {
+                Some(fi) => (Some(self.base + fi), Some(s.clone())),
+                None => (None, None),
+            },
+            Some(_) => (None, None),
+            // No program segments: every contact point belongs to the one artifact.
+            None if program.segments.is_empty() => (Some(self.base), None),
+            None => {
+                self.unknown_segments += 1;
+                (None, None)
+            }
+        };
+        let held = match feature {
+            Some(fi) => {
+                let k = self.scan_index.entry(fi).or_insert(0);
+                let h = if self.any_validation {
+                    self.held_default
+                } else {
+                    self.holdout_by_segment && *k % 2 == 1
+                };
+                *k += 1;
+                h
+            }
+            None => false,
+        };
+        self.current = Some(Run {
+            seg_id,
+            feature,
+            seg,
+            held,
+            track_ss: 0.0,
+            track_n: 0,
+            valid: 0,
+        });
+    }
+
+    fn take(&mut self, out: &crate::corrector::Output) {
+        for (p, ctx) in out.points.iter().zip(&out.contexts) {
+            let index = self.index;
+            self.index += 1;
+            if self.current.as_ref().is_none_or(|r| r.seg_id != p.segment_id) {
+                self.finish();
+                self.start(p.segment_id);
+            }
+            let r = self.current.as_mut().expect("a run was started");
+            // Tracking residual of the nominal model on this segment.
+            r.track_ss += (ctx.scale - ctx.est_pos).norm_squared();
+            r.track_n += 1;
+            let Some(fi) = r.feature else { continue };
+            if !(p.estimator_valid && p.normal != Vec3::zeros()) {
+                continue;
+            }
+            // Noise floor from the point-to-point scatter of the radial/normal coordinate:
+            // second differences of three consecutive valid points.
+            let f = &self.features[fi].1;
+            let coord = match f.kind {
+                FeatureKind::Face => p.surface.dot(&Vec3::from(f.normal)),
+                _ => (p.surface - Vec3::from(f.nominal_center)).xy().norm(),
+            };
+            if let [Some((i0, c0)), Some((_, c1))] = self.last_two {
+                if index == i0 + 2 {
+                    let d2 = c0 - 2.0 * c1 + coord;
+                    self.noise.0 += d2 * d2 / 6.0;
+                    self.noise.1 += 1;
+                }
+            }
+            self.last_two = [self.last_two[1], Some((index, coord))];
+            let n = r.valid;
+            r.valid += 1;
+            if n % self.stride != 0 {
+                continue;
+            }
+            let t_s = ctx.t_ns as f64 * 1e-9;
+            let (speed, direction, phase) = match &r.seg {
+                Some(s) => (s.speed, s.direction, scan_phase(s, t_s, ctx.est_vel.norm())),
+                None => (
+                    ctx.est_vel.norm(),
+                    (ctx.rot_axis.z.signum() as i32) * (ctx.arc_radius > 0.0) as i32,
+                    Phase::Steady,
+                ),
+            };
+            self.points.push(LabPoint {
+                ctx: *ctx,
+                surface: p.surface,
+                normal: p.normal,
+                feature: fi,
+                segment: p.segment_id,
+                bag: self.bag,
+                speed,
+                direction,
+                phase,
+                held_out: r.held,
+            });
+        }
+    }
 }
 
 /// Scan points of one or more bags corrected with one calibration.
@@ -151,11 +337,7 @@ impl Default for BuildOptions {
 pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Dataset, LabError> {
     let mut model: Model = cal.build().map_err(LabError::Calibration)?;
     for s in &o.sensors {
-        let present = bags.iter().any(|b| {
-            b.samples
-                .iter()
-                .any(|x| matches!(x, Sample::Temperature(t) if &t.sensor == s))
-        });
+        let present = bags.iter().any(|b| b.samples.sensors().iter().any(|n| n == s));
         if present {
             model.sensors.slot(s).map_err(LabError::Data)?;
         }
@@ -185,109 +367,48 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
         let mut corr = Corrector::with_model(model.clone());
         corr.record_context(true);
         let mut out = crate::corrector::Output::default();
-        corr.push_all(bag.samples.iter().cloned(), &mut out);
+        let mut run = Runs {
+            bag: bi,
+            base,
+            program: &program,
+            features: &features,
+            stride: o.stride.max(1),
+            held_default: bag.validation,
+            any_validation,
+            holdout_by_segment: o.holdout_by_segment,
+            current: None,
+            scan_index: Default::default(),
+            index: 0,
+            last_two: [None, None],
+            unknown_segments: 0,
+            points: &mut points,
+            tracking: &mut tracking,
+            noise: &mut noise_acc,
+        };
+        // Streamed: the corrected points are collected as they come, so memory follows the
+        // points kept (every `stride`-th contact point), not the length of the bag.
+        let mut n_samples = 0u64;
+        bag.samples
+            .replay(&mut |x| {
+                n_samples += 1;
+                corr.push(x, &mut out);
+                if out.points.len() >= 4096 {
+                    run.take(&out);
+                    out.clear();
+                }
+            })
+            .map_err(|e| LabError::Data(format!("{}: {e}", bag.name)))?;
         corr.flush(&mut out);
-        if bag.samples.is_empty() {
+        run.take(&out);
+        run.finish();
+        let unknown_segments = run.unknown_segments;
+        if n_samples == 0 {
             warnings.push(format!(
                 "{}: no samples of machine `{}` (the calibration's machine id): is it the right machine's bag?",
                 bag.name, cal.machine_id
             ));
         }
         warnings.extend(describe_drops(&bag.name, corr.stats()));
-        let mut unknown_segments = 0usize;
-        // Group by segment, keep valid contact points of scans.
-        let seg_of = |id: u32| program.segments.iter().find(|s| s.id == id);
-        let mut scan_index: std::collections::BTreeMap<u32, usize> = Default::default();
-        let mut i = 0;
-        while i < out.points.len() {
-            let seg_id = out.points[i].segment_id;
-            let mut j = i;
-            while j < out.points.len() && out.points[j].segment_id == seg_id {
-                j += 1;
-            }
-            let (feature_idx, seg) = match seg_of(seg_id) {
-                Some(s) if s.kind == SegmentKind::Scan => match s
-                    .feature
-                    .and_then(|f| program.features.iter().position(|x| x.id == f))
-                {
-                    Some(fi) => (Some(base + fi), Some(s.clone())),
-                    None => (None, None),
-                },
-                Some(_) => (None, None),
-                // No program segments: every contact point belongs to the one artifact.
-                None if program.segments.is_empty() => (Some(base), None),
-                None => {
-                    unknown_segments += 1;
-                    (None, None)
-                }
-            };
-            // Tracking residual of the nominal model on this segment.
-            let tr: f64 = out.contexts[i..j]
-                .iter()
-                .map(|c| (c.scale - c.est_pos).norm_squared())
-                .sum::<f64>()
-                / (j - i) as f64;
-            tracking.push((bi, seg_id, tr.sqrt() * 1e3));
-            if let Some(fi) = feature_idx {
-                let k = scan_index.entry(fi as u32).or_insert(0);
-                let held = if any_validation {
-                    bag.validation
-                } else {
-                    o.holdout_by_segment && *k % 2 == 1
-                };
-                *k += 1;
-                // Noise floor from the point-to-point scatter of the radial/normal coordinate.
-                let f = &features[fi].1;
-                let coord = |p: &crate::sample::CorrectedPoint| -> f64 {
-                    match f.kind {
-                        FeatureKind::Face => p.surface.dot(&Vec3::from(f.normal)),
-                        _ => (p.surface - Vec3::from(f.nominal_center)).xy().norm(),
-                    }
-                };
-                let ok: Vec<usize> = (i..j)
-                    .filter(|&q| {
-                        out.points[q].estimator_valid && out.points[q].normal != Vec3::zeros()
-                    })
-                    .collect();
-                for w in ok.windows(3) {
-                    if w[2] == w[0] + 2 {
-                        let d2 = coord(&out.points[w[0]]) - 2.0 * coord(&out.points[w[1]])
-                            + coord(&out.points[w[2]]);
-                        noise_acc.0 += d2 * d2 / 6.0;
-                        noise_acc.1 += 1;
-                    }
-                }
-                for (n, &q) in ok.iter().enumerate() {
-                    if n % o.stride.max(1) != 0 {
-                        continue;
-                    }
-                    let p = &out.points[q];
-                    let ctx = out.contexts[q];
-                    let t_s = ctx.t_ns as f64 * 1e-9;
-                    let (speed, direction, phase) = match &seg {
-                        Some(s) => (s.speed, s.direction, scan_phase(s, t_s, ctx.est_vel.norm())),
-                        None => (
-                            ctx.est_vel.norm(),
-                            (ctx.rot_axis.z.signum() as i32) * (ctx.arc_radius > 0.0) as i32,
-                            Phase::Steady,
-                        ),
-                    };
-                    points.push(LabPoint {
-                        ctx,
-                        surface: p.surface,
-                        normal: p.normal,
-                        feature: fi,
-                        segment: seg_id,
-                        bag: bi,
-                        speed,
-                        direction,
-                        phase,
-                        held_out: held,
-                    });
-                }
-            }
-            i = j;
-        }
         if unknown_segments > 0 {
             warnings.push(format!(
                 "{}: {unknown_segments} segment(s) of points are not in the bag's program record: not evaluated",

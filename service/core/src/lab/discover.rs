@@ -153,10 +153,10 @@ pub fn discover(
     let ds0 = dataset::build(bags, start, &o.build)?;
     let p0 = analysis::prepare(&ds0)?;
     on_progress("refitting the nominal model (axis time constants) and the start's effects");
-    let raw: Vec<Vec<crate::sample::Sample>> = bags
+    let raw: Vec<&dyn dataset::Samples> = bags
         .iter()
         .filter(|b| !b.validation)
-        .map(|b| b.samples.clone())
+        .map(|b| &*b.samples)
         .collect();
     let (nominal, axes) = match fit_nominal(&raw, start) {
         Ok(v) => v,

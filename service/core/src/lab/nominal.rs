@@ -4,6 +4,7 @@
 //! Σ_k (s_k − E_k(τ))² over samples while the axis moves, with E = G1·G2·C discretised as in
 //! the estimator (G2, the probe's, is kept). Golden-section search on log τ.
 
+use super::dataset::Samples;
 use super::LabError;
 use crate::calib::Calibration;
 use crate::sample::{Sample, Vec3};
@@ -26,28 +27,17 @@ pub struct AxisFit {
 }
 
 /// Command and scale pairs (scale time, commanded position interpolated, scale position).
-fn pairs(samples: &[Sample]) -> Vec<(Vec3, Vec3, bool)> {
-    let mut cmd: Vec<(i64, Vec3)> = samples
-        .iter()
-        .filter_map(|s| {
-            if let Sample::Command(c) = s {
-                Some((c.t_ns, c.pos))
-            } else {
-                None
-            }
+fn pairs(samples: &dyn Samples) -> Result<Vec<(Vec3, Vec3, bool)>, LabError> {
+    let mut cmd: Vec<(i64, Vec3)> = vec![];
+    let mut sc: Vec<(i64, Vec3)> = vec![];
+    samples
+        .replay(&mut |s| match s {
+            Sample::Command(c) => cmd.push((c.t_ns, c.pos)),
+            Sample::Scale(c) => sc.push((c.t_ns, c.pos)),
+            _ => {}
         })
-        .collect();
+        .map_err(LabError::Data)?;
     cmd.sort_by_key(|c| c.0);
-    let mut sc: Vec<(i64, Vec3)> = samples
-        .iter()
-        .filter_map(|s| {
-            if let Sample::Scale(c) = s {
-                Some((c.t_ns, c.pos))
-            } else {
-                None
-            }
-        })
-        .collect();
     sc.sort_by_key(|c| c.0);
     let mut out = vec![];
     let mut j = 0;
@@ -67,7 +57,7 @@ fn pairs(samples: &[Sample]) -> Vec<(Vec3, Vec3, bool)> {
         };
         out.push((c, s, t0 == t));
     }
-    out
+    Ok(out)
 }
 
 fn residual(
@@ -98,12 +88,12 @@ fn residual(
 
 /// Refits τ of every first-order axis model from the command and scale streams.
 pub fn fit_nominal(
-    bags: &[Vec<Sample>],
+    bags: &[&dyn Samples],
     cal: &Calibration,
 ) -> Result<(Calibration, Vec<AxisFit>), LabError> {
     let mut all = vec![];
     for b in bags {
-        all.extend(pairs(b));
+        all.extend(pairs(*b)?);
     }
     if all.len() < 1000 {
         return Err(LabError::Data(
