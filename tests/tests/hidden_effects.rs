@@ -255,7 +255,7 @@ fn outside_cyclic_error() {
     outside_case("cyclic_error", |s| {
         s["kind"] == "period"
             && s["axis"] == "x"
-            && (s["period_mm"].as_f64().unwrap() - 4.0).abs() < 0.05
+            && (s["period_mm"].as_f64().unwrap() - 4.0).abs() < 0.04
     });
 }
 

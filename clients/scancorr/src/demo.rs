@@ -31,10 +31,46 @@ pub fn run(with: &[String], dir: Option<PathBuf>, json: bool) -> Result<()> {
     if !keep {
         std::fs::remove_dir_all(&dir).ok();
     }
-    result
+    if json {
+        outln!("{}", result?)?;
+        return Ok(());
+    }
+    result.map(|_| ())
 }
 
-fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<()> {
+/// `scancorr bench discover`: the demo's loop (default campaign, ≈ 330 k samples per stream,
+/// from the nominal model), timed; prints seconds, steps, the final error and peak memory.
+pub fn bench(json: bool) -> Result<()> {
+    let dir = std::env::temp_dir().join(format!("scancorr-bench-discover-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let r = run_in(&[], &dir, false, true);
+    std::fs::remove_dir_all(&dir).ok();
+    let mut v = r?;
+    let rss_kb = std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|x| x.parse::<u64>().ok()))
+        });
+    v["peak_rss_kb"] = serde_json::json!(rss_kb);
+    if json {
+        outln!("{v}")?;
+    } else {
+        outln!(
+            "lab discover on the default campaign from the nominal model: {:.1} s, {} steps, held-out {:.3} µm ({:.2}× the noise floor {:.3} µm), peak RSS {} MB",
+            v["seconds"].as_f64().unwrap_or(0.0),
+            v["steps"].as_array().map(|a| a.len()).unwrap_or(0),
+            v["final"]["heldout_rms_um"].as_f64().unwrap_or(0.0),
+            v["final"]["heldout_rms_um"].as_f64().unwrap_or(0.0) / v["final"]["noise_floor_um"].as_f64().unwrap_or(1.0).max(1e-9),
+            v["final"]["noise_floor_um"].as_f64().unwrap_or(0.0),
+            rss_kb.map(|k| (k / 1024).to_string()).unwrap_or_else(|| "?".into())
+        )?;
+    }
+    Ok(())
+}
+
+fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_json::Value> {
     let say = |s: String| -> Result<()> {
         if !json {
             outln!("{s}")?;
@@ -164,20 +200,15 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<()> {
         "   (corrected {} points of the held-out bag with v1 and v{}; alarms: {} / {})",
         s2.points, last.version, s1.alarms, s2.alarms
     ))?;
-    if json {
-        outln!(
-            "{}",
-            serde_json::json!({
-                "with": with,
-                "steps": d.steps,
-                "confounded": d.confounded,
-                "final": d.r#final,
-                "start_heldout_rms_um": d.start_heldout_rms_um,
-                "seconds": secs,
-                "dir": if keep { Some(dir.display().to_string()) } else { None },
-            })
-        )?;
-    }
+    let summary = serde_json::json!({
+        "with": with,
+        "steps": d.steps,
+        "confounded": d.confounded,
+        "final": d.r#final,
+        "start_heldout_rms_um": d.start_heldout_rms_um,
+        "seconds": secs,
+        "dir": if keep { Some(dir.display().to_string()) } else { None },
+    });
     if keep {
         say(format!(
             "\nfiles in {} (bags, truth.json, v1.json, steps/, calibration.json); try: scancorr lab diagnose --bag {} --validate {} --calib {} --report report.html",
@@ -187,7 +218,7 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<()> {
             p("calibration.json").display()
         ))?;
     }
-    Ok(())
+    Ok(summary)
 }
 
 fn sim(

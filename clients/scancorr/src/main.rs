@@ -231,6 +231,13 @@ enum ShapeCmd {
 
 #[derive(Subcommand)]
 enum BenchCmd {
+    /// `lab discover` on the default campaign from the nominal model: time, steps, final
+    /// error, peak memory.
+    Discover {
+        /// Print JSON (`seconds`, `steps`, `final`, `peak_rss_kb`).
+        #[arg(long)]
+        json: bool,
+    },
     /// Throughput of the pure core with every effect enabled (one thread).
     Core {
         /// Print JSON (`samples_per_s`, …).
@@ -374,6 +381,7 @@ fn run(cli: Cli) -> Result<()> {
             repeat,
         }) => bench::core(points, repeat, json),
         Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
+        Cmd::Bench(BenchCmd::Discover { json }) => demo::bench(json),
         Cmd::Bench(BenchCmd::Live { json, points }) => benchlive::run(points, json),
         Cmd::Bench(BenchCmd::Relay { port, prefix }) => {
             output::check_prefix(&prefix)?;

@@ -1,6 +1,6 @@
 //! Compare, diagnose and add: the lab's questions answered on a [`Dataset`].
 
-use super::dataset::{Dataset, Phase};
+use super::dataset::Dataset;
 use super::fit::{fit_artifacts, nuisance_row, ArtifactFit, Normal};
 use super::select::{predicted, Score, Space, Spec};
 use super::program::FeatureKind;
@@ -526,11 +526,15 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
     Ok(cfg)
 }
 
-/// A measurement that makes an effect visible.
+/// A measurement that makes an effect visible — counted only where it acts along the
+/// measured direction (a circle fit sees radial errors, a face its normal).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 enum Lever {
-    Lines,
-    SpinUp,
+    /// Acceleration along the measured direction off arcs (a face approached or left at speed).
+    NormalAcceleration,
+    /// Circles of another radius at the same speeds: rotation frequency v/2πr and centripetal
+    /// acceleration v²/r scale differently.
+    Radius,
     Speed,
     Direction,
     Position,
@@ -542,13 +546,15 @@ enum Lever {
 fn levers(kind: &str) -> &'static [Lever] {
     use Lever::*;
     match kind {
-        "accel_deflection" => &[Lines, SpinUp, Speed, Position],
-        "servo_gain" => &[Speed],
-        "servo_phase" => &[Speed, Direction],
+        "accel_deflection" => &[NormalAcceleration, Radius, Speed, Position],
+        "servo_gain" => &[Radius, Speed],
+        "servo_phase" => &[Radius, Speed, Direction],
         "stylus_thermal" => &[Temperature, Stylus],
         "scale_thermal" => &[Temperature, Position],
         "probe_force" => &[Deflection],
         "guide_straightness" => &[Position, Stylus],
+        "rigid_body" => &[Position, Stylus],
+        "probe_lobing" => &[Deflection, Stylus],
         _ => &[],
     }
 }
@@ -557,14 +563,14 @@ fn lever_text(l: Lever, a: &str, b: &str, covered: bool) -> String {
     let more = if covered { "more " } else { "" };
     let (with, without) = (a, b);
     match l {
-        Lever::Lines => format!("{more}scans along straight lines with acceleration ({with} acts there, {without} only on arcs)"),
-        Lever::SpinUp => format!("{more}spin-up and slow-down on arcs (tangential acceleration: {with} responds, {without} does not)"),
+        Lever::NormalAcceleration => format!("{more}scans of a face while the machine accelerates along the face's normal, off arcs ({with} responds to acceleration along the measured direction, {without} only on arcs; a straightedge scanned along its length does not show it)"),
+        Lever::Radius => format!("{more}circles of another diameter at the same speeds (a smaller ring or a sphere's equator: the rotation frequency v/2πr and the acceleration v²/r scale differently, and {with} and {without} follow different ones)"),
         Lever::Speed => format!("scans at {more}other speeds (the effects grow differently with speed)"),
         Lever::Direction => format!("scans in {more}both directions, CW and CCW ({with} changes sign with direction)"),
         Lever::Position => format!("the artifact at {more}other positions in the volume ({with} depends on position)"),
         Lever::Temperature => format!("a {more}temperature change during the campaign ({with} depends on temperature)"),
-        Lever::Deflection => format!("scans at {more}other probe deflections ({with} grows with deflection)"),
-        Lever::Stylus => format!("{more}other styli or head angles ({with} depends on the stylus offset)"),
+        Lever::Deflection => format!("scans at {more}other probe deflections ({with} depends on the deflection)"),
+        Lever::Stylus => format!("{more}other styli or head angles ({with} depends on the stylus)"),
     }
 }
 
@@ -711,12 +717,18 @@ fn coverage(ds: &Dataset) -> Vec<Lever> {
     if ds
         .points
         .iter()
-        .any(|p| p.ctx.arc_radius == 0.0 && p.ctx.est_acc.norm() > 50.0)
+        .any(|p| p.ctx.arc_radius == 0.0 && p.ctx.est_acc.dot(&p.normal).abs() > 50.0)
     {
-        v.push(Lever::Lines);
+        v.push(Lever::NormalAcceleration);
     }
-    if ds.points.iter().any(|p| p.phase != Phase::Steady) {
-        v.push(Lever::SpinUp);
+    let radii: std::collections::BTreeSet<i64> = ds
+        .features
+        .iter()
+        .filter(|(_, f)| f.kind != FeatureKind::Face)
+        .map(|(_, f)| (f.nominal_diameter_mm * 10.0).round() as i64)
+        .collect();
+    if radii.len() > 1 {
+        v.push(Lever::Radius);
     }
     let speeds: std::collections::BTreeSet<i64> =
         ds.points.iter().map(|p| p.speed.round() as i64).collect();
@@ -729,14 +741,7 @@ fn coverage(ds: &Dataset) -> Vec<Lever> {
     if ds.features.len() > 1 {
         v.push(Lever::Position);
     }
-    let t: Vec<f64> = ds
-        .points
-        .iter()
-        .filter(|p| p.ctx.temps_valid & 1 != 0)
-        .map(|p| p.ctx.temps[0])
-        .collect();
-    if t.iter().cloned().fold(f64::MIN, f64::max) - t.iter().cloned().fold(f64::MAX, f64::min) > 0.5
-    {
+    if temperature_range(ds) > 0.5 {
         v.push(Lever::Temperature);
     }
     let d: Vec<f64> = ds.points.iter().map(|p| p.ctx.deflection.norm()).collect();
@@ -753,6 +758,20 @@ fn coverage(ds: &Dataset) -> Vec<Lever> {
         v.push(Lever::Stylus);
     }
     v
+}
+
+/// Range of the first temperature sensor over the points, K (0 without readings).
+fn temperature_range(ds: &Dataset) -> f64 {
+    let t: Vec<f64> = ds
+        .points
+        .iter()
+        .filter(|p| p.ctx.temps_valid & 1 != 0)
+        .map(|p| p.ctx.temps[0])
+        .collect();
+    if t.is_empty() {
+        return 0.0;
+    }
+    t.iter().cloned().fold(f64::MIN, f64::max) - t.iter().cloned().fold(f64::MAX, f64::min)
 }
 
 fn separating(a: &str, b: &str, cov: &[Lever]) -> Vec<String> {
@@ -807,7 +826,17 @@ fn score_moves(ds: &Dataset, prep: &Prepared, cands: Vec<Candidate>) -> Result<S
         model.iter().map(|e| (e.id(), e.clone(), true)).collect();
     let mut kept = vec![];
     let mut skipped = vec![];
+    let t_range = temperature_range(ds);
     for c in cands {
+        if let Some(cfg) = &c.config {
+            if matches!(cfg.kind(), "stylus_thermal" | "scale_thermal") && t_range <= 0.5 {
+                skipped.push(format!(
+                    "{}: the campaign has one temperature (range {t_range:.2} K): it cannot determine an expansion — measure across a temperature change of a few kelvin",
+                    c.effect
+                ));
+                continue;
+            }
+        }
         let block = match &c.config {
             Some(cfg) => {
                 let mut sensors = ds.sensors.clone();

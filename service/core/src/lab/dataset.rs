@@ -349,6 +349,8 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
     let mut noise_acc = (0.0, 0usize);
     let any_validation = bags.iter().any(|b| b.validation);
     let mut warnings = vec![];
+    // Per bag: (produced points, effects inactive in it).
+    let mut inactive_in: Vec<(bool, Vec<String>)> = vec![];
     for (bi, bag) in bags.iter().enumerate() {
         let program = match (&bag.program, &o.artifact) {
             (Some(p), _) => p.clone(),
@@ -409,11 +411,25 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
             ));
         }
         warnings.extend(describe_drops(&bag.name, corr.stats()));
+        let inactive = corr.inactive_effects();
+        inactive_in.push((corr.stats().points_out > 0, inactive));
         if unknown_segments > 0 {
             warnings.push(format!(
                 "{}: {unknown_segments} segment(s) of points are not in the bag's program record: not evaluated",
                 bag.name
             ));
+        }
+    }
+    // An effect with parameters that contributed to no point of any bag: inactive for lack
+    // of its signal (no arcs or curvature, no deflection, positions outside its table …).
+    let with_points: Vec<&Vec<String>> = inactive_in.iter().filter(|(p, _)| *p).map(|(_, v)| v).collect();
+    if let Some(first) = with_points.first() {
+        for e in first.iter() {
+            if with_points.iter().all(|v| v.contains(e)) {
+                warnings.push(format!(
+                    "effect `{e}` contributed to no point of these bags: inactive for lack of its signal, so the lab cannot judge it here"
+                ));
+            }
         }
     }
     if points.is_empty() {
