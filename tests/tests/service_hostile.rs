@@ -14,6 +14,19 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// The tests that measure timing (a stalled consumer must cost nothing to another machine, a
+/// flood must be counted within a bound) run alone; the others share the machine (two cores
+/// in CI) with each other.
+static TIMING: std::sync::RwLock<()> = std::sync::RwLock::new(());
+
+fn shared() -> std::sync::RwLockReadGuard<'static, ()> {
+    TIMING.read().unwrap_or_else(|e| e.into_inner())
+}
+
+fn alone() -> std::sync::RwLockWriteGuard<'static, ()> {
+    TIMING.write().unwrap_or_else(|e| e.into_inner())
+}
+
 /// A calibration put as a peer sends it: a query with the document as payload.
 async fn put(s: &zenoh::Session, key: &str, doc: impl Into<Vec<u8>>) -> Result<String, String> {
     let r = s
@@ -182,6 +195,7 @@ fn offline_points(d: &Path, bag: &Path, cal: &str) -> Vec<v1::CorrectedPoint> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn machine_ids_never_become_wildcards() {
+    let _timing = shared();
     let d = scratch("hostile-names");
     let port = free_port();
     let svc = Service::start_with(&d, port, "");
@@ -271,6 +285,7 @@ async fn machine_ids_never_become_wildcards() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn calibration_puts_cannot_crash_wedge_or_fill_the_service() {
+    let _timing = shared();
     let d = scratch("hostile-calib");
     let port = free_port();
     let svc = Service::start_with(&d, port, "max_machines: 3");
@@ -333,6 +348,7 @@ async fn calibration_puts_cannot_crash_wedge_or_fill_the_service() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wrapped_or_jumping_sequences_absurd_values_and_wrong_types_are_survived() {
+    let _timing = shared();
     let d = scratch("hostile-seq");
     let port = free_port();
     let svc = Service::start_with(&d, port, "");
@@ -438,6 +454,7 @@ async fn wrapped_or_jumping_sequences_absurd_values_and_wrong_types_are_survived
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_of_sensor_names_neither_freezes_nor_grows_the_service() {
+    let _timing = shared();
     let d = scratch("hostile-sensors");
     let port = free_port();
     let svc = Service::start_with(&d, port, "");
@@ -469,6 +486,7 @@ async fn a_flood_of_sensor_names_neither_freezes_nor_grows_the_service() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_subscriber_that_stops_reading_costs_only_its_machines_points() {
+    let _timing = alone();
     let d = scratch("hostile-slow");
     let port = free_port();
     let svc = Service::start_with(&d, port, "");
@@ -576,6 +594,7 @@ async fn a_subscriber_that_stops_reading_costs_only_its_machines_points() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn strangers_cannot_grow_the_service_with_names_or_payloads() {
+    let _timing = alone();
     let d = scratch("hostile-grow");
     let port = free_port();
     let svc = Service::start_with(&d, port, "machines: ['m1'], allow_any_machine: false");
@@ -630,6 +649,7 @@ async fn strangers_cannot_grow_the_service_with_names_or_payloads() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_damaged_stored_calibration_quarantines_its_machine_only() {
+    let _timing = shared();
     let d = scratch("hostile-store");
     let (_, cal1) = ring(&d, "m1", "ring");
     let (_, cal2) = ring(&d, "m2", "ring");

@@ -547,8 +547,10 @@ fn levers(kind: &str) -> &'static [Lever] {
     use Lever::*;
     match kind {
         "accel_deflection" => &[NormalAcceleration, Radius, Speed, Position],
-        "servo_gain" => &[Radius, Speed],
-        "servo_phase" => &[Radius, Speed, Direction],
+        // Circles of another diameter separate these from the deflection (which follows
+        // v²/r, not the rotation frequency): the lever is listed on one side only.
+        "servo_gain" => &[Speed],
+        "servo_phase" => &[Speed, Direction],
         "stylus_thermal" => &[Temperature, Stylus],
         "scale_thermal" => &[Temperature, Position],
         "probe_force" => &[Deflection],
