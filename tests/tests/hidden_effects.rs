@@ -222,21 +222,28 @@ fn outside_case(effect: &str, check: impl Fn(&serde_json::Value) -> bool) {
     );
     eprintln!("{effect}: unexplained {:#}", un[0]);
     assert!(check(&un[0]), "{effect}: {:#}", un[0]);
-    let mut args = vec![
-        "add".to_string(),
-        "custom".into(),
-        "--name".into(),
-        effect.into(),
-        "--calib".into(),
-        "start.json".into(),
-        "--out".into(),
-        c.path("next.json"),
-    ];
-    for t in un[0]["custom_terms"].as_array().unwrap() {
-        args.push("--term".into());
-        args.push(t.as_str().unwrap().into());
-    }
-    let a = c.lab(&args.iter().map(|s| s.as_str()).collect::<Vec<_>>());
+    // The command `lab diagnose` prints for it runs as printed.
+    let text = ok(
+        &c.dir,
+        &["lab", "diagnose", "--calib", "start.json", "--bag", "c.mcap", "--validate", "v.mcap"],
+    );
+    let line = text
+        .lines()
+        .map(str::trim)
+        .find(|l| l.starts_with("scancorr lab add custom"))
+        .unwrap_or_else(|| panic!("{effect}: no command offered:\n{text}"));
+    let cmd = format!(
+        "{}{} --json",
+        common::scancorr().display(),
+        line.strip_prefix("scancorr").unwrap()
+    );
+    let out = std::process::Command::new("sh")
+        .args(["-c", &cmd])
+        .current_dir(&c.dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{cmd}: {}", String::from_utf8_lossy(&out.stderr));
+    let a = json(&String::from_utf8_lossy(&out.stdout));
     let (before, after) = (
         a["heldout_rms_before_um"].as_f64().unwrap(),
         a["heldout_rms_after_um"].as_f64().unwrap(),

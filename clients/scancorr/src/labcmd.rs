@@ -475,8 +475,16 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 "noise_floor_um": ds.noise_floor_um,
                 "params": o.params.last(),
                 "unidentifiable": o.unidentifiable,
+                "heldout_improved": after.rms_held_um < prep.rms_held_um,
                 "out": out,
             });
+            if after.rms_held_um >= prep.rms_held_um && prep.rms_held_um > 0.0 {
+                eprintln!(
+                    "warning: {vname} does not improve the held-out data ({} → {} µm): `lab diagnose` would not propose it; keep the parent version",
+                    um(prep.rms_held_um),
+                    um(after.rms_held_um)
+                );
+            }
             if json {
                 outln!("{}", serde_json::to_string_pretty(&summary)?)?;
             } else {

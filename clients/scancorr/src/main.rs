@@ -176,7 +176,7 @@ struct SimCli {
     /// Scale an effect: EFFECT=FACTOR (0 switches it off; repeatable).
     #[arg(long)]
     effect: Vec<String>,
-    /// Switch on physics outside the library: cyclic_error, backlash, latching, probe_lobing, rigid_body (repeatable).
+    /// Switch on physics outside the library: cyclic_error, backlash, latching, probe_lobing, rigid_body, squareness (repeatable).
     #[arg(long = "with")]
     with: Vec<String>,
     /// Inject a fault: servo-drift, collision, stall.

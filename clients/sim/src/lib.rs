@@ -39,12 +39,13 @@ pub const LIBRARY_EFFECTS: [&str; 7] = [
     "guide_straightness",
 ];
 /// Effects outside the library (off unless switched on; never in a calibration).
-pub const EXTRA_EFFECTS: [&str; 5] = [
+pub const EXTRA_EFFECTS: [&str; 6] = [
     "cyclic_error",
     "backlash",
     "latching",
     "probe_lobing",
     "rigid_body",
+    "squareness",
 ];
 
 /// Faults for the judgement stage.
@@ -249,7 +250,14 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
         .iter_mut()
         .for_each(|t| *t *= k("latching"));
     m.lobing.scale(k("probe_lobing"));
+    // Squareness alone (without the axes' own errors): the three angles between the axes.
+    let square = (m.rigid_body.s_xy, m.rigid_body.s_zx, m.rigid_body.s_zy);
     m.rigid_body.scale(k("rigid_body"));
+    if k("squareness") != 0.0 {
+        m.rigid_body.s_xy = square.0 * k("squareness");
+        m.rigid_body.s_zx = square.1 * k("squareness");
+        m.rigid_body.s_zy = square.2 * k("squareness");
+    }
     m
 }
 
@@ -553,7 +561,7 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
     };
     let latching = m.latching.tau_s.iter().any(|t| *t != 0.0);
     let lobing = m.lobing.is_on();
-    let rigid_body = factors["rigid_body"] != 0.0;
+    let rigid_body = factors["rigid_body"] != 0.0 || factors["squareness"] != 0.0;
     for k in 0..n {
         let t = k as f64 * period;
         let t_ns = (k as i64) * (1e9 / o.rate_hz).round() as i64;
