@@ -272,3 +272,29 @@ fn lab_bad_input_says_what_is_missing() {
     );
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// One ring, scanned once for fitting at one temperature: cross-validation still works (blocks
+/// along the scan), no candidate is significant without a real gain, and the expansions the data
+/// cannot determine are kept as they are, with the reason, instead of being dropped.
+#[test]
+fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
+    let d = scratch("lab-one-ring");
+    ok(&d, &["sim", "--program", "ring", "--hide", "accel_deflection", "--out", "r.mcap", "--calib-out", "s.json"]);
+    let dg = json(&ok(&d, &["lab", "diagnose", "--bag", "r.mcap", "--calib", "s.json", "--json"]));
+    let cv = dg["cv_rms_um"].as_f64().unwrap();
+    let noise = dg["noise_floor_um"].as_f64().unwrap();
+    assert!(cv.is_finite() && cv > 0.5 * noise, "{dg:#}");
+    for c in dg["candidates"].as_array().unwrap() {
+        assert!(c["explained"].as_f64().unwrap().is_finite(), "{c:#}");
+        if c["action"] == "drop" || c["action"] == "swap" {
+            let r = c["replaces"].as_str().unwrap();
+            assert!(!r.contains("thermal"), "{r} offered though the data cannot determine it: {c:#}");
+        }
+    }
+    let skipped: Vec<&str> = dg["skipped"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    assert!(
+        skipped.iter().any(|s| s.contains("stylus_thermal") && s.contains("one temperature")),
+        "{skipped:?}"
+    );
+    std::fs::remove_dir_all(&d).ok();
+}

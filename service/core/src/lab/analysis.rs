@@ -669,7 +669,7 @@ fn significant(action: &Move, base: &Score, s: &Score, o: &FitOutcome, base_held
                 && gain >= 0.01 * base.cv_ss
                 && held_ok
         }
-        Move::Drop => gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise,
+        Move::Drop => (gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise) && held_ok,
     }
 }
 
@@ -797,12 +797,14 @@ fn separating(a: &str, b: &str, cov: &[Lever]) -> Vec<String> {
 
 /// The candidate model of a move: which blocks are fitted and removed, given the model's
 /// blocks `0..n_model` and the move's own block.
-fn spec_of(c: &Candidate, model: &[EffectConfig], block: Option<usize>) -> Spec {
+fn spec_of(c: &Candidate, model: &[EffectConfig], block: Option<usize>, held: &[usize]) -> Spec {
     let out = c
         .replaces
         .as_ref()
         .and_then(|id| model.iter().position(|e| &e.id() == id));
-    let mut fitted: Vec<usize> = (0..model.len()).filter(|i| Some(*i) != out).collect();
+    let mut fitted: Vec<usize> = (0..model.len())
+        .filter(|i| Some(*i) != out && !held.contains(i))
+        .collect();
     if let Some(b) = block {
         fitted.push(b);
     }
@@ -829,7 +831,26 @@ fn score_moves(ds: &Dataset, prep: &Prepared, cands: Vec<Candidate>) -> Result<S
     let mut kept = vec![];
     let mut skipped = vec![];
     let t_range = temperature_range(ds);
+    // Model effects this data cannot determine (an expansion at one temperature) are kept as
+    // they are: neither refitted (they would absorb other effects) nor dropped or swapped.
+    let held: Vec<usize> = model
+        .iter()
+        .enumerate()
+        .filter(|(_, e)| matches!(e.kind(), "stylus_thermal" | "scale_thermal") && t_range <= 0.5)
+        .map(|(i, _)| i)
+        .collect();
     for c in cands {
+        if let Some(r) = &c.replaces {
+            if let Some(i) = model.iter().position(|e| &e.id() == r) {
+                if held.contains(&i) {
+                    skipped.push(format!(
+                        "{} {r}: kept as it is — the campaign has one temperature (range {t_range:.2} K) and cannot determine it",
+                        if c.action == Move::Drop { "dropping" } else { "swapping" }
+                    ));
+                    continue;
+                }
+            }
+        }
         if let Some(cfg) = &c.config {
             if matches!(cfg.kind(), "stylus_thermal" | "scale_thermal") && t_range <= 0.5 {
                 skipped.push(format!(
@@ -866,14 +887,14 @@ fn score_moves(ds: &Dataset, prep: &Prepared, cands: Vec<Candidate>) -> Result<S
     }
     let space = Space::build(ds, prep, blocks)?;
     let base_spec = Spec {
-        fitted: (0..model.len()).collect(),
+        fitted: (0..model.len()).filter(|i| !held.contains(i)).collect(),
         removed: vec![],
     };
     let base = space.score(&base_spec);
     let moves = kept
         .into_iter()
         .map(|(c, b)| {
-            let spec = spec_of(&c, model, b);
+            let spec = spec_of(&c, model, b, &held);
             let score = space.score(&spec);
             (c, b, spec, score)
         })
@@ -901,6 +922,9 @@ fn model_after(model: &[EffectConfig], spec: &Spec, fitted: &[EffectConfig]) -> 
             }
         } else if let Some(c) = by_block.remove(&i) {
             out.push(c);
+        } else {
+            // Held as it is (not determined by this data).
+            out.push(model[i].clone());
         }
     }
     out.extend(by_block.into_values());

@@ -164,11 +164,20 @@ fn smooth_rows(cfg: &EffectConfig) -> Vec<Vec<(usize, f64)>> {
     rows
 }
 
-/// Fold of every point: 0 or 1 for fit points (alternate scans of each placement), 2 for
-/// held-out points, `None` for points not used.
+/// Fold of every point: 0 or 1 for fit points (alternate scans of each placement; for a
+/// placement scanned once, alternate blocks of 32 kept points along the scan), 2 for held-out
+/// points, `None` for points not used.
 pub fn folds(ds: &Dataset, prep: &Prepared) -> Vec<Option<u8>> {
+    let mut scans: std::collections::BTreeMap<usize, std::collections::BTreeSet<(usize, u32)>> =
+        Default::default();
+    for (i, p) in ds.points.iter().enumerate() {
+        if prep.fit_mask[i] {
+            scans.entry(p.feature).or_default().insert((p.bag, p.segment));
+        }
+    }
     let mut scan_no: std::collections::BTreeMap<(usize, usize, u32), usize> = Default::default();
     let mut count: std::collections::BTreeMap<usize, usize> = Default::default();
+    let mut along: std::collections::BTreeMap<usize, usize> = Default::default();
     ds.points
         .iter()
         .enumerate()
@@ -176,6 +185,11 @@ pub fn folds(ds: &Dataset, prep: &Prepared) -> Vec<Option<u8>> {
             if prep.held_mask[i] {
                 Some(2)
             } else if prep.fit_mask[i] {
+                if scans.get(&p.feature).is_some_and(|s| s.len() == 1) {
+                    let k = along.entry(p.feature).or_insert(0);
+                    *k += 1;
+                    return Some(((*k - 1) / 32 % 2) as u8);
+                }
                 let key = (p.feature, p.bag, p.segment);
                 let n = match scan_no.get(&key) {
                     Some(n) => *n,
