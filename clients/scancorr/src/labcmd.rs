@@ -608,6 +608,9 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             let l = load(&data)?;
             // The start's points: warnings (drops, bags without samples) once, up front.
             dataset_for(&l, &l.cal)?;
+            if data.validate.is_empty() {
+                eprintln!("note: no --validate bags: every other scan of each artifact is held out, and the loop is judged on the same placements; a run at another position (e.g. `sim --program ring-speeds --position …`) tests what the model predicts elsewhere");
+            }
             let opts = scancorr_core::lab::discover::Options {
                 build: l.opts.clone(),
                 max_steps,
