@@ -787,6 +787,9 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 _ => bail!("give either --calib-dir DIR (a folder of versions) or --machine M (the versions scancorrd keeps)"),
             }
             cals.sort_by_key(|(_, c)| (c.machine_id.clone(), c.version));
+            // The same version in two files (`lab discover` writes its last step also as
+            // calibration.json) is listed once.
+            cals.dedup_by(|b, a| a.1.machine_id == b.1.machine_id && a.1.version == b.1.version && a.1.to_json() == b.1.to_json());
             // A version without recorded figures takes them from a child that measured it.
             let from_child = |v: u64, key: &str| {
                 cals.iter()

@@ -208,7 +208,7 @@ pub fn fit_effects(
     };
     let base = space.score(&Spec::default());
     let score = space.score(&spec);
-    let mut o = space.fit(ds, prep, &spec, &score, &base)?;
+    let mut o = space.fit(prep, &spec, &score, &base)?;
     let pairs: Vec<(EffectConfig, Vec<f64>)> = configs
         .iter()
         .zip(&o.configs)
@@ -911,9 +911,12 @@ fn score_moves(ds: &Dataset, prep: &Prepared, cands: Vec<Candidate>) -> Result<S
 /// The model after a move, in the model's order (a swap in place, an addition at the end).
 fn model_after(model: &[EffectConfig], spec: &Spec, fitted: &[EffectConfig]) -> Vec<EffectConfig> {
     let mut out: Vec<EffectConfig> = vec![];
-    let mut it = spec.fitted.iter().zip(fitted);
-    let mut by_block: std::collections::BTreeMap<usize, EffectConfig> =
-        it.by_ref().map(|(b, c)| (*b, c.clone())).collect();
+    let mut by_block: std::collections::BTreeMap<usize, EffectConfig> = spec
+        .fitted
+        .iter()
+        .zip(fitted)
+        .map(|(b, c)| (*b, c.clone()))
+        .collect();
     for (i, _) in model.iter().enumerate() {
         if spec.removed.contains(&i) {
             // A swap takes the place of the effect it replaces.
@@ -977,11 +980,11 @@ pub fn apply(ds: &Dataset, cands: Vec<Candidate>, only_new: bool) -> Result<Appl
     let sc = score_moves(ds, &prep, cands)?;
     let base_held = sc
         .space
-        .fit(ds, &prep, &sc.base_spec, &sc.base, &sc.base)?
+        .fit(&prep, &sc.base_spec, &sc.base, &sc.base)?
         .heldout_rms_after_um;
     let mut ranked = vec![];
     for (c, b, spec, score) in sc.moves {
-        let o = sc.space.fit(ds, &prep, &spec, &score, &sc.base)?;
+        let o = sc.space.fit(&prep, &spec, &score, &sc.base)?;
         ranked.push((rank_key(&sc.base, &score, &o, base_held), c, b, spec, score));
     }
     let Some((_, c, b, spec, score)) = ranked
@@ -1002,7 +1005,7 @@ pub fn apply(ds: &Dataset, cands: Vec<Candidate>, only_new: bool) -> Result<Appl
         spec
     };
     let score = if only_new { sc.space.score(&spec) } else { score };
-    let o = sc.space.fit(ds, &prep, &spec, &score, &sc.base)?;
+    let o = sc.space.fit(&prep, &spec, &score, &sc.base)?;
     let effects = if only_new {
         let mut m: Vec<EffectConfig> = model
             .iter()
@@ -1067,10 +1070,10 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
     let mut results = vec![];
     let base_held = sc
         .space
-        .fit(ds, &prep, &sc.base_spec, &sc.base, &sc.base)?
+        .fit(&prep, &sc.base_spec, &sc.base, &sc.base)?
         .heldout_rms_after_um;
     for (c, b, spec, score) in &sc.moves {
-        let o = sc.space.fit(ds, &prep, spec, score, &sc.base)?;
+        let o = sc.space.fit(&prep, spec, score, &sc.base)?;
         let sig = significant(&c.action, &sc.base, score, &o, base_held, noise);
         results.push((c.clone(), *b, spec.clone(), score.clone(), o, sig));
     }
@@ -1123,7 +1126,7 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
             (spec.clone(), o.clone(), score.rms_um())
         }
         _ => {
-            let o = sc.space.fit(ds, &prep, &sc.base_spec, &sc.base, &sc.base)?;
+            let o = sc.space.fit(&prep, &sc.base_spec, &sc.base, &sc.base)?;
             (sc.base_spec.clone(), o, sc.base.rms_um())
         }
     };

@@ -471,7 +471,7 @@ impl Space {
 
     /// Fits a candidate model on all fit points (with the smoothness `score` chose) and
     /// reports it as a [`FitOutcome`]: the fitted configs in `spec.fitted` order.
-    pub fn fit(&self, ds: &Dataset, prep: &Prepared, spec: &Spec, score: &Score, base: &Score) -> Result<FitOutcome, LabError> {
+    pub fn fit(&self, prep: &Prepared, spec: &Spec, score: &Score, base: &Score) -> Result<FitOutcome, LabError> {
         let cols = self.cols(&spec.fitted);
         let fixed = self.removal(spec);
         let k = cols.len();
@@ -542,7 +542,6 @@ impl Space {
         } else {
             0.0
         };
-        let _ = ds;
         Ok(FitOutcome {
             configs,
             params,
@@ -629,4 +628,131 @@ fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>, k_fx: usize, ridge: f64) -> D
         None => pinv(&m) * rhs,
     };
     DVector::from_iterator(k, (0..k).map(|i| z[i] * s[i]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::effects::{custom, guide_straightness};
+    use crate::lab::analysis::prepare;
+    use crate::lab::dataset::{LabPoint, Phase};
+    use crate::lab::program::{FeatureKind, FeatureSpec};
+    use crate::sample::{Axis, PointContext};
+    use crate::Calibration;
+    use std::f64::consts::TAU;
+
+    /// A straightedge along x (normal −y) scanned four times over 500 mm, its guide bent by a
+    /// profile no two-term function follows, and 0.1 µm of noise.
+    fn straightedge() -> Dataset {
+        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+        let mut noise = move || {
+            seed ^= seed >> 12;
+            seed ^= seed << 25;
+            seed ^= seed >> 27;
+            let u = (seed.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64;
+            (2.0 * u - 1.0) * 3f64.sqrt() * 1e-4
+        };
+        let n = Vec3::new(0.0, -1.0, 0.0);
+        let profile = |x: f64| 4e-4 * (TAU * x / 180.0 + 0.3).sin() + 3e-4 * (TAU * x / 77.0).sin();
+        let mut points = vec![];
+        for pass in 0..4u32 {
+            for j in 0..2500 {
+                let x = 250.0 + 500.0 * j as f64 / 2499.0 + 0.01 * pass as f64;
+                let nominal = Vec3::new(x, 600.0, -250.0);
+                let mut ctx = PointContext::at_rest(nominal);
+                ctx.deflection = n * 0.3;
+                ctx.deflection_probe = n * 0.3;
+                ctx.segment_id = pass;
+                // The guide moves the tip by δy; seen along the normal −y.
+                let dev = n.y * profile(x) + noise();
+                points.push(LabPoint {
+                    ctx,
+                    surface: nominal + n * dev,
+                    normal: n,
+                    feature: 0,
+                    segment: pass,
+                    bag: 0,
+                    speed: 20.0,
+                    direction: 0,
+                    phase: Phase::Steady,
+                    held_out: false,
+                });
+            }
+        }
+        Dataset {
+            points,
+            features: vec![(
+                0,
+                FeatureSpec {
+                    id: 1,
+                    artifact: "straightedge".into(),
+                    kind: FeatureKind::Face,
+                    nominal_center: [500.0, 600.0, -250.0],
+                    nominal_diameter_mm: 0.0,
+                    certificate_diameter_mm: None,
+                    normal: n.into(),
+                },
+            )],
+            sensors: Default::default(),
+            noise_floor_um: 0.1,
+            tracking: vec![],
+            calibration: Calibration::example("m1"),
+            warnings: vec![],
+        }
+    }
+
+    /// The case: a table of many values that describes a real guide wins on
+    /// cross-validation over a two-term effect, though an information criterion that counts
+    /// every value as free would prefer the two terms; and a table fitted to noise alone does
+    /// not pay.
+    #[test]
+    fn a_real_table_wins_on_cross_validation_and_a_spurious_one_does_not() {
+        let ds = straightedge();
+        let prep = prepare(&ds).unwrap();
+        let guide = EffectConfig::GuideStraightness(guide_straightness::Config::zeros(Axis::X, 250.0, 750.0, 26, false));
+        let two = EffectConfig::Custom(custom::Config {
+            id: "two".into(),
+            dynamic: false,
+            terms: ["(x/500)^2", "(x/500)^3"]
+                .iter()
+                .map(|e| custom::Term { axis: Axis::Y, expr: e.to_string() })
+                .collect(),
+            coefficients: vec![0.0; 2],
+        });
+        let space = Space::build(
+            &ds,
+            &prep,
+            vec![("guide".into(), guide, false), ("two".into(), two, false)],
+        )
+        .unwrap();
+        let base = space.score(&Spec::default());
+        let g = space.score(&Spec { fitted: vec![0], removed: vec![] });
+        let t = space.score(&Spec { fitted: vec![1], removed: vec![] });
+        let (rb, rg, rt) = (base.rms_um(), g.rms_um(), t.rms_um());
+        assert!(rg < 0.13, "the guide table predicts the other scans to the noise: {rg} µm (before {rb})");
+        assert!(rt > 2.0 * rg, "two terms cannot follow the profile: {rt} vs {rg} µm");
+        assert!(g.lambda[0] > 0.0, "tables are smoothed");
+        let o = space.fit(&prep, &Spec { fitted: vec![0], removed: vec![] }, &g, &base).unwrap();
+        let o2 = space.fit(&prep, &Spec { fitted: vec![1], removed: vec![] }, &t, &base).unwrap();
+        assert!(o.explained > 0.5 && o.explained > o2.explained, "{} vs {}", o.explained, o2.explained);
+        assert!(o.params.iter().flatten().all(|p| p.value.is_finite()));
+
+        // Noise only: the table gains nothing worth half the noise floor on the other scans.
+        let mut quiet = straightedge();
+        for p in &mut quiet.points {
+            let n = p.normal;
+            let nominal = p.ctx.scale;
+            let off = (p.surface - nominal).dot(&n);
+            let x = nominal.x;
+            let profile = 4e-4 * (TAU * x / 180.0 + 0.3).sin() + 3e-4 * (TAU * x / 77.0).sin();
+            p.surface = nominal + n * (off - n.y * profile);
+        }
+        let prep = prepare(&quiet).unwrap();
+        let guide = EffectConfig::GuideStraightness(guide_straightness::Config::zeros(Axis::X, 250.0, 750.0, 26, false));
+        let space = Space::build(&quiet, &prep, vec![("guide".into(), guide, false)]).unwrap();
+        let base = space.score(&Spec::default());
+        let g = space.score(&Spec { fitted: vec![0], removed: vec![] });
+        let gain_um = ((base.cv_ss - g.cv_ss).max(0.0) / g.cv_n as f64).sqrt() * 1e3;
+        assert!(gain_um < 0.05, "a table fitted to noise gains {gain_um} µm on the other scans");
+    }
 }
