@@ -645,7 +645,10 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             let last = &d.steps.last().expect("step 0 exists").calibration;
             crate::output::write_file("--out-dir", &out_dir.join("calibration.json"), last.to_json())?;
             if let Some(p) = &report {
-                put(&report_out, report::discover(&l.cal, &d))?;
+                let ds0 = dataset::build(&l.bags, &l.cal, &l.opts)?;
+                let ds1 = dataset::build(&l.bags, last, &l.opts)?;
+                let (c0, c1) = (analysis::compare(&ds0)?, analysis::compare(&ds1)?);
+                put(&report_out, report::discover(&l.cal, &d, Some(((&ds0, &c0), (&ds1, &c1)))))?;
                 commit_all([report_out])?;
                 eprintln!("report: {}", p.display());
             }

@@ -394,7 +394,11 @@ pub fn history(rows: &[HistoryRow]) -> String {
 
 /// `lab discover --report`: the steps, the error fall against the noise floor, what the
 /// campaign could not separate or determine.
-pub fn discover(start: &Calibration, d: &scancorr_core::lab::discover::Discovery) -> String {
+pub fn discover(
+    start: &Calibration,
+    d: &scancorr_core::lab::discover::Discovery,
+    circles: Option<((&Dataset, &Comparison), (&Dataset, &Comparison))>,
+) -> String {
     let f = &d.r#final;
     let mut rows: Vec<(String, f64, bool)> = vec![(
         format!("start v{} ({} effects)", start.version, start.effects.len()),
@@ -450,6 +454,10 @@ pub fn discover(start: &Calibration, d: &scancorr_core::lab::discover::Discovery
     }
     for s in &d.unexplained {
         let _ = write!(body, "<p><b>Left unexplained:</b> {} along {} ({:.3} µm, {:.0} % of the residual): <code>{}</code></p>", esc(&s.kind), esc(&s.axis), s.amplitude_um, s.explained * 100.0, esc(&s.custom_terms.join(" ")));
+    }
+    if let Some(((ds0, c0), (ds1, c1))) = circles {
+        body += "<p>Each circle before (the start, red) and after (the final version, blue):</p>";
+        body += &polars(ds1, c1, Some((ds0, c0)));
     }
     page("scancorr lab — discover", &body)
 }
