@@ -298,3 +298,22 @@ fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
     );
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// A calibration without the tip the bag scanned with: the lab says why it has no points —
+/// the drops by reason, with their count and what to do — instead of "no scan points".
+#[test]
+fn a_lab_without_points_says_why() {
+    let d = scratch("lab-why-no-points");
+    ok(&d, &["sim", "--program", "ring", "--out", "r.mcap", "--calib-out", "s.json"]);
+    let mut cal = json(&std::fs::read_to_string(d.join("s.json")).unwrap());
+    cal["geometry"]["tips"][0]["id"] = serde_json::json!(7);
+    std::fs::write(d.join("wrong_tip.json"), cal.to_string()).unwrap();
+    let err = fails(
+        &d,
+        &["lab", "compare", "--bag", "r.mcap", "--calib", "wrong_tip.json"],
+        &["no scan points", "unknown_tip", "geometry.tips"],
+    );
+    // The count is there: "dropped N of M samples: N unknown_tip".
+    assert!(err.split_whitespace().any(|w| w.parse::<u64>().is_ok_and(|n| n > 1000)), "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}

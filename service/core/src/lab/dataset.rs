@@ -268,7 +268,7 @@ fn drop_advice(r: DropReason) -> &'static str {
     match r {
         DropReason::UnknownTip => "the active tip is not in the calibration's geometry: add it to `geometry.tips`",
         DropReason::Duplicate | DropReason::OutOfOrder => {
-            "sequence counters or times that do not increase (e.g. one counter shared by several temperature sensors, or bags of two runs mixed)"
+            "sequence counters or times that do not increase within a stream (e.g. a counter per temperature sensor instead of one for the stream, or bags of two runs mixed)"
         }
         DropReason::TemperatureMissing => "a temperature the calibration needs was never recorded",
         DropReason::TemperatureStale => "a temperature the calibration needs is older than `join.temperature_max_age_s`",
