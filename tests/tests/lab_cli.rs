@@ -273,14 +273,26 @@ fn lab_bad_input_says_what_is_missing() {
     std::fs::remove_dir_all(&d).ok();
 }
 
-/// One ring, scanned once for fitting at one temperature: cross-validation still works (blocks
-/// along the scan), no candidate is significant without a real gain, and the expansions the data
-/// cannot determine are kept as they are, with the reason, instead of being dropped.
+/// One ring, scanned once for fitting at one temperature, from the nominal model with a
+/// data-sheet stylus expansion: cross-validation still works (blocks along the scan), nothing
+/// is ever NaN, and the expansion the data cannot determine is kept as it is, with the reason,
+/// instead of being dropped or swapped.
 #[test]
 fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
     let d = scratch("lab-one-ring");
-    ok(&d, &["sim", "--program", "ring", "--hide", "accel_deflection", "--out", "r.mcap", "--calib-out", "s.json"]);
-    let dg = json(&ok(&d, &["lab", "diagnose", "--bag", "r.mcap", "--calib", "s.json", "--json"]));
+    ok(&d, &["sim", "--program", "ring", "--out", "r.mcap", "--calib-out", "s.json"]);
+    // What a user has: the nominal model, and the stylus expansion from the data sheet
+    // (steel, 11.5 ppm/K), no fitted parameter.
+    let mut cal = json(&std::fs::read_to_string(d.join("s.json")).unwrap());
+    cal["effects"] = serde_json::json!([{
+        "kind": "stylus_thermal",
+        "alpha_shank_per_k": 11.5e-6,
+        "alpha_bent_per_k": 11.5e-6,
+        "reference_temp_c": 20.0,
+        "sensor": "stylus"
+    }]);
+    std::fs::write(d.join("nominal.json"), cal.to_string()).unwrap();
+    let dg = json(&ok(&d, &["lab", "diagnose", "--bag", "r.mcap", "--calib", "nominal.json", "--json"]));
     let cv = dg["cv_rms_um"].as_f64().unwrap();
     let noise = dg["noise_floor_um"].as_f64().unwrap();
     assert!(cv.is_finite() && cv > 0.5 * noise, "{dg:#}");
@@ -306,6 +318,8 @@ fn a_lab_without_points_says_why() {
     let d = scratch("lab-why-no-points");
     ok(&d, &["sim", "--program", "ring", "--out", "r.mcap", "--calib-out", "s.json"]);
     let mut cal = json(&std::fs::read_to_string(d.join("s.json")).unwrap());
+    // The nominal model (no effects) with the wrong tip.
+    cal["effects"] = serde_json::json!([]);
     cal["geometry"]["tips"][0]["id"] = serde_json::json!(7);
     std::fs::write(d.join("wrong_tip.json"), cal.to_string()).unwrap();
     let err = fails(

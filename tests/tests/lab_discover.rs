@@ -15,15 +15,7 @@ fn json(s: &str) -> serde_json::Value {
     serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
 }
 
-const LIBRARY: [&str; 7] = [
-    "accel_deflection",
-    "servo_phase",
-    "servo_gain",
-    "stylus_thermal",
-    "scale_thermal",
-    "probe_force",
-    "guide_straightness",
-];
+use scancorr_sim::LIBRARY_EFFECTS as LIBRARY;
 
 struct Campaign {
     dir: PathBuf,

@@ -10,6 +10,7 @@ use scancorr_core::effects::{custom, EffectConfig};
 use scancorr_core::lab::analysis::{self, Comparison, Diagnosis};
 use scancorr_core::lab::dataset::{self, BagData, BuildOptions, Dataset};
 use scancorr_core::lab::program::{parse_artifact, ProgramSpec};
+use scancorr_core::lab::version;
 use scancorr_core::sample::Axis;
 use scancorr_core::Calibration;
 use std::path::{Path, PathBuf};
@@ -425,30 +426,15 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 Some(r) => format!("{} (replacing {r})", applied.candidate.effect),
                 None => applied.candidate.effect.clone(),
             };
-            let mut new = l.cal.clone();
-            new.effects = applied.effects;
-            new.parent_version = Some(l.cal.version);
-            new.version = l.cal.version + 1;
-            new.created = now_rfc3339();
+            let mut new = version::next(&l.cal, applied.effects, &now_rfc3339());
             // Measure, don't extrapolate: correct again with the new version.
             let ds_after = dataset_for(&l, &new)?;
             let after = analysis::prepare(&ds_after)?;
-            new.note = format!(
-                "lab add {vname}{}: held-out RMS {} → {} µm (fit {} → {} µm)",
-                if only_new { " (only the new effect fitted)" } else { "" },
-                um(prep.rms_held_um),
-                um(after.rms_held_um),
-                um(prep.rms_fit_um),
-                um(after.rms_fit_um)
+            let what = format!(
+                "lab add {vname}{}",
+                if only_new { " (only the new effect fitted)" } else { "" }
             );
-            new.metrics = [
-                ("rms_um".to_string(), after.rms_fit_um),
-                ("heldout_rms_um".to_string(), after.rms_held_um),
-                ("noise_floor_um".to_string(), ds.noise_floor_um),
-                ("parent_rms_um".to_string(), prep.rms_fit_um),
-                ("parent_heldout_rms_um".to_string(), prep.rms_held_um),
-            ]
-            .into();
+            version::describe(&mut new, &what, ds.noise_floor_um, &prep, &after);
             new.build().context("the fitted calibration")?;
             put(&out_file, new.to_json())?;
             if report.is_some() {
@@ -550,28 +536,10 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 }],
                 false,
             )?;
-            let mut new = l.cal.clone();
-            new.effects = applied.effects;
-            new.parent_version = Some(l.cal.version);
-            new.version = l.cal.version + 1;
-            new.created = now_rfc3339();
+            let mut new = version::next(&l.cal, applied.effects, &now_rfc3339());
             let ds_after = dataset_for(&l, &new)?;
             let after = analysis::prepare(&ds_after)?;
-            new.note = format!(
-                "lab remove {effect}: held-out RMS {} → {} µm (fit {} → {} µm)",
-                um(prep.rms_held_um),
-                um(after.rms_held_um),
-                um(prep.rms_fit_um),
-                um(after.rms_fit_um)
-            );
-            new.metrics = [
-                ("rms_um".to_string(), after.rms_fit_um),
-                ("heldout_rms_um".to_string(), after.rms_held_um),
-                ("noise_floor_um".to_string(), ds.noise_floor_um),
-                ("parent_rms_um".to_string(), prep.rms_fit_um),
-                ("parent_heldout_rms_um".to_string(), prep.rms_held_um),
-            ]
-            .into();
+            version::describe(&mut new, &format!("lab remove {effect}"), ds.noise_floor_um, &prep, &after);
             new.build().context("the refitted calibration")?;
             put(&out_file, new.to_json())?;
             commit_all([out_file])?;
@@ -679,22 +647,11 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 new.effects = o.configs;
                 unident = o.unidentifiable;
             }
-            new.parent_version = Some(l.cal.version);
-            new.version = l.cal.version + 1;
-            new.created = now_rfc3339();
+            // `new` is the start with its nominal model and effects refitted: its child.
+            let mut new = version::next(&new, new.effects.clone(), &now_rfc3339());
             let ds_after = dataset_for(&l, &new)?;
             let after = analysis::prepare(&ds_after)?;
-            new.note = format!(
-                "lab fit: held-out RMS {} → {} µm",
-                um(p0.rms_held_um),
-                um(after.rms_held_um)
-            );
-            new.metrics = [
-                ("rms_um".to_string(), after.rms_fit_um),
-                ("heldout_rms_um".to_string(), after.rms_held_um),
-                ("noise_floor_um".to_string(), ds.noise_floor_um),
-            ]
-            .into();
+            version::describe(&mut new, "lab fit", ds.noise_floor_um, &p0, &after);
             put(&out_file, new.to_json())?;
             commit_all([out_file])?;
             let s = serde_json::json!({

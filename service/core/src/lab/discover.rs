@@ -13,8 +13,9 @@
 //! caller as it is made, so a user can stop, inspect and go on by hand.
 
 use super::analysis::{self, Confounded, Move, Structure};
-use super::dataset::{self, BagData, BuildOptions, Dataset};
+use super::dataset::{self, BagData, BuildOptions};
 use super::nominal::{fit_nominal, AxisFit};
+use super::version;
 use super::LabError;
 use crate::calib::Calibration;
 use crate::effects::EffectConfig;
@@ -117,27 +118,6 @@ fn signature(effects: &[EffectConfig]) -> Vec<String> {
     v
 }
 
-fn next_version(parent: &Calibration, effects: Vec<EffectConfig>, note: String, created: &str) -> Calibration {
-    let mut c = parent.clone();
-    c.effects = effects;
-    c.parent_version = Some(parent.version);
-    c.version = parent.version + 1;
-    c.created = created.to_string();
-    c.note = note;
-    c
-}
-
-fn metrics(c: &mut Calibration, ds: &Dataset, after: &analysis::Prepared, before: &analysis::Prepared) {
-    c.metrics = [
-        ("rms_um".to_string(), after.rms_fit_um),
-        ("heldout_rms_um".to_string(), after.rms_held_um),
-        ("noise_floor_um".to_string(), ds.noise_floor_um),
-        ("parent_rms_um".to_string(), before.rms_fit_um),
-        ("parent_heldout_rms_um".to_string(), before.rms_held_um),
-    ]
-    .into();
-}
-
 /// Runs the loop. `on_step` sees every step as soon as its version exists (to write it and
 /// show progress); `on_progress` gets a line of what the loop is doing.
 pub fn discover(
@@ -173,16 +153,11 @@ pub fn discover(
         cal.effects = fit.configs;
     }
     let refit = cal;
-    let mut cal = next_version(start, refit.effects.clone(), String::new(), &o.created);
+    let mut cal = version::next(start, refit.effects.clone(), &o.created);
     cal.nominal = refit.nominal.clone();
     let mut ds = dataset::build(bags, &cal, &o.build)?;
     let mut prep = analysis::prepare(&ds)?;
-    cal.note = format!(
-        "lab discover step 0 (refit of the start): held-out RMS {} → {} µm",
-        um(p0.rms_held_um),
-        um(prep.rms_held_um)
-    );
-    metrics(&mut cal, &ds, &prep, &p0);
+    version::describe(&mut cal, "lab discover step 0 (refit of the start)", ds.noise_floor_um, &p0, &prep);
     let mut steps = vec![];
     let s0 = Step {
         index: 0,
@@ -266,28 +241,24 @@ pub fn discover(
             .collect();
         let applied = analysis::apply(&ds, vec![cand.clone()], false)?;
         let before = prep.clone();
-        let mut next = next_version(&cal, applied.effects, String::new(), &o.created);
+        let mut next = version::next(&cal, applied.effects, &o.created);
         let ds_next = dataset::build(bags, &next, &o.build)?;
         let prep_next = analysis::prepare(&ds_next)?;
         let action = serde_json::to_value(&cand.action)
             .ok()
             .and_then(|v| v.as_str().map(str::to_string))
             .unwrap_or_default();
-        next.note = format!(
-            "lab discover step {}: {action} {}{}: held-out RMS {} → {} µm (fit {} → {} µm)",
+        let what = format!(
+            "lab discover step {}: {action} {}{}",
             steps.len(),
             cand.effect,
             cand.replaces
                 .as_ref()
                 .filter(|_| cand.action == Move::Swap)
                 .map(|r| format!(" (replaces {r})"))
-                .unwrap_or_default(),
-            um(before.rms_held_um),
-            um(prep_next.rms_held_um),
-            um(before.rms_fit_um),
-            um(prep_next.rms_fit_um)
+                .unwrap_or_default()
         );
-        metrics(&mut next, &ds_next, &prep_next, &before);
+        version::describe(&mut next, &what, ds_next.noise_floor_um, &before, &prep_next);
         let step = Step {
             index: steps.len(),
             action,

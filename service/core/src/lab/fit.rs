@@ -374,3 +374,34 @@ impl Normal {
         }
     }
 }
+
+/// Maximises `h` on [a, b] by golden-section search.
+pub(crate) fn golden_max(h: impl Fn(f64) -> f64, mut a: f64, mut b: f64) -> f64 {
+    let r = (5f64.sqrt() - 1.0) / 2.0;
+    let mut x1 = b - r * (b - a);
+    let mut x2 = a + r * (b - a);
+    let (mut h1, mut h2) = (h(x1), h(x2));
+    for _ in 0..80 {
+        if (b - a) <= 1e-10 * b.abs().max(1e-12) {
+            break;
+        }
+        if h1 >= h2 {
+            b = x2;
+            x2 = x1;
+            h2 = h1;
+            x1 = b - r * (b - a);
+            h1 = h(x1);
+        } else {
+            a = x1;
+            x1 = x2;
+            h1 = h2;
+            x2 = a + r * (b - a);
+            h2 = h(x2);
+        }
+    }
+    if h1 >= h2 {
+        x1
+    } else {
+        x2
+    }
+}

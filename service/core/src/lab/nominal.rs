@@ -5,6 +5,7 @@
 //! the estimator (G2, the probe's, is kept). Golden-section search on log τ.
 
 use super::dataset::Samples;
+use super::fit::golden_max;
 use super::LabError;
 use crate::calib::Calibration;
 use crate::sample::{Sample, Vec3};
@@ -130,27 +131,12 @@ pub fn fit_nominal(
         };
         let Some(before) = f(*tau_s) else { continue };
         // Golden-section search on ln τ within [τ/4, 4τ].
-        let (mut a, mut b) = ((tau_s / 4.0).ln(), (tau_s * 4.0).ln());
-        let gr = (5f64.sqrt() - 1.0) / 2.0;
-        let eval = |x: f64| f(x.exp()).unwrap_or(f64::MAX);
-        let (mut c, mut d) = (b - gr * (b - a), a + gr * (b - a));
-        let (mut fc, mut fd) = (eval(c), eval(d));
-        for _ in 0..40 {
-            if fc < fd {
-                b = d;
-                d = c;
-                fd = fc;
-                c = b - gr * (b - a);
-                fc = eval(c);
-            } else {
-                a = c;
-                c = d;
-                fc = fd;
-                d = a + gr * (b - a);
-                fd = eval(d);
-            }
-        }
-        let tau = ((a + b) / 2.0).exp();
+        let tau = golden_max(
+            |x| -f(x.exp()).unwrap_or(f64::MAX),
+            (tau_s / 4.0).ln(),
+            (tau_s * 4.0).ln(),
+        )
+        .exp();
         let after = f(tau).unwrap_or(before);
         let (tau, after) = if after < before {
             (tau, after)

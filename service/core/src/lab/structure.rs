@@ -46,7 +46,7 @@
 
 use super::analysis::{axis_span, Prepared};
 use super::dataset::Dataset;
-use super::fit::{nuisance_row, ArtifactFit, Normal};
+use super::fit::{golden_max, nuisance_row, ArtifactFit, Normal};
 use super::LabError;
 use crate::sample::Axis;
 use nalgebra::{DMatrix, DVector};
@@ -348,37 +348,6 @@ fn periodogram(
         }
     }
     best.1
-}
-
-/// Maximises `h` on [a, b] by golden-section search.
-fn golden_max(h: impl Fn(f64) -> f64, mut a: f64, mut b: f64) -> f64 {
-    let r = (5f64.sqrt() - 1.0) / 2.0;
-    let mut x1 = b - r * (b - a);
-    let mut x2 = a + r * (b - a);
-    let (mut h1, mut h2) = (h(x1), h(x2));
-    for _ in 0..80 {
-        if (b - a) <= 1e-10 * b.abs().max(1e-12) {
-            break;
-        }
-        if h1 >= h2 {
-            b = x2;
-            x2 = x1;
-            h2 = h1;
-            x1 = b - r * (b - a);
-            h1 = h(x1);
-        } else {
-            a = x1;
-            x1 = x2;
-            h1 = h2;
-            x2 = a + r * (b - a);
-            h2 = h(x2);
-        }
-    }
-    if h1 >= h2 {
-        x1
-    } else {
-        x2
-    }
 }
 
 /// Best period along axis `a`, refined.
