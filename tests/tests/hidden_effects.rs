@@ -225,7 +225,16 @@ fn outside_case(effect: &str, check: impl Fn(&serde_json::Value) -> bool) {
     // The command `lab diagnose` prints for it runs as printed.
     let text = ok(
         &c.dir,
-        &["lab", "diagnose", "--calib", "start.json", "--bag", "c.mcap", "--validate", "v.mcap"],
+        &[
+            "lab",
+            "diagnose",
+            "--calib",
+            "start.json",
+            "--bag",
+            "c.mcap",
+            "--validate",
+            "v.mcap",
+        ],
     );
     let line = text
         .lines()
@@ -242,7 +251,11 @@ fn outside_case(effect: &str, check: impl Fn(&serde_json::Value) -> bool) {
         .current_dir(&c.dir)
         .output()
         .unwrap();
-    assert!(out.status.success(), "{cmd}: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{cmd}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let a = json(&String::from_utf8_lossy(&out.stdout));
     let (before, after) = (
         a["heldout_rms_before_um"].as_f64().unwrap(),
@@ -321,7 +334,10 @@ fn rings_alone_confound_accel_deflection_and_servo_gain() {
     // Only measurements that act along the measured direction and that these rings lack:
     // another diameter (frequency v/2πr vs acceleration v²/r), or a face accelerated along
     // its normal — not "more spin-up" (tangential, unseen by a circle fit).
-    assert!(how.iter().any(|s| s.contains("another diameter")), "{how:?}");
+    assert!(
+        how.iter().any(|s| s.contains("another diameter")),
+        "{how:?}"
+    );
     assert!(!how.iter().any(|s| s.contains("spin-up")), "{how:?}");
     std::fs::remove_dir_all(&dir).ok();
 }

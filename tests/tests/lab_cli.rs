@@ -280,7 +280,18 @@ fn lab_bad_input_says_what_is_missing() {
 #[test]
 fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
     let d = scratch("lab-one-ring");
-    ok(&d, &["sim", "--program", "ring", "--out", "r.mcap", "--calib-out", "s.json"]);
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "s.json",
+        ],
+    );
     // What a user has: the nominal model, and the stylus expansion from the data sheet
     // (steel, 11.5 ppm/K), no fitted parameter.
     let mut cal = json(&std::fs::read_to_string(d.join("s.json")).unwrap());
@@ -292,7 +303,18 @@ fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
         "sensor": "stylus"
     }]);
     std::fs::write(d.join("nominal.json"), cal.to_string()).unwrap();
-    let dg = json(&ok(&d, &["lab", "diagnose", "--bag", "r.mcap", "--calib", "nominal.json", "--json"]));
+    let dg = json(&ok(
+        &d,
+        &[
+            "lab",
+            "diagnose",
+            "--bag",
+            "r.mcap",
+            "--calib",
+            "nominal.json",
+            "--json",
+        ],
+    ));
     let cv = dg["cv_rms_um"].as_f64().unwrap();
     let noise = dg["noise_floor_um"].as_f64().unwrap();
     assert!(cv.is_finite() && cv > 0.5 * noise, "{dg:#}");
@@ -300,12 +322,22 @@ fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
         assert!(c["explained"].as_f64().unwrap().is_finite(), "{c:#}");
         if c["action"] == "drop" || c["action"] == "swap" {
             let r = c["replaces"].as_str().unwrap();
-            assert!(!r.contains("thermal"), "{r} offered though the data cannot determine it: {c:#}");
+            assert!(
+                !r.contains("thermal"),
+                "{r} offered though the data cannot determine it: {c:#}"
+            );
         }
     }
-    let skipped: Vec<&str> = dg["skipped"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    let skipped: Vec<&str> = dg["skipped"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s.as_str().unwrap())
+        .collect();
     assert!(
-        skipped.iter().any(|s| s.contains("stylus_thermal") && s.contains("one temperature")),
+        skipped
+            .iter()
+            .any(|s| s.contains("stylus_thermal") && s.contains("one temperature")),
         "{skipped:?}"
     );
     std::fs::remove_dir_all(&d).ok();
@@ -316,7 +348,18 @@ fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
 #[test]
 fn a_lab_without_points_says_why() {
     let d = scratch("lab-why-no-points");
-    ok(&d, &["sim", "--program", "ring", "--out", "r.mcap", "--calib-out", "s.json"]);
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "s.json",
+        ],
+    );
     let mut cal = json(&std::fs::read_to_string(d.join("s.json")).unwrap());
     // The nominal model (no effects) with the wrong tip.
     cal["effects"] = serde_json::json!([]);
@@ -324,10 +367,21 @@ fn a_lab_without_points_says_why() {
     std::fs::write(d.join("wrong_tip.json"), cal.to_string()).unwrap();
     let err = fails(
         &d,
-        &["lab", "compare", "--bag", "r.mcap", "--calib", "wrong_tip.json"],
+        &[
+            "lab",
+            "compare",
+            "--bag",
+            "r.mcap",
+            "--calib",
+            "wrong_tip.json",
+        ],
         &["no scan points", "unknown_tip", "geometry.tips"],
     );
     // The count is there: "dropped N of M samples: N unknown_tip".
-    assert!(err.split_whitespace().any(|w| w.parse::<u64>().is_ok_and(|n| n > 1000)), "{err}");
+    assert!(
+        err.split_whitespace()
+            .any(|w| w.parse::<u64>().is_ok_and(|n| n > 1000)),
+        "{err}"
+    );
     std::fs::remove_dir_all(&d).ok();
 }

@@ -26,10 +26,25 @@ impl Campaign {
     /// of the starting calibration, and a held-out ring-speeds run at another position.
     fn new(name: &str, machine_seed: u64, seed: u64, with: &[&str]) -> Campaign {
         let dir = scratch(&format!("discover-{name}"));
-        let (ms, s, s2) = (machine_seed.to_string(), seed.to_string(), (seed + 1).to_string());
+        let (ms, s, s2) = (
+            machine_seed.to_string(),
+            seed.to_string(),
+            (seed + 1).to_string(),
+        );
         let mut a: Vec<&str> = vec![
-            "sim", "--program", "campaign", "--machine-seed", &ms, "--seed", &s, "--out", "c.mcap",
-            "--calib-out", "start.json", "--truth", "t.json",
+            "sim",
+            "--program",
+            "campaign",
+            "--machine-seed",
+            &ms,
+            "--seed",
+            &s,
+            "--out",
+            "c.mcap",
+            "--calib-out",
+            "start.json",
+            "--truth",
+            "t.json",
         ];
         for h in LIBRARY {
             a.extend(["--hide", h]);
@@ -39,8 +54,17 @@ impl Campaign {
         }
         ok(&dir, &a);
         let mut v: Vec<&str> = vec![
-            "sim", "--program", "ring-speeds", "--machine-seed", &ms, "--seed", &s2, "--position",
-            "550,300,-250", "--out", "v.mcap",
+            "sim",
+            "--program",
+            "ring-speeds",
+            "--machine-seed",
+            &ms,
+            "--seed",
+            &s2,
+            "--position",
+            "550,300,-250",
+            "--out",
+            "v.mcap",
         ];
         for w in with {
             v.extend(["--with", w]);
@@ -63,7 +87,15 @@ impl Campaign {
         json(&ok(&self.dir, &a))
     }
     fn discover(&self, calib: &str, out: &str) -> serde_json::Value {
-        self.lab(&["discover", "--calib", calib, "--out-dir", out, "--report", &format!("{out}.html")])
+        self.lab(&[
+            "discover",
+            "--calib",
+            calib,
+            "--out-dir",
+            out,
+            "--report",
+            &format!("{out}.html"),
+        ])
     }
     /// Library kinds the simulated machine has switched on (judging only).
     fn active(&self) -> BTreeSet<String> {
@@ -113,23 +145,40 @@ fn confounded_kinds(d: &serde_json::Value) -> BTreeSet<String> {
 /// versions on disk, each naming its parent.
 fn check_outcome(c: &Campaign, d: &serde_json::Value, out: &str, expected: &[&str]) {
     let f = &d["final"];
-    let (held, floor) = (f["heldout_rms_um"].as_f64().unwrap(), f["noise_floor_um"].as_f64().unwrap());
+    let (held, floor) = (
+        f["heldout_rms_um"].as_f64().unwrap(),
+        f["noise_floor_um"].as_f64().unwrap(),
+    );
     eprintln!(
         "steps: {}",
         d["steps"]
             .as_array()
             .unwrap()
             .iter()
-            .map(|s| format!("{} {} → {:.3} µm", s["action"], s["effect"], s["heldout_rms_um"].as_f64().unwrap()))
+            .map(|s| format!(
+                "{} {} → {:.3} µm",
+                s["action"],
+                s["effect"],
+                s["heldout_rms_um"].as_f64().unwrap()
+            ))
             .collect::<Vec<_>>()
             .join("; ")
     );
-    eprintln!("final held-out {held:.3} µm, floor {floor:.3} µm, kinds {:?}", kinds(d));
-    assert!(floor > 0.0 && held <= 1.5 * floor, "held-out {held} µm vs noise floor {floor} µm: {d:#}");
+    eprintln!(
+        "final held-out {held:.3} µm, floor {floor:.3} µm, kinds {:?}",
+        kinds(d)
+    );
+    assert!(
+        floor > 0.0 && held <= 1.5 * floor,
+        "held-out {held} µm vs noise floor {floor} µm: {d:#}"
+    );
     let active = c.active();
     let found = kinds(d);
     for k in &found {
-        assert!(active.contains(k), "{k} added but the machine does not have it (active: {active:?})");
+        assert!(
+            active.contains(k),
+            "{k} added but the machine does not have it (active: {active:?})"
+        );
     }
     let conf = confounded_kinds(d);
     for e in expected {
@@ -145,7 +194,8 @@ fn check_outcome(c: &Campaign, d: &serde_json::Value, out: &str, expected: &[&st
     let mut parent = None;
     for s in d["steps"].as_array().unwrap() {
         let v = s["version"].as_u64().unwrap();
-        let doc = json(&std::fs::read_to_string(c.dir.join(out).join(format!("v{v}.json"))).unwrap());
+        let doc =
+            json(&std::fs::read_to_string(c.dir.join(out).join(format!("v{v}.json"))).unwrap());
         assert_eq!(doc["version"].as_u64(), Some(v));
         if let Some(p) = parent {
             assert_eq!(doc["parent_version"].as_u64(), Some(p), "v{v}");
@@ -156,7 +206,10 @@ fn check_outcome(c: &Campaign, d: &serde_json::Value, out: &str, expected: &[&st
     let fin = json(&std::fs::read_to_string(c.dir.join(out).join("calibration.json")).unwrap());
     assert_eq!(fin["version"].as_u64(), f["version"].as_u64());
     let html = std::fs::read_to_string(c.dir.join(format!("{out}.html"))).unwrap();
-    assert!(html.contains("data-plot=\"error-fall\""), "the report has the error fall");
+    assert!(
+        html.contains("data-plot=\"error-fall\""),
+        "the report has the error fall"
+    );
 }
 
 /// From nominal (the example: machine seed 7, run seed 5), every effect missing: the
@@ -173,16 +226,49 @@ fn from_nominal_every_effect_missing() {
     let t = json(&std::fs::read_to_string(c.dir.join("t.json")).unwrap());
     for (i, ax) in ["x", "y", "z"].iter().enumerate() {
         let fitted = s0["nominal"][i]["tau_after_s"].as_f64().unwrap();
-        let truth = t["true_calibration"]["nominal"]["axes"][ax]["tau_s"].as_f64().unwrap();
-        assert!((fitted / truth - 1.0).abs() < 0.05, "τ_{ax} {fitted} vs {truth}");
+        let truth = t["true_calibration"]["nominal"]["axes"][ax]["tau_s"]
+            .as_f64()
+            .unwrap();
+        assert!(
+            (fitted / truth - 1.0).abs() < 0.05,
+            "τ_{ax} {fitted} vs {truth}"
+        );
     }
     // Nothing missing: another run of the machine, the calibration the loop made.
-    ok(&c.dir, &["sim", "--program", "campaign", "--machine-seed", "7", "--seed", "9", "--out", "c9.mcap"]);
+    ok(
+        &c.dir,
+        &[
+            "sim",
+            "--program",
+            "campaign",
+            "--machine-seed",
+            "7",
+            "--seed",
+            "9",
+            "--out",
+            "c9.mcap",
+        ],
+    );
     let dg = json(&ok(
         &c.dir,
-        &["lab", "diagnose", "--bag", "c9.mcap", "--validate", "v.mcap", "--calib", "steps/calibration.json", "--json"],
+        &[
+            "lab",
+            "diagnose",
+            "--bag",
+            "c9.mcap",
+            "--validate",
+            "v.mcap",
+            "--calib",
+            "steps/calibration.json",
+            "--json",
+        ],
     ));
-    let sig: Vec<&serde_json::Value> = dg["candidates"].as_array().unwrap().iter().filter(|x| x["significant"] == true).collect();
+    let sig: Vec<&serde_json::Value> = dg["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|x| x["significant"] == true)
+        .collect();
     assert!(sig.is_empty(), "nothing is missing, yet: {sig:#?}");
 }
 
@@ -192,16 +278,26 @@ fn from_nominal_every_effect_missing() {
 fn several_missing_from_a_fitted_calibration() {
     let c = Campaign::new("several", 3, 11, &[]);
     let mut cal = "nominal.json".to_string();
-    for (i, e) in ["accel_deflection:full,order=1", "servo_gain", "stylus_thermal:split", "guide_straightness:axis=x,about=z"]
-        .iter()
-        .enumerate()
+    for (i, e) in [
+        "accel_deflection:full,order=1",
+        "servo_gain",
+        "stylus_thermal:split",
+        "guide_straightness:axis=x,about=z",
+    ]
+    .iter()
+    .enumerate()
     {
         let out = c.path(&format!("hand{i}.json"));
         c.lab(&["add", e, "--calib", &cal, "--out", &out]);
         cal = out;
     }
     let d = c.discover(&cal, "steps");
-    check_outcome(&c, &d, "steps", &["servo_phase", "scale_thermal", "probe_force"]);
+    check_outcome(
+        &c,
+        &d,
+        "steps",
+        &["servo_phase", "scale_thermal", "probe_force"],
+    );
 }
 
 /// Physics the default machine does not have (a probe with lobing): from nominal, the loop

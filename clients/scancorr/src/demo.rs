@@ -49,9 +49,11 @@ pub fn bench(json: bool) -> Result<()> {
     let rss_kb = std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1).and_then(|x| x.parse::<u64>().ok()))
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|x| x.parse::<u64>().ok())
+            })
         });
     v["peak_rss_kb"] = serde_json::json!(rss_kb);
     if json {
@@ -80,13 +82,33 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
     let p = |f: &str| dir.join(f);
     say("scancorr demo — the model lab from a nominal model to the noise floor, on a simulated CMM\n".into())?;
     say("1. simulating the calibration campaign (rings at 3 positions × 4 speeds × 2 directions, sphere with 2 styli, straightedge, drifting temperature) …".into())?;
-    sim("campaign", 1, None, with, &p("campaign.mcap"), Some(&p("truth.json")), Some(&p("sim-start.json")))?;
+    sim(
+        "campaign",
+        1,
+        None,
+        with,
+        &p("campaign.mcap"),
+        Some(&p("truth.json")),
+        Some(&p("sim-start.json")),
+    )?;
     say("   and a held-out ring-speeds run at (550, 300, −250), another seed …".into())?;
-    sim("ring-speeds", 2, Some([550.0, 300.0, -250.0]), with, &p("heldout.mcap"), None, None)?;
+    sim(
+        "ring-speeds",
+        2,
+        Some([550.0, 300.0, -250.0]),
+        with,
+        &p("heldout.mcap"),
+        None,
+        None,
+    )?;
 
     // The user's start: the nominal model with data-sheet time constants (30 % off).
     let mut start = offline::load_calibration(&p("sim-start.json"))?;
-    for tf in [&mut start.nominal.axes.x, &mut start.nominal.axes.y, &mut start.nominal.axes.z] {
+    for tf in [
+        &mut start.nominal.axes.x,
+        &mut start.nominal.axes.y,
+        &mut start.nominal.axes.z,
+    ] {
         if let TransferFunction::FirstOrder { tau_s } = tf {
             *tau_s *= 1.3;
         }
@@ -98,7 +120,11 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
         start.geometry.tips.len()
     ))?;
 
-    let bags = labcmd::load_bags(&[p("campaign.mcap")], &[p("heldout.mcap")], &start.machine_id)?;
+    let bags = labcmd::load_bags(
+        &[p("campaign.mcap")],
+        &[p("heldout.mcap")],
+        &start.machine_id,
+    )?;
     let build = BuildOptions {
         sensors: ["stylus", "scale_x", "scale_y", "scale_z", "air"]
             .iter()
@@ -113,7 +139,10 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
         cmp.rms_um, cmp.pv_um, cmp.noise_floor_um
     ))?;
     for b in cmp.failures.iter().take(4) {
-        say(format!("   fails at {:<20} {:<28} RMS {:.3} µm", b.feature, b.bin, b.rms_um))?;
+        say(format!(
+            "   fails at {:<20} {:<28} RMS {:.3} µm",
+            b.feature, b.bin, b.rms_um
+        ))?;
     }
 
     say("\n4. lab discover: refit the nominal model; then diagnose, add the best candidate, refit everything — until nothing significant is left".into())?;
@@ -126,8 +155,12 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
     let out_dir = p("steps");
     std::fs::create_dir_all(&out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
     let mut on_step = |s: &Step| -> std::result::Result<(), scancorr_core::lab::LabError> {
-        crate::output::write_file("steps", &out_dir.join(format!("v{}.json", s.version)), s.calibration.to_json())
-            .map_err(|e| scancorr_core::lab::LabError::Data(format!("{e:#}")))?;
+        crate::output::write_file(
+            "steps",
+            &out_dir.join(format!("v{}.json", s.version)),
+            s.calibration.to_json(),
+        )
+        .map_err(|e| scancorr_core::lab::LabError::Data(format!("{e:#}")))?;
         if !json {
             let what = match &s.replaces {
                 Some(r) => format!("{} {} for {r}", s.action, s.effect),
@@ -153,7 +186,12 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
     say("\n5. the error falls (held-out ring-speeds run, deviation RMS):".into())?;
     let max = d.start_heldout_rms_um.max(1e-9);
     let bar = |v: f64| "█".repeat(((v / max) * 48.0).round().max(1.0) as usize);
-    say(format!("   v1  {:<29} {:>7.3} µm {}", "nominal model (start)", d.start_heldout_rms_um, bar(d.start_heldout_rms_um)))?;
+    say(format!(
+        "   v1  {:<29} {:>7.3} µm {}",
+        "nominal model (start)",
+        d.start_heldout_rms_um,
+        bar(d.start_heldout_rms_um)
+    ))?;
     for s in &d.steps {
         say(format!(
             "   v{:<2} {:<29} {:>7.3} µm {}",
@@ -192,7 +230,11 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
             s.custom_terms.join(" ")
         ))?;
     }
-    let last = &d.steps.last().context("the loop made no version")?.calibration;
+    let last = &d
+        .steps
+        .last()
+        .context("the loop made no version")?
+        .calibration;
     crate::output::write_file("calibration.json", &p("calibration.json"), last.to_json())?;
     let (s1, _) = offline::correct(&p("heldout.mcap"), &start, None)?;
     let (s2, _) = offline::correct(&p("heldout.mcap"), last, None)?;
@@ -242,7 +284,10 @@ fn sim(
         seed,
         position,
         // The start the demo builds is the nominal model: every library effect left out.
-        hide: scancorr_sim::LIBRARY_EFFECTS.iter().map(|s| s.to_string()).collect(),
+        hide: scancorr_sim::LIBRARY_EFFECTS
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
         effects: with.iter().map(|w| (w.clone(), 1.0)).collect(),
         ..Default::default()
     };

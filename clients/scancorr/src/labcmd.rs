@@ -408,7 +408,8 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             } else {
                 let mut c = analysis::moves_named(&ds, &effect)?;
                 if let Some(n) = &name {
-                    scancorr_proto::names::check("--name", n).map_err(|e| anyhow::anyhow!("{e}"))?;
+                    scancorr_proto::names::check("--name", n)
+                        .map_err(|e| anyhow::anyhow!("{e}"))?;
                     for m in &mut c {
                         if m.action == analysis::Move::Add {
                             if let Some(cfg) = &mut m.config {
@@ -432,7 +433,11 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             let after = analysis::prepare(&ds_after)?;
             let what = format!(
                 "lab add {vname}{}",
-                if only_new { " (only the new effect fitted)" } else { "" }
+                if only_new {
+                    " (only the new effect fitted)"
+                } else {
+                    ""
+                }
             );
             version::describe(&mut new, &what, ds.noise_floor_um, &prep, &after);
             new.build().context("the fitted calibration")?;
@@ -521,7 +526,12 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             if !l.cal.effects.iter().any(|e| e.id() == effect) {
                 bail!(
                     "the model has no effect `{effect}` (it has: {})",
-                    l.cal.effects.iter().map(|e| e.id()).collect::<Vec<_>>().join(", ")
+                    l.cal
+                        .effects
+                        .iter()
+                        .map(|e| e.id())
+                        .collect::<Vec<_>>()
+                        .join(", ")
                 );
             }
             let ds = dataset_for(&l, &l.cal)?;
@@ -539,7 +549,13 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             let mut new = version::next(&l.cal, applied.effects, &now_rfc3339());
             let ds_after = dataset_for(&l, &new)?;
             let after = analysis::prepare(&ds_after)?;
-            version::describe(&mut new, &format!("lab remove {effect}"), ds.noise_floor_um, &prep, &after);
+            version::describe(
+                &mut new,
+                &format!("lab remove {effect}"),
+                ds.noise_floor_um,
+                &prep,
+                &after,
+            );
             new.build().context("the refitted calibration")?;
             put(&out_file, new.to_json())?;
             commit_all([out_file])?;
@@ -557,9 +573,23 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             if json {
                 outln!("{}", serde_json::to_string_pretty(&summary)?)?;
             } else {
-                outln!("removed {effect} → {} (version {}, parent {})", out.display(), new.version, l.cal.version)?;
-                outln!("  RMS on fit data   {:>8} → {:>8} µm", um(prep.rms_fit_um), um(after.rms_fit_um))?;
-                outln!("  RMS held out      {:>8} → {:>8} µm   (noise floor {} µm)", um(prep.rms_held_um), um(after.rms_held_um), um(ds.noise_floor_um))?;
+                outln!(
+                    "removed {effect} → {} (version {}, parent {})",
+                    out.display(),
+                    new.version,
+                    l.cal.version
+                )?;
+                outln!(
+                    "  RMS on fit data   {:>8} → {:>8} µm",
+                    um(prep.rms_fit_um),
+                    um(after.rms_fit_um)
+                )?;
+                outln!(
+                    "  RMS held out      {:>8} → {:>8} µm   (noise floor {} µm)",
+                    um(prep.rms_held_um),
+                    um(after.rms_held_um),
+                    um(ds.noise_floor_um)
+                )?;
             }
             Ok(())
         }
@@ -609,14 +639,27 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             let mut on_progress = |m: &str| {
                 eprintln!("[{:>5.1} s] {m}", t0.elapsed().as_secs_f64());
             };
-            let d = scancorr_core::lab::discover::discover(&l.bags, &l.cal, &opts, &mut on_step, &mut on_progress)?;
+            let d = scancorr_core::lab::discover::discover(
+                &l.bags,
+                &l.cal,
+                &opts,
+                &mut on_step,
+                &mut on_progress,
+            )?;
             let last = &d.steps.last().expect("step 0 exists").calibration;
-            crate::output::write_file("--out-dir", &out_dir.join("calibration.json"), last.to_json())?;
+            crate::output::write_file(
+                "--out-dir",
+                &out_dir.join("calibration.json"),
+                last.to_json(),
+            )?;
             if let Some(p) = &report {
                 let ds0 = dataset::build(&l.bags, &l.cal, &l.opts)?;
                 let ds1 = dataset::build(&l.bags, last, &l.opts)?;
                 let (c0, c1) = (analysis::compare(&ds0)?, analysis::compare(&ds1)?);
-                put(&report_out, report::discover(&l.cal, &d, Some(((&ds0, &c0), (&ds1, &c1)))))?;
+                put(
+                    &report_out,
+                    report::discover(&l.cal, &d, Some(((&ds0, &c0), (&ds1, &c1)))),
+                )?;
                 commit_all([report_out])?;
                 eprintln!("report: {}", p.display());
             }
@@ -749,7 +792,11 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             cals.sort_by_key(|(_, c)| (c.machine_id.clone(), c.version));
             // The same version in two files (`lab discover` writes its last step also as
             // calibration.json) is listed once.
-            cals.dedup_by(|b, a| a.1.machine_id == b.1.machine_id && a.1.version == b.1.version && a.1.to_json() == b.1.to_json());
+            cals.dedup_by(|b, a| {
+                a.1.machine_id == b.1.machine_id
+                    && a.1.version == b.1.version
+                    && a.1.to_json() == b.1.to_json()
+            });
             // A version without recorded figures takes them from a child that measured it.
             let from_child = |v: u64, key: &str| {
                 cals.iter()
@@ -865,7 +912,9 @@ fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
 /// What a structure is, in words.
 fn structure_text(s: &scancorr_core::lab::analysis::Structure) -> String {
     match (s.kind.as_str(), s.period_mm, s.harmonic) {
-        ("probe_direction", _, Some(k)) => format!("the {k}θ harmonic of the probing direction (probe lobing)"),
+        ("probe_direction", _, Some(k)) => {
+            format!("the {k}θ harmonic of the probing direction (probe lobing)")
+        }
         (_, Some(p), _) => format!("a period of {p:.4} mm along {}", s.axis),
         ("reversal", _, _) => format!("the sign of the {} velocity (reversal)", s.axis),
         (k, _, _) => format!("{k} along {}", s.axis),
@@ -876,7 +925,9 @@ fn structure_text(s: &scancorr_core::lab::analysis::Structure) -> String {
 fn custom_command(s: &scancorr_core::lab::analysis::Structure, d: &DataArgs) -> String {
     let q = |p: &Path| {
         let t = p.display().to_string();
-        if t.chars().all(|c| c.is_ascii_alphanumeric() || "._-/+=,".contains(c)) {
+        if t.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "._-/+=,".contains(c))
+        {
             t
         } else {
             format!("'{}'", t.replace('\'', "'\\''"))
@@ -977,9 +1028,18 @@ fn print_discovery(d: &scancorr_core::lab::discover::Discovery, dir: &Path) -> R
         f.heldout_rms_um / f.noise_floor_um.max(1e-9),
         um(f.cv_rms_um)
     )?;
-    outln!("  final model v{} ({}): {}", f.version, dir.join("calibration.json").display(), f.effects.join(", "))?;
+    outln!(
+        "  final model v{} ({}): {}",
+        f.version,
+        dir.join("calibration.json").display(),
+        f.effects.join(", ")
+    )?;
     for c in &d.confounded {
-        outln!("  confounded on this campaign: {} and {} — to separate them:", c.effects[0], c.effects[1])?;
+        outln!(
+            "  confounded on this campaign: {} and {} — to separate them:",
+            c.effects[0],
+            c.effects[1]
+        )?;
         for s in &c.separate_by {
             outln!("    · {s}")?;
         }
@@ -988,7 +1048,13 @@ fn print_discovery(d: &scancorr_core::lab::discover::Discovery, dir: &Path) -> R
         outln!("  {} parameter(s) the campaign cannot determine (kept at their minimum-norm values), e.g. {}", d.unidentifiable.len(), d.unidentifiable.iter().take(3).cloned().collect::<Vec<_>>().join("; "))?;
     }
     for s in &d.unexplained {
-        outln!("  left unexplained: {} along {} ({:.3} µm, {:.0} % of the residual)", s.kind, s.axis, s.amplitude_um, s.explained * 100.0)?;
+        outln!(
+            "  left unexplained: {} along {} ({:.3} µm, {:.0} % of the residual)",
+            s.kind,
+            s.axis,
+            s.amplitude_um,
+            s.explained * 100.0
+        )?;
     }
     Ok(())
 }

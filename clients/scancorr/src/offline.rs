@@ -148,7 +148,10 @@ pub fn read_lazy(path: &Path, machine: Option<&str>) -> Result<LazyBag> {
         }
     }
     if bad > 0 {
-        warnings.push(format!("{}: {bad} message(s) could not be decoded: skipped", path.display()));
+        warnings.push(format!(
+            "{}: {bad} message(s) could not be decoded: skipped",
+            path.display()
+        ));
     }
     if foreign > 0 {
         warnings.push(format!(

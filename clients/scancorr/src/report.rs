@@ -410,7 +410,11 @@ pub fn discover(
             Some(r) => format!("{} {} for {r}", s.action, s.effect),
             None => format!("{} {}", s.action, s.effect),
         };
-        rows.push((format!("{} v{} {}", s.index, s.version, what), s.heldout_rms_um, false));
+        rows.push((
+            format!("{} v{} {}", s.index, s.version, what),
+            s.heldout_rms_um,
+            false,
+        ));
     }
     let mut body = format!(
         "<p>Stopped: {}. Held-out RMS {:.3} → <b>{:.3} µm</b> against a noise floor of {:.3} µm ({:.2}×); cross-validated {:.3} µm. Final model v{}: {}.</p>",
@@ -447,7 +451,13 @@ pub fn discover(
     }
     body += "</table>";
     for c in &d.confounded {
-        let _ = write!(body, "<p><b>Confounded on this campaign:</b> {} and {}. To separate them: {}.</p>", esc(&c.effects[0]), esc(&c.effects[1]), esc(&c.separate_by.join("; ")));
+        let _ = write!(
+            body,
+            "<p><b>Confounded on this campaign:</b> {} and {}. To separate them: {}.</p>",
+            esc(&c.effects[0]),
+            esc(&c.effects[1]),
+            esc(&c.separate_by.join("; "))
+        );
     }
     if !d.unidentifiable.is_empty() {
         let _ = write!(body, "<p><b>Not determined by this campaign</b> ({} parameters, kept at their minimum-norm values): {}</p>", d.unidentifiable.len(), esc(&d.unidentifiable.iter().take(12).cloned().collect::<Vec<_>>().join("; ")));

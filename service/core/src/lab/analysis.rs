@@ -2,8 +2,8 @@
 
 use super::dataset::Dataset;
 use super::fit::{fit_artifacts, nuisance_row, ArtifactFit, Normal};
-use super::select::{predicted, Score, Space, Spec};
 use super::program::FeatureKind;
+use super::select::{predicted, Score, Space, Spec};
 use super::LabError;
 use crate::effects::{self as fx, Effect, EffectConfig};
 use crate::sample::{Axis, Vec3};
@@ -461,12 +461,20 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
                     .filter(|v| (1..=4).contains(v))
                     .ok_or_else(|| bad("order must be 1…4".into()))?,
             };
-            let chain = match o.get("chain").map(|s| s.as_str()).unwrap_or("moving_bridge") {
+            let chain = match o
+                .get("chain")
+                .map(|s| s.as_str())
+                .unwrap_or("moving_bridge")
+            {
                 "moving_bridge" => fx::rigid_body::Chain::MovingBridge,
                 "fixed_bridge" => fx::rigid_body::Chain::FixedBridge,
                 "cantilever" => fx::rigid_body::Chain::Cantilever,
                 "horizontal_arm" => fx::rigid_body::Chain::HorizontalArm,
-                c => return Err(bad(format!("chain `{c}` (moving_bridge, fixed_bridge, cantilever, horizontal_arm)"))),
+                c => {
+                    return Err(bad(format!(
+                        "chain `{c}` (moving_bridge, fixed_bridge, cantilever, horizontal_arm)"
+                    )))
+                }
             };
             let ranges = Axis::ALL.map(|a| {
                 let (lo, hi) = axis_span(ds, a);
@@ -653,21 +661,25 @@ pub struct Diagnosis {
 /// on, a residual component of at least half the noise floor and at least 1 % of the
 /// cross-validated sum of squares, and improve the held-out data (unless that is already at
 /// the noise floor); a drop must cost less than 0.15 of the noise floor.
-fn significant(action: &Move, base: &Score, s: &Score, o: &FitOutcome, base_held_um: f64, noise_um: f64) -> bool {
+fn significant(
+    action: &Move,
+    base: &Score,
+    s: &Score,
+    o: &FitOutcome,
+    base_held_um: f64,
+    noise_um: f64,
+) -> bool {
     let n = s.cv_n.max(1) as f64;
     let noise = noise_um.max(0.01) * 1e-3;
     let gain = base.cv_ss - s.cv_ss;
     // Held-out data at another position or run (when given) must not get worse than with the
     // model refitted as it is: an effect that only predicts the alternate scans of the same
     // placements is not kept.
-    let held_ok = o.heldout_rms_after_um <= 1.01 * base_held_um + 0.02 * noise_um
-        || base_held_um == 0.0;
+    let held_ok =
+        o.heldout_rms_after_um <= 1.01 * base_held_um + 0.02 * noise_um || base_held_um == 0.0;
     match action {
         Move::Add | Move::Swap => {
-            gain > 0.0
-                && (gain / n).sqrt() >= 0.5 * noise
-                && gain >= 0.01 * base.cv_ss
-                && held_ok
+            gain > 0.0 && (gain / n).sqrt() >= 0.5 * noise && gain >= 0.01 * base.cv_ss && held_ok
         }
         Move::Drop => (gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise) && held_ok,
     }
@@ -678,7 +690,11 @@ fn significant(action: &Move, base: &Score, s: &Score, o: &FitOutcome, base_held
 /// position or run) when there is any — a model must predict both the other scans and the
 /// other place. Drops rank by the same key.
 fn rank_key(base: &Score, s: &Score, o: &FitOutcome, base_held_um: f64) -> f64 {
-    let cv = if base.cv_ss > 0.0 { s.cv_ss / base.cv_ss } else { 1.0 };
+    let cv = if base.cv_ss > 0.0 {
+        s.cv_ss / base.cv_ss
+    } else {
+        1.0
+    };
     let held = if base_held_um > 0.0 && o.heldout_rms_after_um.is_finite() {
         (o.heldout_rms_after_um / base_held_um).powi(2)
     } else {
@@ -1004,7 +1020,11 @@ pub fn apply(ds: &Dataset, cands: Vec<Candidate>, only_new: bool) -> Result<Appl
     } else {
         spec
     };
-    let score = if only_new { sc.space.score(&spec) } else { score };
+    let score = if only_new {
+        sc.space.score(&spec)
+    } else {
+        score
+    };
     let o = sc.space.fit(&prep, &spec, &score, &sc.base)?;
     let effects = if only_new {
         let mut m: Vec<EffectConfig> = model
@@ -1084,7 +1104,9 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         );
         let tie = (ka - kb).abs() < 0.002;
         b.5.cmp(&a.5).then(if tie {
-            a.4.delta_bic.total_cmp(&b.4.delta_bic).then(a.3.k.cmp(&b.3.k))
+            a.4.delta_bic
+                .total_cmp(&b.4.delta_bic)
+                .then(a.3.k.cmp(&b.3.k))
         } else {
             ka.total_cmp(&kb)
         })
@@ -1134,7 +1156,13 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         vec![]
     } else {
         let pred = move_prediction(ds, &prep, &sc.space, &left_spec, &left_o, false)?;
-        let resid: Vec<f64> = prep.art.residual.iter().zip(&pred).map(|(e, d)| e + d).collect();
+        let resid: Vec<f64> = prep
+            .art
+            .residual
+            .iter()
+            .zip(&pred)
+            .map(|(e, d)| e + d)
+            .collect();
         super::structure::structure(ds, &prep, &resid)?
     };
     let npts = [

@@ -132,8 +132,11 @@ impl Runs<'_> {
     fn finish(&mut self) {
         if let Some(r) = self.current.take() {
             if r.track_n > 0 {
-                self.tracking
-                    .push((self.bag, r.seg_id, (r.track_ss / r.track_n as f64).sqrt() * 1e3));
+                self.tracking.push((
+                    self.bag,
+                    r.seg_id,
+                    (r.track_ss / r.track_n as f64).sqrt() * 1e3,
+                ));
             }
         }
         self.last_two = [None, None];
@@ -185,7 +188,11 @@ impl Runs<'_> {
         for (p, ctx) in out.points.iter().zip(&out.contexts) {
             let index = self.index;
             self.index += 1;
-            if self.current.as_ref().is_none_or(|r| r.seg_id != p.segment_id) {
+            if self
+                .current
+                .as_ref()
+                .is_none_or(|r| r.seg_id != p.segment_id)
+            {
                 self.finish();
                 self.start(p.segment_id);
             }
@@ -291,7 +298,14 @@ fn describe_drops(bag: &str, st: &crate::corrector::Stats) -> Option<String> {
     let reasons: Vec<String> = DropReason::ALL
         .iter()
         .filter(|r| st.dropped[**r as usize] > 0)
-        .map(|r| format!("{} {} ({})", st.dropped[*r as usize], r.name(), drop_advice(*r)))
+        .map(|r| {
+            format!(
+                "{} {} ({})",
+                st.dropped[*r as usize],
+                r.name(),
+                drop_advice(*r)
+            )
+        })
         .collect();
     Some(format!(
         "{bag}: the corrector dropped {dropped} of {total} samples: {}",
@@ -338,7 +352,9 @@ impl Default for BuildOptions {
 pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Dataset, LabError> {
     let mut model: Model = cal.build().map_err(LabError::Calibration)?;
     for s in &o.sensors {
-        let present = bags.iter().any(|b| b.samples.sensors().iter().any(|n| n == s));
+        let present = bags
+            .iter()
+            .any(|b| b.samples.sensors().iter().any(|n| n == s));
         if present {
             model.sensors.slot(s).map_err(LabError::Data)?;
         }
@@ -423,7 +439,11 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
     }
     // An effect with parameters that contributed to no point of any bag: inactive for lack
     // of its signal (no arcs or curvature, no deflection, positions outside its table …).
-    let with_points: Vec<&Vec<String>> = inactive_in.iter().filter(|(p, _)| *p).map(|(_, v)| v).collect();
+    let with_points: Vec<&Vec<String>> = inactive_in
+        .iter()
+        .filter(|(p, _)| *p)
+        .map(|(_, v)| v)
+        .collect();
     if let Some(first) = with_points.first() {
         for e in first.iter() {
             if with_points.iter().all(|v| v.contains(e)) {

@@ -157,7 +157,13 @@ pub fn discover(
     cal.nominal = refit.nominal.clone();
     let mut ds = dataset::build(bags, &cal, &o.build)?;
     let mut prep = analysis::prepare(&ds)?;
-    version::describe(&mut cal, "lab discover step 0 (refit of the start)", ds.noise_floor_um, &p0, &prep);
+    version::describe(
+        &mut cal,
+        "lab discover step 0 (refit of the start)",
+        ds.noise_floor_um,
+        &p0,
+        &prep,
+    );
     let mut steps = vec![];
     let s0 = Step {
         index: 0,
@@ -196,19 +202,23 @@ pub fn discover(
         }
         // The best significant move that does not bring back a model the loop had.
         let moves = analysis::moves(&ds, &cal.effects);
-        let pick = dg.candidates.iter().filter(|c| c.significant).find_map(|c| {
-            let cand = moves
-                .iter()
-                .find(|m| m.effect == c.effect && m.action == c.action && m.replaces == c.replaces)?;
-            let mut next: Vec<EffectConfig> = cal
-                .effects
-                .iter()
-                .filter(|e| Some(e.id()) != cand.replaces)
-                .cloned()
-                .collect();
-            next.extend(cand.config.clone());
-            (!seen.contains(&signature(&next))).then(|| cand.clone())
-        });
+        let pick = dg
+            .candidates
+            .iter()
+            .filter(|c| c.significant)
+            .find_map(|c| {
+                let cand = moves.iter().find(|m| {
+                    m.effect == c.effect && m.action == c.action && m.replaces == c.replaces
+                })?;
+                let mut next: Vec<EffectConfig> = cal
+                    .effects
+                    .iter()
+                    .filter(|e| Some(e.id()) != cand.replaces)
+                    .cloned()
+                    .collect();
+                next.extend(cand.config.clone());
+                (!seen.contains(&signature(&next))).then(|| cand.clone())
+            });
         let Some(cand) = pick else {
             stopped = if dg.candidates.iter().any(|c| c.significant) {
                 "every significant move leads back to a model already tried".into()
@@ -258,7 +268,13 @@ pub fn discover(
                 .map(|r| format!(" (replaces {r})"))
                 .unwrap_or_default()
         );
-        version::describe(&mut next, &what, ds_next.noise_floor_um, &before, &prep_next);
+        version::describe(
+            &mut next,
+            &what,
+            ds_next.noise_floor_um,
+            &before,
+            &prep_next,
+        );
         let step = Step {
             index: steps.len(),
             action,

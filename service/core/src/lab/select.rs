@@ -172,7 +172,10 @@ pub fn folds(ds: &Dataset, prep: &Prepared) -> Vec<Option<u8>> {
         Default::default();
     for (i, p) in ds.points.iter().enumerate() {
         if prep.fit_mask[i] {
-            scans.entry(p.feature).or_default().insert((p.bag, p.segment));
+            scans
+                .entry(p.feature)
+                .or_default()
+                .insert((p.bag, p.segment));
         }
     }
     let mut scan_no: std::collections::BTreeMap<(usize, usize, u32), usize> = Default::default();
@@ -211,7 +214,11 @@ pub fn folds(ds: &Dataset, prep: &Prepared) -> Vec<Option<u8>> {
 
 impl Space {
     /// Accumulates the folds' normal equations of `blocks` (model blocks first).
-    pub fn build(ds: &Dataset, prep: &Prepared, blocks: Vec<(String, EffectConfig, bool)>) -> Result<Space, LabError> {
+    pub fn build(
+        ds: &Dataset,
+        prep: &Prepared,
+        blocks: Vec<(String, EffectConfig, bool)>,
+    ) -> Result<Space, LabError> {
         let art = &prep.art;
         let mut sensors = ds.sensors.clone();
         let mut models: Vec<Box<dyn Effect>> = vec![];
@@ -340,7 +347,12 @@ impl Space {
 
     /// Sum of the normal equations of grams `gs`, restricted to `cols` + placements, with the
     /// removed blocks' fixed change folded into the right-hand side.
-    fn system(&self, gs: &[usize], cols: &[usize], fixed: &[(usize, f64)]) -> (DMatrix<f64>, DVector<f64>, f64, usize) {
+    fn system(
+        &self,
+        gs: &[usize],
+        cols: &[usize],
+        fixed: &[(usize, f64)],
+    ) -> (DMatrix<f64>, DVector<f64>, f64, usize) {
         let idx: Vec<usize> = cols
             .iter()
             .copied()
@@ -378,12 +390,19 @@ impl Space {
 
     /// Adds the smoothness penalty of the fitted blocks (weights `lambda`, relative to the
     /// mean diagonal of each block's columns) to a system over `fitted` blocks.
-    fn penalise(&self, a: &mut DMatrix<f64>, b: &mut DVector<f64>, fitted: &[usize], lambda: &[f64]) {
+    fn penalise(
+        &self,
+        a: &mut DMatrix<f64>,
+        b: &mut DVector<f64>,
+        fitted: &[usize],
+        lambda: &[f64],
+    ) {
         let mut c0 = 0;
         for (bi, &blk) in fitted.iter().enumerate() {
             let block = &self.blocks[blk];
             if lambda[bi] > 0.0 && !block.smooth.is_empty() {
-                let diag: f64 = (0..block.n).map(|j| a[(c0 + j, c0 + j)]).sum::<f64>() / block.n as f64;
+                let diag: f64 =
+                    (0..block.n).map(|j| a[(c0 + j, c0 + j)]).sum::<f64>() / block.n as f64;
                 let w = lambda[bi] * diag.max(1e-300);
                 let p0 = block.config.params();
                 for row in &block.smooth {
@@ -396,7 +415,9 @@ impl Space {
                     }
                 }
             }
-            c0 += (block.off..block.off + block.n).filter(|c| !self.weak[*c]).count();
+            c0 += (block.off..block.off + block.n)
+                .filter(|c| !self.weak[*c])
+                .count();
         }
     }
 
@@ -428,8 +449,15 @@ impl Space {
     pub fn score(&self, spec: &Spec) -> Score {
         let cols = self.cols(&spec.fitted);
         let fixed = self.removal(spec);
-        let has_table = spec.fitted.iter().any(|&b| !self.blocks[b].smooth.is_empty());
-        let ladder: Vec<f64> = if has_table { SMOOTHNESS_LADDER.to_vec() } else { vec![0.0] };
+        let has_table = spec
+            .fitted
+            .iter()
+            .any(|&b| !self.blocks[b].smooth.is_empty());
+        let ladder: Vec<f64> = if has_table {
+            SMOOTHNESS_LADDER.to_vec()
+        } else {
+            vec![0.0]
+        };
         let cv_n = self.g[0].n + self.g[1].n;
         let folds: Vec<(usize, DMatrix<f64>, DVector<f64>)> = [(0usize, 1usize), (1, 0)]
             .into_iter()
@@ -444,7 +472,13 @@ impl Space {
             let lambda: Vec<f64> = spec
                 .fitted
                 .iter()
-                .map(|&b| if self.blocks[b].smooth.is_empty() { 0.0 } else { lam })
+                .map(|&b| {
+                    if self.blocks[b].smooth.is_empty() {
+                        0.0
+                    } else {
+                        lam
+                    }
+                })
                 .collect();
             for &ridge in &RIDGE_LADDER {
                 let mut ss = 0.0;
@@ -471,7 +505,13 @@ impl Space {
 
     /// Fits a candidate model on all fit points (with the smoothness `score` chose) and
     /// reports it as a [`FitOutcome`]: the fitted configs in `spec.fitted` order.
-    pub fn fit(&self, prep: &Prepared, spec: &Spec, score: &Score, base: &Score) -> Result<FitOutcome, LabError> {
+    pub fn fit(
+        &self,
+        prep: &Prepared,
+        spec: &Spec,
+        score: &Score,
+        base: &Score,
+    ) -> Result<FitOutcome, LabError> {
         let cols = self.cols(&spec.fitted);
         let fixed = self.removal(spec);
         let k = cols.len();
@@ -498,7 +538,9 @@ impl Space {
         let n_eff = (n as f64 * (1.0 - prep.rho) / (1.0 + prep.rho)).max(k as f64 + 2.0);
         let dof = (n as f64 - (k + self.n_nu) as f64).max(1.0);
         let sigma2 = ss1 / dof * (n as f64 / n_eff);
-        let bic = |ss: f64, kk: usize| n_eff * (ss.max(1e-30) / n.max(1) as f64).ln() + kk as f64 * n_eff.ln();
+        let bic = |ss: f64, kk: usize| {
+            n_eff * (ss.max(1e-30) / n.max(1) as f64).ln() + kk as f64 * n_eff.ln()
+        };
         let delta_bic = bic(ss1, k) - bic(ss0, 0);
         let mut configs = vec![];
         let mut params = vec![];
@@ -536,7 +578,13 @@ impl Space {
             configs.push(block.config.with_params(&cur).map_err(LabError::Data)?);
             params.push(ps);
         }
-        let rms = |ss: f64, n: usize| if n == 0 { 0.0 } else { (ss / n as f64).sqrt() * 1e3 };
+        let rms = |ss: f64, n: usize| {
+            if n == 0 {
+                0.0
+            } else {
+                (ss / n as f64).sqrt() * 1e3
+            }
+        };
         let explained = if base.cv_ss > 0.0 {
             ((base.cv_ss - score.cv_ss) / base.cv_ss).max(0.0)
         } else {
@@ -555,7 +603,11 @@ impl Space {
             explained_component_um: rms((base.cv_ss - score.cv_ss).max(0.0), score.cv_n),
             cv_rms_before_um: base.rms_um(),
             cv_rms_after_um: score.rms_um(),
-            delta_bic: if delta_bic.is_finite() { delta_bic } else { 0.0 },
+            delta_bic: if delta_bic.is_finite() {
+                delta_bic
+            } else {
+                0.0
+            },
             predicted: vec![],
         })
     }
@@ -563,7 +615,11 @@ impl Space {
 
 /// The change of the correction along the normal per point (for confounding checks and the
 /// residual a move leaves): Σ Δθ·g·r over `(config, Δθ)` pairs.
-pub fn predicted(ds: &Dataset, prep: &Prepared, pairs: &[(EffectConfig, Vec<f64>)]) -> Result<Vec<f64>, LabError> {
+pub fn predicted(
+    ds: &Dataset,
+    prep: &Prepared,
+    pairs: &[(EffectConfig, Vec<f64>)],
+) -> Result<Vec<f64>, LabError> {
     let mut sensors = ds.sensors.clone();
     let mut built = vec![];
     for (c, d) in pairs {
@@ -613,14 +669,21 @@ fn pinv(m: &DMatrix<f64>) -> DMatrix<f64> {
 fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>, k_fx: usize, ridge: f64) -> DVector<f64> {
     let k = b.len();
     let s: Vec<f64> = (0..k)
-        .map(|i| if a[(i, i)] > 0.0 { 1.0 / a[(i, i)].sqrt() } else { 0.0 })
+        .map(|i| {
+            if a[(i, i)] > 0.0 {
+                1.0 / a[(i, i)].sqrt()
+            } else {
+                0.0
+            }
+        })
         .collect();
     let mut m = DMatrix::zeros(k, k);
     for i in 0..k {
         for j in 0..k {
             m[(i, j)] = a[(i, j)] * s[i] * s[j];
         }
-        m[(i, i)] += if i < k_fx { ridge.max(1e-9) } else { 1e-9 } + if s[i] == 0.0 { 1.0 } else { 0.0 };
+        m[(i, i)] +=
+            if i < k_fx { ridge.max(1e-9) } else { 1e-9 } + if s[i] == 0.0 { 1.0 } else { 0.0 };
     }
     let rhs = DVector::from_iterator(k, (0..k).map(|i| -b[i] * s[i]));
     let z = match nalgebra::Cholesky::new(m.clone()) {
@@ -709,13 +772,22 @@ mod tests {
     fn a_real_table_wins_on_cross_validation_and_a_spurious_one_does_not() {
         let ds = straightedge();
         let prep = prepare(&ds).unwrap();
-        let guide = EffectConfig::GuideStraightness(guide_straightness::Config::zeros(Axis::X, 250.0, 750.0, 26, false));
+        let guide = EffectConfig::GuideStraightness(guide_straightness::Config::zeros(
+            Axis::X,
+            250.0,
+            750.0,
+            26,
+            false,
+        ));
         let two = EffectConfig::Custom(custom::Config {
             id: "two".into(),
             dynamic: false,
             terms: ["(x/500)^2", "(x/500)^3"]
                 .iter()
-                .map(|e| custom::Term { axis: Axis::Y, expr: e.to_string() })
+                .map(|e| custom::Term {
+                    axis: Axis::Y,
+                    expr: e.to_string(),
+                })
                 .collect(),
             coefficients: vec![0.0; 2],
         });
@@ -726,15 +798,52 @@ mod tests {
         )
         .unwrap();
         let base = space.score(&Spec::default());
-        let g = space.score(&Spec { fitted: vec![0], removed: vec![] });
-        let t = space.score(&Spec { fitted: vec![1], removed: vec![] });
+        let g = space.score(&Spec {
+            fitted: vec![0],
+            removed: vec![],
+        });
+        let t = space.score(&Spec {
+            fitted: vec![1],
+            removed: vec![],
+        });
         let (rb, rg, rt) = (base.rms_um(), g.rms_um(), t.rms_um());
-        assert!(rg < 0.13, "the guide table predicts the other scans to the noise: {rg} µm (before {rb})");
-        assert!(rt > 2.0 * rg, "two terms cannot follow the profile: {rt} vs {rg} µm");
+        assert!(
+            rg < 0.13,
+            "the guide table predicts the other scans to the noise: {rg} µm (before {rb})"
+        );
+        assert!(
+            rt > 2.0 * rg,
+            "two terms cannot follow the profile: {rt} vs {rg} µm"
+        );
         assert!(g.lambda[0] > 0.0, "tables are smoothed");
-        let o = space.fit(&prep, &Spec { fitted: vec![0], removed: vec![] }, &g, &base).unwrap();
-        let o2 = space.fit(&prep, &Spec { fitted: vec![1], removed: vec![] }, &t, &base).unwrap();
-        assert!(o.explained > 0.5 && o.explained > o2.explained, "{} vs {}", o.explained, o2.explained);
+        let o = space
+            .fit(
+                &prep,
+                &Spec {
+                    fitted: vec![0],
+                    removed: vec![],
+                },
+                &g,
+                &base,
+            )
+            .unwrap();
+        let o2 = space
+            .fit(
+                &prep,
+                &Spec {
+                    fitted: vec![1],
+                    removed: vec![],
+                },
+                &t,
+                &base,
+            )
+            .unwrap();
+        assert!(
+            o.explained > 0.5 && o.explained > o2.explained,
+            "{} vs {}",
+            o.explained,
+            o2.explained
+        );
         assert!(o.params.iter().flatten().all(|p| p.value.is_finite()));
 
         // Noise only: the table gains nothing worth half the noise floor on the other scans.
@@ -748,11 +857,23 @@ mod tests {
             p.surface = nominal + n * (off - n.y * profile);
         }
         let prep = prepare(&quiet).unwrap();
-        let guide = EffectConfig::GuideStraightness(guide_straightness::Config::zeros(Axis::X, 250.0, 750.0, 26, false));
+        let guide = EffectConfig::GuideStraightness(guide_straightness::Config::zeros(
+            Axis::X,
+            250.0,
+            750.0,
+            26,
+            false,
+        ));
         let space = Space::build(&quiet, &prep, vec![("guide".into(), guide, false)]).unwrap();
         let base = space.score(&Spec::default());
-        let g = space.score(&Spec { fitted: vec![0], removed: vec![] });
+        let g = space.score(&Spec {
+            fitted: vec![0],
+            removed: vec![],
+        });
         let gain_um = ((base.cv_ss - g.cv_ss).max(0.0) / g.cv_n as f64).sqrt() * 1e3;
-        assert!(gain_um < 0.05, "a table fitted to noise gains {gain_um} µm on the other scans");
+        assert!(
+            gain_um < 0.05,
+            "a table fitted to noise gains {gain_um} µm on the other scans"
+        );
     }
 }

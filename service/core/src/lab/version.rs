@@ -18,7 +18,13 @@ pub fn next(parent: &Calibration, effects: Vec<EffectConfig>, created: &str) -> 
 
 /// Sets the note (`what`, then held-out and fit RMS before → after) and the metrics of a new
 /// version from the parent's figures (`before`) and its own, measured (`after`).
-pub fn describe(c: &mut Calibration, what: &str, noise_floor_um: f64, before: &Prepared, after: &Prepared) {
+pub fn describe(
+    c: &mut Calibration,
+    what: &str,
+    noise_floor_um: f64,
+    before: &Prepared,
+    after: &Prepared,
+) {
     c.note = format!(
         "{what}: held-out RMS {:.3} → {:.3} µm (fit {:.3} → {:.3} µm)",
         before.rms_held_um, after.rms_held_um, before.rms_fit_um, after.rms_fit_um
