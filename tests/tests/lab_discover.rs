@@ -3,7 +3,8 @@
 //! default machine, and nothing missing.
 //!
 //! Every case starts from what a user has: the nominal model (time constants off by 30 %,
-//! catalogue stylus lengths) or a calibration the lab fitted. The simulator's truth is read
+//! the styli at their qualified lengths, which `calibrate_tips` tests) or a calibration the lab
+//! fitted. The simulator's truth is read
 //! only to judge (the set of active effects, the noise floor is the lab's own estimate).
 
 mod common;

@@ -4,7 +4,8 @@
 //! 1. Simulate the calibration campaign on machine m1 (every effect of the library active in
 //!    the machine) and a held-out `ring-speeds` run at a position the campaign did not use.
 //! 2. The starting calibration is the machine's nominal model only: the data sheet's axis time
-//!    constants (30 % off) and catalogue stylus lengths, no effects.
+//!    constants (30 % off), the styli at their qualified lengths (here the
+//!    simulator's: `scancorr calibrate tips` measures them on a machine), no effects.
 //! 3. Compare it with the artifacts: where it fails.
 //! 4. `lab discover`: refit the nominal model, then diagnose, add (swap, drop) the best
 //!    candidate and refit everything until nothing significant is left; each step a version.
@@ -113,7 +114,7 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
             *tau_s *= 1.3;
         }
     }
-    start.note = "nominal model: data-sheet time constants, catalogue styli, no effects".into();
+    start.note = "nominal model: data-sheet time constants, qualified styli, no effects".into();
     crate::output::write_file("v1.json", &p("v1.json"), start.to_json())?;
     say(format!(
         "\n2. the start: the nominal model only ({} styli, time constants from the data sheet), no effects",

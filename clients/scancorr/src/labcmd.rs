@@ -159,7 +159,7 @@ pub struct DataArgs {
     stride: usize,
 }
 
-const SENSORS: [&str; 5] = ["stylus", "scale_x", "scale_y", "scale_z", "air"];
+pub(crate) const SENSORS: [&str; 5] = ["stylus", "scale_x", "scale_y", "scale_z", "air"];
 
 /// Loads bags for the lab.
 pub fn load_bags(paths: &[PathBuf], validation: &[PathBuf], machine: &str) -> Result<Vec<BagData>> {
@@ -225,7 +225,7 @@ fn dataset_for(l: &Loaded, cal: &Calibration) -> Result<Dataset> {
     Ok(ds)
 }
 
-fn now_rfc3339() -> String {
+pub(crate) fn now_rfc3339() -> String {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs())
@@ -266,7 +266,7 @@ impl DataArgs {
 
 /// Refuses outputs that are inputs (or each other), then prepares every output (a temporary
 /// file next to each, so an unwritable folder fails before the work).
-fn outputs<const N: usize>(
+pub(crate) fn outputs<const N: usize>(
     outs: [(&str, Option<&Path>); N],
     inputs: &[(&str, &Path)],
 ) -> Result<[Option<AtomicOutput>; N]> {
@@ -283,7 +283,7 @@ fn outputs<const N: usize>(
 }
 
 /// Writes `text` to a prepared output.
-fn put(o: &Option<AtomicOutput>, text: impl AsRef<[u8]>) -> Result<()> {
+pub(crate) fn put(o: &Option<AtomicOutput>, text: impl AsRef<[u8]>) -> Result<()> {
     if let Some(o) = o {
         o.write_all(text)?;
     }

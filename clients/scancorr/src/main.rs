@@ -10,6 +10,7 @@ mod bench;
 mod benchfleet;
 mod benchlive;
 mod bus;
+mod calibcmd;
 mod demo;
 mod labcmd;
 mod offline;
@@ -69,6 +70,9 @@ enum Cmd {
     /// The model lab: compare, diagnose, add, fit, history.
     #[command(subcommand)]
     Lab(labcmd::LabCmd),
+    /// Measuring procedures: measured parameters, with uncertainties, into a new version.
+    #[command(subcommand)]
+    Calibrate(calibcmd::CalibrateCmd),
     /// A machine's status in scancorrd (samples, points, drops, alarms, version, stalls).
     Status {
         /// Machine.
@@ -146,7 +150,7 @@ enum Cmd {
 
 #[derive(clap::Args)]
 struct SimCli {
-    /// Scan program: ring, ring-speeds, campaign, part.
+    /// Scan program: ring, ring-speeds, campaign, part, dynamics, tips.
     #[arg(long, default_value = "ring")]
     program: String,
     /// Seed of the run (noise, temperatures).
@@ -424,6 +428,7 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Cmd::Lab(c) => labcmd::run(c),
+        Cmd::Calibrate(c) => calibcmd::run(c),
         Cmd::Proto { out } => {
             output::write_file("--out", &out, scancorr_proto::FILE_DESCRIPTOR_SET)?;
             eprintln!(

@@ -154,6 +154,24 @@ pub struct Truth {
     pub temperatures: BTreeMap<String, [f64; 2]>,
     /// The calibration with every effect at its true parameters.
     pub true_calibration: Calibration,
+    /// The true parameters under the names the calibration procedures print
+    /// (`tip2.l1_mm`, `tip1.radius_mm`, `tip2.alpha_per_k`, …).
+    pub params: BTreeMap<String, f64>,
+}
+
+/// The true parameters of `m` under the names `scancorr calibrate` prints.
+pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
+    let mut p = BTreeMap::new();
+    for s in &m.styli {
+        let t = format!("tip{}", s.id);
+        p.insert(format!("{t}.l1_mm"), s.l1_mm);
+        if s.l2_mm > 0.0 {
+            p.insert(format!("{t}.l2_mm"), s.l2_mm);
+        }
+        p.insert(format!("{t}.radius_mm"), s.radius_mm);
+        p.insert(format!("{t}.alpha_per_k"), s.alpha_per_k);
+    }
+    p
 }
 
 /// A fault's onset.
@@ -229,8 +247,9 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
         .flatten()
         .for_each(|c| *c *= k("servo_phase"));
     m.arc_gain_s2.iter_mut().for_each(|c| *c *= k("servo_gain"));
-    m.stylus_alpha *= k("stylus_thermal");
-    m.bent_alpha *= k("stylus_thermal");
+    m.styli
+        .iter_mut()
+        .for_each(|s| s.alpha_per_k *= k("stylus_thermal"));
     m.scale_alpha
         .iter_mut()
         .for_each(|c| *c *= k("scale_thermal"));
@@ -326,9 +345,9 @@ pub fn calibration_for(
     if on("stylus_thermal") {
         c.effects
             .push(EffectConfig::StylusThermal(fx::stylus_thermal::Config {
-                alpha_shank_per_k: m.stylus_alpha,
-                alpha_bent_per_k: Some(m.bent_alpha),
-                ..fx::stylus_thermal::Config::zeros(true)
+                alpha_shank_per_k: m.styli[0].alpha_per_k,
+                alpha_per_tip: m.styli.iter().map(|s| (s.id, s.alpha_per_k)).collect(),
+                ..fx::stylus_thermal::Config::zeros(false)
             }));
     }
     if on("scale_thermal") {
@@ -598,8 +617,7 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         let stylus = m.stylus(seg.tip).expect("known tip");
         let (shank, bent) = stylus.limbs();
         let dts = t_stylus - 20.0;
-        let offset_true =
-            rot * (shank * (1.0 + m.stylus_alpha * dts) + bent * (1.0 + m.bent_alpha * dts));
+        let offset_true = rot * (shank + bent) * (1.0 + stylus.alpha_per_k * dts);
         // Displacement e of the probe body relative to the carriage the scales measure.
         let mut e = V3::from(st.d);
         if arc_r > 0.0 {
@@ -768,6 +786,7 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             effects: factors,
             noise_floor_um: m.noise.point_sigma_mm() * 1e3,
             features: plan.features.clone(),
+            params: procedure_params(&m),
             machine: m,
             faults,
             temperatures: t_range,

@@ -64,6 +64,8 @@ pub struct Stylus {
     pub l2_mm: f64,
     /// Bend angle of the limb, degrees.
     pub beta1_deg: f64,
+    /// Expansion coefficient of the whole stylus (one material), 1/K.
+    pub alpha_per_k: f64,
 }
 
 impl Stylus {
@@ -75,6 +77,32 @@ impl Stylus {
             self.l2_mm * V3::new(b.sin(), 0.0, -b.cos()),
         )
     }
+}
+
+/// The styli as the catalogue lists them (what a user starts from): a 50 mm carbon-fibre
+/// reference stylus and a steel crank of 40 mm + 40 mm at 90°; the expansion coefficients are
+/// the materials' data-sheet values.
+pub fn catalogue_styli() -> Vec<Stylus> {
+    vec![
+        Stylus {
+            id: 1,
+            probe: "sp25".into(),
+            l1_mm: 50.0,
+            radius_mm: 1.5,
+            l2_mm: 0.0,
+            beta1_deg: 0.0,
+            alpha_per_k: 2.0e-6,
+        },
+        Stylus {
+            id: 2,
+            probe: "sp25".into(),
+            l1_mm: 40.0,
+            radius_mm: 1.0,
+            l2_mm: 40.0,
+            beta1_deg: 90.0,
+            alpha_per_k: 11.5e-6,
+        },
+    ]
 }
 
 /// Sensor noise and resolution.
@@ -125,10 +153,6 @@ pub struct TrueMachine {
     pub arc_phase: [[f64; 2]; 2],
     /// Arc gain per axis, derived from the structure: g_i(f) = γ_i (2πf)², γ in s².
     pub arc_gain_s2: [f64; 3],
-    /// Stylus shank expansion, 1/K.
-    pub stylus_alpha: f64,
-    /// Bent-limb expansion, 1/K.
-    pub bent_alpha: f64,
     /// Scale expansion per axis, 1/K (zero points at 0).
     pub scale_alpha: [f64; 3],
     /// Stylus bending per probe axis, mm per mm of deflection.
@@ -498,8 +522,6 @@ impl TrueMachine {
                 jitter(&mut r, -12.0e-6, 0.2),
                 0.0,
             ],
-            stylus_alpha: jitter(&mut r, 11.5e-6, 0.1),
-            bent_alpha: jitter(&mut r, 23.0e-6, 0.1),
             scale_alpha: [
                 jitter(&mut r, 10.5e-6, 0.1),
                 jitter(&mut r, 10.5e-6, 0.1),
@@ -520,24 +542,26 @@ impl TrueMachine {
                 phase: r.range(0.0, std::f64::consts::TAU),
             },
             backlash_mm: jitter(&mut r, 3.0e-3, 0.2),
-            styli: vec![
-                Stylus {
-                    id: 1,
-                    probe: "sp25".into(),
-                    l1_mm: 50.0,
-                    radius_mm: 1.5,
-                    l2_mm: 0.0,
-                    beta1_deg: 0.0,
-                },
-                Stylus {
-                    id: 2,
-                    probe: "sp25".into(),
-                    l1_mm: 40.0,
-                    radius_mm: 1.0,
-                    l2_mm: 40.0,
-                    beta1_deg: 90.0,
-                },
-            ],
+            // As built: lengths and radii off their catalogue values by a few tens and a few
+            // µm, each stylus of one material (a carbon-fibre reference, a steel crank).
+            styli: {
+                let mut r = Rng::new(seed, "styli");
+                let mut off = |mm: f64| mm * r.range(-1.0, 1.0);
+                catalogue_styli()
+                    .into_iter()
+                    .map(|c| Stylus {
+                        l1_mm: c.l1_mm + off(0.05),
+                        radius_mm: c.radius_mm + off(1.5e-3),
+                        l2_mm: if c.l2_mm > 0.0 {
+                            c.l2_mm + off(0.05)
+                        } else {
+                            0.0
+                        },
+                        alpha_per_k: c.alpha_per_k * (1.0 + off(0.1)),
+                        ..c
+                    })
+                    .collect()
+            },
             noise: Noise {
                 scale_sigma_mm: 0.06e-3,
                 scale_resolution_mm: 0.05e-3,

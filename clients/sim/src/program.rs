@@ -255,7 +255,14 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 4] = ["ring", "ring-speeds", "campaign", "part"];
+pub const PROGRAMS: [&str; 6] = [
+    "ring",
+    "ring-speeds",
+    "campaign",
+    "part",
+    "dynamics",
+    "tips",
+];
 
 struct Builder<'a> {
     m: &'a TrueMachine,
@@ -371,6 +378,25 @@ impl<'a> Builder<'a> {
             radius: nominal_r,
             start,
             sweep,
+        };
+        self.scan(path, speed, ramp, fid, defl);
+    }
+    /// A circle on a sphere (a boss feature) at latitude `lat_deg` of the tip centre: one turn
+    /// plus the ramps, the tip pressed in by `defl` along the sphere's radius.
+    fn sphere_circle(&mut self, fid: u32, speed: f64, dir: f64, defl: f64, lat_deg: f64) {
+        let f = self.features[fid as usize - 1].clone();
+        let r_tip = self.stylus(self.tip).radius_mm;
+        let off = self.offset(self.tip, self.a1, self.a2);
+        let rho = f.nominal_diameter_mm / 2.0 + r_tip - defl;
+        let lat = lat_deg.to_radians();
+        let (h, radius) = (rho * lat.sin(), rho * lat.cos());
+        let center = f.c() + V3::new(0.0, 0.0, h) - off;
+        let ramp = (speed / 150.0).max(0.4);
+        let path = Path::Arc {
+            center,
+            radius,
+            start: 0.0,
+            sweep: dir * (TAU + speed * ramp / radius),
         };
         self.scan(path, speed, ramp, fid, defl);
     }
@@ -514,6 +540,60 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 b.face_line(se, -380.0, 380.0, 50.0, 0.3);
             }
             b.set_tip(1, 0.0, 0.0);
+        }
+        "dynamics" => {
+            // The ring-gauge procedure: one ring set up in turn at 7 positions along X, 5
+            // along Y and 4 along Z (the others at mid-travel), each scanned once per speed in
+            // both directions, spin-up and slow-down included.
+            let base = position.unwrap_or(V3::new(500.0, 400.0, -280.0));
+            let mut places = vec![];
+            for x in [150.0, 270.0, 390.0, 500.0, 620.0, 740.0, 860.0] {
+                places.push(V3::new(x, base.y, base.z));
+            }
+            for y in [150.0, 280.0, 520.0, 650.0] {
+                places.push(V3::new(base.x, y, base.z));
+            }
+            for z in [-130.0, -200.0, -360.0, -430.0] {
+                places.push(V3::new(base.x, base.y, z));
+            }
+            for (i, p) in places.iter().enumerate() {
+                let f = b.feature(ring_feature(*p, 0.3 + 0.7 * i as f64));
+                for v in [15.0, 40.0, 80.0] {
+                    b.circle(f, v, 1.0, 0.3, 0.0);
+                    b.circle(f, v, -1.0, 0.3, PI);
+                }
+            }
+        }
+        "tips" => {
+            // Qualification on the master sphere: the reference stylus (tip 1), then the crank
+            // (tip 2) at four head angles, the reference again after each, so its drift (the
+            // scales' and the styli's growth as the room warms) can be followed; three
+            // latitudes per setting fix the centre in z.
+            let sphere = b.feature(Feature {
+                id: 0,
+                artifact: "sphere".into(),
+                kind: FeatureKind::Boss,
+                center: position.unwrap_or(V3::new(620.0, 220.0, -360.0)).into(),
+                radius_mm: 25.0004 / 2.0,
+                nominal_diameter_mm: 25.0,
+                certificate_diameter_mm: Some(25.0004),
+                normal: [0.0; 3],
+                form: vec![[2.0, 0.01e-3, 0.2]],
+            });
+            let reference = |b: &mut Builder| {
+                b.set_tip(1, 0.0, 0.0);
+                for lat in [-30.0, 0.0, 30.0] {
+                    b.sphere_circle(sphere, 20.0, 1.0, 0.3, lat);
+                }
+            };
+            reference(&mut b);
+            for a1 in [0.0, 90.0, 180.0, 270.0] {
+                b.set_tip(2, a1, 0.0);
+                for lat in [-30.0, 0.0, 30.0] {
+                    b.sphere_circle(sphere, 20.0, 1.0, 0.3, lat);
+                }
+                reference(&mut b);
+            }
         }
         "part" => {
             let base = position.unwrap_or(V3::new(450.0, 350.0, -280.0));

@@ -23,6 +23,7 @@
 
 pub mod biquad;
 pub mod calib;
+pub mod calibrate;
 pub mod corrector;
 pub mod effects;
 pub mod estimator;

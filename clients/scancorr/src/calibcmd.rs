@@ -1,0 +1,195 @@
+//! `scancorr calibrate …`: the measuring procedures' I/O — reading the bags and the starting
+//! calibration, printing every parameter with its uncertainty, writing the new version. The
+//! logic is `scancorr_core::calibrate`.
+
+use crate::labcmd::{load_bags, now_rfc3339, outputs, put, SENSORS};
+use crate::offline;
+use crate::output::commit_all;
+use anyhow::{Context, Result};
+use clap::Subcommand;
+use scancorr_core::calibrate::{tips, Param};
+use scancorr_core::lab::dataset::{self, BuildOptions};
+use scancorr_core::lab::version;
+use std::path::PathBuf;
+
+#[derive(Subcommand)]
+pub enum CalibrateCmd {
+    /// Qualify the styli on a master sphere: the offset of each tip and head angle from the
+    /// reference tip gives the stylus lengths, the sphere's apparent size each tip's effective
+    /// radius, the drift with temperature each stylus's expansion coefficient.
+    Tips {
+        /// Bags of the qualification (the master sphere measured by every tip).
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (catalogue styli or an earlier qualification).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// The reference tip (default: the lowest tip id measured at head angles 0, 0).
+        #[arg(long)]
+        reference_tip: Option<u32>,
+        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `settings`, …).
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn print_param(p: &Param) -> String {
+    let (scale, unit) = if p.name.ends_with("_mm") {
+        (1.0, "mm")
+    } else if p.name.ends_with("_per_k") {
+        (1e6, "ppm/K")
+    } else {
+        (1.0, "")
+    };
+    let digits = if unit == "mm" { 5 } else { 3 };
+    format!(
+        "  {:<20} {:>12.digits$} ± {:.digits$} {unit}",
+        p.name,
+        p.value * scale,
+        p.sigma * scale
+    )
+}
+
+/// Runs a procedure.
+pub fn run(cmd: CalibrateCmd) -> Result<()> {
+    match cmd {
+        CalibrateCmd::Tips {
+            bag,
+            calib,
+            out,
+            reference_tip,
+            json,
+        } => {
+            let mut inputs = vec![("--calib", calib.as_path())];
+            inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
+            let [out_file] = outputs([("--out", Some(out.as_path()))], &inputs)?;
+            let start = offline::load_calibration(&calib)?;
+            let bags = load_bags(&bag, &[], &start.machine_id)?;
+            let opts = BuildOptions {
+                stride: 1,
+                holdout_by_segment: false,
+                artifact: None,
+                sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
+            };
+            // The stylus thermal correction is what this procedure measures: the points are
+            // taken without it.
+            let mut bare = start.clone();
+            bare.effects.retain(|e| e.kind() != "stylus_thermal");
+            let ds = dataset::build(&bags, &bare, &opts)?;
+            for w in &ds.warnings {
+                eprintln!("warning: {w}");
+            }
+            let outcome = tips::run(&ds, &start, reference_tip)?;
+            let mut new =
+                version::next(&start, outcome.calibration.effects.clone(), &now_rfc3339());
+            new.geometry = outcome.calibration.geometry.clone();
+            // The same bags corrected with the new version: what the qualification leaves.
+            let after = tips::run(
+                &dataset::build(&bags, &new, &opts)?,
+                &new,
+                Some(outcome.reference_tip),
+            )
+            .map(|o| o.consistency_before_um)
+            .ok();
+            new.note = format!(
+                "calibrate tips (reference tip {}): tip-to-tip consistency {:.3} µm → {} on the \
+                 qualification",
+                outcome.reference_tip,
+                outcome.consistency_before_um,
+                after.map_or("—".into(), |a| format!("{a:.3} µm"))
+            );
+            new.metrics = [
+                (
+                    "tip_consistency_before_um".to_string(),
+                    outcome.consistency_before_um,
+                ),
+                ("tip_fit_residual_um".to_string(), outcome.residual_rms_um),
+                ("noise_floor_um".to_string(), ds.noise_floor_um),
+            ]
+            .into_iter()
+            .chain(after.map(|a| ("tip_consistency_after_um".to_string(), a)))
+            .collect();
+            new.build().context("the qualified calibration")?;
+            put(&out_file, new.to_json())?;
+            commit_all([out_file])?;
+            if json {
+                let params: serde_json::Map<String, serde_json::Value> = outcome
+                    .params
+                    .iter()
+                    .map(|p| (p.name.clone(), p.value.into()))
+                    .collect();
+                let sigma: serde_json::Map<String, serde_json::Value> = outcome
+                    .params
+                    .iter()
+                    .map(|p| (p.name.clone(), p.sigma.into()))
+                    .collect();
+                let mut v = serde_json::to_value(&outcome)?;
+                v["params"] = params.into();
+                v["uncertainty"] = sigma.into();
+                v["consistency_after_um"] = after.into();
+                v["noise_floor_um"] = ds.noise_floor_um.into();
+                v["version"] = new.version.into();
+                v["parent_version"] = start.version.into();
+                v["out"] = out.display().to_string().into();
+                outln!("{}", serde_json::to_string_pretty(&v)?)?;
+            } else {
+                outln!(
+                    "qualified {} settings on the master sphere (reference tip {}{})",
+                    outcome.settings.len(),
+                    outcome.reference_tip,
+                    outcome.reference_temp_c.map_or(String::new(), |t| format!(
+                        ", at {t:.2} °C, range {:.2} K",
+                        outcome.temp_range_k
+                    ))
+                )?;
+                outln!("  setting            offset from the reference (µm)      left (µm)")?;
+                for s in &outcome.settings {
+                    if s.tip == outcome.reference_tip {
+                        continue;
+                    }
+                    outln!(
+                        "  tip {} A1 {:>5.1}° A2 {:>5.1}°  ({:>8.3} {:>8.3} {:>8.3})  ({:>6.3} {:>6.3} {:>6.3})",
+                        s.tip, s.head_deg[0], s.head_deg[1], s.offset_um[0], s.offset_um[1],
+                        s.offset_um[2], s.residual_um[0], s.residual_um[1], s.residual_um[2]
+                    )?;
+                }
+                outln!("parameters (± standard uncertainty):")?;
+                for p in &outcome.params {
+                    outln!("{}", print_param(p))?;
+                }
+                outln!(
+                    "  offsets rotated at the sphere's position (µrad, the machine's angular errors there or the head's): {}",
+                    outcome
+                        .rotation
+                        .iter()
+                        .map(|p| format!("{:.1} ± {:.1}", p.value * 1e6, p.sigma * 1e6))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )?;
+                for u in &outcome.undetermined {
+                    outln!("  not determined: {u}")?;
+                }
+                for n in &outcome.notes {
+                    outln!("  note: {n}")?;
+                }
+                outln!(
+                    "tip-to-tip consistency: {:.3} µm with the starting calibration, {} with the new one (noise floor {:.3} µm); fit residual {:.3} µm",
+                    outcome.consistency_before_um,
+                    after.map_or("—".into(), |a| format!("{a:.3} µm")),
+                    ds.noise_floor_um,
+                    outcome.residual_rms_um
+                )?;
+                outln!(
+                    "→ {} (version {}, parent {})",
+                    out.display(),
+                    new.version,
+                    start.version
+                )?;
+            }
+            Ok(())
+        }
+    }
+}

@@ -1,0 +1,199 @@
+//! `scancorr calibrate tips` end to end: the simulator's `tips` program on a machine no other
+//! test uses, qualified from a nominal calibration with the catalogue's styli. The truth file is
+//! read only to judge.
+
+mod common;
+use common::*;
+
+fn json(s: &str) -> serde_json::Value {
+    serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
+}
+
+const HIDE: [&str; 7] = [
+    "accel_deflection",
+    "servo_phase",
+    "servo_gain",
+    "stylus_thermal",
+    "scale_thermal",
+    "probe_force",
+    "guide_straightness",
+];
+
+/// A nominal calibration: no effects, data-sheet time constants (30 % off), catalogue styli.
+fn nominal(dir: &std::path::Path, from: &str, to: &str) {
+    let mut c = json(&std::fs::read_to_string(dir.join(from)).unwrap());
+    for ax in c["nominal"]["axes"].as_object_mut().unwrap().values_mut() {
+        let t = ax["tau_s"].as_f64().unwrap();
+        ax["tau_s"] = (t * 1.3).into();
+    }
+    let cat = scancorr_sim::machine::catalogue_styli();
+    for t in c["geometry"]["tips"].as_array_mut().unwrap() {
+        let id = t["id"].as_u64().unwrap() as u32;
+        let s = cat.iter().find(|s| s.id == id).unwrap();
+        t["l1_mm"] = s.l1_mm.into();
+        t["l2_mm"] = s.l2_mm.into();
+        t["radius_mm"] = s.radius_mm.into();
+    }
+    assert!(c["effects"].as_array().unwrap().is_empty());
+    std::fs::write(dir.join(to), serde_json::to_string_pretty(&c).unwrap()).unwrap();
+}
+
+fn sim_tips(dir: &std::path::Path, seed: &str, out: &str, extra: &[&str]) {
+    let mut a = vec![
+        "sim",
+        "--program",
+        "tips",
+        "--machine-seed",
+        "17",
+        "--seed",
+        seed,
+        "--out",
+        out,
+    ];
+    a.extend_from_slice(extra);
+    ok(dir, &a);
+}
+
+#[test]
+fn tips_qualifies_the_styli_from_the_catalogue() {
+    let dir = scratch("calibrate-tips");
+    let mut extra = vec!["--calib-out", "start.json", "--truth", "truth.json"];
+    for h in HIDE {
+        extra.extend(["--hide", h]);
+    }
+    sim_tips(&dir, "1", "t1.mcap", &extra);
+    nominal(&dir, "start.json", "catalogue.json");
+    let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
+    let tp = &truth["params"];
+    let r = json(&ok(
+        &dir,
+        &[
+            "calibrate",
+            "tips",
+            "--bag",
+            "t1.mcap",
+            "--calib",
+            "catalogue.json",
+            "--out",
+            "q.json",
+            "--json",
+        ],
+    ));
+    let (p, u) = (&r["params"], &r["uncertainty"]);
+    // Every parameter is named as the truth names it, with a finite, positive σ.
+    for (name, v) in p.as_object().unwrap() {
+        assert!(tp.get(name).is_some(), "{name} is not a truth name: {tp:#}");
+        let s = u[name].as_f64().unwrap();
+        assert!(
+            v.as_f64().unwrap().is_finite() && s.is_finite() && s > 0.0,
+            "{name}"
+        );
+    }
+    let val = |n: &str| p[n].as_f64().unwrap_or_else(|| panic!("no {n}: {r:#}"));
+    let sig = |n: &str| u[n].as_f64().unwrap();
+    let truth_of = |n: &str| tp[n].as_f64().unwrap();
+    // The reference's length is not determined (it is the zero); the crank's lengths are
+    // relative to it: judge l1 as the difference from the reference's.
+    let cat1 = scancorr_sim::machine::catalogue_styli()[0].l1_mm;
+    let checks = [
+        ("tip2.l2_mm", val("tip2.l2_mm"), truth_of("tip2.l2_mm")),
+        (
+            "tip2.l1_mm − tip1.l1_mm",
+            val("tip2.l1_mm") - cat1,
+            truth_of("tip2.l1_mm") - truth_of("tip1.l1_mm"),
+        ),
+        (
+            "tip1.radius_mm",
+            val("tip1.radius_mm"),
+            truth_of("tip1.radius_mm"),
+        ),
+        (
+            "tip2.radius_mm",
+            val("tip2.radius_mm"),
+            truth_of("tip2.radius_mm"),
+        ),
+        (
+            "tip2.alpha_per_k",
+            val("tip2.alpha_per_k"),
+            truth_of("tip2.alpha_per_k"),
+        ),
+    ];
+    for (name, got, want) in checks {
+        let s = if name.contains('−') {
+            sig("tip2.l1_mm")
+        } else {
+            sig(name)
+        };
+        eprintln!("{name}: {got:.6} ± {s:.6} (truth {want:.6})");
+        assert!(
+            (got - want).abs() <= (3.0 * s).max(0.05 * want.abs()),
+            "{name}: {got} ± {s}, truth {want}"
+        );
+    }
+    // Better than the catalogue: the crank's lengths to a few µm where the catalogue is off by
+    // up to 50 µm.
+    assert!((val("tip2.l2_mm") - truth_of("tip2.l2_mm")).abs() < 5e-3);
+    // Tip to tip, on the qualification and on a new run with the qualified calibration.
+    let before = r["consistency_before_um"].as_f64().unwrap();
+    let after = r["consistency_after_um"].as_f64().unwrap();
+    eprintln!("tip-to-tip consistency {before:.3} → {after:.3} µm");
+    assert!(before > 10.0 && after < 0.1 * before, "{before} → {after}");
+    sim_tips(&dir, "2", "t2.mcap", &[]);
+    let again = json(&ok(
+        &dir,
+        &[
+            "calibrate",
+            "tips",
+            "--bag",
+            "t2.mcap",
+            "--calib",
+            "q.json",
+            "--out",
+            "q2.json",
+            "--json",
+        ],
+    ));
+    let next = again["consistency_before_um"].as_f64().unwrap();
+    eprintln!("a new run with the qualified calibration: {next:.3} µm");
+    assert!(next < 0.1 * before, "{next} vs catalogue {before}");
+    // The new version names its parent and what it measured.
+    let q = json(&std::fs::read_to_string(dir.join("q.json")).unwrap());
+    assert_eq!(q["parent_version"], 1);
+    assert!(q["note"].as_str().unwrap().contains("calibrate tips"));
+    assert!(q["metrics"]["tip_consistency_before_um"].as_f64().is_some());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn tips_without_a_sphere_names_the_missing_measurement() {
+    let dir = scratch("calibrate-tips-bad");
+    ok(
+        &dir,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "c.json",
+        ],
+    );
+    let err = fails(
+        &dir,
+        &[
+            "calibrate",
+            "tips",
+            "--bag",
+            "r.mcap",
+            "--calib",
+            "c.json",
+            "--out",
+            "q.json",
+        ],
+        &["no master-sphere scans", "tips"],
+    );
+    assert!(!err.contains("NaN"), "{err}");
+    assert!(!dir.join("q.json").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
