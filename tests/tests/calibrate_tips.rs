@@ -9,16 +9,6 @@ fn json(s: &str) -> serde_json::Value {
     serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
 }
 
-const HIDE: [&str; 7] = [
-    "accel_deflection",
-    "servo_phase",
-    "servo_gain",
-    "stylus_thermal",
-    "scale_thermal",
-    "probe_force",
-    "guide_straightness",
-];
-
 /// A nominal calibration: no effects, data-sheet time constants (30 % off), catalogue styli.
 fn nominal(dir: &std::path::Path, from: &str, to: &str) {
     let mut c = json(&std::fs::read_to_string(dir.join(from)).unwrap());
@@ -58,7 +48,7 @@ fn sim_tips(dir: &std::path::Path, seed: &str, out: &str, extra: &[&str]) {
 fn tips_qualifies_the_styli_from_the_catalogue() {
     let dir = scratch("calibrate-tips");
     let mut extra = vec!["--calib-out", "start.json", "--truth", "truth.json"];
-    for h in HIDE {
+    for h in scancorr_sim::LIBRARY_EFFECTS {
         extra.extend(["--hide", h]);
     }
     sim_tips(&dir, "1", "t1.mcap", &extra);

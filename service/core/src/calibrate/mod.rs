@@ -52,8 +52,7 @@ pub(crate) fn weighted_lsq(
     }
     let mut ata = nalgebra::DMatrix::<f64>::zeros(n, n);
     let mut atb = nalgebra::DVector::<f64>::zeros(n);
-    for (r, (row, (&y, &wi))) in a.iter().zip(b.iter().zip(w)).enumerate() {
-        let _ = r;
+    for (row, (&y, &wi)) in a.iter().zip(b.iter().zip(w)) {
         for i in 0..n {
             atb[i] += wi * row[i] * y;
             for j in 0..n {

@@ -527,23 +527,13 @@ pub fn run(
             sigma: spread.max(fit_sigma),
         });
     }
-    for p in &params {
-        if let Some((tip, field)) = p
-            .name
-            .strip_prefix("tip")
-            .and_then(|s| s.split_once('.'))
-            .and_then(|(t, f)| t.parse::<u32>().ok().map(|t| (t, f)))
-        {
-            let g = cal
-                .geometry
-                .tips
-                .iter_mut()
-                .find(|t| t.id == tip)
-                .expect("checked");
+    // The fitted values, by (tip, field) as the columns were laid out.
+    for (&(tip, field), &c) in &col {
+        if let Some(g) = cal.geometry.tips.iter_mut().find(|t| t.id == tip) {
             match field {
-                "l1_mm" => g.l1_mm = p.value,
-                "l2_mm" => g.l2_mm = p.value,
-                "l3_mm" => g.l3_mm = p.value,
+                "l1_mm" => g.l1_mm = theta[c],
+                "l2_mm" => g.l2_mm = theta[c],
+                "l3_mm" => g.l3_mm = theta[c],
                 _ => {}
             }
         }
@@ -559,16 +549,9 @@ pub fn run(
             _ => stylus_thermal::Config::zeros(false),
         };
         th.reference_temp_c = t_q;
-        if fit_alpha {
-            for p in &params {
-                if let Some(t) = p
-                    .name
-                    .strip_prefix("tip")
-                    .and_then(|s| s.strip_suffix(".alpha_per_k"))
-                    .and_then(|t| t.parse::<u32>().ok())
-                {
-                    th.alpha_per_tip.insert(t, p.value);
-                }
+        for (&(tip, field), &c) in &col {
+            if field == "alpha_per_k" {
+                th.alpha_per_tip.insert(tip, theta[c]);
             }
         }
         if fit_alpha || old.is_some() {
