@@ -549,9 +549,22 @@ pub fn run(
             _ => stylus_thermal::Config::zeros(false),
         };
         th.reference_temp_c = t_q;
+        // A coefficient the measurement does not determine to better than its own size is
+        // reported but not stored (the starting calibration's stays).
         for (&(tip, field), &c) in &col {
             if field == "alpha_per_k" {
-                th.alpha_per_tip.insert(tip, theta[c]);
+                let sigma = cov[(c, c)].max(0.0).sqrt();
+                if theta[c].abs() > sigma {
+                    th.alpha_per_tip.insert(tip, theta[c]);
+                } else {
+                    undetermined.push(format!(
+                        "tip{tip}.alpha_per_k: {:.1} ± {:.1} ppm/K, its uncertainty larger than \
+                         itself (not stored): qualify again over a wider temperature range, with \
+                         the machine's geometry corrected",
+                        theta[c] * 1e6,
+                        sigma * 1e6
+                    ));
+                }
             }
         }
         if fit_alpha || old.is_some() {
