@@ -310,5 +310,83 @@ fn from_nominal_with_probe_lobing() {
     check_outcome(&c, &d, "steps", &["probe_lobing"]);
 }
 
+/// Rigid-body geometry hidden from a fitted calibration (issue 10's case): the machine has
+/// the 21 wavy rigid-body errors. The user's calibration is what the lab fitted on the
+/// campaign, with the rigid body taken out (`lab remove`). With a ring stepped along each axis
+/// (`sim --program geometry`) next to the campaign, the loop finds the rigid body first and
+/// ends within 1.5× the noise floor on the held-out ring at another position.
+#[test]
+fn rigid_body_hidden_from_a_fitted_calibration() {
+    let c = Campaign::new("rigid", 1, 5, &["rigid_body"]);
+    let d0 = c.discover("nominal.json", "first");
+    let fitted = if kinds(&d0).contains("rigid_body") {
+        let out = c.path("fitted.json");
+        c.lab(&[
+            "remove",
+            "rigid_body",
+            "--calib",
+            "first/calibration.json",
+            "--out",
+            &out,
+        ]);
+        out
+    } else {
+        "first/calibration.json".to_string()
+    };
+    let doc = json(&std::fs::read_to_string(&fitted).unwrap());
+    assert!(
+        doc["effects"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|e| e["kind"] != "rigid_body"),
+        "the start has no rigid body"
+    );
+    ok(
+        &c.dir,
+        &[
+            "sim",
+            "--program",
+            "geometry",
+            "--machine-seed",
+            "1",
+            "--seed",
+            "7",
+            "--with",
+            "rigid_body",
+            "--out",
+            "g.mcap",
+        ],
+    );
+    let d = c.lab(&[
+        "discover",
+        "--bag",
+        "g.mcap",
+        "--calib",
+        &fitted,
+        "--out-dir",
+        "steps",
+        "--report",
+        "steps.html",
+    ]);
+    let first = d["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["action"] != "fit")
+        .expect("a step");
+    assert_eq!(first["action"], "add", "{d:#}");
+    assert!(
+        first["effect"].as_str().unwrap().starts_with("rigid_body"),
+        "the first step adds the rigid body: {first:#}"
+    );
+    check_outcome(&c, &d, "steps", &["rigid_body"]);
+    assert!(
+        d["final"]["heldout_rms_um"].as_f64().unwrap()
+            < 0.5 * d["start_heldout_rms_um"].as_f64().unwrap(),
+        "{d:#}"
+    );
+}
+
 #[allow(dead_code)]
 fn unused(_: &Path) {}

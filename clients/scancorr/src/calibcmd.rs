@@ -7,7 +7,8 @@ use crate::offline;
 use crate::output::commit_all;
 use anyhow::{Context, Result};
 use clap::Subcommand;
-use scancorr_core::calibrate::{tips, Param};
+use scancorr_core::calibrate::{dynamics, tips, Param};
+use scancorr_core::lab::analysis;
 use scancorr_core::lab::dataset::{self, BuildOptions};
 use scancorr_core::lab::version;
 use std::path::PathBuf;
@@ -34,6 +35,180 @@ pub enum CalibrateCmd {
         #[arg(long)]
         json: bool,
     },
+    /// The ring-gauge procedure: one ring at ≥ 5 positions along X (and along Y and Z), each
+    /// at several speeds in both directions, gives the nominal time constants, the deflection
+    /// matrix P(x, y, z) with cross-coupling, the servo phase with position-dependent
+    /// coefficients and the servo gain in the form held-out rings prefer.
+    Dynamics {
+        /// Bags of the ring measurement.
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (its dynamic effects are replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `positions`, …).
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn sigma_json(ps: &[Param]) -> (serde_json::Value, serde_json::Value) {
+    let params: serde_json::Map<String, serde_json::Value> = ps
+        .iter()
+        .map(|p| (p.name.clone(), p.value.into()))
+        .collect();
+    let sigma: serde_json::Map<String, serde_json::Value> = ps
+        .iter()
+        .map(|p| (p.name.clone(), p.sigma.into()))
+        .collect();
+    (params.into(), sigma.into())
+}
+
+/// A dynamic parameter in its engineering unit: (value, σ, unit).
+fn dynamic_unit(p: &Param) -> (f64, f64, &'static str) {
+    let n = p.name.as_str();
+    let (k, u) = if n.ends_with("_s") {
+        (1e3, "ms")
+    } else if n.contains(".P_") {
+        (1e6, "µm per m/s²")
+    } else if n.contains(".b0.") {
+        (1e6, "µrad")
+    } else if n.contains(".b1.") {
+        (1e6, "µrad/Hz")
+    } else if n.contains(".b2.") {
+        (1e6, "µrad/Hz²")
+    } else if n.contains(".f1.") {
+        (1e6, "ppm/Hz")
+    } else if n.contains(".f2.") {
+        (1e6, "ppm/Hz²")
+    } else {
+        (1.0, "")
+    };
+    (p.value * k, p.sigma * k, u)
+}
+
+fn run_dynamics(bag: Vec<PathBuf>, calib: PathBuf, out: PathBuf, json: bool) -> Result<()> {
+    let mut inputs = vec![("--calib", calib.as_path())];
+    inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
+    let [out_file] = outputs([("--out", Some(out.as_path()))], &inputs)?;
+    let start = offline::load_calibration(&calib)?;
+    let bags = load_bags(&bag, &[], &start.machine_id)?;
+    eprintln!("refitting the nominal model's time constants …");
+    let raw: Vec<&dyn dataset::Samples> = bags.iter().map(|b| &*b.samples).collect();
+    let (refit, axes) = scancorr_core::lab::nominal::fit_nominal(&raw, &start)?;
+    // The dynamic effects are what this procedure measures: the points are taken without.
+    let mut bare = refit.clone();
+    bare.effects
+        .retain(|e| !matches!(e.kind(), "accel_deflection" | "servo_phase" | "servo_gain"));
+    let opts = BuildOptions {
+        stride: 4,
+        holdout_by_segment: false,
+        artifact: None,
+        sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
+    };
+    eprintln!("correcting the rings …");
+    let ds = dataset::build(&bags, &bare, &opts)?;
+    for w in &ds.warnings {
+        eprintln!("warning: {w}");
+    }
+    let prep = analysis::prepare(&ds)?;
+    eprintln!("fitting …");
+    let o = dynamics::run(&ds, &prep, &refit, &axes)?;
+    let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
+    new.nominal = o.calibration.nominal.clone();
+    new.note = format!(
+        "calibrate dynamics: {} ring positions; residual after the static patterns {:.3} →          {:.3} µm (noise floor {:.3} µm); gain form {}",
+        o.positions.len(),
+        o.residual_before_um,
+        o.residual_after_um,
+        ds.noise_floor_um,
+        o.gain.chosen
+    );
+    new.metrics = [
+        ("dynamics_residual_before_um", o.residual_before_um),
+        ("dynamics_residual_after_um", o.residual_after_um),
+        ("noise_floor_um", ds.noise_floor_um),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    new.build().context("the new calibration")?;
+    put(&out_file, new.to_json())?;
+    commit_all([out_file])?;
+    if json {
+        let (params, sigma) = sigma_json(&o.params);
+        let mut v = serde_json::to_value(&o)?;
+        v["params"] = params;
+        v["uncertainty"] = sigma;
+        v["nominal"] = serde_json::to_value(&axes)?;
+        v["noise_floor_um"] = ds.noise_floor_um.into();
+        v["version"] = new.version.into();
+        v["parent_version"] = start.version.into();
+        v["out"] = out.display().to_string().into();
+        outln!("{}", serde_json::to_string_pretty(&v)?)?;
+        return Ok(());
+    }
+    outln!(
+        "ring-gauge procedure: {} positions; residual after each position's static pattern {:.3} → {:.3} µm (noise floor {:.3} µm)",
+        o.positions.len(),
+        o.residual_before_um,
+        o.residual_after_um,
+        ds.noise_floor_um
+    )?;
+    outln!("ΔR per scan against each position's static pattern (before → after, µm):")?;
+    for p in &o.positions {
+        let scans: Vec<String> = p
+            .scans
+            .iter()
+            .map(|s| {
+                format!(
+                    "{}{:.0} mm/s ({:.0} mm/s²) {:+.2}→{:+.2}",
+                    if s.direction > 0 { "+" } else { "−" },
+                    s.speed_mm_s,
+                    s.accel_mm_s2,
+                    s.delta_r_um,
+                    s.delta_r_after_um
+                )
+            })
+            .collect();
+        outln!(
+            "  ({:>6.1} {:>6.1} {:>7.1})  {}",
+            p.center_mm[0],
+            p.center_mm[1],
+            p.center_mm[2],
+            scans.join("  ")
+        )?;
+    }
+    outln!(
+        "servo gain: {} form (held-out rings: theoretical {:.3} µm, polynomial in f {:.3} µm)",
+        o.gain.chosen,
+        o.gain.heldout_theoretical_um,
+        o.gain.heldout_polynomial_um
+    )?;
+    outln!("parameters (± standard uncertainty; P per monomial of the position over 500 mm):")?;
+    for p in &o.params {
+        let (v, s, u) = dynamic_unit(p);
+        outln!("  {:<28} {:>11.4} ± {:.4} {u}", p.name, v, s)?;
+    }
+    for c in &o.confounded {
+        outln!("  confounded: {c}")?;
+    }
+    for u in &o.undetermined {
+        outln!("  not determined: {u}")?;
+    }
+    for n in &o.notes {
+        outln!("  note: {n}")?;
+    }
+    outln!(
+        "→ {} (version {}, parent {})",
+        out.display(),
+        new.version,
+        start.version
+    )?;
+    Ok(())
 }
 
 fn print_param(p: &Param) -> String {
@@ -56,6 +231,12 @@ fn print_param(p: &Param) -> String {
 /// Runs a procedure.
 pub fn run(cmd: CalibrateCmd) -> Result<()> {
     match cmd {
+        CalibrateCmd::Dynamics {
+            bag,
+            calib,
+            out,
+            json,
+        } => run_dynamics(bag, calib, out, json),
         CalibrateCmd::Tips {
             bag,
             calib,
@@ -116,19 +297,10 @@ pub fn run(cmd: CalibrateCmd) -> Result<()> {
             put(&out_file, new.to_json())?;
             commit_all([out_file])?;
             if json {
-                let params: serde_json::Map<String, serde_json::Value> = outcome
-                    .params
-                    .iter()
-                    .map(|p| (p.name.clone(), p.value.into()))
-                    .collect();
-                let sigma: serde_json::Map<String, serde_json::Value> = outcome
-                    .params
-                    .iter()
-                    .map(|p| (p.name.clone(), p.sigma.into()))
-                    .collect();
+                let (params, sigma) = sigma_json(&outcome.params);
                 let mut v = serde_json::to_value(&outcome)?;
-                v["params"] = params.into();
-                v["uncertainty"] = sigma.into();
+                v["params"] = params;
+                v["uncertainty"] = sigma;
                 v["consistency_after_um"] = after.into();
                 v["noise_floor_um"] = ds.noise_floor_um.into();
                 v["version"] = new.version.into();

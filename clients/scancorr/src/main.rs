@@ -9,6 +9,7 @@ mod output;
 mod bench;
 mod benchfleet;
 mod benchlive;
+mod benchproc;
 mod bus;
 mod calibcmd;
 mod demo;
@@ -150,7 +151,7 @@ enum Cmd {
 
 #[derive(clap::Args)]
 struct SimCli {
-    /// Scan program: ring, ring-speeds, campaign, part, dynamics, tips.
+    /// Scan program: ring, ring-speeds, campaign, part, dynamics, tips, geometry.
     #[arg(long, default_value = "ring")]
     program: String,
     /// Seed of the run (noise, temperatures).
@@ -235,6 +236,23 @@ enum ShapeCmd {
 
 #[derive(Subcommand)]
 enum BenchCmd {
+    /// Honesty of the calibration procedures' uncertainties: each procedure on `--runs`
+    /// simulated measurements of one machine from the nominal model; the share of parameters
+    /// within 2σ and within max(3σ, 5 %) of the simulator's truth.
+    Procedures {
+        /// Procedures (tips, dynamics).
+        #[arg(long, default_values_t = ["tips".to_string(), "dynamics".to_string()])]
+        procedure: Vec<String>,
+        /// Runs (run seeds 1…N).
+        #[arg(long, default_value_t = 20)]
+        runs: u64,
+        /// The simulated machine.
+        #[arg(long, default_value_t = 41)]
+        machine_seed: u64,
+        /// Print JSON per procedure (`within_2sigma`, `within_3sigma_or_5pct`, `worst`, …).
+        #[arg(long)]
+        json: bool,
+    },
     /// `lab discover` on the default campaign from the nominal model: time, steps, final
     /// error, peak memory.
     Discover {
@@ -386,6 +404,12 @@ fn run(cli: Cli) -> Result<()> {
         }) => bench::core(points, repeat, json),
         Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
         Cmd::Bench(BenchCmd::Discover { json }) => demo::bench(json),
+        Cmd::Bench(BenchCmd::Procedures {
+            procedure,
+            runs,
+            machine_seed,
+            json,
+        }) => benchproc::run(&procedure, machine_seed, runs, json),
         Cmd::Bench(BenchCmd::Live { json, points }) => benchlive::run(points, json),
         Cmd::Bench(BenchCmd::Relay { port, prefix }) => {
             output::check_prefix(&prefix)?;

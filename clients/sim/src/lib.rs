@@ -159,9 +159,50 @@ pub struct Truth {
     pub params: BTreeMap<String, f64>,
 }
 
+/// Time constant of the probe's own response (the nominal model's G2), s.
+pub const PROBE_TAU_S: f64 = 0.002;
+
 /// The true parameters of `m` under the names `scancorr calibrate` prints.
+///
+/// `dynamics.*` are what the ring-gauge procedure determines: τ of each axis's first-order
+/// nominal model (1/kp less the probe's), the compliance P = −C (C the displacement of the
+/// probe per unit acceleration, per monomial 1, x, y, z of the position over 500 mm), the servo
+/// phase b0, b1, b2 of Y and Z against X per monomial, and the servo gain's f² and f¹ terms
+/// (4π²·g and none in this machine).
 pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
     let mut p = BTreeMap::new();
+    const AX: [&str; 3] = ["x", "y", "z"];
+    const MONO: [&str; 4] = ["1", "x", "y", "z"];
+    for (i, a) in AX.iter().enumerate() {
+        p.insert(
+            format!("dynamics.tau_{a}_s"),
+            1.0 / m.servo[i].kp - PROBE_TAU_S,
+        );
+        p.insert(format!("dynamics.gain_{a}.f1.1"), 0.0);
+        p.insert(
+            format!("dynamics.gain_{a}.f2.1"),
+            m.arc_gain_s2[i] * (2.0 * std::f64::consts::PI).powi(2),
+        );
+    }
+    for (k, mono) in MONO.iter().enumerate() {
+        for (i, a) in AX.iter().enumerate() {
+            for (j, b) in AX.iter().enumerate() {
+                p.insert(format!("dynamics.P_{a}{b}.{mono}"), -m.compliance[k][i][j]);
+            }
+        }
+    }
+    for (ai, a) in ["y", "z"].iter().enumerate() {
+        for mono in MONO {
+            for b in 0..3 {
+                let v = if mono == "1" && b > 0 {
+                    m.arc_phase[ai][b - 1]
+                } else {
+                    0.0
+                };
+                p.insert(format!("dynamics.phase_{a}.b{b}.{mono}"), v);
+            }
+        }
+    }
     for s in &m.styli {
         let t = format!("tip{}", s.id);
         p.insert(format!("{t}.l1_mm"), s.l1_mm);
@@ -290,7 +331,7 @@ pub fn calibration_for(
 ) -> Calibration {
     let mut c = Calibration::example(machine_id);
     c.sample_period_s = period;
-    let tp = 0.002;
+    let tp = PROBE_TAU_S;
     let g1 = |i: usize| TransferFunction::FirstOrder {
         tau_s: 1.0 / m.servo[i].kp - tp,
     };

@@ -255,13 +255,14 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 6] = [
+pub const PROGRAMS: [&str; 7] = [
     "ring",
     "ring-speeds",
     "campaign",
     "part",
     "dynamics",
     "tips",
+    "geometry",
 ];
 
 struct Builder<'a> {
@@ -562,6 +563,38 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                     b.circle(f, v, 1.0, 0.3, 0.0);
                     b.circle(f, v, -1.0, 0.3, PI);
                 }
+            }
+        }
+        "geometry" => {
+            // The machine's geometry seen through a ring gauge: one ring stepped by its own
+            // diameter along a line in X, in Y and in Z through the base position, so the
+            // local slope of every error along each axis is seen over the whole line; one
+            // moderate speed, both directions.
+            let base = position.unwrap_or(V3::new(500.0, 400.0, -280.0));
+            let mut places = vec![base];
+            let line = |lo: f64, hi: f64| {
+                let n = ((hi - lo) / 50.0).round() as usize;
+                (0..=n).map(move |k| lo + 50.0 * k as f64)
+            };
+            for x in line(150.0, 850.0) {
+                places.push(V3::new(x, base.y, base.z));
+            }
+            for y in line(150.0, 650.0) {
+                places.push(V3::new(base.x, y, base.z));
+            }
+            for z in line(-430.0, -130.0) {
+                places.push(V3::new(base.x, base.y, z));
+            }
+            let mut seen: Vec<V3> = vec![];
+            places.retain(|p| {
+                let new = seen.iter().all(|q| (p - q).norm() >= 1.0);
+                seen.push(*p);
+                new
+            });
+            for p in &places {
+                let f = b.feature(ring_feature(*p, 0.9));
+                b.circle(f, 30.0, 1.0, 0.3, 0.0);
+                b.circle(f, 30.0, -1.0, 0.3, PI);
             }
         }
         "tips" => {

@@ -7,9 +7,11 @@
 //! it with [`crate::lab::version::next`]). Pure logic: no files, no clock.
 //!
 //! * [`tips`] — qualification of the styli on a master sphere.
+//! * [`dynamics`] — the ring-gauge procedure: time constants, deflection matrix, phase, gain.
 //!
 //! [`Dataset`]: crate::lab::dataset::Dataset
 
+pub mod dynamics;
 pub mod tips;
 
 use serde::Serialize;

@@ -24,6 +24,13 @@
 //!   the positions that squareness and the part's orientation already carry. Straightness
 //!   starts at u²: its linear part is, by the ISO 230-1 definition (deviation from the
 //!   reference straight line), squareness or the part's orientation.
+//! * Or, for errors with waviness no low-order polynomial follows (`spline_segments`), each
+//!   error is a uniform cubic B-spline over the same range, e(u) = Σ_k c_k B_k(u), with
+//!   `segments + 3` coefficients per error: a table whose smoothness the fit controls by a
+//!   penalty on the second differences of the c_k (a P-spline: Eilers & Marx, "Flexible
+//!   smoothing with B-splines and penalties", Statistical Science 11, 1996). The spline has
+//!   constant and linear parts; what of them the data cannot tell from the placements and the
+//!   squareness stays at zero by the fit's ridge.
 //! * Squareness S_xy, S_xz, S_yz (rad) enter proportionally to the scale positions: the tip
 //!   moves relative to the part along (S_xy, 1, 0) with y and along (S_xz, S_yz, 1) with z,
 //!   whatever the chain (positive S_xy: the angle between +x and +y is π/2 − S_xy).
@@ -185,8 +192,13 @@ pub struct Config {
     /// Kinematic chain.
     #[serde(default)]
     pub chain: Chain,
-    /// Polynomial order N of every error (1…4).
+    /// Polynomial order N of every error (1…4); with `spline_segments`, the spline's degree
+    /// (3: cubic).
     pub order: u8,
+    /// Cubic B-spline tables instead of polynomials: segments per axis over centre ± half
+    /// range (each error then has segments + 3 coefficients, the spline's control values).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spline_segments: Option<[u16; 3]>,
     /// Centre of the normalised positions per axis, mm.
     pub center_mm: [f64; 3],
     /// Half range per axis (u = ±1 at centre ± half range), mm.
@@ -208,6 +220,23 @@ struct Term {
     coef: Vec<f64>,
 }
 
+/// Segment index and the four nonzero uniform cubic B-spline weights at x (in segment units,
+/// clamped to [0, segs]).
+#[inline]
+fn bspline(x: f64, segs: usize) -> (usize, [f64; 4]) {
+    let x = x.clamp(0.0, segs as f64);
+    let j = (x.floor() as usize).min(segs - 1);
+    let t = x - j as f64;
+    let (t2, t3) = (t * t, t * t * t);
+    let w = [
+        (1.0 - t) * (1.0 - t) * (1.0 - t) / 6.0,
+        (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
+        (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0,
+        t3 / 6.0,
+    ];
+    (j, w)
+}
+
 /// Hot-path form.
 #[derive(Debug, Clone)]
 pub struct Model {
@@ -218,6 +247,8 @@ pub struct Model {
     part_side: Option<usize>,
     squareness: [f64; 3],
     n: usize,
+    /// Spline segments per axis (None: polynomials).
+    segs: Option<[usize; 3]>,
 }
 
 impl Config {
@@ -233,16 +264,46 @@ impl Config {
             id: None,
             chain,
             order,
+            spline_segments: None,
             center_mm: ranges.map(|r| 0.5 * (r[0] + r[1])),
             half_range_mm: ranges.map(|r| 0.5 * (r[1] - r[0])),
             errors,
             squareness_rad: Squareness::default(),
         }
     }
+    /// Zero-parameter model with all 18 errors as cubic B-spline tables, knots about
+    /// `step_mm` apart over `ranges`, and the squareness.
+    pub fn zeros_spline(chain: Chain, ranges: [[f64; 2]; 3], step_mm: f64) -> Config {
+        let segs = ranges.map(|r| ((r[1] - r[0]) / step_mm).ceil().clamp(1.0, 200.0) as u16);
+        let errors = Component::ALL
+            .iter()
+            .map(|c| (*c, vec![0.0; segs[c.parts().0] as usize + 3]))
+            .collect();
+        Config {
+            spline_segments: Some(segs),
+            errors,
+            ..Config::zeros(chain, 3, ranges)
+        }
+    }
+    /// Coefficients error `c` has in this configuration.
+    pub fn count(&self, c: Component) -> usize {
+        match self.spline_segments {
+            Some(s) => s[c.parts().0] as usize + 3,
+            None => c.count(self.order),
+        }
+    }
     /// Validates.
     pub fn build(&self) -> Result<Model, String> {
         if !(1..=4).contains(&self.order) {
             return Err("order: must be 1, 2, 3 or 4".into());
+        }
+        if let Some(s) = self.spline_segments {
+            if self.order != 3 {
+                return Err("order: a spline table is cubic: order must be 3".into());
+            }
+            if let Some(i) = s.iter().position(|n| !(1..=200).contains(n)) {
+                return Err(format!("spline_segments[{i}]: must be 1…200"));
+            }
         }
         for (i, c) in self.center_mm.iter().enumerate() {
             if !c.is_finite() {
@@ -257,9 +318,15 @@ impl Config {
         let mut terms = vec![];
         for (c, v) in &self.errors {
             let field = format!("errors.{}", c.name());
-            let want = c.count(self.order);
+            let want = self.count(*c);
             if want == 0 || v.len() != want {
-                return Err(if want == 0 {
+                return Err(if self.spline_segments.is_some() {
+                    format!(
+                        "{field}: {} spline segments need {want} coefficients, got {}",
+                        self.spline_segments.unwrap()[c.parts().0],
+                        v.len()
+                    )
+                } else if want == 0 {
                     format!(
                         "{field}: straightness starts at u², order {} has none (remove it)",
                         self.order
@@ -300,6 +367,7 @@ impl Config {
             part_side,
             squareness: [s.xy, s.xz, s.yz],
             n,
+            segs: self.spline_segments.map(|s| s.map(|n| n as usize)),
         })
     }
     /// Flat parameters: the errors in component order (c_first…c_N each), then squareness
@@ -325,13 +393,27 @@ impl Config {
             yz: it.next().unwrap(),
         };
     }
-    /// Parameter names, e.g. `EYX c2 (mm)`, `AZX c1 (rad)`, `squareness xy (rad)`.
+    /// Parameter names, e.g. `EYX c2 (mm)`, `AZX c1 (rad)`, `squareness xy (rad)`; for
+    /// spline tables the knot each control value sits at, `EXX at x=350 mm (mm)`.
     pub fn param_names(&self) -> Vec<String> {
         let mut v = vec![];
         for (c, coef) in &self.errors {
-            let unit = if c.parts().1 { "rad" } else { "mm" };
+            let (axis, rot, _) = c.parts();
+            let unit = if rot { "rad" } else { "mm" };
             for k in 0..coef.len() {
-                v.push(format!("{} c{} ({unit})", c.name(), c.first_power() + k));
+                v.push(match self.spline_segments {
+                    Some(s) => {
+                        let h = self.half_range_mm[axis];
+                        let step = 2.0 * h / s[axis] as f64;
+                        let at = self.center_mm[axis] - h + (k as f64 - 1.0) * step;
+                        format!(
+                            "{} at {}={at:.0} mm ({unit})",
+                            c.name(),
+                            ["x", "y", "z"][axis]
+                        )
+                    }
+                    None => format!("{} c{} ({unit})", c.name(), c.first_power() + k),
+                });
             }
         }
         v.extend(["xy", "xz", "yz"].map(|p| format!("squareness {p} (rad)")));
@@ -351,6 +433,16 @@ impl Model {
             }
         }
         p
+    }
+    /// Segment and B-spline weights per axis (spline tables only).
+    #[inline]
+    fn splines(&self, s: &Vec3) -> Option<[(usize, [f64; 4]); 3]> {
+        self.segs.map(|segs| {
+            [0, 1, 2].map(|i| {
+                let u = (s[i] - self.center[i]) * self.inv_half[i];
+                bspline((u + 1.0) * 0.5 * segs[i] as f64, segs[i])
+            })
+        })
     }
     /// Signed Abbe lever λ_i per axis and sign σ_i.
     #[inline]
@@ -384,6 +476,7 @@ impl Effect for Model {
     }
     fn regressors(&self, ctx: &PointContext, out: &mut [Vec3]) {
         let p = self.powers(&ctx.scale);
+        let sp = self.splines(&ctx.scale);
         let (lever, sign) = self.levers(ctx);
         let mut j = 0;
         for t in &self.terms {
@@ -394,10 +487,21 @@ impl Effect for Model {
                 e[t.dir] = 1.0;
                 e
             } * sign[t.axis];
-            for k in 0..t.coef.len() {
-                out[j] = v * p[t.axis][t.first + k];
-                j += 1;
+            match &sp {
+                Some(sp) => {
+                    let (seg, w) = sp[t.axis];
+                    out[j..j + t.coef.len()].fill(Vec3::zeros());
+                    for (m, wm) in w.iter().enumerate() {
+                        out[j + seg + m] = v * *wm;
+                    }
+                }
+                None => {
+                    for k in 0..t.coef.len() {
+                        out[j + k] = v * p[t.axis][t.first + k];
+                    }
+                }
             }
+            j += t.coef.len();
         }
         let s = &ctx.scale;
         out[j] = Vec3::new(s.y, 0.0, 0.0);
@@ -407,17 +511,27 @@ impl Effect for Model {
     #[inline]
     fn correction(&self, ctx: &PointContext) -> Vec3 {
         let p = self.powers(&ctx.scale);
+        let sp = self.splines(&ctx.scale);
         let (lever, sign) = self.levers(ctx);
         let mut d = Vec3::zeros();
         for t in &self.terms {
-            let pt = &p[t.axis];
-            let val: f64 = t
-                .coef
-                .iter()
-                .enumerate()
-                .map(|(k, c)| c * pt[t.first + k])
-                .sum::<f64>()
-                * sign[t.axis];
+            let val = match &sp {
+                Some(sp) => {
+                    let (seg, w) = sp[t.axis];
+                    w.iter()
+                        .zip(&t.coef[seg..seg + 4])
+                        .map(|(w, c)| w * c)
+                        .sum::<f64>()
+                }
+                None => {
+                    let pt = &p[t.axis];
+                    t.coef
+                        .iter()
+                        .enumerate()
+                        .map(|(k, c)| c * pt[t.first + k])
+                        .sum::<f64>()
+                }
+            } * sign[t.axis];
             if t.rot {
                 d += unit_cross(t.dir, &lever[t.axis]) * val;
             } else {
@@ -486,6 +600,86 @@ mod tests {
                 }
             }
         }
+    }
+
+    fn filled_spline(chain: Chain) -> Config {
+        let mut c = Config::zeros_spline(chain, RANGES, 130.0);
+        let mut k = 0.0_f64;
+        for (comp, v) in c.errors.iter_mut() {
+            let scale = if comp.parts().1 { 1e-6 } else { 1e-3 };
+            v.iter_mut().for_each(|x| {
+                k += 1.0;
+                *x = scale * (0.7 + 0.31 * k).cos();
+            });
+        }
+        c.squareness_rad.xz = 2e-6;
+        c
+    }
+
+    #[test]
+    fn spline_tables_are_linear_in_their_control_values() {
+        for chain in [
+            Chain::MovingBridge,
+            Chain::FixedBridge,
+            Chain::HorizontalArm,
+        ] {
+            let c = filled_spline(chain);
+            // 1000/130 → 8 segments in x, 800/130 → 7 in y, 600/130 → 5 in z.
+            assert_eq!(c.spline_segments, Some([8, 7, 5]));
+            let m = c.build().unwrap();
+            assert_eq!(m.n_params(), 6 * (11 + 10 + 8) + 3);
+            for s in [
+                Vec3::new(0.0, 0.0, -600.0), // the range's corner: the last segment's end
+                Vec3::new(433.0, 517.0, -233.0),
+                Vec3::new(1000.0, 800.0, 0.0),
+                Vec3::new(-50.0, 900.0, 40.0), // outside: clamped
+            ] {
+                let ctx = ctx_at(s, Vec3::new(-20.0, 35.0, -110.0));
+                assert_linear(&m, &EffectConfig::RigidBody(c.clone()), &ctx);
+            }
+        }
+    }
+
+    #[test]
+    fn a_spline_holds_a_straight_line_and_names_its_knots() {
+        // A cubic B-spline whose control values lie on a line (each at its knot, the name's
+        // position) is that line: positioning error 2 µm per 100 mm.
+        let mut c = Config::zeros_spline(Chain::MovingBridge, RANGES, 125.0);
+        let names = c.param_names();
+        let exx: Vec<f64> = names
+            .iter()
+            .filter(|n| n.starts_with("EXX at x="))
+            .map(|n| {
+                n["EXX at x=".len()..]
+                    .split(' ')
+                    .next()
+                    .unwrap()
+                    .parse()
+                    .unwrap()
+            })
+            .collect();
+        assert_eq!(
+            exx,
+            [-125.0, 0.0, 125.0, 250.0, 375.0, 500.0, 625.0, 750.0, 875.0, 1000.0, 1125.0]
+        );
+        // 800 mm in 7 segments: knots 114.3 mm apart.
+        assert!(
+            names.contains(&"AZY at y=457 mm (rad)".to_string()),
+            "{names:?}"
+        );
+        c.errors
+            .insert(Component::Exx, exx.iter().map(|x| 2e-5 * x).collect());
+        let m = c.build().unwrap();
+        for x in [0.0, 1.0, 333.3, 640.0, 999.0, 1000.0] {
+            let d = m.correction(&ctx_at(Vec3::new(x, 100.0, -100.0), Vec3::zeros()));
+            assert!(
+                (d - Vec3::new(2e-5 * x, 0.0, 0.0)).norm() < 1e-15,
+                "{x}: {d:?}"
+            );
+        }
+        // Beyond the range: the end value.
+        let d = m.correction(&ctx_at(Vec3::new(1200.0, 0.0, 0.0), Vec3::zeros()));
+        assert!((d.x - 2e-2).abs() < 1e-15, "{d:?}");
     }
 
     #[test]
@@ -602,6 +796,20 @@ mod tests {
         });
         assert!(e.starts_with("errors.AZZ[0]:"), "{e}");
         assert!(err(&|c| c.squareness_rad.yz = f64::NAN).starts_with("squareness_rad.yz:"));
+        let sp = Config::zeros_spline(Chain::MovingBridge, RANGES, 100.0);
+        let mut bad = sp.clone();
+        bad.order = 2;
+        assert!(bad.build().unwrap_err().contains("cubic"));
+        let mut bad = sp.clone();
+        bad.spline_segments = Some([10, 0, 6]);
+        assert!(bad.build().unwrap_err().starts_with("spline_segments[1]:"));
+        let mut bad = sp.clone();
+        bad.errors.insert(Component::Eyy, vec![0.0; 4]);
+        let e = bad.build().unwrap_err();
+        assert!(
+            e.starts_with("errors.EYY: 8 spline segments need 11"),
+            "{e}"
+        );
         let mut one = Config::zeros(Chain::MovingBridge, 1, RANGES);
         one.errors.insert(Component::Ezy, vec![]);
         assert!(one.build().is_err());

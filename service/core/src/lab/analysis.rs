@@ -366,7 +366,11 @@ fn variants(kind: &str, ds: &Dataset) -> Vec<String> {
                     .collect::<Vec<_>>()
             })
             .collect(),
-        "rigid_body" => vec!["rigid_body:order=2".into(), "rigid_body:order=3".into()],
+        "rigid_body" => vec![
+            "rigid_body:order=2".into(),
+            "rigid_body:order=3".into(),
+            "rigid_body:spline".into(),
+        ],
         "probe_lobing" => vec!["probe_lobing".into()],
         k => vec![k.to_string()],
     };
@@ -390,7 +394,8 @@ pub(crate) fn axis_span(ds: &Dataset, a: Axis) -> (f64, f64) {
 /// `split`, `per_tip`; probe_force `per_tip`; guide_straightness `axis=x|y|z`, `about=x|y|z`
 /// (rotation axis of its angular term), `knots=N`; servo_phase `order=0|1`, `static` (the
 /// term that keeps its sign with the scan direction), `static,direction` (both); rigid_body
-/// `order=1…4`, `chain=moving_bridge|fixed_bridge|cantilever|horizontal_arm`; probe_lobing
+/// `order=1…4`, `spline` (cubic B-spline tables, `step=MM` between knots, default 50),
+/// `chain=moving_bridge|fixed_bridge|cantilever|horizontal_arm`; probe_lobing
 /// `harmonics=2…8`.
 pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
     let (kind, opts) = name.split_once(':').unwrap_or((name, ""));
@@ -484,7 +489,19 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
                     [lo.floor() - 1.0, lo.floor() + 1.0]
                 }
             });
-            EffectConfig::RigidBody(fx::rigid_body::Config::zeros(chain, ord, ranges))
+            if o.contains_key("spline") {
+                let step = match o.get("step") {
+                    None => 50.0,
+                    Some(s) => s
+                        .parse::<f64>()
+                        .ok()
+                        .filter(|v| (5.0..=1000.0).contains(v))
+                        .ok_or_else(|| bad("step must be 5…1000 (mm between knots)".into()))?,
+                };
+                EffectConfig::RigidBody(fx::rigid_body::Config::zeros_spline(chain, ranges, step))
+            } else {
+                EffectConfig::RigidBody(fx::rigid_body::Config::zeros(chain, ord, ranges))
+            }
         }
         "guide_straightness" => {
             let axis = match o.get("axis").map(|s| s.as_str()).unwrap_or("x") {

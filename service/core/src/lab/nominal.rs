@@ -25,6 +25,9 @@ pub struct AxisFit {
     pub rms_before_um: f64,
     /// After.
     pub rms_after_um: f64,
+    /// Standard uncertainty of τ after, s: from the curvature of the tracking residual at its
+    /// minimum, with the number of points reduced for the residual's correlation.
+    pub tau_sigma_s: Option<f64>,
 }
 
 /// Command and scale pairs (scale time, commanded position interpolated, scale position).
@@ -61,6 +64,46 @@ fn pairs(samples: &dyn Samples) -> Result<Vec<(Vec3, Vec3, bool)>, LabError> {
     Ok(out)
 }
 
+/// Tracking residual while the axis moves: (RMS µm, points, lag-1 autocorrelation).
+fn residual_stats(
+    samples: &[(Vec3, Vec3, bool)],
+    axis: usize,
+    tf: &TransferFunction,
+    g2: &TransferFunction,
+    period: f64,
+) -> Option<(f64, usize, f64)> {
+    let g = tf.rational().ok()?.mul(&g2.rational().ok()?);
+    let d = Discrete::new(&g, period).ok()?;
+    let first = samples.first()?;
+    let mut st = d.steady(first.0[axis]);
+    let (mut ss, mut lag1, mut n) = (0.0, 0.0, 0usize);
+    let mut prev = first.0[axis];
+    let mut last: Option<f64> = None;
+    for (c, s, _) in samples.iter().skip(1) {
+        let e = d.step(&mut st, c[axis]);
+        // Only while the axis moves: at rest every model agrees.
+        if (c[axis] - prev).abs() > 1e-6 {
+            let r = s[axis] - e.y;
+            ss += r * r;
+            if let Some(l) = last {
+                lag1 += r * l;
+            }
+            last = Some(r);
+            n += 1;
+        } else {
+            last = None;
+        }
+        prev = c[axis];
+    }
+    (n > 100).then(|| {
+        (
+            (ss / n as f64).sqrt() * 1e3,
+            n,
+            (lag1 / ss).clamp(0.0, 0.999),
+        )
+    })
+}
+
 fn residual(
     samples: &[(Vec3, Vec3, bool)],
     axis: usize,
@@ -68,23 +111,7 @@ fn residual(
     g2: &TransferFunction,
     period: f64,
 ) -> Option<f64> {
-    let g = tf.rational().ok()?.mul(&g2.rational().ok()?);
-    let d = Discrete::new(&g, period).ok()?;
-    let first = samples.first()?;
-    let mut st = d.steady(first.0[axis]);
-    let mut ss = 0.0;
-    let mut n = 0usize;
-    let mut prev = first.0[axis];
-    for (c, s, _) in samples.iter().skip(1) {
-        let e = d.step(&mut st, c[axis]);
-        // Only while the axis moves: at rest every model agrees.
-        if (c[axis] - prev).abs() > 1e-6 {
-            ss += (s[axis] - e.y).powi(2);
-            n += 1;
-        }
-        prev = c[axis];
-    }
-    (n > 100).then(|| (ss / n as f64).sqrt() * 1e3)
+    residual_stats(samples, axis, tf, g2, period).map(|r| r.0)
 }
 
 /// Refits τ of every first-order axis model from the command and scale streams.
@@ -143,6 +170,23 @@ pub fn fit_nominal(
         } else {
             (*tau_s, before)
         };
+        // σ from the curvature of rms²(τ) = rms₀² + c·(τ − τ₀)², each point weighing
+        // (1 − ρ)/(1 + ρ) of an independent one.
+        let tau_sigma_s = (|| {
+            let h = 0.02 * tau;
+            let (r0, n, rho) = residual_stats(
+                &all,
+                i,
+                &TransferFunction::FirstOrder { tau_s: tau },
+                &g2,
+                cal.sample_period_s,
+            )?;
+            let (rp, rm) = (f(tau + h)?, f(tau - h)?);
+            let c = (rp * rp + rm * rm - 2.0 * r0 * r0) / (2.0 * h * h);
+            let n_eff = (n as f64 * (1.0 - rho) / (1.0 + rho)).max(1.0);
+            let s = (r0 * r0 / n_eff / c).sqrt();
+            (c > 0.0 && s.is_finite()).then_some(s)
+        })();
         let new = TransferFunction::FirstOrder { tau_s: tau };
         match i {
             0 => out.nominal.axes.x = new,
@@ -155,6 +199,7 @@ pub fn fit_nominal(
             tau_after_s: tau,
             rms_before_um: before,
             rms_after_um: after,
+            tau_sigma_s,
         });
     }
     Ok((out, report))

@@ -48,8 +48,9 @@ pub struct Block {
     pub in_model: bool,
     off: usize,
     n: usize,
-    /// Second-difference rows (local column indices) of each table.
-    smooth: Vec<Vec<(usize, f64)>>,
+    /// Second-difference rows (local column indices) of each table, in groups that share
+    /// a penalty scale.
+    smooth: Vec<Vec<Vec<(usize, f64)>>>,
 }
 
 #[derive(Debug, Clone)]
@@ -149,19 +150,35 @@ pub struct Space {
     weak: Vec<bool>,
 }
 
-fn smooth_rows(cfg: &EffectConfig) -> Vec<Vec<(usize, f64)>> {
-    let mut rows = vec![];
-    if let EffectConfig::GuideStraightness(g) = cfg {
-        let n = g.knots_mm.len();
-        let tables = g.straightness.len() + g.pitch_rad.is_some() as usize;
-        for t in 0..tables {
-            for j in 1..n.saturating_sub(1) {
-                let c = t * n + j;
-                rows.push(vec![(c - 1, 1.0), (c, -2.0), (c + 1, 1.0)]);
-            }
+/// Second-difference rows of each table of an effect, grouped by the tables that share one
+/// penalty scale (a guide's tables share one; a rigid-body spline table has its own per
+/// error, as translations in mm and angles in rad times an Abbe lever differ by orders of
+/// magnitude).
+fn smooth_rows(cfg: &EffectConfig) -> Vec<Vec<Vec<(usize, f64)>>> {
+    let second = |off: usize, n: usize| -> Vec<Vec<(usize, f64)>> {
+        (1..n.saturating_sub(1))
+            .map(|j| vec![(off + j - 1, 1.0), (off + j, -2.0), (off + j + 1, 1.0)])
+            .collect()
+    };
+    match cfg {
+        EffectConfig::GuideStraightness(g) => {
+            let n = g.knots_mm.len();
+            let tables = g.straightness.len() + g.pitch_rad.is_some() as usize;
+            vec![(0..tables).flat_map(|t| second(t * n, n)).collect()]
         }
+        EffectConfig::RigidBody(r) if r.spline_segments.is_some() => {
+            let mut off = 0;
+            r.errors
+                .values()
+                .map(|c| {
+                    let rows = second(off, c.len());
+                    off += c.len();
+                    rows
+                })
+                .collect()
+        }
+        _ => vec![],
     }
-    rows
 }
 
 /// Fold of every point: 0 or 1 for fit points (alternate scans of each placement; for a
@@ -300,15 +317,23 @@ impl Space {
         });
         let mut weak = vec![false; n_fx];
         for b in &out {
-            if !b.smooth.is_empty() {
-                continue;
-            }
             let rms: Vec<f64> = (b.off..b.off + b.n)
                 .map(|c| (g[0].m[(c, c)] + g[1].m[(c, c)]).max(0.0).sqrt())
                 .collect();
             let top = rms.iter().cloned().fold(0.0, f64::max);
-            for (j, r) in rms.iter().enumerate() {
-                weak[b.off + j] = *r <= WEAK_COLUMN * top;
+            if b.smooth.is_empty() {
+                for (j, r) in rms.iter().enumerate() {
+                    weak[b.off + j] = *r <= WEAK_COLUMN * top;
+                }
+            } else {
+                // A table is smoothed where the data is thin; only a table the data does not
+                // see at all (a z error under horizontal scans) is left out whole.
+                for group in &b.smooth {
+                    let cols: Vec<usize> = group.iter().flatten().map(|(j, _)| *j).collect();
+                    if cols.iter().all(|j| rms[*j] <= WEAK_COLUMN * top) {
+                        cols.iter().for_each(|j| weak[b.off + j] = true);
+                    }
+                }
             }
         }
         Ok(Space {
@@ -389,7 +414,7 @@ impl Space {
     }
 
     /// Adds the smoothness penalty of the fitted blocks (weights `lambda`, relative to the
-    /// mean diagonal of each block's columns) to a system over `fitted` blocks.
+    /// mean diagonal of the columns of each group of tables) to a system over `fitted` blocks.
     fn penalise(
         &self,
         a: &mut DMatrix<f64>,
@@ -400,24 +425,45 @@ impl Space {
         let mut c0 = 0;
         for (bi, &blk) in fitted.iter().enumerate() {
             let block = &self.blocks[blk];
+            // Local column → its index among the fitted ones (weak columns are not fitted).
+            let mut map = vec![None; block.n];
+            let mut k = c0;
+            for (j, m) in map.iter_mut().enumerate() {
+                if !self.weak[block.off + j] {
+                    *m = Some(k);
+                    k += 1;
+                }
+            }
             if lambda[bi] > 0.0 && !block.smooth.is_empty() {
-                let diag: f64 =
-                    (0..block.n).map(|j| a[(c0 + j, c0 + j)]).sum::<f64>() / block.n as f64;
-                let w = lambda[bi] * diag.max(1e-300);
                 let p0 = block.config.params();
-                for row in &block.smooth {
-                    let d0: f64 = row.iter().map(|(j, v)| v * p0[*j]).sum();
-                    for &(j1, v1) in row {
-                        b[c0 + j1] += w * v1 * d0;
-                        for &(j2, v2) in row {
-                            a[(c0 + j1, c0 + j2)] += w * v1 * v2;
+                for group in &block.smooth {
+                    let rows: Vec<Vec<(usize, f64, usize)>> = group
+                        .iter()
+                        .filter_map(|row| {
+                            row.iter()
+                                .map(|&(j, v)| map[j].map(|c| (j, v, c)))
+                                .collect::<Option<Vec<_>>>()
+                        })
+                        .collect();
+                    // The group's scale: the mean diagonal of the columns its rows touch.
+                    let mut cols: Vec<usize> = rows.iter().flatten().map(|r| r.2).collect();
+                    cols.sort_unstable();
+                    cols.dedup();
+                    let diag: f64 =
+                        cols.iter().map(|c| a[(*c, *c)]).sum::<f64>() / cols.len().max(1) as f64;
+                    let w = lambda[bi] * diag.max(1e-300);
+                    for row in &rows {
+                        let d0: f64 = row.iter().map(|(j, v, _)| v * p0[*j]).sum();
+                        for &(_, v1, c1) in row {
+                            b[c1] += w * v1 * d0;
+                            for &(_, v2, c2) in row {
+                                a[(c1, c2)] += w * v1 * v2;
+                            }
                         }
                     }
                 }
             }
-            c0 += (block.off..block.off + block.n)
-                .filter(|c| !self.weak[*c])
-                .count();
+            c0 = k;
         }
     }
 

@@ -1,0 +1,181 @@
+//! `scancorr bench procedures`: are the calibration procedures' uncertainties honest? Each
+//! procedure runs on `runs` simulated measurements of one machine (run seeds 1…runs), from
+//! the nominal model, and every printed parameter is compared with the simulator's truth: the
+//! share within 2σ (≈ 95 % for honest σ; the issue asks ≥ 80 %) and within max(3σ, 5 %).
+//! Runs this executable's `sim` and `calibrate` as child processes, as a user would.
+
+use anyhow::{bail, Context, Result};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::process::Command;
+
+fn exe(dir: &Path, args: &[&str]) -> Result<String> {
+    let out = Command::new(std::env::current_exe()?)
+        .current_dir(dir)
+        .args(args)
+        .output()
+        .context("running scancorr")?;
+    if !out.status.success() {
+        bail!(
+            "scancorr {}: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+fn read(p: &Path) -> Result<serde_json::Value> {
+    serde_json::from_str(&std::fs::read_to_string(p)?).with_context(|| p.display().to_string())
+}
+
+/// The nominal start: no effects, time constants 30 % off, catalogue styli.
+fn nominal(dir: &Path) -> Result<()> {
+    let mut c = read(&dir.join("start.json"))?;
+    for ax in c["nominal"]["axes"]
+        .as_object_mut()
+        .context("nominal.axes")?
+        .values_mut()
+    {
+        let t = ax["tau_s"].as_f64().context("tau_s")?;
+        ax["tau_s"] = (t * 1.3).into();
+    }
+    let cat = scancorr_sim::machine::catalogue_styli();
+    for t in c["geometry"]["tips"].as_array_mut().context("tips")? {
+        if let Some(s) = cat.iter().find(|s| Some(s.id as u64) == t["id"].as_u64()) {
+            t["l1_mm"] = s.l1_mm.into();
+            t["l2_mm"] = s.l2_mm.into();
+            t["radius_mm"] = s.radius_mm.into();
+        }
+    }
+    std::fs::write(dir.join("nominal.json"), c.to_string())?;
+    Ok(())
+}
+
+#[derive(Default)]
+struct Tally {
+    n: usize,
+    in2: usize,
+    in3: usize,
+    per: BTreeMap<String, (usize, usize)>,
+    seconds: Vec<f64>,
+}
+
+/// Runs the benchmark.
+pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result<()> {
+    let dir = std::env::temp_dir().join(format!("scancorr-bench-proc-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let mut all = BTreeMap::new();
+    for proc in procedures {
+        let program = match proc.as_str() {
+            "tips" | "dynamics" => proc.as_str(),
+            p => bail!("procedure `{p}` (tips, dynamics)"),
+        };
+        let mut t = Tally::default();
+        for seed in 1..=runs {
+            let ms = machine.to_string();
+            let s = seed.to_string();
+            let mut a = vec![
+                "sim",
+                "--program",
+                program,
+                "--machine-seed",
+                &ms,
+                "--seed",
+                &s,
+                "--out",
+                "m.mcap",
+                "--calib-out",
+                "start.json",
+                "--truth",
+                "truth.json",
+            ];
+            for h in scancorr_sim::LIBRARY_EFFECTS {
+                a.extend(["--hide", h]);
+            }
+            exe(&dir, &a)?;
+            nominal(&dir)?;
+            let t0 = std::time::Instant::now();
+            let r: serde_json::Value = serde_json::from_str(&exe(
+                &dir,
+                &[
+                    "calibrate",
+                    proc,
+                    "--bag",
+                    "m.mcap",
+                    "--calib",
+                    "nominal.json",
+                    "--out",
+                    "out.json",
+                    "--json",
+                ],
+            )?)?;
+            t.seconds.push(t0.elapsed().as_secs_f64());
+            let truth = read(&dir.join("truth.json"))?;
+            for (name, v) in r["params"].as_object().context("params")? {
+                let (Some(v), Some(s), Some(tv)) = (
+                    v.as_f64(),
+                    r["uncertainty"][name].as_f64(),
+                    truth["params"][name].as_f64(),
+                ) else {
+                    continue;
+                };
+                let d = (v - tv).abs();
+                t.n += 1;
+                let ok2 = d <= 2.0 * s;
+                t.in2 += ok2 as usize;
+                t.in3 += (d <= (3.0 * s).max(0.05 * tv.abs())) as usize;
+                let e = t.per.entry(name.clone()).or_default();
+                e.0 += ok2 as usize;
+                e.1 += 1;
+            }
+            if !json {
+                eprintln!("{proc}: run {seed}/{runs} done");
+            }
+        }
+        t.seconds.sort_by(f64::total_cmp);
+        let worst: Vec<(String, f64)> = {
+            let mut v: Vec<(String, f64)> = t
+                .per
+                .iter()
+                .map(|(k, (a, b))| (k.clone(), *a as f64 / *b as f64))
+                .collect();
+            v.sort_by(|a, b| a.1.total_cmp(&b.1));
+            v.into_iter().take(5).collect()
+        };
+        let frac = |k: usize| if t.n == 0 { 0.0 } else { k as f64 / t.n as f64 };
+        let v = serde_json::json!({
+            "runs": runs,
+            "machine_seed": machine,
+            "parameters": t.per.len(),
+            "comparisons": t.n,
+            "within_2sigma": frac(t.in2),
+            "within_3sigma_or_5pct": frac(t.in3),
+            "seconds_median": t.seconds.get(t.seconds.len() / 2).copied().unwrap_or(0.0),
+            "worst": worst.iter().map(|(k, f)| serde_json::json!({"name": k, "within_2sigma": f})).collect::<Vec<_>>(),
+        });
+        if !json {
+            outln!(
+                "{proc}: {} parameters × {runs} runs of machine {machine}: {:.1} % within 2σ, {:.1} % within max(3σ, 5 %); {:.2} s per procedure (median)",
+                t.per.len(),
+                100.0 * frac(t.in2),
+                100.0 * frac(t.in3),
+                v["seconds_median"].as_f64().unwrap_or(0.0)
+            )?;
+            outln!(
+                "  least often within 2σ: {}",
+                worst
+                    .iter()
+                    .map(|(k, f)| format!("{k} {:.0} %", 100.0 * f))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )?;
+        }
+        all.insert(proc.clone(), v);
+    }
+    std::fs::remove_dir_all(&dir).ok();
+    if json {
+        outln!("{}", serde_json::to_string_pretty(&all)?)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,255 @@
+//! `scancorr calibrate dynamics` end to end: the simulator's `dynamics` program (one ring at
+//! 15 positions, three speeds, both directions) on machines no other test uses, from the
+//! nominal model (no effects, time constants 30 % off). The truth file is read only to judge.
+
+mod common;
+use common::*;
+use std::path::Path;
+
+fn json(s: &str) -> serde_json::Value {
+    serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
+}
+
+/// Simulates the ring-gauge measurement of `machine` (run `seed`) with every library effect
+/// left out of the starting calibration, and writes the nominal start `nominal.json`.
+fn measure(dir: &Path, machine: &str, seed: &str) {
+    let mut a = vec![
+        "sim",
+        "--program",
+        "dynamics",
+        "--machine-seed",
+        machine,
+        "--seed",
+        seed,
+        "--out",
+        "d.mcap",
+        "--calib-out",
+        "start.json",
+        "--truth",
+        "truth.json",
+    ];
+    for h in scancorr_sim::LIBRARY_EFFECTS {
+        a.extend(["--hide", h]);
+    }
+    ok(dir, &a);
+    let mut c = json(&std::fs::read_to_string(dir.join("start.json")).unwrap());
+    assert!(c["effects"].as_array().unwrap().is_empty());
+    for ax in c["nominal"]["axes"].as_object_mut().unwrap().values_mut() {
+        let t = ax["tau_s"].as_f64().unwrap();
+        ax["tau_s"] = (t * 1.3).into();
+    }
+    std::fs::write(dir.join("nominal.json"), c.to_string()).unwrap();
+}
+
+/// Every printed parameter is within max(3σ, 5 %) of the truth; returns (within 2σ, count).
+fn judge(r: &serde_json::Value, truth: &serde_json::Value) -> (usize, usize) {
+    let (mut in2, mut n) = (0, 0);
+    for (name, v) in r["params"].as_object().unwrap() {
+        let v = v.as_f64().unwrap();
+        let s = r["uncertainty"][name].as_f64().unwrap();
+        let t = truth["params"][name]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{name}: no truth under that name"));
+        assert!(s.is_finite() && s > 0.0, "{name}: σ {s}");
+        assert!(
+            (v - t).abs() <= (3.0 * s).max(0.05 * t.abs()),
+            "{name}: {v} ± {s}, truth {t}"
+        );
+        n += 1;
+        in2 += ((v - t).abs() <= 2.0 * s) as usize;
+    }
+    (in2, n)
+}
+
+#[test]
+fn dynamics_recovers_the_machine_from_the_nominal_model() {
+    let dir = scratch("calibrate-dynamics");
+    measure(&dir, "29", "3");
+    let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
+    let out = ok(
+        &dir,
+        &[
+            "calibrate",
+            "dynamics",
+            "--bag",
+            "d.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "dyn.json",
+            "--json",
+        ],
+    );
+    assert!(!out.contains("NaN"), "{out}");
+    let r = json(&out);
+    let (in2, n) = judge(&r, &truth);
+    eprintln!("{in2} of {n} parameters within 2σ");
+    // The determined ones: the time constants, P's XY block with its change along X, Y and Z,
+    // the phase of Y, the gain of X and Y.
+    assert!(n >= 30, "{n} parameters: {r:#}");
+    for name in [
+        "dynamics.tau_x_s",
+        "dynamics.P_xy.1",
+        "dynamics.P_yy.y",
+        "dynamics.P_xx.z",
+        "dynamics.phase_y.b1.1",
+        "dynamics.gain_x.f2.1",
+    ] {
+        assert!(r["params"][name].is_number(), "{name} missing: {r:#}");
+    }
+    // What horizontal rings cannot see is named, with the measurement that would.
+    let und = r["undetermined"].to_string();
+    assert!(
+        und.contains("P_zz.1") && und.contains("vertical plane"),
+        "{und}"
+    );
+    // The compliance's diagonal and the gain's f² term: their correlation and combination.
+    let conf = r["confounded"].to_string();
+    assert!(
+        conf.contains("P_xx.1") && conf.contains("gain_x.f2.1") && conf.contains("spin-up"),
+        "{conf}"
+    );
+    // The fit leaves the noise: what changes with speed and direction is explained.
+    let floor = r["noise_floor_um"].as_f64().unwrap();
+    let (before, after) = (
+        r["residual_before_um"].as_f64().unwrap(),
+        r["residual_after_um"].as_f64().unwrap(),
+    );
+    assert!(after <= 1.2 * floor, "{before} → {after} µm, floor {floor}");
+    assert!(
+        before > 5.0 * floor,
+        "the nominal model leaves the dynamics: {before}"
+    );
+    assert!(["theoretical", "polynomial"].contains(&r["gain"]["chosen"].as_str().unwrap()));
+    // A new version of the start, with the fitted effects and time constants.
+    let doc = json(&std::fs::read_to_string(dir.join("dyn.json")).unwrap());
+    assert_eq!(doc["parent_version"], 1);
+    assert_eq!(doc["version"], 2);
+    assert!(doc["note"]
+        .as_str()
+        .unwrap()
+        .starts_with("calibrate dynamics"));
+    let kinds: Vec<&str> = doc["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["kind"].as_str().unwrap())
+        .collect();
+    for k in ["accel_deflection", "servo_phase", "servo_gain"] {
+        assert!(kinds.contains(&k), "{kinds:?}");
+    }
+    let tau = doc["nominal"]["axes"]["x"]["tau_s"].as_f64().unwrap();
+    let t = truth["params"]["dynamics.tau_x_s"].as_f64().unwrap();
+    assert!((tau / t - 1.0).abs() < 0.01, "τx {tau} vs {t}");
+    // The human form prints the same parameters with units.
+    let text = ok(
+        &dir,
+        &[
+            "calibrate",
+            "dynamics",
+            "--bag",
+            "d.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "dyn2.json",
+        ],
+    );
+    assert!(
+        text.contains("µm per m/s²") && text.contains("ms"),
+        "{text}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The σ are honest: over a few runs of another machine, most parameters are within 2σ
+/// (`scripts/bench-procedures.sh` runs 20).
+#[test]
+fn dynamics_uncertainties_are_honest_over_runs() {
+    let dir = scratch("calibrate-dynamics-sigma");
+    let (mut in2, mut n) = (0, 0);
+    for seed in ["11", "12", "13"] {
+        measure(&dir, "31", seed);
+        let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
+        let r = json(&ok(
+            &dir,
+            &[
+                "calibrate",
+                "dynamics",
+                "--bag",
+                "d.mcap",
+                "--calib",
+                "nominal.json",
+                "--out",
+                &format!("dyn{seed}.json"),
+                "--json",
+            ],
+        ));
+        let (a, b) = judge(&r, &truth);
+        in2 += a;
+        n += b;
+    }
+    let frac = in2 as f64 / n as f64;
+    eprintln!("{in2} of {n} within 2σ ({:.0} %)", 100.0 * frac);
+    assert!(frac >= 0.8, "{in2} of {n} within 2σ");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn dynamics_refuses_a_measurement_that_cannot_determine_it() {
+    let dir = scratch("calibrate-dynamics-bad");
+    // One ring position (four speeds, both directions): P's change along X is not there.
+    ok(
+        &dir,
+        &[
+            "sim",
+            "--program",
+            "ring-speeds",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "c.json",
+        ],
+    );
+    let args = |bag: &'static str| -> Vec<&'static str> {
+        vec![
+            "calibrate",
+            "dynamics",
+            "--bag",
+            bag,
+            "--calib",
+            "c.json",
+            "--out",
+            "never.json",
+        ]
+    };
+    let e = fails(
+        &dir,
+        &args("r.mcap"),
+        &[
+            "rings at 1 position(s) along X",
+            "add rings at ≥ 5 positions along X",
+        ],
+    );
+    assert!(!e.contains("NaN"), "{e}");
+    // No ring at all: the master sphere of a tip qualification.
+    ok(
+        &dir,
+        &[
+            "sim",
+            "--program",
+            "tips",
+            "--out",
+            "t.mcap",
+            "--calib-out",
+            "c.json",
+        ],
+    );
+    fails(
+        &dir,
+        &args("t.mcap"),
+        &["no ring-gauge scans", "scancorr sim --program dynamics"],
+    );
+    assert!(!dir.join("never.json").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
