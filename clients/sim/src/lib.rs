@@ -203,9 +203,14 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
             }
         }
     }
+    let first = m.styli.iter().min_by_key(|s| s.id);
     for s in &m.styli {
         let t = format!("tip{}", s.id);
         p.insert(format!("{t}.l1_mm"), s.l1_mm);
+        if let Some(r) = first.filter(|r| r.id != s.id) {
+            // Measured from the reference stylus (the lowest id), as `calibrate tips` prints.
+            p.insert(format!("{t}.l1_from_tip{}_mm", r.id), s.l1_mm - r.l1_mm);
+        }
         if s.l2_mm > 0.0 {
             p.insert(format!("{t}.l2_mm"), s.l2_mm);
         }

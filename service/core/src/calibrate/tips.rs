@@ -485,10 +485,20 @@ pub fn run(
         })
         .collect();
     let rotation: Vec<Param> = all[omega0..omega0 + 3].to_vec();
+    // A stylus's length along the reference's axis is measured from the reference's own
+    // (the zero): it is printed as that difference, which is what the sphere determines.
+    let l1_ref = geom(reference).map_or(0.0, |g| g.l1_mm);
     let mut params: Vec<Param> = all[..omega0]
         .iter()
         .chain(&all[omega0 + 3..])
         .cloned()
+        .map(|mut p| {
+            if let Some(k) = p.name.strip_suffix(".l1_mm") {
+                p.name = format!("{k}.l1_from_tip{reference}_mm");
+                p.value -= l1_ref;
+            }
+            p
+        })
         .collect();
     // Effective radii.
     let mut tips_seen: Vec<u32> = settings.iter().map(|s| s.tip).collect();
@@ -521,8 +531,11 @@ pub fn run(
             .find(|t| t.id == k)
             .expect("checked");
         g.radius_mm += mean;
+        // The radius the tip behaves as at this measurement's probing force and speed (the
+        // probe's bending and the dynamics are in it until `probe-force` and `dynamics`
+        // correct them): not the ball's physical radius.
         params.push(Param {
-            name: format!("tip{k}.radius_mm"),
+            name: format!("tip{k}.effective_radius_mm"),
             value: g.radius_mm,
             sigma: spread.max(fit_sigma),
         });
