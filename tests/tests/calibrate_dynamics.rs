@@ -153,12 +153,26 @@ fn dynamics_recovers_the_machine_from_the_nominal_model() {
             "nominal.json",
             "--out",
             "dyn2.json",
+            "--report",
+            "dyn.html",
         ],
     );
     assert!(
         text.contains("µm per m/s²") && text.contains("ms"),
         "{text}"
     );
+    // The report draws ΔR against acceleration per position and P along each line.
+    let html = std::fs::read_to_string(dir.join("dyn.html")).unwrap();
+    for plot in [
+        "delta-r-before",
+        "delta-r-after",
+        "p-along-x",
+        "p-along-y",
+        "p-along-z",
+    ] {
+        assert!(html.contains(&format!("data-plot=\"{plot}\"")), "{plot}");
+    }
+    assert!(!html.contains("NaN"));
     std::fs::remove_dir_all(&dir).ok();
 }
 

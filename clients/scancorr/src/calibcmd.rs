@@ -52,6 +52,10 @@ pub enum CalibrateCmd {
         /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `positions`, …).
         #[arg(long)]
         json: bool,
+        /// Write an HTML report: ΔR against acceleration per position before and after, the
+        /// fitted compliance along each line of positions, every parameter.
+        #[arg(long)]
+        report: Option<PathBuf>,
     },
 }
 
@@ -90,10 +94,22 @@ fn dynamic_unit(p: &Param) -> (f64, f64, &'static str) {
     (p.value * k, p.sigma * k, u)
 }
 
-fn run_dynamics(bag: Vec<PathBuf>, calib: PathBuf, out: PathBuf, json: bool) -> Result<()> {
+fn run_dynamics(
+    bag: Vec<PathBuf>,
+    calib: PathBuf,
+    out: PathBuf,
+    json: bool,
+    report: Option<PathBuf>,
+) -> Result<()> {
     let mut inputs = vec![("--calib", calib.as_path())];
     inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
-    let [out_file] = outputs([("--out", Some(out.as_path()))], &inputs)?;
+    let [out_file, report_file] = outputs(
+        [
+            ("--out", Some(out.as_path())),
+            ("--report", report.as_deref()),
+        ],
+        &inputs,
+    )?;
     let start = offline::load_calibration(&calib)?;
     let bags = load_bags(&bag, &[], &start.machine_id)?;
     eprintln!("refitting the nominal model's time constants …");
@@ -137,7 +153,13 @@ fn run_dynamics(bag: Vec<PathBuf>, calib: PathBuf, out: PathBuf, json: bool) -> 
     .collect();
     new.build().context("the new calibration")?;
     put(&out_file, new.to_json())?;
-    commit_all([out_file])?;
+    if report_file.is_some() {
+        put(
+            &report_file,
+            crate::report::dynamics(&start, &o, ds.noise_floor_um),
+        )?;
+    }
+    commit_all([out_file, report_file])?;
     if json {
         let (params, sigma) = sigma_json(&o.params);
         let mut v = serde_json::to_value(&o)?;
@@ -236,7 +258,8 @@ pub fn run(cmd: CalibrateCmd) -> Result<()> {
             calib,
             out,
             json,
-        } => run_dynamics(bag, calib, out, json),
+            report,
+        } => run_dynamics(bag, calib, out, json, report),
         CalibrateCmd::Tips {
             bag,
             calib,

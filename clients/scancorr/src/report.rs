@@ -471,3 +471,240 @@ pub fn discover(
     }
     page("scancorr lab — discover", &body)
 }
+
+/// One series of an x–y chart: label, colour, points, drawn with a line.
+type Series = (String, &'static str, Vec<(f64, f64)>, bool);
+
+/// An x–y chart with axes, ticks at round values, a zero line and a legend.
+fn xy(kind: &str, series: &[Series], xlabel: &str, ylabel: &str) -> String {
+    let (w, h, l, r, t, b) = (560.0, 320.0, 62.0, 150.0, 14.0, 42.0);
+    let pts = series.iter().flat_map(|s| s.2.iter());
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, 0.0f64, 0.0f64);
+    for &(x, y) in pts {
+        if x.is_finite() && y.is_finite() {
+            (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+        }
+    }
+    if x0 > x1 {
+        (x0, x1) = (0.0, 1.0);
+    }
+    if x1 - x0 < 1e-12 {
+        x1 = x0 + 1.0;
+    }
+    if y1 - y0 < 1e-12 {
+        y1 = y0 + 1.0;
+    }
+    let pad = 0.06 * (y1 - y0);
+    let (y0, y1) = (y0 - pad, y1 + pad);
+    let px = |x: f64| l + (x - x0) / (x1 - x0) * (w - l - r);
+    let py = |y: f64| t + (y1 - y) / (y1 - y0) * (h - t - b);
+    let mut svg = format!("<svg data-plot=\"{kind}\" xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-size=\"11\">");
+    let _ = write!(
+        svg,
+        "<rect x=\"{l}\" y=\"{t}\" width=\"{}\" height=\"{}\" fill=\"none\" stroke=\"#999\"/>",
+        w - l - r,
+        h - t - b
+    );
+    let step = |span: f64| {
+        let raw = span / 5.0;
+        let m = 10f64.powf(raw.log10().floor());
+        [1.0, 2.0, 5.0, 10.0]
+            .iter()
+            .map(|k| k * m)
+            .find(|s| *s >= raw)
+            .unwrap_or(m * 10.0)
+    };
+    let (sx, sy) = (step(x1 - x0), step(y1 - y0));
+    let mut v = (x0 / sx).ceil() * sx;
+    while v <= x1 + 1e-9 * sx {
+        let _ = write!(svg, "<line x1=\"{0:.1}\" x2=\"{0:.1}\" y1=\"{1:.1}\" y2=\"{2:.1}\" stroke=\"#999\"/><text x=\"{0:.1}\" y=\"{3:.1}\" text-anchor=\"middle\">{4}</text>", px(v), h - b, h - b + 4.0, h - b + 16.0, fmt_tick(v, sx));
+        v += sx;
+    }
+    let mut v = (y0 / sy).ceil() * sy;
+    while v <= y1 + 1e-9 * sy {
+        let _ = write!(svg, "<line x1=\"{0:.1}\" x2=\"{1:.1}\" y1=\"{2:.1}\" y2=\"{2:.1}\" stroke=\"#999\"/><text x=\"{3:.1}\" y=\"{4:.1}\" text-anchor=\"end\">{5}</text>", l - 4.0, l, py(v), l - 6.0, py(v) + 4.0, fmt_tick(v, sy));
+        v += sy;
+    }
+    if y0 < 0.0 && y1 > 0.0 {
+        let _ = write!(svg, "<line x1=\"{l}\" x2=\"{0:.1}\" y1=\"{1:.1}\" y2=\"{1:.1}\" stroke=\"#bbb\" stroke-dasharray=\"3 3\"/>", w - r, py(0.0));
+    }
+    let _ = write!(
+        svg,
+        "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>",
+        l + 0.5 * (w - l - r),
+        h - 8.0,
+        esc(xlabel)
+    );
+    let _ = write!(
+        svg,
+        "<text transform=\"translate(14,{:.1}) rotate(-90)\" text-anchor=\"middle\">{}</text>",
+        t + 0.5 * (h - t - b),
+        esc(ylabel)
+    );
+    for (i, (label, colour, p, line)) in series.iter().enumerate() {
+        let pts: Vec<String> = p
+            .iter()
+            .filter(|(x, y)| x.is_finite() && y.is_finite())
+            .map(|(x, y)| format!("{:.1},{:.1}", px(*x), py(*y)))
+            .collect();
+        if *line && pts.len() > 1 {
+            let _ = write!(
+                svg,
+                "<polyline points=\"{}\" fill=\"none\" stroke=\"{colour}\" stroke-width=\"1.2\"/>",
+                pts.join(" ")
+            );
+        }
+        for q in &pts {
+            let (x, y) = q.split_once(',').unwrap_or(("0", "0"));
+            let _ = write!(
+                svg,
+                "<circle cx=\"{x}\" cy=\"{y}\" r=\"2.5\" fill=\"{colour}\"/>"
+            );
+        }
+        let ly = t + 12.0 + 14.0 * i as f64;
+        let _ = write!(svg, "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"10\" height=\"3\" fill=\"{colour}\"/><text x=\"{:.1}\" y=\"{:.1}\">{}</text>", w - r + 8.0, ly - 4.0, w - r + 22.0, ly, esc(label));
+    }
+    svg + "</svg>"
+}
+
+fn fmt_tick(v: f64, step: f64) -> String {
+    let d = (-step.log10().floor()).max(0.0) as usize;
+    let s = format!("{v:.d$}");
+    if s.trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        "0".into()
+    } else {
+        s
+    }
+}
+
+const PALETTE: [&str; 8] = [
+    "#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2",
+];
+
+/// `calibrate dynamics --report`: ΔR against V² and acceleration per position before and
+/// after, the fitted diagonal compliance along each line of positions, every parameter.
+pub fn dynamics(
+    start: &Calibration,
+    o: &scancorr_core::calibrate::dynamics::Outcome,
+    noise_floor_um: f64,
+) -> String {
+    let mut body = format!(
+        "<p>Start: v{} of {}. {} ring positions; residual after each position's static pattern {:.3} → <b>{:.3} µm</b> (noise floor {:.3} µm). Servo gain: <b>{}</b> form (held-out ring positions: theoretical {:.3} µm, polynomial in f {:.3} µm).</p>",
+        start.version,
+        esc(&start.machine_id),
+        o.positions.len(),
+        o.residual_before_um,
+        o.residual_after_um,
+        noise_floor_um,
+        esc(&o.gain.chosen),
+        o.gain.heldout_theoretical_um,
+        o.gain.heldout_polynomial_um
+    );
+    // ΔR against acceleration: one series per position (mean of both directions per speed).
+    let per_pos = |after: bool| -> Vec<Series> {
+        o.positions
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let mut by: std::collections::BTreeMap<i64, (f64, f64, usize)> = Default::default();
+                for s in &p.scans {
+                    let e = by.entry((s.accel_mm_s2 * 10.0).round() as i64).or_default();
+                    e.0 = s.accel_mm_s2;
+                    e.1 += if after {
+                        s.delta_r_after_um
+                    } else {
+                        s.delta_r_um
+                    };
+                    e.2 += 1;
+                }
+                (
+                    format!(
+                        "({:.0}, {:.0}, {:.0})",
+                        p.center_mm[0], p.center_mm[1], p.center_mm[2]
+                    ),
+                    PALETTE[i % PALETTE.len()],
+                    by.values().map(|(a, d, n)| (*a, d / *n as f64)).collect(),
+                    true,
+                )
+            })
+            .collect()
+    };
+    let _ = write!(
+        body,
+        "<h2>ΔR against acceleration</h2><figure>{}<figcaption>Before: each position's mean radius change per speed against the centripetal acceleration v²/r (v² on the same axis scaled by 1/r), relative to its static pattern. A straight line through zero is compliance and the gain's f² term; curvature the f¹ term.</figcaption></figure><figure>{}<figcaption>After the fit: what is left per position and speed.</figcaption></figure>",
+        xy("delta-r-before", &per_pos(false), "acceleration v²/r (mm/s²)", "ΔR (µm)"),
+        xy("delta-r-after", &per_pos(true), "acceleration v²/r (mm/s²)", "ΔR (µm)")
+    );
+    // The fitted compliance's diagonal and cross terms along each line of positions.
+    let val = |n: &str| {
+        o.params
+            .iter()
+            .find(|p| p.name == n)
+            .map_or(0.0, |p| p.value)
+    };
+    let base = o.positions.first().map(|p| p.center_mm).unwrap_or([0.0; 3]);
+    let mut figs = String::new();
+    for (axis, name) in ["x", "y", "z"].iter().enumerate() {
+        let mut along: Vec<f64> = o.positions.iter().map(|p| p.center_mm[axis]).collect();
+        along.sort_by(f64::total_cmp);
+        along.dedup_by(|a, b| (*a - *b).abs() < 1.0);
+        if along.len() < 2 {
+            continue;
+        }
+        let series: Vec<Series> = [
+            ("xx", PALETTE[0]),
+            ("yy", PALETTE[1]),
+            ("xy", PALETTE[2]),
+            ("yx", PALETTE[3]),
+        ]
+        .iter()
+        .map(|(ij, c)| {
+            let pts = along
+                .iter()
+                .map(|&q| {
+                    let mut pos = base;
+                    pos[axis] = q;
+                    let xi = pos.map(|v| v / 500.0);
+                    let p = val(&format!("dynamics.P_{ij}.1"))
+                        + xi[0] * val(&format!("dynamics.P_{ij}.x"))
+                        + xi[1] * val(&format!("dynamics.P_{ij}.y"))
+                        + xi[2] * val(&format!("dynamics.P_{ij}.z"));
+                    (q, p * 1e6)
+                })
+                .collect();
+            (format!("P_{ij}"), *c, pts, true)
+        })
+        .collect();
+        let _ = write!(
+            figs,
+            "<figure>{}<figcaption>The fitted compliance along {} (the other coordinates at the first position's), µm per m/s². P_xx and P_yy include what of the gain's f² term the spin-up could not separate (see below).</figcaption></figure>",
+            xy(&format!("p-along-{name}"), &series, &format!("{} (mm)", name.to_uppercase()), "P (µm per m/s²)"),
+            name.to_uppercase()
+        );
+    }
+    let _ = write!(body, "<h2>Coefficients against position</h2>{figs}");
+    body += "<h2>Parameters</h2><table><tr><th>parameter</th><th>value</th><th>standard uncertainty</th></tr>";
+    for p in &o.params {
+        let _ = write!(
+            body,
+            "<tr><td>{}</td><td>{:.6e}</td><td>{:.2e}</td></tr>",
+            esc(&p.name),
+            p.value,
+            p.sigma
+        );
+    }
+    body += "</table><p class=\"muted\">Units: τ in s; P in mm per mm/s², per monomial 1, x, y, z of the position over 500 mm; phase b0 rad, b1 rad/Hz, b2 rad/Hz²; gain f¹ 1/Hz, f² 1/Hz².</p>";
+    for c in &o.confounded {
+        let _ = write!(body, "<p><b>Barely separated:</b> {}</p>", esc(c));
+    }
+    for u in &o.undetermined {
+        let _ = write!(body, "<p><b>Not determined:</b> {}</p>", esc(u));
+    }
+    for n in &o.notes {
+        let _ = write!(body, "<p class=\"muted\">{}</p>", esc(n));
+    }
+    page("scancorr calibrate dynamics", &body)
+}

@@ -64,7 +64,8 @@ pub struct Scan {
     pub direction: i32,
     /// Centripetal acceleration v²/r at programmed speed, mm/s².
     pub accel_mm_s2: f64,
-    /// Mean radius change against the placement's static pattern, before the fit, µm.
+    /// Mean radius change against the placement's static pattern (and its drift), without the
+    /// fitted dynamics, µm.
     pub delta_r_um: f64,
     /// The same after the fit, µm.
     pub delta_r_after_um: f64,
@@ -532,30 +533,21 @@ pub fn run(
         off += k;
     }
 
-    // --- ΔR per scan, before and after (against each placement's static pattern) ---
-    let st_all = st0.solve();
-    let mut st1 = Normal::new(n_static);
-    let mut after_y = vec![0.0; ds.points.len()];
-    for &i in &rows {
-        m.row(ds, prep, i, &mut dense);
-        let y = prep.art.residual[i] + dense.iter().zip(&theta).map(|(a, t)| a * t).sum::<f64>();
-        after_y[i] = y;
-        static_row(ds, prep, &col0, &t_mid, i, &mut sparse);
-        st1.add(&[], &sparse, y);
-    }
-    let st_after = st1.solve();
+    // --- ΔR per scan, before and after: the residual with each placement's static pattern and
+    // drift from the joint fit taken out, without and with the fitted dynamics ---
     let mut acc: BTreeMap<(usize, i64, i32), (f64, f64, usize)> = BTreeMap::new();
     for &i in &rows {
         let p = &ds.points[i];
+        m.row(ds, prep, i, &mut dense);
         static_row(ds, prep, &col0, &t_mid, i, &mut sparse);
-        // x minimises ‖y + S x‖²: the pattern is −S x.
-        let s0: f64 = sparse.iter().map(|(c, v)| v * st_all.x[*c]).sum();
-        let s1: f64 = sparse.iter().map(|(c, v)| v * st_after.x[*c]).sum();
+        // x minimises ‖y + A θ + S s‖²: y + S s is the dynamics' signature.
+        let stat: f64 = sparse.iter().map(|(c, v)| v * sol.x[m.n + *c]).sum();
+        let dynamic: f64 = dense.iter().zip(&theta).map(|(a, t)| a * t).sum();
         let e = acc
             .entry((p.feature, (p.speed * 10.0).round() as i64, p.direction))
             .or_insert((0.0, 0.0, 0));
-        e.0 += prep.art.residual[i] + s0;
-        e.1 += after_y[i] + s1;
+        e.0 += prep.art.residual[i] + stat;
+        e.1 += prep.art.residual[i] + stat + dynamic;
         e.2 += 1;
     }
     let positions = usable
