@@ -338,12 +338,14 @@ fn rings_alone_confound_accel_deflection_and_servo_gain() {
         .map(|s| s.as_str().unwrap())
         .collect();
     // Only measurements that act along the measured direction and that these rings lack:
-    // another diameter (frequency v/2πr vs acceleration v²/r), or a face accelerated along
-    // its normal — not "more spin-up" (tangential, unseen by a circle fit).
+    // another diameter (frequency v/2πr vs acceleration v²/r: it separates the gain's f¹
+    // term only, and says so), or a face accelerated along its normal — not "more spin-up".
     assert!(
-        how.iter().any(|s| s.contains("another diameter")),
+        how.iter()
+            .any(|s| s.contains("another diameter") && s.contains("in f²")),
         "{how:?}"
     );
+    assert!(how.iter().any(|s| s.contains("face")), "{how:?}");
     assert!(!how.iter().any(|s| s.contains("spin-up")), "{how:?}");
     std::fs::remove_dir_all(&dir).ok();
 }

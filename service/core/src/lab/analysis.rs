@@ -572,8 +572,9 @@ fn levers(kind: &str) -> &'static [Lever] {
     use Lever::*;
     match kind {
         "accel_deflection" => &[NormalAcceleration, Radius, Speed, Position],
-        // Circles of another diameter separate these from the deflection (which follows
-        // v²/r, not the rotation frequency): the lever is listed on one side only.
+        // Circles of another diameter separate a gain term in f¹ from the deflection (which
+        // follows v²/r, not the rotation frequency; an f² term follows v²/r too): the lever
+        // is listed on one side only.
         "servo_gain" => &[Speed],
         "servo_phase" => &[Speed, Direction],
         "stylus_thermal" => &[Temperature, Stylus],
@@ -591,7 +592,7 @@ fn lever_text(l: Lever, a: &str, b: &str, covered: bool) -> String {
     let (with, without) = (a, b);
     match l {
         Lever::NormalAcceleration => format!("{more}scans of a face while the machine accelerates along the face's normal, off arcs ({with} responds to acceleration along the measured direction, {without} only on arcs; a straightedge scanned along its length does not show it)"),
-        Lever::Radius => format!("{more}circles of another diameter at the same speeds (a smaller ring or a sphere's equator: the rotation frequency v/2πr and the acceleration v²/r scale differently, and {with} and {without} follow different ones)"),
+        Lever::Radius => format!("{more}circles of another diameter at the same speeds (a smaller ring or a sphere's equator: the rotation frequency v/2πr and the acceleration v²/r scale differently, which separates a term of {without} in f¹ from {with}; a term in f² follows v²/r as {with} does at any diameter, and only the scans of a face accelerated along its normal separate it)"),
         Lever::Speed => format!("scans at {more}other speeds (the effects grow differently with speed)"),
         Lever::Direction => format!("scans in {more}both directions, CW and CCW ({with} changes sign with direction)"),
         Lever::Position => format!("the artifact at {more}other positions in the volume ({with} depends on position)"),
