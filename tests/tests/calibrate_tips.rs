@@ -67,8 +67,16 @@ fn tips_qualifies_the_styli_from_the_catalogue() {
             "--out",
             "q.json",
             "--json",
+            "--report",
+            "q.html",
         ],
     ));
+    // The report: each setting before and after on one scale, the reference's drift.
+    let html = std::fs::read_to_string(dir.join("q.html")).unwrap();
+    for plot in ["tips-offsets", "reference-drift"] {
+        assert!(html.contains(&format!("data-plot=\"{plot}\"")), "{plot}");
+    }
+    assert!(!html.contains("NaN"));
     let (p, u) = (&r["params"], &r["uncertainty"]);
     // Every parameter is named as the truth names it, with a finite, positive σ.
     for (name, v) in p.as_object().unwrap() {

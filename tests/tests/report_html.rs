@@ -3,7 +3,8 @@
 //! feature with the failing bins highlighted, the candidate ranking and the error-fall chart.
 //!
 //! A campaign is simulated with `accel_deflection` left out of the starting calibration, then
-//! `lab diagnose`, `lab add accel_deflection` and `lab history` write their reports. Each report
+//! `lab diagnose`, `lab add accel_deflection` and `lab history` write their reports, and
+//! `calibrate tips` and `calibrate dynamics` theirs on their simulated measurements. Each report
 //! must be one self-contained file (no scripts, no external resource) and is rendered in
 //! headless Chromium three ways:
 //!
@@ -485,6 +486,67 @@ fn reports_render_in_headless_chromium() {
             "history.html",
         ],
     );
+    // The calibration procedures' reports.
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "tips",
+            "--out",
+            "t.mcap",
+            "--calib-out",
+            "tc.json",
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "calibrate",
+            "tips",
+            "--bag",
+            "t.mcap",
+            "--calib",
+            "tc.json",
+            "--out",
+            "tq.json",
+            "--report",
+            "tips.html",
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "dynamics",
+            "--hide",
+            "accel_deflection",
+            "--hide",
+            "servo_gain",
+            "--hide",
+            "servo_phase",
+            "--out",
+            "d.mcap",
+            "--calib-out",
+            "dc.json",
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "calibrate",
+            "dynamics",
+            "--bag",
+            "d.mcap",
+            "--calib",
+            "dc.json",
+            "--out",
+            "dq.json",
+            "--report",
+            "dynamics.html",
+        ],
+    );
     eprintln!("reports written in {:.1} s", t0.elapsed().as_secs_f64());
 
     let chrome = chromium();
@@ -495,7 +557,13 @@ fn reports_render_in_headless_chromium() {
     std::fs::write(&blank, "<!doctype html><html><body></body></html>").unwrap();
     let blank_png = screenshot(&chrome, &d, "blank", &blank);
 
-    for name in ["diagnose.html", "add.html", "history.html"] {
+    for name in [
+        "diagnose.html",
+        "add.html",
+        "history.html",
+        "tips.html",
+        "dynamics.html",
+    ] {
         let path = d.join(name);
         let html = std::fs::read_to_string(&path).unwrap();
         assert_self_contained(name, &html);
@@ -589,6 +657,25 @@ fn reports_render_in_headless_chromium() {
                     bars.len() >= 2,
                     "{name}: the error fall needs the starting version and the new one"
                 );
+            }
+            "tips.html" => {
+                assert_eq!(
+                    count("tips-offsets"),
+                    1,
+                    "{name}: settings before and after"
+                );
+                assert_eq!(count("reference-drift"), 1, "{name}: the reference in time");
+                let (_, bars) = check_bars(name, &laid_out(name, &lay, "tips-offsets"));
+                assert_eq!(
+                    bars.len(),
+                    8,
+                    "{name}: four crank settings, before and after"
+                );
+            }
+            "dynamics.html" => {
+                for k in ["delta-r-before", "delta-r-after", "p-along-x", "p-along-y"] {
+                    assert_eq!(count(k), 1, "{name}: {k}");
+                }
             }
             _ => unreachable!(),
         }

@@ -34,6 +34,10 @@ pub enum CalibrateCmd {
         /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `settings`, …).
         #[arg(long)]
         json: bool,
+        /// Write an HTML report: each setting against the reference before and after, the
+        /// reference's drift in time, every parameter.
+        #[arg(long)]
+        report: Option<PathBuf>,
     },
     /// The ring-gauge procedure: one ring at ≥ 5 positions along X (and along Y and Z), each
     /// at several speeds in both directions, gives the nominal time constants, the deflection
@@ -266,10 +270,17 @@ pub fn run(cmd: CalibrateCmd) -> Result<()> {
             out,
             reference_tip,
             json,
+            report,
         } => {
             let mut inputs = vec![("--calib", calib.as_path())];
             inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
-            let [out_file] = outputs([("--out", Some(out.as_path()))], &inputs)?;
+            let [out_file, report_file] = outputs(
+                [
+                    ("--out", Some(out.as_path())),
+                    ("--report", report.as_deref()),
+                ],
+                &inputs,
+            )?;
             let start = offline::load_calibration(&calib)?;
             let bags = load_bags(&bag, &[], &start.machine_id)?;
             let opts = BuildOptions {
@@ -318,7 +329,13 @@ pub fn run(cmd: CalibrateCmd) -> Result<()> {
             .collect();
             new.build().context("the qualified calibration")?;
             put(&out_file, new.to_json())?;
-            commit_all([out_file])?;
+            if report_file.is_some() {
+                put(
+                    &report_file,
+                    crate::report::tips(&start, &outcome, after, ds.noise_floor_um),
+                )?;
+            }
+            commit_all([out_file, report_file])?;
             if json {
                 let (params, sigma) = sigma_json(&outcome.params);
                 let mut v = serde_json::to_value(&outcome)?;

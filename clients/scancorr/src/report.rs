@@ -708,3 +708,107 @@ pub fn dynamics(
     }
     page("scancorr calibrate dynamics", &body)
 }
+
+/// `calibrate tips --report`: each setting's offset from the reference before and what the
+/// qualification leaves, the reference's drift in time, every parameter.
+pub fn tips(
+    start: &Calibration,
+    o: &scancorr_core::calibrate::tips::Outcome,
+    consistency_after_um: Option<f64>,
+    noise_floor_um: f64,
+) -> String {
+    let mut body = format!(
+        "<p>Start: v{} of {}. Reference tip {}; {} settings on the master sphere{}. Tip-to-tip consistency <b>{:.3} µm</b> with the starting calibration, <b>{}</b> with the qualified one (noise floor {:.3} µm); fit residual {:.3} µm.</p>",
+        start.version,
+        esc(&start.machine_id),
+        o.reference_tip,
+        o.settings.len(),
+        o.reference_temp_c
+            .map_or(String::new(), |t| format!(", at {t:.2} °C (range {:.2} K)", o.temp_range_k)),
+        o.consistency_before_um,
+        consistency_after_um.map_or("—".into(), |a| format!("{a:.3} µm")),
+        noise_floor_um,
+        o.residual_rms_um
+    );
+    let others: Vec<_> = o
+        .settings
+        .iter()
+        .filter(|s| s.tip != o.reference_tip)
+        .collect();
+    // Before and after on one scale, each setting's pair together.
+    let norm = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    let rows: Vec<(String, f64, bool)> = others
+        .iter()
+        .flat_map(|s| {
+            let name = format!(
+                "tip {} A1 {:.0}° A2 {:.0}°",
+                s.tip, s.head_deg[0], s.head_deg[1]
+            );
+            [
+                (format!("{name} before"), norm(s.offset_um), false),
+                (format!("{name} after"), norm(s.residual_um), false),
+            ]
+        })
+        .collect();
+    let _ = write!(
+        body,
+        "<h2>Each setting against the reference</h2><figure>{}<figcaption>|S − S_ref| per setting, µm: before with the starting calibration's styli (catalogue lengths show here), after what the fitted lengths, expansion coefficients and rotation leave; one scale (dashed: 2× the noise floor).</figcaption></figure>",
+        bars("tips-offsets", &rows, "µm", Some((2.0 * noise_floor_um, "2× noise floor")))
+    );
+    // The reference's centre in time: the drift every setting is referred to.
+    let refs: Vec<_> = o
+        .settings
+        .iter()
+        .filter(|s| s.tip == o.reference_tip)
+        .collect();
+    if refs.len() > 1 {
+        let c0 = refs[0].center_mm;
+        let series: Vec<Series> = ["x", "y", "z"]
+            .iter()
+            .enumerate()
+            .map(|(i, a)| {
+                (
+                    format!("centre {a}"),
+                    PALETTE[i],
+                    refs.iter()
+                        .map(|s| (s.t_s, (s.center_mm[i] - c0[i]) * 1e3))
+                        .collect(),
+                    true,
+                )
+            })
+            .collect();
+        let _ = write!(
+            body,
+            "<h2>The reference in time</h2><figure>{}<figcaption>The reference tip's sphere centre against time (µm from its first measurement): the drift (the scales' and the stand's growth as the room warms) that each setting is referred to, interpolated in time.</figcaption></figure>",
+            xy("reference-drift", &series, "time (s)", "centre drift (µm)")
+        );
+    }
+    body += "<h2>Settings</h2><table><tr><th>setting</th><th>points</th><th>radius − certified µm</th><th>form µm</th><th>offset µm (x, y, z)</th><th>left µm (x, y, z)</th></tr>";
+    for s in &o.settings {
+        let _ = write!(
+            body,
+            "<tr><td>tip {} A1 {:.0}° A2 {:.0}°</td><td>{}</td><td>{:.3}</td><td>{:.3}</td><td>{:.3}, {:.3}, {:.3}</td><td>{:.3}, {:.3}, {:.3}</td></tr>",
+            s.tip, s.head_deg[0], s.head_deg[1], s.points, s.radius_error_um, s.rms_um,
+            s.offset_um[0], s.offset_um[1], s.offset_um[2],
+            s.residual_um[0], s.residual_um[1], s.residual_um[2]
+        );
+    }
+    body += "</table><h2>Parameters</h2><table><tr><th>parameter</th><th>value</th><th>standard uncertainty</th></tr>";
+    for p in o.params.iter().chain(&o.rotation) {
+        let _ = write!(
+            body,
+            "<tr><td>{}</td><td>{:.6}</td><td>{:.2e}</td></tr>",
+            esc(&p.name),
+            p.value,
+            p.sigma
+        );
+    }
+    body += "</table><p class=\"muted\">Lengths and radii in mm, expansion coefficients in 1/K, the rotation at the sphere (the last three) in rad.</p>";
+    for u in &o.undetermined {
+        let _ = write!(body, "<p><b>Not determined:</b> {}</p>", esc(u));
+    }
+    for n in &o.notes {
+        let _ = write!(body, "<p class=\"muted\">{}</p>", esc(n));
+    }
+    page("scancorr calibrate tips", &body)
+}
