@@ -32,13 +32,7 @@ fn measure(dir: &Path, machine: &str, seed: &str) {
         a.extend(["--hide", h]);
     }
     ok(dir, &a);
-    let mut c = json(&std::fs::read_to_string(dir.join("start.json")).unwrap());
-    assert!(c["effects"].as_array().unwrap().is_empty());
-    for ax in c["nominal"]["axes"].as_object_mut().unwrap().values_mut() {
-        let t = ax["tau_s"].as_f64().unwrap();
-        ax["tau_s"] = (t * 1.3).into();
-    }
-    std::fs::write(dir.join("nominal.json"), c.to_string()).unwrap();
+    nominal_start(dir, "start.json", "nominal.json", false);
 }
 
 /// Every printed parameter is within max(3σ, 5 %) of the truth; returns (within 2σ, count).

@@ -11,21 +11,7 @@ fn json(s: &str) -> serde_json::Value {
 
 /// A nominal calibration: no effects, data-sheet time constants (30 % off), catalogue styli.
 fn nominal(dir: &std::path::Path, from: &str, to: &str) {
-    let mut c = json(&std::fs::read_to_string(dir.join(from)).unwrap());
-    for ax in c["nominal"]["axes"].as_object_mut().unwrap().values_mut() {
-        let t = ax["tau_s"].as_f64().unwrap();
-        ax["tau_s"] = (t * 1.3).into();
-    }
-    let cat = scancorr_sim::machine::catalogue_styli();
-    for t in c["geometry"]["tips"].as_array_mut().unwrap() {
-        let id = t["id"].as_u64().unwrap() as u32;
-        let s = cat.iter().find(|s| s.id == id).unwrap();
-        t["l1_mm"] = s.l1_mm.into();
-        t["l2_mm"] = s.l2_mm.into();
-        t["radius_mm"] = s.radius_mm.into();
-    }
-    assert!(c["effects"].as_array().unwrap().is_empty());
-    std::fs::write(dir.join(to), serde_json::to_string_pretty(&c).unwrap()).unwrap();
+    nominal_start(dir, from, to, true);
 }
 
 fn sim_tips(dir: &std::path::Path, seed: &str, out: &str, extra: &[&str]) {

@@ -4,7 +4,7 @@
 //!
 //! A campaign is simulated with `accel_deflection` left out of the starting calibration, then
 //! `lab diagnose`, `lab add accel_deflection` and `lab history` write their reports, and
-//! `calibrate tips` and `calibrate dynamics` theirs on their simulated measurements. Each report
+//! `calibrate tips`, `calibrate probe-force` and `calibrate dynamics` theirs on their simulated measurements. Each report
 //! must be one self-contained file (no scripts, no external resource) and is rendered in
 //! headless Chromium three ways:
 //!
@@ -547,6 +547,35 @@ fn reports_render_in_headless_chromium() {
             "dynamics.html",
         ],
     );
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "probe-force",
+            "--hide",
+            "probe_force",
+            "--out",
+            "pf.mcap",
+            "--calib-out",
+            "pfc.json",
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "calibrate",
+            "probe-force",
+            "--bag",
+            "pf.mcap",
+            "--calib",
+            "pfc.json",
+            "--out",
+            "pfq.json",
+            "--report",
+            "probe-force.html",
+        ],
+    );
     eprintln!("reports written in {:.1} s", t0.elapsed().as_secs_f64());
 
     let chrome = chromium();
@@ -563,6 +592,7 @@ fn reports_render_in_headless_chromium() {
         "history.html",
         "tips.html",
         "dynamics.html",
+        "probe-force.html",
     ] {
         let path = d.join(name);
         let html = std::fs::read_to_string(&path).unwrap();
@@ -674,6 +704,11 @@ fn reports_render_in_headless_chromium() {
             }
             "dynamics.html" => {
                 for k in ["delta-r-before", "delta-r-after", "p-along-x", "p-along-y"] {
+                    assert_eq!(count(k), 1, "{name}: {k}");
+                }
+            }
+            "probe-force.html" => {
+                for k in ["radius-before", "radius-after"] {
                     assert_eq!(count(k), 1, "{name}: {k}");
                 }
             }

@@ -68,8 +68,8 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
     let mut all = BTreeMap::new();
     for proc in procedures {
         let program = match proc.as_str() {
-            "tips" | "dynamics" => proc.as_str(),
-            p => bail!("procedure `{p}` (tips, dynamics)"),
+            "tips" | "dynamics" | "probe-force" => proc.as_str(),
+            p => bail!("procedure `{p}` (tips, probe-force, dynamics)"),
         };
         let mut t = Tally::default();
         for seed in 1..=runs {

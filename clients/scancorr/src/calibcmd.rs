@@ -5,12 +5,16 @@
 use crate::labcmd::{load_bags, now_rfc3339, outputs, put, SENSORS};
 use crate::offline;
 use crate::output::commit_all;
+use crate::output::AtomicOutput;
 use anyhow::{Context, Result};
 use clap::Subcommand;
-use scancorr_core::calibrate::{dynamics, tips, Param};
+use scancorr_core::calib::Calibration;
+use scancorr_core::calibrate::{dynamics, probe_force, tips, Param};
 use scancorr_core::lab::analysis;
+use scancorr_core::lab::dataset::BagData;
 use scancorr_core::lab::dataset::{self, BuildOptions};
 use scancorr_core::lab::version;
+use std::path::Path;
 use std::path::PathBuf;
 
 #[derive(Subcommand)]
@@ -36,6 +40,27 @@ pub enum CalibrateCmd {
         json: bool,
         /// Write an HTML report: each setting against the reference before and after, the
         /// reference's drift in time, every parameter.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Extrapolation to zero probing force: the same circles on the master sphere scanned
+    /// at two or more deflections by each tip give that tip's force coefficients (stylus
+    /// bending per mm of deflection along each probe axis).
+    ProbeForce {
+        /// Bags of the measurement (each tip on the sphere at ≥ 2 deflections).
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (its probe_force effect is replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `settings`, …).
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: each setting's radius against deflection before and after,
+        /// every parameter.
         #[arg(long)]
         report: Option<PathBuf>,
     },
@@ -75,6 +100,97 @@ fn sigma_json(ps: &[Param]) -> (serde_json::Value, serde_json::Value) {
     (params.into(), sigma.into())
 }
 
+/// What every procedure opens: its outputs (checked against its inputs before anything is
+/// read), the starting calibration and the bags.
+struct Opened {
+    out_file: Option<AtomicOutput>,
+    report_file: Option<AtomicOutput>,
+    start: Calibration,
+    bags: Vec<BagData>,
+}
+
+fn open(bag: &[PathBuf], calib: &Path, out: &Path, report: Option<&Path>) -> Result<Opened> {
+    let mut inputs = vec![("--calib", calib)];
+    inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
+    let [out_file, report_file] = outputs([("--out", Some(out)), ("--report", report)], &inputs)?;
+    let start = offline::load_calibration(calib)?;
+    let bags = load_bags(bag, &[], &start.machine_id)?;
+    Ok(Opened {
+        out_file,
+        report_file,
+        start,
+        bags,
+    })
+}
+
+/// The points of `bags` corrected with `cal` less the effects of `kinds` (what the procedure
+/// measures), every `stride`-th point; warnings to stderr.
+fn points_without(
+    bags: &[BagData],
+    cal: &Calibration,
+    kinds: &[&str],
+    stride: usize,
+) -> Result<dataset::Dataset> {
+    let mut bare = cal.clone();
+    bare.effects.retain(|e| !kinds.contains(&e.kind()));
+    let ds = dataset::build(bags, &bare, &options(stride))?;
+    for w in &ds.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(ds)
+}
+
+fn options(stride: usize) -> BuildOptions {
+    BuildOptions {
+        stride,
+        holdout_by_segment: false,
+        artifact: None,
+        sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
+    }
+}
+
+/// Stamps `new` with `metrics`, checks it builds, writes it and (when asked) the report, and
+/// commits both together.
+fn commit_version(
+    new: &mut Calibration,
+    metrics: Vec<(&str, f64)>,
+    out_file: Option<AtomicOutput>,
+    report_file: Option<AtomicOutput>,
+    report: impl FnOnce() -> String,
+) -> Result<()> {
+    new.metrics = metrics
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+    new.build().context("the new calibration")?;
+    put(&out_file, new.to_json())?;
+    if report_file.is_some() {
+        put(&report_file, report())?;
+    }
+    commit_all([out_file, report_file])
+}
+
+/// `--json` of a procedure: its outcome with `params` and `uncertainty` by the truth file's
+/// names, and the new version's place.
+fn outcome_json(
+    o: &impl serde::Serialize,
+    ps: &[Param],
+    noise_floor_um: f64,
+    new: &Calibration,
+    start: &Calibration,
+    out: &Path,
+) -> Result<serde_json::Value> {
+    let (params, sigma) = sigma_json(ps);
+    let mut v = serde_json::to_value(o)?;
+    v["params"] = params;
+    v["uncertainty"] = sigma;
+    v["noise_floor_um"] = noise_floor_um.into();
+    v["version"] = new.version.into();
+    v["parent_version"] = start.version.into();
+    v["out"] = out.display().to_string().into();
+    Ok(v)
+}
+
 /// A dynamic parameter in its engineering unit: (value, σ, unit).
 fn dynamic_unit(p: &Param) -> (f64, f64, &'static str) {
     let n = p.name.as_str();
@@ -105,75 +221,51 @@ fn run_dynamics(
     json: bool,
     report: Option<PathBuf>,
 ) -> Result<()> {
-    let mut inputs = vec![("--calib", calib.as_path())];
-    inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
-    let [out_file, report_file] = outputs(
-        [
-            ("--out", Some(out.as_path())),
-            ("--report", report.as_deref()),
-        ],
-        &inputs,
-    )?;
-    let start = offline::load_calibration(&calib)?;
-    let bags = load_bags(&bag, &[], &start.machine_id)?;
+    let Opened {
+        out_file,
+        report_file,
+        start,
+        bags,
+    } = open(&bag, &calib, &out, report.as_deref())?;
     eprintln!("refitting the nominal model's time constants …");
     let raw: Vec<&dyn dataset::Samples> = bags.iter().map(|b| &*b.samples).collect();
     let (refit, axes) = scancorr_core::lab::nominal::fit_nominal(&raw, &start)?;
     // The dynamic effects are what this procedure measures: the points are taken without.
-    let mut bare = refit.clone();
-    bare.effects
-        .retain(|e| !matches!(e.kind(), "accel_deflection" | "servo_phase" | "servo_gain"));
-    let opts = BuildOptions {
-        stride: 4,
-        holdout_by_segment: false,
-        artifact: None,
-        sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
-    };
     eprintln!("correcting the rings …");
-    let ds = dataset::build(&bags, &bare, &opts)?;
-    for w in &ds.warnings {
-        eprintln!("warning: {w}");
-    }
+    let ds = points_without(
+        &bags,
+        &refit,
+        &["accel_deflection", "servo_phase", "servo_gain"],
+        4,
+    )?;
     let prep = analysis::prepare(&ds)?;
     eprintln!("fitting …");
     let o = dynamics::run(&ds, &prep, &refit, &axes)?;
     let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
     new.nominal = o.calibration.nominal.clone();
     new.note = format!(
-        "calibrate dynamics: {} ring positions; residual after the static patterns {:.3} →          {:.3} µm (noise floor {:.3} µm); gain form {}",
+        "calibrate dynamics: {} ring positions; residual after the static patterns {:.3} → \
+         {:.3} µm (noise floor {:.3} µm); gain form {}",
         o.positions.len(),
         o.residual_before_um,
         o.residual_after_um,
         ds.noise_floor_um,
         o.gain.chosen
     );
-    new.metrics = [
-        ("dynamics_residual_before_um", o.residual_before_um),
-        ("dynamics_residual_after_um", o.residual_after_um),
-        ("noise_floor_um", ds.noise_floor_um),
-    ]
-    .into_iter()
-    .map(|(k, v)| (k.to_string(), v))
-    .collect();
-    new.build().context("the new calibration")?;
-    put(&out_file, new.to_json())?;
-    if report_file.is_some() {
-        put(
-            &report_file,
-            crate::report::dynamics(&start, &o, ds.noise_floor_um),
-        )?;
-    }
-    commit_all([out_file, report_file])?;
+    commit_version(
+        &mut new,
+        vec![
+            ("dynamics_residual_before_um", o.residual_before_um),
+            ("dynamics_residual_after_um", o.residual_after_um),
+            ("noise_floor_um", ds.noise_floor_um),
+        ],
+        out_file,
+        report_file,
+        || crate::report::dynamics(&start, &o, ds.noise_floor_um),
+    )?;
     if json {
-        let (params, sigma) = sigma_json(&o.params);
-        let mut v = serde_json::to_value(&o)?;
-        v["params"] = params;
-        v["uncertainty"] = sigma;
+        let mut v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
         v["nominal"] = serde_json::to_value(&axes)?;
-        v["noise_floor_um"] = ds.noise_floor_um.into();
-        v["version"] = new.version.into();
-        v["parent_version"] = start.version.into();
-        v["out"] = out.display().to_string().into();
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
         return Ok(());
     }
@@ -254,9 +346,137 @@ fn print_param(p: &Param) -> String {
     )
 }
 
+fn run_probe_force(
+    bag: Vec<PathBuf>,
+    calib: PathBuf,
+    out: PathBuf,
+    json: bool,
+    report: Option<PathBuf>,
+) -> Result<()> {
+    let Opened {
+        out_file,
+        report_file,
+        start,
+        bags,
+    } = open(&bag, &calib, &out, report.as_deref())?;
+    // The force correction is what this procedure measures: the points are taken without.
+    let ds = points_without(&bags, &start, &["probe_force"], 2)?;
+    let o = probe_force::run(&ds, &start)?;
+    let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
+    new.geometry = o.calibration.geometry.clone();
+    new.note = format!(
+        "calibrate probe-force: {} settings; residual about each circle's static map {:.3} → \
+         {:.3} µm (noise floor {:.3} µm)",
+        o.settings.len(),
+        o.rms_before_um,
+        o.rms_after_um,
+        ds.noise_floor_um
+    );
+    commit_version(
+        &mut new,
+        vec![
+            ("probe_force_rms_before_um", o.rms_before_um),
+            ("probe_force_rms_after_um", o.rms_after_um),
+            ("noise_floor_um", ds.noise_floor_um),
+        ],
+        out_file,
+        report_file,
+        || crate::report::probe_force(&start, &o, ds.noise_floor_um),
+    )?;
+    if json {
+        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
+        outln!("{}", serde_json::to_string_pretty(&v)?)?;
+        return Ok(());
+    }
+    outln!(
+        "extrapolation to zero force: {} settings; residual about each circle's static map {:.3} → {:.3} µm (noise floor {:.3} µm)",
+        o.settings.len(),
+        o.rms_before_um,
+        o.rms_after_um,
+        ds.noise_floor_um
+    )?;
+    outln!(
+        "consistency of the circles × deflections after the fit: reduced χ² {:.2}{}",
+        o.cell_chi2,
+        if o.cell_chi2 > 1.0 {
+            " (the σ are scaled by it)"
+        } else {
+            ""
+        }
+    )?;
+    outln!("sphere radius − certified per deflection (before → after the force correction, µm; without a sphere fit: along the probing direction from the zero-force surface):")?;
+    for s in &o.settings {
+        let lv: Vec<String> = s
+            .deflections_mm
+            .iter()
+            .enumerate()
+            .map(|(k, d)| {
+                format!(
+                    "{d:.2} mm {:+.2}→{:+.2}",
+                    s.radius_error_before_um[k], s.radius_error_after_um[k]
+                )
+            })
+            .collect();
+        let zero = if s.sphere_fitted {
+            format!(
+                "at zero force {:+.3} ± {:.3}; static map's form {:.3} µm RMS",
+                s.radius_error_at_zero_um[0], s.radius_error_at_zero_um[1], s.static_form_um
+            )
+        } else {
+            "no sphere fit (too little of the sphere)".to_string()
+        };
+        outln!(
+            "  tip {} at ({}, {})°: {}; {zero}; left after the fit {:.3} µm RMS",
+            s.tip,
+            s.head_deg[0],
+            s.head_deg[1],
+            lv.join("  "),
+            s.fit_rms_um
+        )?;
+    }
+    outln!("parameters (± standard uncertainty):")?;
+    for p in &o.params {
+        if p.name.ends_with("_mm") {
+            outln!(
+                "  {:<28} {:>9.5} mm ± {:.3} µm (statistical)",
+                p.name,
+                p.value,
+                p.sigma * 1e3
+            )?;
+        } else {
+            outln!(
+                "  {:<28} {:>9.3} ± {:.3} µm per mm of deflection",
+                p.name,
+                p.value * 1e3,
+                p.sigma * 1e3
+            )?;
+        }
+    }
+    for u in &o.undetermined {
+        outln!("  not determined: {u}")?;
+    }
+    for n in &o.notes {
+        outln!("  note: {n}")?;
+    }
+    outln!(
+        "→ {} (version {}, parent {})",
+        out.display(),
+        new.version,
+        start.version
+    )?;
+    Ok(())
+}
+
 /// Runs a procedure.
 pub fn run(cmd: CalibrateCmd) -> Result<()> {
     match cmd {
+        CalibrateCmd::ProbeForce {
+            bag,
+            calib,
+            out,
+            json,
+            report,
+        } => run_probe_force(bag, calib, out, json, report),
         CalibrateCmd::Dynamics {
             bag,
             calib,
@@ -272,38 +492,22 @@ pub fn run(cmd: CalibrateCmd) -> Result<()> {
             json,
             report,
         } => {
-            let mut inputs = vec![("--calib", calib.as_path())];
-            inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
-            let [out_file, report_file] = outputs(
-                [
-                    ("--out", Some(out.as_path())),
-                    ("--report", report.as_deref()),
-                ],
-                &inputs,
-            )?;
-            let start = offline::load_calibration(&calib)?;
-            let bags = load_bags(&bag, &[], &start.machine_id)?;
-            let opts = BuildOptions {
-                stride: 1,
-                holdout_by_segment: false,
-                artifact: None,
-                sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
-            };
+            let Opened {
+                out_file,
+                report_file,
+                start,
+                bags,
+            } = open(&bag, &calib, &out, report.as_deref())?;
             // The stylus thermal correction is what this procedure measures: the points are
             // taken without it.
-            let mut bare = start.clone();
-            bare.effects.retain(|e| e.kind() != "stylus_thermal");
-            let ds = dataset::build(&bags, &bare, &opts)?;
-            for w in &ds.warnings {
-                eprintln!("warning: {w}");
-            }
+            let ds = points_without(&bags, &start, &["stylus_thermal"], 1)?;
             let outcome = tips::run(&ds, &start, reference_tip)?;
             let mut new =
                 version::next(&start, outcome.calibration.effects.clone(), &now_rfc3339());
             new.geometry = outcome.calibration.geometry.clone();
             // The same bags corrected with the new version: what the qualification leaves.
             let after = tips::run(
-                &dataset::build(&bags, &new, &opts)?,
+                &dataset::build(&bags, &new, &options(1))?,
                 &new,
                 Some(outcome.reference_tip),
             )
@@ -316,36 +520,30 @@ pub fn run(cmd: CalibrateCmd) -> Result<()> {
                 outcome.consistency_before_um,
                 after.map_or("—".into(), |a| format!("{a:.3} µm"))
             );
-            new.metrics = [
-                (
-                    "tip_consistency_before_um".to_string(),
-                    outcome.consistency_before_um,
-                ),
-                ("tip_fit_residual_um".to_string(), outcome.residual_rms_um),
-                ("noise_floor_um".to_string(), ds.noise_floor_um),
-            ]
-            .into_iter()
-            .chain(after.map(|a| ("tip_consistency_after_um".to_string(), a)))
-            .collect();
-            new.build().context("the qualified calibration")?;
-            put(&out_file, new.to_json())?;
-            if report_file.is_some() {
-                put(
-                    &report_file,
-                    crate::report::tips(&start, &outcome, after, ds.noise_floor_um),
-                )?;
-            }
-            commit_all([out_file, report_file])?;
+            commit_version(
+                &mut new,
+                [
+                    ("tip_consistency_before_um", outcome.consistency_before_um),
+                    ("tip_fit_residual_um", outcome.residual_rms_um),
+                    ("noise_floor_um", ds.noise_floor_um),
+                ]
+                .into_iter()
+                .chain(after.map(|a| ("tip_consistency_after_um", a)))
+                .collect(),
+                out_file,
+                report_file,
+                || crate::report::tips(&start, &outcome, after, ds.noise_floor_um),
+            )?;
             if json {
-                let (params, sigma) = sigma_json(&outcome.params);
-                let mut v = serde_json::to_value(&outcome)?;
-                v["params"] = params;
-                v["uncertainty"] = sigma;
+                let mut v = outcome_json(
+                    &outcome,
+                    &outcome.params,
+                    ds.noise_floor_um,
+                    &new,
+                    &start,
+                    &out,
+                )?;
                 v["consistency_after_um"] = after.into();
-                v["noise_floor_um"] = ds.noise_floor_um.into();
-                v["version"] = new.version.into();
-                v["parent_version"] = start.version.into();
-                v["out"] = out.display().to_string().into();
                 outln!("{}", serde_json::to_string_pretty(&v)?)?;
             } else {
                 outln!(

@@ -709,6 +709,80 @@ pub fn dynamics(
     page("scancorr calibrate dynamics", &body)
 }
 
+/// `calibrate probe-force --report`: each setting's sphere radius against the deflection
+/// before and after the force correction (a line to zero force), every parameter.
+pub fn probe_force(
+    start: &Calibration,
+    o: &scancorr_core::calibrate::probe_force::Outcome,
+    noise_floor_um: f64,
+) -> String {
+    let mut body = format!(
+        "<p>Start: v{} of {}. {} settings on the master sphere; residual about each circle's static map {:.3} → <b>{:.3} µm</b> (noise floor {:.3} µm); reduced χ² of the circles × deflections {:.2}.</p>",
+        start.version,
+        esc(&start.machine_id),
+        o.settings.len(),
+        o.rms_before_um,
+        o.rms_after_um,
+        noise_floor_um,
+        o.cell_chi2
+    );
+    let series = |after: bool| -> Vec<Series> {
+        o.settings
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let r = if after {
+                    &s.radius_error_after_um
+                } else {
+                    &s.radius_error_before_um
+                };
+                let mut pts: Vec<(f64, f64)> = vec![(0.0, s.radius_error_at_zero_um[0])];
+                pts.extend(s.deflections_mm.iter().zip(r).map(|(d, e)| (*d, *e)));
+                (
+                    format!(
+                        "tip {} A1 {:.0}° A2 {:.0}°",
+                        s.tip, s.head_deg[0], s.head_deg[1]
+                    ),
+                    PALETTE[i % PALETTE.len()],
+                    pts,
+                    true,
+                )
+            })
+            .collect()
+    };
+    let _ = write!(
+        body,
+        "<h2>Radius against deflection</h2><figure>{}<figcaption>Before: the sphere's radius less its certified radius per deflection, measured without a force correction; the first point of each line is the fitted value at zero force. The slope is the stylus bending.</figcaption></figure><figure>{}<figcaption>After the fitted force coefficients: flat at the zero-force value.</figcaption></figure>",
+        xy("radius-before", &series(false), "deflection (mm)", "R − R_cert (µm)"),
+        xy("radius-after", &series(true), "deflection (mm)", "R − R_cert (µm)")
+    );
+    body += "<h2>Parameters</h2><table><tr><th>parameter</th><th>value</th><th>standard uncertainty</th></tr>";
+    for p in &o.params {
+        let _ = write!(
+            body,
+            "<tr><td>{}</td><td>{:.4}</td><td>{:.4}</td></tr>",
+            esc(&p.name),
+            p.value * 1e3,
+            p.sigma * 1e3
+        );
+    }
+    body += "</table><p class=\"muted\">probe_k in µm of error per mm of deflection; radius in µm (of the tip radius at zero force).</p>";
+    for s in &o.settings {
+        let _ = write!(
+            body,
+            "<p class=\"muted\">tip {} at ({}, {})°: {} points; at zero force R − R_cert = {:+.2} ± {:.2} µm; the static error map's form (harmonics 2 and up, common to every deflection) {:.3} µm RMS; left after the fit {:.3} µm RMS.</p>",
+            s.tip, s.head_deg[0], s.head_deg[1], s.points, s.radius_error_at_zero_um[0], s.radius_error_at_zero_um[1], s.static_form_um, s.fit_rms_um
+        );
+    }
+    for u in &o.undetermined {
+        let _ = write!(body, "<p><b>Not determined:</b> {}</p>", esc(u));
+    }
+    for n in &o.notes {
+        let _ = write!(body, "<p class=\"muted\">{}</p>", esc(n));
+    }
+    page("scancorr calibrate probe-force", &body)
+}
+
 /// `calibrate tips --report`: each setting's offset from the reference before and what the
 /// qualification leaves, the reference's drift in time, every parameter.
 pub fn tips(

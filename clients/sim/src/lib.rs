@@ -3,11 +3,12 @@
 //! A gantry CMM with an analog scanning probe that follows scan programs and emits the four
 //! raw streams (command, scales, probe, temperatures). It models the physical machine its own
 //! way ([`machine`]): servo loops that are not the nominal model, a compliant structure with
-//! a resonance, arc lag and gain, stylus and scale expansion following a temperature history
-//! measured by noisy sensors, stylus bending with probing force, guide straightness and pitch,
-//! sensor noise and quantisation — and optionally effects outside the correction library
-//! (an encoder's cyclic error, backlash, scale counters latching after the time stamp, a
-//! lobing probe, the 21 rigid-body errors of the kinematic chain) and faults.
+//! a resonance, scale readouts that latch after the time stamp (Y and Z later than X: the
+//! arc phase lag is that delay, not a formula), an arc gain, stylus and scale expansion
+//! following a temperature history measured by noisy sensors, stylus bending with probing
+//! force, guide straightness and pitch, sensor noise and quantisation — and optionally effects
+//! outside the correction library (an encoder's cyclic error, backlash, further latching
+//! delays, a lobing probe, the 21 rigid-body errors of the kinematic chain) and faults.
 //!
 //! Every effect can be switched and scaled; a hidden effect stays in the machine but is left
 //! out of the starting calibration. Ground truth (every true parameter, the true surfaces, the
@@ -155,7 +156,7 @@ pub struct Truth {
     /// The calibration with every effect at its true parameters.
     pub true_calibration: Calibration,
     /// The true parameters under the names the calibration procedures print
-    /// (`tip2.l1_mm`, `tip1.radius_mm`, `tip2.alpha_per_k`, …).
+    /// (`tip2.l1_mm`, `tip1.radius_mm`, `tip2.alpha_per_k`, `tip2.probe_k_u`, …).
     pub params: BTreeMap<String, f64>,
 }
 
@@ -167,7 +168,8 @@ pub const PROBE_TAU_S: f64 = 0.002;
 /// `dynamics.*` are what the ring-gauge procedure determines: τ of each axis's first-order
 /// nominal model (1/kp less the probe's), the compliance P = −C (C the displacement of the
 /// probe per unit acceleration, per monomial 1, x, y, z of the position over 500 mm), the servo
-/// phase b0, b1, b2 of Y and Z against X per monomial, and the servo gain's f² and f¹ terms
+/// phase b0, b1, b2 of Y and Z against X per monomial (b1 = −2π·Δτ of the readouts, the rest zero), and
+/// the servo gain's f² and f¹ terms
 /// (4π²·g and none in this machine).
 pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
     let mut p = BTreeMap::new();
@@ -194,8 +196,8 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
     for (ai, a) in ["y", "z"].iter().enumerate() {
         for mono in MONO {
             for b in 0..3 {
-                let v = if mono == "1" && b > 0 {
-                    m.arc_phase[ai][b - 1]
+                let v = if mono == "1" && b == 1 {
+                    m.phase_b1()[ai]
                 } else {
                     0.0
                 };
@@ -216,6 +218,9 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
         }
         p.insert(format!("{t}.radius_mm"), s.radius_mm);
         p.insert(format!("{t}.alpha_per_k"), s.alpha_per_k);
+        for (a, k) in ["u", "v", "w"].iter().zip(m.probe_k) {
+            p.insert(format!("{t}.probe_k_{a}"), k * s.bend_scale);
+        }
     }
     p
 }
@@ -288,9 +293,8 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
         .flatten()
         .flatten()
         .for_each(|c| *c *= k("accel_deflection"));
-    m.arc_phase
+    m.readout_delay_s
         .iter_mut()
-        .flatten()
         .for_each(|c| *c *= k("servo_phase"));
     m.arc_gain_s2.iter_mut().for_each(|c| *c *= k("servo_gain"));
     m.styli
@@ -376,8 +380,10 @@ pub fn calibration_for(
     }
     if on("servo_phase") {
         let mut e = fx::servo_phase::Config::zeros(0);
-        e.y[0] = [0.0, m.arc_phase[0][0], m.arc_phase[0][1]];
-        e.z[0] = [0.0, m.arc_phase[1][0], m.arc_phase[1][1]];
+        // The readouts' delays seen on an arc (first order in τ·ω; the rest is below 0.1 nm).
+        let b1 = m.phase_b1();
+        e.y[0] = [0.0, b1[0], 0.0];
+        e.z[0] = [0.0, b1[1], 0.0];
         c.effects.push(EffectConfig::ServoPhase(e));
     }
     if on("servo_gain") {
@@ -408,7 +414,11 @@ pub fn calibration_for(
             .push(EffectConfig::ProbeForce(fx::probe_force::Config {
                 id: None,
                 k: m.probe_k,
-                per_tip: Default::default(),
+                per_tip: m
+                    .styli
+                    .iter()
+                    .map(|s| (s.id, m.probe_k.map(|k| k * s.bend_scale)))
+                    .collect(),
             }));
     }
     if on("guide_straightness") {
@@ -624,7 +634,10 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         blocked: [false; 3],
         stalled: [false; 3],
     };
-    let latching = m.latching.tau_s.iter().any(|t| *t != 0.0);
+    // When each scale's counter latches: its readout's own delay plus, with `latching`,
+    // the extra delays outside the library.
+    let latch_s: [f64; 3] = std::array::from_fn(|i| m.readout_delay_s[i] + m.latching.tau_s[i]);
+    let latching = latch_s.iter().any(|t| *t != 0.0);
     let lobing = m.lobing.is_on();
     let rigid_body = factors["rigid_body"] != 0.0 || factors["squareness"] != 0.0;
     for k in 0..n {
@@ -674,10 +687,6 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
                 let wn = w.norm();
                 if wn > 0.0 {
                     let f = wn / std::f64::consts::TAU;
-                    let lever = (w / wn).cross(&r);
-                    for (ax, ph) in [(1usize, m.arc_phase[0]), (2, m.arc_phase[1])] {
-                        e[ax] += (ph[0] * f + ph[1] * f * f) * lever[ax];
-                    }
                     for ax in 0..3 {
                         e[ax] += m.arc_gain_s2[ax] * (std::f64::consts::TAU * f).powi(2) * r[ax];
                     }
@@ -712,7 +721,8 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         }
         let mut defl = V3::zeros();
         for i in 0..3 {
-            let dm = d_probe[i] / (1.0 + m.probe_k[i]) + nz.probe_sigma_mm * noise.normal();
+            let dm = d_probe[i] / (1.0 + m.probe_k[i] * stylus.bend_scale)
+                + nz.probe_sigma_mm * noise.normal();
             defl[i] = quantise(dm, nz.probe_resolution_mm);
         }
         // The counters latch the carriage where it is τ_i after the time stamp.
@@ -720,7 +730,7 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         if latching {
             let (c_next, _, _) = cmd_at(k + 1);
             for i in 0..3 {
-                let tau = m.latching.tau_s[i];
+                let tau = latch_s[i];
                 if tau != 0.0 {
                     let c_tau = c + (c_next - c) * (tau / period);
                     let steps = (tau / (period / substeps as f64)).ceil().max(1.0) as usize;

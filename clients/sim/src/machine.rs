@@ -66,6 +66,15 @@ pub struct Stylus {
     pub beta1_deg: f64,
     /// Expansion coefficient of the whole stylus (one material), 1/K.
     pub alpha_per_k: f64,
+    /// How much more this stylus bends under the probing force than the reference stylus
+    /// (the machine's `probe_k` is the reference's): a cantilever bends as L³/(E·I), so a
+    /// long or cranked or steel stylus differs. The catalogue does not state it (1).
+    #[serde(default = "one")]
+    pub bend_scale: f64,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 impl Stylus {
@@ -92,6 +101,7 @@ pub fn catalogue_styli() -> Vec<Stylus> {
             l2_mm: 0.0,
             beta1_deg: 0.0,
             alpha_per_k: 2.0e-6,
+            bend_scale: 1.0,
         },
         Stylus {
             id: 2,
@@ -101,6 +111,7 @@ pub fn catalogue_styli() -> Vec<Stylus> {
             l2_mm: 40.0,
             beta1_deg: 90.0,
             alpha_per_k: 11.5e-6,
+            bend_scale: 1.0,
         },
     ]
 }
@@ -149,13 +160,19 @@ pub struct TrueMachine {
     pub structure_freq_hz: [f64; 3],
     /// Damping ratio of the structure.
     pub structure_damping: f64,
-    /// Arc phase lag of y and z behind x: φ(f) = b1 f + b2 f², [b1 rad/Hz, b2 rad/Hz²].
-    pub arc_phase: [[f64; 2]; 2],
+    /// Delay of each axis's scale readout (counter latch and interpolator) behind the
+    /// controller's time stamp, s: the reading of axis i at t is the carriage at t + τ_i,
+    /// integrated through the machine's own dynamics. Y and Z latch later than X. On an arc
+    /// of rotation frequency f this puts Y (Z) ahead of X by the angle 2π·(τ_y − τ_x)·f — the
+    /// library's `servo_phase` (see [`TrueMachine::phase_b1`]), which the simulator does not
+    /// inject as a formula.
+    pub readout_delay_s: [f64; 3],
     /// Arc gain per axis, derived from the structure: g_i(f) = γ_i (2πf)², γ in s².
     pub arc_gain_s2: [f64; 3],
     /// Scale expansion per axis, 1/K (zero points at 0).
     pub scale_alpha: [f64; 3],
-    /// Stylus bending per probe axis, mm per mm of deflection.
+    /// Stylus bending per probe axis, mm per mm of deflection, of the reference stylus (each
+    /// stylus bends `bend_scale` times as much).
     pub probe_k: [f64; 3],
     /// X guide straightness towards y, mm.
     pub guide_y: Vec<Wave>,
@@ -513,10 +530,13 @@ impl TrueMachine {
                 jitter(&mut r, 45.0, 0.1),
             ],
             structure_damping: 0.5,
-            arc_phase: [
-                [jitter(&mut r, 6.0e-4, 0.3), jitter(&mut r, 8.0e-5, 0.3)],
-                [jitter(&mut r, 2.0e-4, 0.3), 0.0],
-            ],
+            // τ_x, then Y 65–125 µs and Z 20–40 µs later (three draws, as before this field).
+            readout_delay_s: {
+                let x = jitter(&mut r, 20.0e-6, 0.3);
+                let dy = jitter(&mut r, 95.0e-6, 0.3);
+                let dz = jitter(&mut r, 32.0e-6, 0.3);
+                [x, x + dy, x + dz]
+            },
             arc_gain_s2: [
                 jitter(&mut r, 18.0e-6, 0.2),
                 jitter(&mut r, -12.0e-6, 0.2),
@@ -547,9 +567,18 @@ impl TrueMachine {
             styli: {
                 let mut r = Rng::new(seed, "styli");
                 let mut off = |mm: f64| mm * r.range(-1.0, 1.0);
+                // The reference (lowest id) defines `probe_k`; the steel crank's two 40 mm
+                // limbs bend 1.3–1.9 times as much as the 50 mm carbon-fibre shank.
+                let mut rb = Rng::new(seed, "bending");
+                let first = catalogue_styli().iter().map(|c| c.id).min();
                 catalogue_styli()
                     .into_iter()
                     .map(|c| Stylus {
+                        bend_scale: if Some(c.id) == first {
+                            1.0
+                        } else {
+                            jitter(&mut rb, 1.6, 0.2)
+                        },
                         l1_mm: c.l1_mm + off(0.05),
                         radius_mm: c.radius_mm + off(1.5e-3),
                         l2_mm: if c.l2_mm > 0.0 {
@@ -574,6 +603,20 @@ impl TrueMachine {
             lobing: ProbeLobing::from_seed(seed),
             rigid_body: RigidBody::from_seed(seed),
         }
+    }
+
+    /// What the scale readouts' delays amount to on an arc, in the library's terms: the lag of
+    /// Y and Z behind X per hertz of rotation, b1 = −2π·(τ_i − τ_x) rad/Hz. A reading at
+    /// t + τ_i puts the measured point ahead by τ_i·v_i = 2πf·τ_i·(ŵ × r)_i, as a probe body
+    /// lagging by −2πf·τ_i·(ŵ × r)_i would (the library's φ is a lag: the body displaced by
+    /// φ·(ŵ × r), the point measured short of it); the part common to all axes slides the point
+    /// along the arc and is not an error of the surface.
+    pub fn phase_b1(&self) -> [f64; 2] {
+        let d = self.readout_delay_s;
+        [
+            -std::f64::consts::TAU * (d[1] - d[0]),
+            -std::f64::consts::TAU * (d[2] - d[0]),
+        ]
     }
 
     /// Structure compliance at position p, s².

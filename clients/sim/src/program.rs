@@ -255,15 +255,33 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 7] = [
+pub const PROGRAMS: [&str; 10] = [
     "ring",
     "ring-speeds",
     "campaign",
     "part",
     "dynamics",
     "tips",
+    "probe-force",
+    "probe-force-quarter",
+    "probe-force-approach",
     "geometry",
 ];
+
+/// The master sphere (certified diameter 25.0004 mm) at `position` or its usual place.
+fn master_sphere(position: Option<V3>) -> Feature {
+    Feature {
+        id: 0,
+        artifact: "sphere".into(),
+        kind: FeatureKind::Boss,
+        center: position.unwrap_or(V3::new(620.0, 220.0, -360.0)).into(),
+        radius_mm: 25.0004 / 2.0,
+        nominal_diameter_mm: 25.0,
+        certificate_diameter_mm: Some(25.0004),
+        normal: [0.0; 3],
+        form: vec![[2.0, 0.01e-3, 0.2]],
+    }
+}
 
 struct Builder<'a> {
     m: &'a TrueMachine,
@@ -385,6 +403,10 @@ impl<'a> Builder<'a> {
     /// A circle on a sphere (a boss feature) at latitude `lat_deg` of the tip centre: one turn
     /// plus the ramps, the tip pressed in by `defl` along the sphere's radius.
     fn sphere_circle(&mut self, fid: u32, speed: f64, dir: f64, defl: f64, lat_deg: f64) {
+        self.sphere_arc(fid, speed, dir, defl, lat_deg, 1.0);
+    }
+    /// `turns` of a circle on a sphere from angle 0 (plus the ramps), as [`Self::sphere_circle`].
+    fn sphere_arc(&mut self, fid: u32, speed: f64, dir: f64, defl: f64, lat_deg: f64, turns: f64) {
         let f = self.features[fid as usize - 1].clone();
         let r_tip = self.stylus(self.tip).radius_mm;
         let off = self.offset(self.tip, self.a1, self.a2);
@@ -397,9 +419,23 @@ impl<'a> Builder<'a> {
             center,
             radius,
             start: 0.0,
-            sweep: dir * (TAU + speed * ramp / radius),
+            sweep: dir * (turns * TAU + speed * ramp / radius),
         };
         self.scan(path, speed, ramp, fid, defl);
+    }
+    /// A radial approach to a sphere at latitude 0 and angle `theta`: the tip pressed in from
+    /// `d0` to `d1` along the sphere's radius at `speed`.
+    fn sphere_approach(&mut self, fid: u32, theta: f64, d0: f64, d1: f64, speed: f64) {
+        let f = self.features[fid as usize - 1].clone();
+        let r_tip = self.stylus(self.tip).radius_mm;
+        let off = self.offset(self.tip, self.a1, self.a2);
+        let u = V3::new(theta.cos(), theta.sin(), 0.0);
+        let at = |d: f64| f.c() + u * (f.nominal_diameter_mm / 2.0 + r_tip - d) - off;
+        let path = Path::Line {
+            from: at(d0),
+            to: at(d1),
+        };
+        self.scan(path, speed, 0.4, fid, d0);
     }
     /// A line along a face from `s0` to `s1` (positions along the face).
     fn face_line(&mut self, fid: u32, s0: f64, s1: f64, speed: f64, defl: f64) {
@@ -602,17 +638,7 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
             // (tip 2) at four head angles, the reference again after each, so its drift (the
             // scales' and the styli's growth as the room warms) can be followed; three
             // latitudes per setting fix the centre in z.
-            let sphere = b.feature(Feature {
-                id: 0,
-                artifact: "sphere".into(),
-                kind: FeatureKind::Boss,
-                center: position.unwrap_or(V3::new(620.0, 220.0, -360.0)).into(),
-                radius_mm: 25.0004 / 2.0,
-                nominal_diameter_mm: 25.0,
-                certificate_diameter_mm: Some(25.0004),
-                normal: [0.0; 3],
-                form: vec![[2.0, 0.01e-3, 0.2]],
-            });
+            let sphere = b.feature(master_sphere(position));
             let reference = |b: &mut Builder| {
                 b.set_tip(1, 0.0, 0.0);
                 for lat in [-30.0, 0.0, 30.0] {
@@ -626,6 +652,50 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                     b.sphere_circle(sphere, 20.0, 1.0, 0.3, lat);
                 }
                 reference(&mut b);
+            }
+        }
+        "probe-force" => {
+            // Extrapolation to zero force, variant (a): the same circles on the master sphere
+            // at three deflections, each tip at head angles (0, 0); three latitudes, so the
+            // deflection has a component along the stylus (w) as well as across it (u, v).
+            // The deflections alternate within each latitude, so the room's slow drift does
+            // not line up with the deflection. Slowly (5 mm/s): the circle's radius changes with
+            // the deflection, and so would any dynamic error that grows with v²/r.
+            let sphere = b.feature(master_sphere(position));
+            for tip in b.m.styli.iter().map(|s| s.id).collect::<Vec<_>>() {
+                b.set_tip(tip, 0.0, 0.0);
+                for lat in [-35.0, 0.0, 35.0] {
+                    for defl in [0.1, 0.5, 0.3] {
+                        b.sphere_circle(sphere, 5.0, 1.0, defl, lat);
+                    }
+                }
+            }
+        }
+        "probe-force-quarter" => {
+            // Variant (c): per tip and latitude a full revolution at 0.3 mm and a quarter at
+            // 0.1 mm; across the quarter the deflection turns from X to Y, which separates k_u
+            // from k_v, and the full revolution carries the correction round the circle.
+            let sphere = b.feature(master_sphere(position));
+            for tip in b.m.styli.iter().map(|s| s.id).collect::<Vec<_>>() {
+                b.set_tip(tip, 0.0, 0.0);
+                for lat in [-35.0, 0.0, 35.0] {
+                    b.sphere_arc(sphere, 5.0, 1.0, 0.3, lat, 1.0);
+                    b.sphere_arc(sphere, 5.0, 1.0, 0.1, lat, 0.25);
+                }
+            }
+        }
+        "probe-force-approach" => {
+            // Variant (d): radial approaches from 0.05 to 0.5 mm deflection at two positions
+            // 90° apart on the equator, three times each: X and Y only (nothing along the
+            // stylus, so k_w is not determined).
+            let sphere = b.feature(master_sphere(position));
+            for tip in b.m.styli.iter().map(|s| s.id).collect::<Vec<_>>() {
+                b.set_tip(tip, 0.0, 0.0);
+                for _ in 0..3 {
+                    for th in [0.0, std::f64::consts::FRAC_PI_2] {
+                        b.sphere_approach(sphere, th, 0.05, 0.5, 0.5);
+                    }
+                }
             }
         }
         "part" => {

@@ -305,3 +305,30 @@ pub async fn status(s: &zenoh::Session, machine: &str) -> serde_json::Value {
     }
     panic!("no status reply");
 }
+
+/// A user's nominal start from the simulator's `from` (written with every library effect
+/// hidden): no effects, data-sheet time constants (30 % off) and, with `catalogue`, the
+/// catalogue's styli instead of the machine's own; written to `to`.
+pub fn nominal_start(dir: &Path, from: &str, to: &str, catalogue: bool) {
+    let mut c: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join(from)).unwrap()).unwrap();
+    assert!(
+        c["effects"].as_array().unwrap().is_empty(),
+        "{from} has effects"
+    );
+    for ax in c["nominal"]["axes"].as_object_mut().unwrap().values_mut() {
+        let t = ax["tau_s"].as_f64().unwrap();
+        ax["tau_s"] = (t * 1.3).into();
+    }
+    if catalogue {
+        let cat = scancorr_sim::machine::catalogue_styli();
+        for t in c["geometry"]["tips"].as_array_mut().unwrap() {
+            let id = t["id"].as_u64().unwrap() as u32;
+            let s = cat.iter().find(|s| s.id == id).unwrap();
+            t["l1_mm"] = s.l1_mm.into();
+            t["l2_mm"] = s.l2_mm.into();
+            t["radius_mm"] = s.radius_mm.into();
+        }
+    }
+    std::fs::write(dir.join(to), serde_json::to_string_pretty(&c).unwrap()).unwrap();
+}

@@ -7,11 +7,13 @@
 //! it with [`crate::lab::version::next`]). Pure logic: no files, no clock.
 //!
 //! * [`tips`] — qualification of the styli on a master sphere.
+//! * [`probe_force`] — extrapolation to zero force: a force coefficient per tip and axis.
 //! * [`dynamics`] — the ring-gauge procedure: time constants, deflection matrix, phase, gain.
 //!
 //! [`Dataset`]: crate::lab::dataset::Dataset
 
 pub mod dynamics;
+pub mod probe_force;
 pub mod tips;
 
 use serde::Serialize;

@@ -1,0 +1,663 @@
+//! `probe-force`: extrapolation to zero probing force, variant (a) — the same circles on the
+//! master sphere scanned at two or more deflections.
+//!
+//! Equations. A scanning probe's stylus bends with the probing force, which grows with the
+//! deflection d, so the probe reports the tip short of where it is by K_t·d (K_t = diag(k_u,
+//! k_v, k_w) per tip t in probe axes): the corrected point of the library's `probe_force`
+//! effect is s + R·(K_t·d) (R the head's rotation). On a sphere of centre C and radius ρ, a
+//! point p measured without that correction satisfies
+//!
+//! n·(p + R·(K_t·d) − C(t)) = ρ_c + Σ_h (a_ch·cos hθ + b_ch·sin hθ),   n = (p − C)/|p − C|,
+//!
+//! per circle c (a setting g — a tip at one head angle — at one latitude, every deflection),
+//! θ the angle about the sphere's z axis and C(t) = C_g + Ċ_c·(t − t_c) a centre that may
+//! drift slowly while the circle's deflections are scanned (the room warms, the stylus grows). The right-hand side is the **static error map** of that
+//! circle: what each point extrapolates to at zero deflection, the same for every
+//! deflection, whatever its cause (the sphere's form, the machine's geometry there, a servo
+//! ellipse at that speed). Linearised about each setting's own sphere fit, the equation is
+//! linear in k_u, k_v, k_w of every tip and in the nuisance (ρ_c, a_ch, b_ch, Ċ_c); one least-
+//! squares fit over all settings. Only the change of a point with the deflection determines
+//! K (a single deflection is the static map), the latitudes separate k_w (along the stylus)
+//! from k_u, k_v, and the angle around each circle separates k_u from k_v (cos² against sin²).
+//! The RMS of the fit about the zero-force map is reported per setting.
+//!
+//! Source idea: Renishaw's calibration of a coordinate positioning apparatus — scan the same
+//! path at two or more deflections and extrapolate each point to zero deflection; the
+//! coefficient is a property of the stylus (one per tip, ISO 10360-5 qualifies stylus by
+//! stylus), not of the machine.
+
+use super::{Param, ProcedureError};
+use crate::calib::Calibration;
+use crate::effects::{probe_force, scale_thermal, stylus_thermal, Effect, EffectConfig};
+use crate::lab::dataset::Dataset;
+use crate::lab::fit::Normal;
+use crate::lab::program::FeatureKind;
+use crate::sample::Vec3;
+use crate::shape;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Least spread of the deflections within a setting, mm.
+const MIN_DEFLECTION_SPREAD_MM: f64 = 0.1;
+/// Deflection levels closer than this are one level, mm.
+const LEVEL_MM: f64 = 0.04;
+/// A column whose information is below this fraction (squared) of its tip's strongest is not
+/// determined by the measurement.
+const WEAK_COLUMN: f64 = 0.03;
+const AXES: [&str; 3] = ["u", "v", "w"];
+/// Points within this latitude (degrees) belong to one circle.
+const LATITUDE_DEG: f64 = 4.0;
+/// Harmonics of each circle's static pattern.
+const HARMONICS: usize = 12;
+/// Static-pattern columns per circle: mean radius, cos and sin of each harmonic.
+const PER_CIRCLE: usize = 1 + 2 * HARMONICS;
+/// Drift columns per circle: the centre moving linearly in time (mm per 100 s) while its
+/// deflections are scanned.
+const DRIFT: usize = 3;
+
+/// One setting: a tip at one head angle on the sphere, every deflection.
+#[derive(Debug, Clone, Serialize)]
+pub struct Setting {
+    /// Tip id.
+    pub tip: u32,
+    /// Head angles A1, A2, degrees.
+    pub head_deg: [f64; 2],
+    /// Points fitted.
+    pub points: usize,
+    /// The deflection levels scanned, mm.
+    pub deflections_mm: Vec<f64>,
+    /// Whether the points cover enough of the sphere to fit it; when not (approaches at a few
+    /// positions) the radii below are distances along the probing direction relative to the
+    /// zero-force surface, and no radius at zero force is given.
+    pub sphere_fitted: bool,
+    /// Sphere radius minus the certified radius per deflection level, before (as measured
+    /// without any force correction), µm.
+    pub radius_error_before_um: Vec<f64>,
+    /// The same after the fitted force correction, µm.
+    pub radius_error_after_um: Vec<f64>,
+    /// Radius at zero deflection minus the certified radius, µm, with its σ.
+    pub radius_error_at_zero_um: [f64; 2],
+    /// RMS of the static error map's form (harmonics 2 and up of its circles), µm.
+    pub static_form_um: f64,
+    /// RMS of what is left about the static map after the force correction, µm.
+    pub fit_rms_um: f64,
+}
+
+/// The outcome of `probe-force`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Outcome {
+    /// The calibration with the fitted force coefficients (unversioned).
+    #[serde(skip)]
+    pub calibration: Calibration,
+    /// Fitted parameters with their σ (`tip2.probe_k_u`, dimensionless: mm per mm).
+    pub params: Vec<Param>,
+    /// Every setting measured.
+    pub settings: Vec<Setting>,
+    /// Residual RMS about each circle's static map with no force correction, µm.
+    pub rms_before_um: f64,
+    /// Residual RMS after the fit, µm.
+    pub rms_after_um: f64,
+    /// Reduced χ² of the cells (circle × deflection) after the fit; the σ are scaled by it
+    /// when above 1 (what the model leaves beyond noise, the Birge ratio).
+    pub cell_chi2: f64,
+    /// What this measurement cannot determine, and why.
+    pub undetermined: Vec<String>,
+    /// Remarks.
+    pub notes: Vec<String>,
+}
+
+struct Group {
+    tip: u32,
+    head: [f64; 2],
+    feature: usize,
+    idx: Vec<usize>,
+}
+
+/// Deflection levels of a set of |d| values: centres of clusters LEVEL_MM apart.
+fn levels(mut d: Vec<f64>) -> Vec<f64> {
+    d.sort_by(|a, b| a.total_cmp(b));
+    let mut out: Vec<(f64, usize)> = vec![];
+    for x in d {
+        match out.last_mut() {
+            Some((m, n)) if x - *m / *n as f64 <= LEVEL_MM => {
+                *m += x;
+                *n += 1;
+            }
+            _ => out.push((x, 1)),
+        }
+    }
+    out.into_iter().map(|(m, n)| m / n as f64).collect()
+}
+
+fn level_of(levels: &[f64], d: f64) -> usize {
+    levels
+        .iter()
+        .enumerate()
+        .min_by(|a, b| (a.1 - d).abs().total_cmp(&(b.1 - d).abs()))
+        .map(|(i, _)| i)
+        .unwrap_or(0)
+}
+
+/// Fits the force coefficients: `ds` built from the bags with `start` without its
+/// `probe_force` effect (this procedure measures it).
+pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError> {
+    let spheres: BTreeMap<usize, f64> = ds
+        .features
+        .iter()
+        .enumerate()
+        .filter(|(_, (_, f))| f.artifact == "sphere" && f.kind == FeatureKind::Boss)
+        .filter_map(|(i, (_, f))| f.certificate_diameter_mm.map(|d| (i, d / 2.0)))
+        .collect();
+    if spheres.is_empty() {
+        return Err(ProcedureError::Missing(
+            "no master-sphere scans in the bags (a `sphere` feature with its certified \
+             diameter): `probe-force` needs the same circles on the sphere scanned at two or \
+             more deflections by each tip, e.g. `scancorr sim --program probe-force`"
+                .into(),
+        ));
+    }
+    // Settings: (tip, head angle, sphere).
+    let mut by_key: BTreeMap<(u32, [i64; 2], usize), Vec<usize>> = BTreeMap::new();
+    for (i, p) in ds.points.iter().enumerate() {
+        if spheres.contains_key(&p.feature) {
+            let h = [p.ctx.head_a1_deg, p.ctx.head_a2_deg].map(|a| (a * 1e3).round() as i64);
+            by_key
+                .entry((p.ctx.tip_id, h, p.feature))
+                .or_default()
+                .push(i);
+        }
+    }
+    let groups: Vec<Group> = by_key
+        .into_iter()
+        .map(|((tip, h, feature), idx)| Group {
+            tip,
+            head: h.map(|a| a as f64 / 1e3),
+            feature,
+            idx,
+        })
+        .collect();
+    let mut tips: Vec<u32> = groups.iter().map(|g| g.tip).collect();
+    tips.dedup();
+    tips.sort_unstable();
+    tips.dedup();
+    // Deflection levels per setting; one level cannot separate the force from the radius.
+    let mut lvls = vec![];
+    for g in &groups {
+        let d: Vec<f64> = g
+            .idx
+            .iter()
+            .map(|&i| ds.points[i].ctx.deflection_probe.norm())
+            .collect();
+        let l = levels(d);
+        let spread = l.last().unwrap_or(&0.0) - l.first().unwrap_or(&0.0);
+        if l.len() < 2 || spread < MIN_DEFLECTION_SPREAD_MM {
+            return Err(ProcedureError::IllConditioned(format!(
+                "tip {} at head angles ({}, {})° scanned the sphere at one deflection ({}): the \
+                 force cannot be told from the tip's radius; scan the same circles at ≥ 2 \
+                 deflections at least {MIN_DEFLECTION_SPREAD_MM} mm apart (e.g. 0.1, 0.3 and \
+                 0.5 mm)",
+                g.tip,
+                g.head[0],
+                g.head[1],
+                l.iter()
+                    .map(|x| format!("{x:.2} mm"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )));
+        }
+        lvls.push(l);
+    }
+    // The effect's own regressors: one (k_u, k_v, k_w) per tip.
+    let cfg = probe_force::Config::zeros_per_tip(&tips);
+    let model = cfg.build().map_err(ProcedureError::Missing)?;
+    let n_force = model.n_params();
+    // Nuisance: the styli's and the scales' expansion as the room warms, from the measured
+    // temperatures (the tip centre moves along the stylus, the sphere's apparent centre with
+    // the scales) — not linear in time over a circle's scans.
+    let mut sensors = ds.sensors.clone();
+    let thermal: Vec<Box<dyn Effect>> = [
+        EffectConfig::StylusThermal(stylus_thermal::Config::zeros_per_tip(&tips, false)),
+        EffectConfig::ScaleThermal(scale_thermal::Config::zeros()),
+    ]
+    .iter()
+    .filter_map(|c| c.build(&mut sensors).ok().map(|b| b.model))
+    .collect();
+    let n_dense = n_force + thermal.iter().map(|m| m.n_params()).sum::<usize>();
+    let tip_col = |t: u32| 3 + 3 * tips.iter().position(|x| *x == t).expect("listed tip");
+    // Per setting: its own sphere fit (the point of linearisation).
+    // Where the points cover too little of the sphere to fit it (approaches at a few
+    // positions), their centroid and zero: each position's static term holds its distance.
+    struct Lin {
+        center: Vec3,
+        radius: f64,
+        sphere: bool,
+    }
+    let mut lin = vec![];
+    for g in &groups {
+        let pts: Vec<Vec3> = g.idx.iter().map(|&i| ds.points[i].surface).collect();
+        let r_cert = spheres[&g.feature];
+        lin.push(match shape::fit_sphere(&pts) {
+            Ok(f) if (f.radius - r_cert).abs() < 0.05 * r_cert => Lin {
+                center: f.center,
+                radius: f.radius,
+                sphere: true,
+            },
+            _ => Lin {
+                center: pts.iter().fold(Vec3::zeros(), |a, p| a + p) / pts.len() as f64,
+                radius: 0.0,
+                sphere: false,
+            },
+        });
+    }
+    // Each point's probing direction (out of the material): the deflection in machine axes.
+    let dir = |i: usize| -> Vec3 {
+        let c = &ds.points[i].ctx;
+        (c.machine_from_probe * c.deflection_probe).normalize()
+    };
+    // Circles: the points of one setting at one latitude, every deflection. Each circle's
+    // static pattern (its mean radius and HARMONICS harmonics of the angle about the sphere's
+    // axis) is the static error map at that latitude, common to every deflection.
+    let mut circles: BTreeMap<(usize, i64), usize> = BTreeMap::new();
+    let mut circle_of = vec![usize::MAX; ds.points.len()];
+    for (gi, g) in groups.iter().enumerate() {
+        for &i in &g.idx {
+            let lat = dir(i).z.clamp(-1.0, 1.0).asin().to_degrees();
+            let key = (gi, (lat / LATITUDE_DEG).round() as i64);
+            let n = circles.len();
+            circle_of[i] = *circles.entry(key).or_insert(n);
+        }
+    }
+    let n_circles = circles.len();
+    let mut circles_of_group = vec![vec![]; groups.len()];
+    for ((gi, _), c) in &circles {
+        circles_of_group[*gi].push(*c);
+    }
+    let n_cols = n_dense + (DRIFT + PER_CIRCLE) * n_circles;
+    // Each circle's mean time (its drift is linear about it).
+    let mut t_circle = vec![0.0; n_circles];
+    let mut n_in = vec![0usize; n_circles];
+    for g in &groups {
+        for &i in &g.idx {
+            t_circle[circle_of[i]] += ds.points[i].ctx.t_ns as f64 * 1e-9;
+            n_in[circle_of[i]] += 1;
+        }
+    }
+    for (t, n) in t_circle.iter_mut().zip(&n_in) {
+        *t /= (*n).max(1) as f64;
+    }
+    let mut ne = Normal::new(n_cols);
+    let mut dense = vec![0.0; n_dense];
+    let mut r = vec![Vec3::zeros(); n_dense];
+    let mut sparse = Vec::with_capacity(DRIFT + PER_CIRCLE);
+    let row = |gi: usize,
+               i: usize,
+               dense: &mut Vec<f64>,
+               r: &mut Vec<Vec3>,
+               sparse: &mut Vec<(usize, f64)>|
+     -> f64 {
+        let p = &ds.points[i];
+        let l = &lin[gi];
+        let n = dir(i);
+        model.regressors(&p.ctx, &mut r[..n_force]);
+        let mut off = n_force;
+        for m in &thermal {
+            let k = m.n_params();
+            m.regressors(&p.ctx, &mut r[off..off + k]);
+            off += k;
+        }
+        for (d, ri) in dense.iter_mut().zip(r.iter()) {
+            *d = if ri.iter().all(|x| x.is_finite()) {
+                n.dot(ri)
+            } else {
+                0.0
+            };
+        }
+        let ci = circle_of[i];
+        let dt = (p.ctx.t_ns as f64 * 1e-9 - t_circle[ci]) / 100.0;
+        let c0 = DRIFT * ci;
+        sparse.clear();
+        sparse.extend([(c0, -n.x * dt), (c0 + 1, -n.y * dt), (c0 + 2, -n.z * dt)]);
+        let k0 = DRIFT * n_circles + PER_CIRCLE * ci;
+        let th = n.y.atan2(n.x);
+        sparse.push((k0, -1.0));
+        for h in 1..=HARMONICS {
+            let a = h as f64 * th;
+            sparse.push((k0 + 2 * h - 1, -a.cos()));
+            sparse.push((k0 + 2 * h, -a.sin()));
+        }
+        n.dot(&(p.surface - l.center)) - l.radius
+    };
+    let mut n_rows = 0usize;
+    for (gi, g) in groups.iter().enumerate() {
+        for &i in &g.idx {
+            let y = row(gi, i, &mut dense, &mut r, &mut sparse);
+            n_rows += 1;
+            ne.add(&dense, &sparse, y);
+        }
+    }
+    // The machine-wide k has no rows (every tip is listed); a tip's axis the measurement
+    // barely sees (no deflection along it) is not determined.
+    let mut undetermined = vec![];
+    let mut weak = vec![false; n_dense];
+    for c in 0..3 {
+        weak[c] = true;
+    }
+    for &t in &tips {
+        let c0 = tip_col(t);
+        let top = (c0..c0 + 3).map(|c| ne.m[(c, c)]).fold(0.0, f64::max);
+        for (a, c) in (c0..c0 + 3).enumerate() {
+            if !(ne.m[(c, c)] > WEAK_COLUMN * WEAK_COLUMN * top) {
+                weak[c] = true;
+                undetermined.push(format!(
+                    "tip{t}.probe_k_{}: the scans barely deflect tip {t} along its probe axis {} \
+                     — add circles at higher latitudes (or faces probed along that axis)",
+                    AXES[a], AXES[a]
+                ));
+            }
+        }
+    }
+    for (c, w) in weak.iter().enumerate() {
+        if *w {
+            ne.m.row_mut(c).fill(0.0);
+            ne.m.column_mut(c).fill(0.0);
+            ne.b[c] = 0.0;
+        }
+    }
+    let sol = ne.solve();
+    // The same without any force correction: what the static maps and drifts alone leave.
+    let ss_before = {
+        let mut n0 = ne.clone();
+        for c in 0..n_force {
+            n0.m.row_mut(c).fill(0.0);
+            n0.m.column_mut(c).fill(0.0);
+            n0.b[c] = 0.0;
+        }
+        // From the residuals themselves: yᵀy − xᵀAᵀy cancels catastrophically when the
+        // static terms carry large distances (approaches).
+        let x0: Vec<f64> = n0.solve().x.iter().copied().collect();
+        let mut ss = 0.0;
+        for (gi, g) in groups.iter().enumerate() {
+            for &i in &g.idx {
+                let y = row(gi, i, &mut dense, &mut r, &mut sparse);
+                let e = y
+                    + dense.iter().zip(&x0).map(|(a, t)| a * t).sum::<f64>()
+                    + sparse.iter().map(|(c, v)| v * x0[n_dense + c]).sum::<f64>();
+                ss += e * e;
+            }
+        }
+        ss
+    };
+    let theta: Vec<f64> = sol.x.iter().copied().collect();
+    // Residuals in time order per setting: their lag-1 correlation inflates σ (neighbouring
+    // points share the sphere's form and the probe's lobing).
+    let mut resid: Vec<Vec<f64>> = vec![];
+    let mut ss_after = 0.0;
+    // Per cell (circle × deflection level): the residual's mean and its 2θ pattern, the
+    // shapes the force coefficients take (see the consistency check below).
+    let mut cells: BTreeMap<(usize, usize), [f64; 4]> = BTreeMap::new();
+    for (gi, g) in groups.iter().enumerate() {
+        let mut order = g.idx.clone();
+        order.sort_by_key(|&i| ds.points[i].ctx.t_ns);
+        let mut rs = vec![];
+        for &i in &order {
+            let y = row(gi, i, &mut dense, &mut r, &mut sparse);
+            let mut e = y + dense.iter().zip(&theta).map(|(a, t)| a * t).sum::<f64>();
+            e += sparse
+                .iter()
+                .map(|(c, v)| v * theta[n_dense + c])
+                .sum::<f64>();
+            ss_after += e * e;
+            rs.push(e);
+            let p = &ds.points[i];
+            let n = dir(i);
+            let th2 = 2.0 * n.y.atan2(n.x);
+            let lv = level_of(&lvls[gi], p.ctx.deflection_probe.norm());
+            let c = cells.entry((circle_of[i], lv)).or_default();
+            c[0] += e;
+            c[1] += e * th2.cos();
+            c[2] += e * th2.sin();
+            c[3] += 1.0;
+        }
+        resid.push(rs);
+    }
+    let (mut num, mut den) = (0.0, 0.0);
+    for rs in &resid {
+        for w in rs.windows(2) {
+            num += w[0] * w[1];
+        }
+        den += rs.iter().map(|e| e * e).sum::<f64>();
+    }
+    let rho = if den > 0.0 {
+        (num / den).clamp(0.0, 0.95)
+    } else {
+        0.0
+    };
+    let inflate = (1.0 + rho) / (1.0 - rho);
+    let dof = (n_rows as f64 - sol.rank as f64).max(1.0);
+    let point_var = ss_after / dof;
+    if !(point_var > 0.0 && point_var.is_finite()) {
+        return Err(ProcedureError::IllConditioned(
+            "the fit leaves no residual to judge its uncertainty by: too few points per \
+             circle and deflection; scan the circles fully"
+                .into(),
+        ));
+    }
+    // Consistency between the cells: with the model right, each cell's mean and 2θ pattern
+    // are noise (variance σ²/n and 2σ²/n, n the cell's effective points). What is left there
+    // beyond noise — a drift the temperatures do not follow, an effect that changes with the
+    // circle's radius — would bias the coefficients alike, so the σ grow by its reduced χ²
+    // (Birge ratio).
+    let mut chi2 = 0.0;
+    for c in cells.values() {
+        let n = c[3] / inflate;
+        if n < 1.0 {
+            continue;
+        }
+        let m = c[0] / c[3];
+        let (a, b) = (2.0 * c[1] / c[3], 2.0 * c[2] / c[3]);
+        chi2 += m * m / (point_var / n) + (a * a + b * b) / (2.0 * point_var / n);
+    }
+    let fitted = (0..n_force).filter(|&c| !weak[c]).count();
+    let cell_dof = (3 * cells.len()).saturating_sub(3 * n_circles + fitted);
+    let chi2_red = if cell_dof > 0 {
+        chi2 / cell_dof as f64
+    } else {
+        1.0
+    };
+    let birge = chi2_red.max(1.0);
+    let sigma2 = point_var * inflate * birge;
+    let sig = |c: usize| (sol.cov[(c, c)].max(0.0) * sigma2).sqrt();
+
+    let mut params = vec![];
+    let mut per_tip: BTreeMap<u32, [f64; 3]> = BTreeMap::new();
+    let start_k = start.effects.iter().find_map(|e| match e {
+        EffectConfig::ProbeForce(c) => Some(c.clone()),
+        _ => None,
+    });
+    for &t in &tips {
+        let c0 = tip_col(t);
+        let prior = start_k
+            .as_ref()
+            .map_or([0.0; 3], |c| c.per_tip.get(&t).copied().unwrap_or(c.k));
+        let mut k = [0.0; 3];
+        for a in 0..3 {
+            if weak[c0 + a] {
+                k[a] = prior[a];
+                continue;
+            }
+            k[a] = theta[c0 + a];
+            params.push(Param {
+                name: format!("tip{t}.probe_k_{}", AXES[a]),
+                value: theta[c0 + a],
+                sigma: sig(c0 + a),
+            });
+        }
+        per_tip.insert(t, k);
+    }
+    // Settings' radii per deflection level before and after, and at zero force.
+    let mut settings = vec![];
+    for (gi, g) in groups.iter().enumerate() {
+        let l = &lin[gi];
+        let r_cert = spheres[&g.feature];
+        let nl = lvls[gi].len();
+        let (mut before, mut after, mut count) = (vec![0.0; nl], vec![0.0; nl], vec![0usize; nl]);
+        for &i in &g.idx {
+            let p = &ds.points[i];
+            let y = row(gi, i, &mut dense, &mut r, &mut sparse);
+            let force: f64 = dense[..n_force]
+                .iter()
+                .zip(&theta)
+                .map(|(a, t)| a * t)
+                .sum();
+            let k = level_of(&lvls[gi], p.ctx.deflection_probe.norm());
+            before[k] += y;
+            after[k] += y + force;
+            count[k] += 1;
+        }
+        // The zero-force radius: the circles' mean radii (each circle's weight its points).
+        let (mut rsum, mut vsum, mut nsum) = (0.0, 0.0, 0.0);
+        for &c in &circles_of_group[gi] {
+            let col = n_dense + DRIFT * n_circles + PER_CIRCLE * c;
+            let m = g.idx.iter().filter(|&&i| circle_of[i] == c).count() as f64;
+            rsum += m * theta[col];
+            vsum += m * m * sig(col).powi(2);
+            nsum += m;
+        }
+        let rho0 = l.radius + rsum / nsum.max(1.0);
+        // Without a sphere fit the distances are relative to the zero-force surface (where
+        // every level lands after the correction).
+        let r_ref = if l.sphere {
+            r_cert
+        } else {
+            l.radius + after.iter().sum::<f64>() / count.iter().sum::<usize>().max(1) as f64
+        };
+        let rho0_sigma = vsum.sqrt() / nsum.max(1.0);
+        let stat: f64 = resid[gi].iter().map(|e| e * e).sum::<f64>() / resid[gi].len() as f64;
+        let mut form = 0.0;
+        for &i in &g.idx {
+            let n = dir(i);
+            let th = n.y.atan2(n.x);
+            let k0 = n_dense + DRIFT * n_circles + PER_CIRCLE * circle_of[i];
+            let f: f64 = (2..=HARMONICS)
+                .map(|h| {
+                    let a = h as f64 * th;
+                    theta[k0 + 2 * h - 1] * a.cos() + theta[k0 + 2 * h] * a.sin()
+                })
+                .sum();
+            form += f * f;
+        }
+        let form = (form / g.idx.len() as f64).sqrt();
+        settings.push(Setting {
+            tip: g.tip,
+            head_deg: g.head,
+            points: g.idx.len(),
+            deflections_mm: lvls[gi].clone(),
+            sphere_fitted: l.sphere,
+            radius_error_before_um: (0..nl)
+                .map(|k| (l.radius + before[k] / count[k].max(1) as f64 - r_ref) * 1e3)
+                .collect(),
+            radius_error_after_um: (0..nl)
+                .map(|k| (l.radius + after[k] / count[k].max(1) as f64 - r_ref) * 1e3)
+                .collect(),
+            radius_error_at_zero_um: if l.sphere {
+                [(rho0 - r_ref) * 1e3, rho0_sigma * 1e3]
+            } else {
+                [0.0, 0.0]
+            },
+            static_form_um: form * 1e3,
+            fit_rms_um: stat.sqrt() * 1e3,
+        });
+    }
+    // Each tip's radius at zero force: the calibration's radius plus the sphere's zero-force
+    // radius error (the corrector puts the surface a tip radius from the tip centre), mean
+    // over the tip's settings.
+    let mut calibration = start.clone();
+    for &t in &tips {
+        let ss: Vec<&Setting> = settings
+            .iter()
+            .filter(|s| s.tip == t && s.sphere_fitted)
+            .collect();
+        if ss.is_empty() {
+            undetermined.push(format!(
+                "tip{t}.radius_at_zero_force_mm: the scans cover too little of the sphere to \
+                 fit it — scan circles (variants a–c) for the tip's radius"
+            ));
+            continue;
+        }
+        let Some(g) = calibration.geometry.tips.iter_mut().find(|g| g.id == t) else {
+            continue;
+        };
+        let n = ss.len() as f64;
+        let e = ss.iter().map(|s| s.radius_error_at_zero_um[0]).sum::<f64>() / n * 1e-3;
+        let v = ss
+            .iter()
+            .map(|s| (s.radius_error_at_zero_um[1] * 1e-3).powi(2))
+            .sum::<f64>()
+            / (n * n);
+        g.radius_mm += e;
+        params.push(Param {
+            name: format!("tip{t}.radius_at_zero_force_mm"),
+            value: g.radius_mm,
+            sigma: v.sqrt(),
+        });
+    }
+    let mut notes = vec![
+        "the radii at zero force carry every radial error of these circles that does not \
+         change with the deflection (the machine's geometry at the sphere, its dynamics at this \
+         speed): their σ is the statistical part only; the force coefficients are free of it"
+            .to_string(),
+    ];
+    if groups.iter().any(|g| g.head != [0.0, 0.0]) {
+        notes.push(
+            "a tip measured at several head angles gets one coefficient triple in its probe \
+             axes; the angles only add views of it"
+                .into(),
+        );
+    }
+    let k_machine = start_k.as_ref().map_or_else(
+        || per_tip.values().next().copied().unwrap_or([0.0; 3]),
+        |c| c.k,
+    );
+    let effect = EffectConfig::ProbeForce(probe_force::Config {
+        id: start_k.as_ref().and_then(|c| c.id.clone()),
+        k: k_machine,
+        per_tip: start_k
+            .map(|c| c.per_tip)
+            .unwrap_or_default()
+            .into_iter()
+            .chain(per_tip)
+            .collect(),
+    });
+    match calibration
+        .effects
+        .iter_mut()
+        .find(|e| e.kind() == "probe_force")
+    {
+        Some(e) => *e = effect,
+        None => calibration.effects.push(effect),
+    }
+    Ok(Outcome {
+        calibration,
+        params,
+        settings,
+        rms_before_um: (ss_before / n_rows.max(1) as f64).sqrt() * 1e3,
+        rms_after_um: (ss_after / n_rows.max(1) as f64).sqrt() * 1e3,
+        cell_chi2: chi2_red,
+        undetermined,
+        notes,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn deflection_levels_cluster_and_assign() {
+        let l = levels(vec![0.31, 0.1, 0.29, 0.5, 0.11, 0.49, 0.3]);
+        assert_eq!(l.len(), 3);
+        assert!((l[0] - 0.105).abs() < 1e-9 && (l[2] - 0.495).abs() < 1e-9);
+        assert_eq!(level_of(&l, 0.33), 1);
+        assert_eq!(levels(vec![0.3, 0.31, 0.29]).len(), 1);
+    }
+}
