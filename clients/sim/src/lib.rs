@@ -166,19 +166,21 @@ pub const PROBE_TAU_S: f64 = 0.002;
 /// The true parameters of `m` under the names `scancorr calibrate` prints.
 ///
 /// `dynamics.*` are what the ring-gauge procedure determines: τ of each axis's first-order
-/// nominal model (1/kp less the probe's), the compliance P = −C (C the displacement of the
-/// probe per unit acceleration, per monomial 1, x, y, z of the position over 500 mm), the servo
-/// phase b0, b1, b2 of Y and Z against X per monomial (b1 = −2π·Δτ of the readouts, the rest zero), and
-/// the servo gain's f² and f¹ terms
-/// (4π²·g and none in this machine).
+/// nominal model (1/kp less the probe's and less the scale readout's delay), the compliance
+/// P = −C (C the displacement of the probe per unit acceleration, per monomial 1, x, y, z of
+/// the position over 500 mm), the servo phase b0, b1, b2 of Y and Z against X per monomial
+/// (b1 = −2π·Δτ of the readouts, the rest zero), and the servo gain's f² and f¹ terms (4π²·g
+/// and none in this machine).
 pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
     let mut p = BTreeMap::new();
     const AX: [&str; 3] = ["x", "y", "z"];
     const MONO: [&str; 4] = ["1", "x", "y", "z"];
     for (i, a) in AX.iter().enumerate() {
+        // What the scales show: they read the carriage τ_readout later, so they lag the
+        // command by that much less.
         p.insert(
             format!("dynamics.tau_{a}_s"),
-            1.0 / m.servo[i].kp - PROBE_TAU_S,
+            1.0 / m.servo[i].kp - PROBE_TAU_S - m.readout_delay_s[i] - m.latching.tau_s[i],
         );
         p.insert(format!("dynamics.gain_{a}.f1.1"), 0.0);
         p.insert(

@@ -249,10 +249,16 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             },
         });
     }
-    // Each point's probing direction (out of the material): the deflection in machine axes.
-    let dir = |i: usize| -> Vec3 {
-        let c = &ds.points[i].ctx;
-        (c.machine_from_probe * c.deflection_probe).normalize()
+    // Each point's normal (out of the material): from the sphere's centre where the sphere
+    // was fitted, else the probing direction (the deflection in machine axes, which the
+    // stylus's uneven bending tilts by a few mrad).
+    let dir = |gi: usize, i: usize| -> Vec3 {
+        if lin[gi].sphere {
+            (ds.points[i].surface - lin[gi].center).normalize()
+        } else {
+            let c = &ds.points[i].ctx;
+            (c.machine_from_probe * c.deflection_probe).normalize()
+        }
     };
     // Circles: the points of one setting at one latitude, every deflection. Each circle's
     // static pattern (its mean radius and HARMONICS harmonics of the angle about the sphere's
@@ -261,7 +267,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     let mut circle_of = vec![usize::MAX; ds.points.len()];
     for (gi, g) in groups.iter().enumerate() {
         for &i in &g.idx {
-            let lat = dir(i).z.clamp(-1.0, 1.0).asin().to_degrees();
+            let lat = dir(gi, i).z.clamp(-1.0, 1.0).asin().to_degrees();
             let key = (gi, (lat / LATITUDE_DEG).round() as i64);
             let n = circles.len();
             circle_of[i] = *circles.entry(key).or_insert(n);
@@ -297,7 +303,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
      -> f64 {
         let p = &ds.points[i];
         let l = &lin[gi];
-        let n = dir(i);
+        let n = dir(gi, i);
         model.regressors(&p.ctx, &mut r[..n_force]);
         let mut off = n_force;
         for m in &thermal {
@@ -409,7 +415,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             ss_after += e * e;
             rs.push(e);
             let p = &ds.points[i];
-            let n = dir(i);
+            let n = dir(gi, i);
             let th2 = 2.0 * n.y.atan2(n.x);
             let lv = level_of(&lvls[gi], p.ctx.deflection_probe.norm());
             let c = cells.entry((circle_of[i], lv)).or_default();
@@ -535,7 +541,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         let stat: f64 = resid[gi].iter().map(|e| e * e).sum::<f64>() / resid[gi].len() as f64;
         let mut form = 0.0;
         for &i in &g.idx {
-            let n = dir(i);
+            let n = dir(gi, i);
             let th = n.y.atan2(n.x);
             let k0 = n_dense + DRIFT * n_circles + PER_CIRCLE * circle_of[i];
             let f: f64 = (2..=HARMONICS)
