@@ -37,6 +37,8 @@ use crate::shape;
 use serde::Serialize;
 use std::collections::BTreeMap;
 
+/// Points deflected less than this are not used (no probing direction), mm.
+const MIN_DEFLECTION_MM: f64 = 0.005;
 /// Least spread of the deflections within a setting, mm.
 const MIN_DEFLECTION_SPREAD_MM: f64 = 0.1;
 /// Deflection levels closer than this are one level, mm.
@@ -159,7 +161,8 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     // Settings: (tip, head angle, sphere).
     let mut by_key: BTreeMap<(u32, [i64; 2], usize), Vec<usize>> = BTreeMap::new();
     for (i, p) in ds.points.iter().enumerate() {
-        if spheres.contains_key(&p.feature) {
+        // (A point without deflection has no probing direction and says nothing of the force.)
+        if spheres.contains_key(&p.feature) && p.ctx.deflection_probe.norm() > MIN_DEFLECTION_MM {
             let h = [p.ctx.head_a1_deg, p.ctx.head_a2_deg].map(|a| (a * 1e3).round() as i64);
             by_key
                 .entry((p.ctx.tip_id, h, p.feature))
@@ -177,7 +180,6 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         })
         .collect();
     let mut tips: Vec<u32> = groups.iter().map(|g| g.tip).collect();
-    tips.dedup();
     tips.sort_unstable();
     tips.dedup();
     // Deflection levels per setting; one level cannot separate the force from the radius.
@@ -192,13 +194,18 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         let spread = l.last().unwrap_or(&0.0) - l.first().unwrap_or(&0.0);
         if l.len() < 2 || spread < MIN_DEFLECTION_SPREAD_MM {
             return Err(ProcedureError::IllConditioned(format!(
-                "tip {} at head angles ({}, {})° scanned the sphere at one deflection ({}): the \
-                 force cannot be told from the tip's radius; scan the same circles at ≥ 2 \
+                "tip {} at head angles ({}, {})° scanned the sphere at {} ({}): the force \
+                 cannot be told from the tip's radius; scan the same circles at ≥ 2 \
                  deflections at least {MIN_DEFLECTION_SPREAD_MM} mm apart (e.g. 0.1, 0.3 and \
                  0.5 mm)",
                 g.tip,
                 g.head[0],
                 g.head[1],
+                if l.len() < 2 {
+                    "one deflection"
+                } else {
+                    "deflections too close together"
+                },
                 l.iter()
                     .map(|x| format!("{x:.2} mm"))
                     .collect::<Vec<_>>()
