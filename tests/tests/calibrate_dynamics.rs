@@ -13,26 +13,7 @@ fn json(s: &str) -> serde_json::Value {
 /// Simulates the ring-gauge measurement of `machine` (run `seed`) with every library effect
 /// left out of the starting calibration, and writes the nominal start `nominal.json`.
 fn measure(dir: &Path, machine: &str, seed: &str) {
-    let mut a = vec![
-        "sim",
-        "--program",
-        "dynamics",
-        "--machine-seed",
-        machine,
-        "--seed",
-        seed,
-        "--out",
-        "d.mcap",
-        "--calib-out",
-        "start.json",
-        "--truth",
-        "truth.json",
-    ];
-    for h in scancorr_sim::LIBRARY_EFFECTS {
-        a.extend(["--hide", h]);
-    }
-    ok(dir, &a);
-    nominal_start(dir, "start.json", "nominal.json", false);
+    measure_from_nominal(dir, "dynamics", machine, seed, "d.mcap", false);
 }
 
 /// Every printed parameter is within max(3σ, 5 %) of the truth; returns (within 2σ, count).

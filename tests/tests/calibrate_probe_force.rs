@@ -14,26 +14,7 @@ fn json(s: &str) -> serde_json::Value {
 /// Simulates `program` on machine 47 (run `seed`) with every library effect left out of the
 /// start, and writes the nominal start `nominal.json` with the catalogue's styli.
 fn measure(dir: &Path, program: &str, seed: &str, out: &str) {
-    let mut a = vec![
-        "sim",
-        "--program",
-        program,
-        "--machine-seed",
-        "47",
-        "--seed",
-        seed,
-        "--out",
-        out,
-        "--calib-out",
-        "start.json",
-        "--truth",
-        "truth.json",
-    ];
-    for h in scancorr_sim::LIBRARY_EFFECTS {
-        a.extend(["--hide", h]);
-    }
-    ok(dir, &a);
-    nominal_start(dir, "start.json", "nominal.json", true);
+    measure_from_nominal(dir, program, "47", seed, out, true);
 }
 
 /// Each named coefficient is printed with a positive σ and lies within max(3σ, 5 %) of the

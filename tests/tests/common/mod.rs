@@ -306,6 +306,39 @@ pub async fn status(s: &zenoh::Session, machine: &str) -> serde_json::Value {
     panic!("no status reply");
 }
 
+/// `scancorr sim --program PROGRAM` of `machine` (run `seed`) into `out`, with every library
+/// effect hidden from the start, and the user's nominal start `nominal.json` from it (with
+/// the catalogue's styli when `catalogue`); the truth goes to `truth.json`.
+pub fn measure_from_nominal(
+    dir: &Path,
+    program: &str,
+    machine: &str,
+    seed: &str,
+    out: &str,
+    catalogue: bool,
+) {
+    let mut a = vec![
+        "sim",
+        "--program",
+        program,
+        "--machine-seed",
+        machine,
+        "--seed",
+        seed,
+        "--out",
+        out,
+        "--calib-out",
+        "start.json",
+        "--truth",
+        "truth.json",
+    ];
+    for h in scancorr_sim::LIBRARY_EFFECTS {
+        a.extend(["--hide", h]);
+    }
+    ok(dir, &a);
+    nominal_start(dir, "start.json", "nominal.json", catalogue);
+}
+
 /// A user's nominal start from the simulator's `from` (written with every library effect
 /// hidden): no effects, data-sheet time constants (30 % off) and, with `catalogue`, the
 /// catalogue's styli instead of the machine's own; written to `to`.
