@@ -752,7 +752,7 @@ pub fn probe_force(
     };
     let _ = write!(
         body,
-        "<h2>Radius against deflection</h2><figure>{}<figcaption>Before: the sphere's radius less its certified radius per deflection, measured without a force correction; the first point of each line is the fitted value at zero force. The slope is the stylus bending.</figcaption></figure><figure>{}<figcaption>After the fitted force coefficients: flat at the zero-force value.</figcaption></figure>",
+        "<h2>Radius against deflection</h2><figure>{}<figcaption>Before: the sphere's radius less its certified radius per deflection, measured without a force correction; the first point of each line is the fitted value at zero force. The slope is the stylus bending.</figcaption></figure><figure>{}<figcaption>After the fitted force coefficients: flat. The first point, the fitted zero-force value, can differ from the flat line by a few tenths of a µm: the circles' drift with the measured temperatures shares that much with the radius.</figcaption></figure>",
         xy("radius-before", &series(false), "deflection (mm)", "R − R_cert (µm)"),
         xy("radius-after", &series(true), "deflection (mm)", "R − R_cert (µm)")
     );
