@@ -340,6 +340,20 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         }
         n.dot(&(p.surface - l.center)) - l.radius
     };
+    // What is left of point i's row with the parameters x (from the row itself: yᵀy − xᵀAᵀy
+    // cancels catastrophically when the static terms carry large distances, as approaches'
+    // do).
+    let residual = |gi: usize,
+                    i: usize,
+                    x: &[f64],
+                    dense: &mut Vec<f64>,
+                    r: &mut Vec<Vec3>,
+                    sparse: &mut Vec<(usize, f64)>|
+     -> f64 {
+        let y = row(gi, i, dense, r, sparse);
+        y + dense.iter().zip(x).map(|(a, t)| a * t).sum::<f64>()
+            + sparse.iter().map(|(c, v)| v * x[n_dense + c]).sum::<f64>()
+    };
     let mut n_rows = 0usize;
     for (gi, g) in groups.iter().enumerate() {
         for &i in &g.idx {
@@ -385,17 +399,11 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             n0.m.column_mut(c).fill(0.0);
             n0.b[c] = 0.0;
         }
-        // From the residuals themselves: yᵀy − xᵀAᵀy cancels catastrophically when the
-        // static terms carry large distances (approaches).
         let x0: Vec<f64> = n0.solve().x.iter().copied().collect();
         let mut ss = 0.0;
         for (gi, g) in groups.iter().enumerate() {
             for &i in &g.idx {
-                let y = row(gi, i, &mut dense, &mut r, &mut sparse);
-                let e = y
-                    + dense.iter().zip(&x0).map(|(a, t)| a * t).sum::<f64>()
-                    + sparse.iter().map(|(c, v)| v * x0[n_dense + c]).sum::<f64>();
-                ss += e * e;
+                ss += residual(gi, i, &x0, &mut dense, &mut r, &mut sparse).powi(2);
             }
         }
         ss
@@ -413,12 +421,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         order.sort_by_key(|&i| ds.points[i].ctx.t_ns);
         let mut rs = vec![];
         for &i in &order {
-            let y = row(gi, i, &mut dense, &mut r, &mut sparse);
-            let mut e = y + dense.iter().zip(&theta).map(|(a, t)| a * t).sum::<f64>();
-            e += sparse
-                .iter()
-                .map(|(c, v)| v * theta[n_dense + c])
-                .sum::<f64>();
+            let e = residual(gi, i, &theta, &mut dense, &mut r, &mut sparse);
             ss_after += e * e;
             rs.push(e);
             let p = &ds.points[i];
@@ -531,7 +534,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         let (mut rsum, mut vsum, mut nsum) = (0.0, 0.0, 0.0);
         for &c in &circles_of_group[gi] {
             let col = n_dense + DRIFT * n_circles + PER_CIRCLE * c;
-            let m = g.idx.iter().filter(|&&i| circle_of[i] == c).count() as f64;
+            let m = n_in[c] as f64;
             rsum += m * theta[col];
             vsum += m * m * sig(col).powi(2);
             nsum += m;
