@@ -486,96 +486,30 @@ fn reports_render_in_headless_chromium() {
             "history.html",
         ],
     );
-    // The calibration procedures' reports.
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "tips",
-            "--out",
-            "t.mcap",
-            "--calib-out",
-            "tc.json",
-        ],
-    );
-    ok(
-        &d,
-        &[
-            "calibrate",
-            "tips",
-            "--bag",
-            "t.mcap",
-            "--calib",
-            "tc.json",
-            "--out",
-            "tq.json",
-            "--report",
-            "tips.html",
-        ],
-    );
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "dynamics",
-            "--hide",
-            "accel_deflection",
-            "--hide",
-            "servo_gain",
-            "--hide",
-            "servo_phase",
-            "--out",
-            "d.mcap",
-            "--calib-out",
-            "dc.json",
-        ],
-    );
-    ok(
-        &d,
-        &[
-            "calibrate",
-            "dynamics",
-            "--bag",
-            "d.mcap",
-            "--calib",
-            "dc.json",
-            "--out",
-            "dq.json",
-            "--report",
-            "dynamics.html",
-        ],
-    );
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "probe-force",
-            "--hide",
-            "probe_force",
-            "--out",
-            "pf.mcap",
-            "--calib-out",
-            "pfc.json",
-        ],
-    );
-    ok(
-        &d,
-        &[
-            "calibrate",
-            "probe-force",
-            "--bag",
-            "pf.mcap",
-            "--calib",
-            "pfc.json",
-            "--out",
-            "pfq.json",
-            "--report",
-            "probe-force.html",
-        ],
-    );
+    // The calibration procedures' reports, each from the nominal start a user has (no
+    // effects, catalogue styli, data-sheet time constants).
+    for (program, bag, proc, report) in [
+        ("tips", "t.mcap", "tips", "tips.html"),
+        ("dynamics", "d.mcap", "dynamics", "dynamics.html"),
+        ("probe-force", "pf.mcap", "probe-force", "probe-force.html"),
+    ] {
+        measure_from_nominal(&d, program, "1", "1", bag, true);
+        ok(
+            &d,
+            &[
+                "calibrate",
+                proc,
+                "--bag",
+                bag,
+                "--calib",
+                "nominal.json",
+                "--out",
+                &format!("{proc}.json"),
+                "--report",
+                report,
+            ],
+        );
+    }
     eprintln!("reports written in {:.1} s", t0.elapsed().as_secs_f64());
 
     let chrome = chromium();
