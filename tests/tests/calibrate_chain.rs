@@ -50,7 +50,6 @@ fn sim(dir: &Path, program: &str, seed: &str, out: &str, truth: &str) {
     for h in [
         "accel_deflection",
         "servo_phase",
-        "servo_gain",
         "stylus_thermal",
         "probe_force",
     ] {

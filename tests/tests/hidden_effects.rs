@@ -180,9 +180,22 @@ fn hidden_accel_deflection() {
 fn hidden_servo_phase() {
     library_case("servo_phase", "scale_thermal");
 }
+/// The simulated machine has no arc gain of its own: what its arcs show is a compliance (the
+/// structure's and the probe mount's), so there is nothing to hide as `servo_gain`, and the
+/// simulator says where that physics is.
 #[test]
-fn hidden_servo_gain() {
-    library_case("servo_gain", "probe_force");
+fn the_arc_gain_is_a_compliance_not_an_effect_to_hide() {
+    let dir = scratch("no-gain");
+    for flag in ["--hide", "--effect"] {
+        let arg = if flag == "--hide" { "servo_gain" } else { "servo_gain=2" };
+        fails(
+            &dir,
+            &["sim", "--program", "ring", "--out", "r.mcap", flag, arg],
+            &["no arc gain of its own", "accel_deflection"],
+        );
+        assert!(!dir.join("r.mcap").exists(), "nothing written on refusal");
+    }
+    std::fs::remove_dir_all(&dir).ok();
 }
 #[test]
 fn hidden_stylus_thermal() {
@@ -303,8 +316,6 @@ fn rings_alone_confound_accel_deflection_and_servo_gain() {
             "ring-speeds",
             "--hide",
             "accel_deflection",
-            "--hide",
-            "servo_gain",
             "--out",
             "r.mcap",
             "--calib-out",

@@ -3,7 +3,8 @@
 //!
 //! The same `ring-speeds` run (same machine, same seed: the machine moves the same) is
 //! simulated twice, once with `--no-arcs`, and both bags are corrected with the same
-//! calibration (the run's starting calibration, which includes servo_phase and servo_gain).
+//! calibration (the run's starting calibration, which includes servo_phase, with a servo gain
+//! added as a user would state one: the simulated machine's own arc gain is its compliance).
 //! On the circles at constant speed the per-point corrections of the two effects are compared.
 
 mod common;
@@ -77,7 +78,19 @@ fn circles_streamed_as_points_get_phase_and_gain_corrections_from_the_curvature(
     };
     sim("arcs.mcap", &["--calib-out", "cal.json"]);
     sim("points.mcap", &["--no-arcs"]);
-    let cal = std::fs::read_to_string(dir.join("cal.json")).unwrap();
+    // A gain of f¹ and f² terms per axis, of the size a ring procedure reports (µm on 25 mm
+    // at these speeds).
+    let mut doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("cal.json")).unwrap()).unwrap();
+    doc["effects"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({
+            "kind": "servo_gain", "powers": [1, 2],
+            "x": [2.0e-4, 7.0e-4], "y": [-1.0e-4, -4.7e-4], "z": [0.0, 0.0]
+        }));
+    std::fs::write(dir.join("cal.json"), doc.to_string()).unwrap();
+    let cal = doc.to_string();
     assert!(
         cal.contains("servo_phase") && cal.contains("servo_gain"),
         "{cal}"

@@ -107,7 +107,6 @@ fn each_hidden_effect_leaves_the_artifact_off_its_surface() {
     for hide in [
         "accel_deflection",
         "servo_phase",
-        "servo_gain",
         "stylus_thermal",
         "scale_thermal",
         "probe_force",

@@ -4,7 +4,8 @@
 //! raw streams (command, scales, probe, temperatures). It models the physical machine its own
 //! way ([`machine`]): servo loops that are not the nominal model, a compliant structure with
 //! a resonance, scale readouts that latch after the time stamp (Y and Z later than X: the
-//! arc phase lag is that delay, not a formula), an arc gain, stylus and scale expansion
+//! arc phase lag is that delay, not a formula), a stiff second mode between the reading
+//! heads and the probe (the arc gain is its compliance, not a formula), stylus and scale expansion
 //! following a temperature history measured by noisy sensors, stylus bending with probing
 //! force, guide straightness and pitch, sensor noise and quantisation — and optionally effects
 //! outside the correction library (an encoder's cyclic error, backlash, further latching
@@ -30,10 +31,14 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
 /// Effects of the correction library the machine has (and the calibration can describe).
-pub const LIBRARY_EFFECTS: [&str; 7] = [
+///
+/// There is no `servo_gain` among them: on this machine, as on any whose axes are linear
+/// systems, a radial gain ∝ f² on arcs is a compliance (the structure's and the mount mode's,
+/// [`TrueMachine::mount_compliance_s2`]), which the library's `accel_deflection` describes
+/// everywhere and `servo_gain` only on arcs. Both stay in the library; the truth is the former.
+pub const LIBRARY_EFFECTS: [&str; 6] = [
     "accel_deflection",
     "servo_phase",
-    "servo_gain",
     "stylus_thermal",
     "scale_thermal",
     "probe_force",
@@ -169,8 +174,9 @@ pub const PROBE_TAU_S: f64 = 0.002;
 /// nominal model (1/kp less the probe's and less the scale readout's delay), the compliance
 /// P = −C (C the displacement of the probe per unit acceleration, per monomial 1, x, y, z of
 /// the position over 500 mm), the servo phase b0, b1, b2 of Y and Z against X per monomial
-/// (b1 = −2π·Δτ of the readouts, the rest zero), and the servo gain's f² and f¹ terms (4π²·g
-/// and none in this machine).
+/// (b1 = −2π·Δτ of the readouts, the rest zero), and the servo gain's f² and f¹ terms (zero:
+/// the arcs' gain of this machine is its compliance, the structure's plus the mount mode's
+/// on the diagonal of P).
 pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
     let mut p = BTreeMap::new();
     const AX: [&str; 3] = ["x", "y", "z"];
@@ -183,15 +189,12 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
             1.0 / m.servo[i].kp - PROBE_TAU_S - m.readout_delay_s[i] - m.latching.tau_s[i],
         );
         p.insert(format!("dynamics.gain_{a}.f1.1"), 0.0);
-        p.insert(
-            format!("dynamics.gain_{a}.f2.1"),
-            m.arc_gain_s2[i] * (2.0 * std::f64::consts::PI).powi(2),
-        );
+        p.insert(format!("dynamics.gain_{a}.f2.1"), 0.0);
     }
     for (k, mono) in MONO.iter().enumerate() {
         for (i, a) in AX.iter().enumerate() {
             for (j, b) in AX.iter().enumerate() {
-                p.insert(format!("dynamics.P_{a}{b}.{mono}"), -m.compliance[k][i][j]);
+                p.insert(format!("dynamics.P_{a}{b}.{mono}"), -m.compliance_total(k, i, j));
             }
         }
     }
@@ -252,6 +255,10 @@ pub struct RunResult {
 /// Sensor names of the temperature stream.
 pub const SENSORS: [&str; 5] = ["stylus", "scale_x", "scale_y", "scale_z", "air"];
 
+const NO_GAIN: &str = "servo_gain: the simulated machine has no arc gain of its own — the gain \
+    its arcs show is its compliance (the structure's and the probe mount's), the simulator's \
+    `accel_deflection`";
+
 fn effect_factors(o: &Options) -> Result<BTreeMap<String, f64>, SimError> {
     let mut f: BTreeMap<String, f64> = LIBRARY_EFFECTS
         .iter()
@@ -259,6 +266,9 @@ fn effect_factors(o: &Options) -> Result<BTreeMap<String, f64>, SimError> {
         .collect();
     f.extend(EXTRA_EFFECTS.iter().map(|e| (e.to_string(), 0.0)));
     for (k, v) in &o.effects {
+        if k == "servo_gain" {
+            return Err(SimError::Options(NO_GAIN.into()));
+        }
         if !f.contains_key(k) {
             return Err(SimError::Options(format!(
                 "unknown effect `{k}` (library: {}; outside the library: {})",
@@ -275,6 +285,7 @@ fn effect_factors(o: &Options) -> Result<BTreeMap<String, f64>, SimError> {
     }
     for h in &o.hide {
         match f.get(h) {
+            None if h == "servo_gain" => return Err(SimError::Options(NO_GAIN.into())),
             None => return Err(SimError::Options(format!("--hide {h}: unknown effect"))),
             Some(v) if *v == 0.0 => {
                 return Err(SimError::Options(format!(
@@ -298,7 +309,9 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
     m.readout_delay_s
         .iter_mut()
         .for_each(|c| *c *= k("servo_phase"));
-    m.arc_gain_s2.iter_mut().for_each(|c| *c *= k("servo_gain"));
+    m.mount_compliance_s2
+        .iter_mut()
+        .for_each(|c| *c *= k("accel_deflection"));
     m.styli
         .iter_mut()
         .for_each(|s| s.alpha_per_k *= k("stylus_thermal"));
@@ -374,7 +387,7 @@ pub fn calibration_for(
         for (k, p) in e.p.iter_mut().enumerate() {
             for i in 0..3 {
                 for j in 0..3 {
-                    p[i][j] = -m.compliance[k][i][j];
+                    p[i][j] = -m.compliance_total(k, i, j);
                 }
             }
         }
@@ -387,14 +400,6 @@ pub fn calibration_for(
         e.y[0] = [0.0, b1[0], 0.0];
         e.z[0] = [0.0, b1[1], 0.0];
         c.effects.push(EffectConfig::ServoPhase(e));
-    }
-    if on("servo_gain") {
-        let mut e = fx::servo_gain::Config::zeros(0, vec![2]);
-        let w = (2.0 * std::f64::consts::PI).powi(2);
-        e.x = vec![m.arc_gain_s2[0] * w];
-        e.y = vec![m.arc_gain_s2[1] * w];
-        e.z = vec![m.arc_gain_s2[2] * w];
-        c.effects.push(EffectConfig::ServoGain(e));
     }
     if on("stylus_thermal") {
         c.effects
@@ -456,6 +461,9 @@ struct State {
     a: [f64; 3],
     d: [f64; 3],
     dd: [f64; 3],
+    /// The mount mode's displacement and velocity.
+    h: [f64; 3],
+    hd: [f64; 3],
 }
 
 impl State {
@@ -467,6 +475,8 @@ impl State {
             a: f(self.a, k.a),
             d: f(self.d, k.d),
             dd: f(self.dd, k.dd),
+            h: f(self.h, k.h),
+            hd: f(self.hd, k.hd),
         }
     }
 }
@@ -504,6 +514,13 @@ impl Physics<'_> {
             k.d[i] = s.dd[i];
             k.dd[i] = w * w * (load[i] - s.d[i]) - 2.0 * self.m.structure_damping * w * s.dd[i];
         }
+        // Mount mode: η̈ = ω_m²(−γ·a − η) − 2ζ_m ω_m η̇, driven by the axis's own acceleration.
+        for i in 0..3 {
+            let w = 2.0 * std::f64::consts::PI * self.m.mount_freq_hz[i];
+            let load = -self.m.mount_compliance_s2[i] * s.a[i];
+            k.h[i] = s.hd[i];
+            k.hd[i] = w * w * (load - s.h[i]) - 2.0 * self.m.mount_damping * w * s.hd[i];
+        }
         k
     }
     fn rk4(&self, s: &State, c0: &V3, c1: &V3, h: f64) -> State {
@@ -521,6 +538,8 @@ impl Physics<'_> {
         out.a = comb(s.a, k1.a, k2.a, k3.a, k4.a);
         out.d = comb(s.d, k1.d, k2.d, k3.d, k4.d);
         out.dd = comb(s.dd, k1.dd, k2.dd, k3.dd, k4.dd);
+        out.h = comb(s.h, k1.h, k2.h, k3.h, k4.h);
+        out.hd = comb(s.hd, k1.hd, k2.hd, k3.hd, k4.hd);
         out
     }
 }
@@ -673,28 +692,14 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
 
         // --- outputs at t ---
         let x = V3::from(st.x);
-        let v = V3::from(st.v);
         let rot = head_rotation(seg.a1_deg, seg.a2_deg);
         let stylus = m.stylus(seg.tip).expect("known tip");
         let (shank, bent) = stylus.limbs();
         let dts = t_stylus - 20.0;
         let offset_true = rot * (shank + bent) * (1.0 + stylus.alpha_per_k * dts);
-        // Displacement e of the probe body relative to the carriage the scales measure.
-        let mut e = V3::from(st.d);
-        if arc_r > 0.0 {
-            let r = x - arc_c;
-            let r2 = r.norm_squared();
-            if r2 > 0.0 {
-                let w = r.cross(&v) / r2;
-                let wn = w.norm();
-                if wn > 0.0 {
-                    let f = wn / std::f64::consts::TAU;
-                    for ax in 0..3 {
-                        e[ax] += m.arc_gain_s2[ax] * (std::f64::consts::TAU * f).powi(2) * r[ax];
-                    }
-                }
-            }
-        }
+        // Displacement e of the probe body relative to what the scales read: the structure's
+        // and the mount mode's.
+        let mut e = V3::from(st.d) + V3::from(st.h);
         let pitch = profile(&m.guide_pitch, x.x);
         e += V3::new(0.0, profile(&m.guide_y, x.x), profile(&m.guide_z, x.x));
         e += V3::z().cross(&(offset_true + V3::from(m.abbe_arm_mm))) * pitch;

@@ -77,6 +77,14 @@ fn one() -> f64 {
     1.0
 }
 
+fn mount_freq_default() -> [f64; 3] {
+    [140.0; 3]
+}
+
+fn mount_damping_default() -> f64 {
+    0.15
+}
+
 impl Stylus {
     /// Shank and bent limb in probe axes at 20 °C.
     pub fn limbs(&self) -> (V3, V3) {
@@ -167,8 +175,21 @@ pub struct TrueMachine {
     /// library's `servo_phase` (see [`TrueMachine::phase_b1`]), which the simulator does not
     /// inject as a formula.
     pub readout_delay_s: [f64; 3],
-    /// Arc gain per axis, derived from the structure: g_i(f) = γ_i (2πf)², γ in s².
-    pub arc_gain_s2: [f64; 3],
+    /// A second, stiff mode per axis between the scale's reading head and the probe: the
+    /// probe head on its mount (displaced against the acceleration, γ > 0) or the reading
+    /// head on its bracket (the scale then reads ahead of the carriage, γ < 0), whichever
+    /// dominates on that axis. Static compliance γ_i, s²: the probe is displaced by −γ_i·a_i
+    /// relative to what the scale reads, through the mode's own resonance
+    /// ([`TrueMachine::mount_freq_hz`]). On a steady arc of rotation frequency f this is a
+    /// radial gain γ_i (2πf)² — what the library's `servo_gain` f² term describes on arcs,
+    /// and its `accel_deflection` diagonal everywhere; the simulator injects no gain formula.
+    pub mount_compliance_s2: [f64; 3],
+    /// Resonance of the mount mode per axis, Hz (well above the structure's).
+    #[serde(default = "mount_freq_default")]
+    pub mount_freq_hz: [f64; 3],
+    /// Damping ratio of the mount mode.
+    #[serde(default = "mount_damping_default")]
+    pub mount_damping: f64,
     /// Scale expansion per axis, 1/K (zero points at 0).
     pub scale_alpha: [f64; 3],
     /// Stylus bending per probe axis, mm per mm of deflection, of the reference stylus (each
@@ -537,7 +558,7 @@ impl TrueMachine {
                 let dz = jitter(&mut r, 32.0e-6, 0.3);
                 [x, x + dy, x + dz]
             },
-            arc_gain_s2: [
+            mount_compliance_s2: [
                 jitter(&mut r, 18.0e-6, 0.2),
                 jitter(&mut r, -12.0e-6, 0.2),
                 0.0,
@@ -599,6 +620,12 @@ impl TrueMachine {
                 temp_sigma_k: 0.002,
                 temp_resolution_k: 0.001,
             },
+            // Its own stream, so that no other parameter moved when the mode was added.
+            mount_freq_hz: {
+                let mut r = Rng::new(seed, "mount");
+                [0, 1, 2].map(|_| r.range(120.0, 170.0))
+            },
+            mount_damping: 0.15,
             latching: Latching::from_seed(seed),
             lobing: ProbeLobing::from_seed(seed),
             rigid_body: RigidBody::from_seed(seed),
@@ -627,6 +654,18 @@ impl TrueMachine {
             m += Matrix3::from_fn(|i, j| self.compliance[k][i][j]) * *w;
         }
         m
+    }
+
+    /// The quasi-static compliance the corrector can describe, per monomial k (1, ξx, ξy, ξz)
+    /// and axes i, j: the structure's plus, on the diagonal of the constant term, the mount
+    /// mode's (both move the probe by −C·a relative to the scales at low frequency).
+    pub fn compliance_total(&self, k: usize, i: usize, j: usize) -> f64 {
+        let mount = if k == 0 && i == j {
+            self.mount_compliance_s2[i]
+        } else {
+            0.0
+        };
+        self.compliance[k][i][j] + mount
     }
 
     /// The stylus of a tip id.
