@@ -225,7 +225,12 @@ pub fn bag_reader(data: &[u8]) {
             // Read to the end: the iterator must end by itself after an error.
             for m in messages.flatten() {
                 let _ = m.decode();
+                let _ = m.decode_checked();
             }
+        }
+        // The v1.2 measurement reader, for every machine the bag names.
+        for machine in bag.machines() {
+            let _ = scancorr_bag::measure::read_separation(&bag, machine);
         }
     }
     let _ = std::fs::remove_file(&path);

@@ -39,6 +39,10 @@ pub enum Stream {
     Probe,
     /// `raw/temperature`: [`v1::TemperatureBatch`].
     Temperature,
+    /// `raw/distance`: [`v1::DistanceBatch`] (v1.2; not corrected).
+    Distance,
+    /// `raw/stage`: [`v1::StageBatch`] (v1.2; not corrected).
+    Stage,
     /// `corrected/points`: [`v1::CorrectedPointBatch`].
     Points,
     /// `alarms/estimator`: [`v1::EstimatorAlarm`].
@@ -46,15 +50,39 @@ pub enum Stream {
 }
 
 impl Stream {
-    /// The four raw input streams.
-    pub const RAW: [Stream; 4] = [
+    /// Every raw stream a machine publishes: the four the corrector joins
+    /// ([`Stream::CORRECTED`]) and the v1.2 measurement streams ([`Stream::MEASUREMENT`]).
+    pub const RAW: [Stream; 6] = [
+        Stream::Command,
+        Stream::Scale,
+        Stream::Probe,
+        Stream::Temperature,
+        Stream::Distance,
+        Stream::Stage,
+    ];
+    /// The four raw streams the corrector joins into points.
+    pub const CORRECTED: [Stream; 4] = [
         Stream::Command,
         Stream::Scale,
         Stream::Probe,
         Stream::Temperature,
     ];
+    /// The raw streams of measurements the corrector does not use (v1.2): distance probes and
+    /// the micro-stage of a straightness error-separation measurement.
+    pub const MEASUREMENT: [Stream; 2] = [Stream::Distance, Stream::Stage];
     /// The two output streams.
     pub const OUTPUT: [Stream; 2] = [Stream::Points, Stream::Alarms];
+    /// Every stream, raw then output.
+    pub const ALL: [Stream; 8] = [
+        Stream::Command,
+        Stream::Scale,
+        Stream::Probe,
+        Stream::Temperature,
+        Stream::Distance,
+        Stream::Stage,
+        Stream::Points,
+        Stream::Alarms,
+    ];
 
     /// Key-expression suffix after `<prefix>/<machine>/`.
     pub fn suffix(self) -> &'static str {
@@ -63,6 +91,8 @@ impl Stream {
             Stream::Scale => "raw/scale",
             Stream::Probe => "raw/probe",
             Stream::Temperature => "raw/temperature",
+            Stream::Distance => "raw/distance",
+            Stream::Stage => "raw/stage",
             Stream::Points => "corrected/points",
             Stream::Alarms => "alarms/estimator",
         }
@@ -75,9 +105,32 @@ impl Stream {
             Stream::Scale => "scancorr.v1.ScaleBatch",
             Stream::Probe => "scancorr.v1.ProbeBatch",
             Stream::Temperature => "scancorr.v1.TemperatureBatch",
+            Stream::Distance => "scancorr.v1.DistanceBatch",
+            Stream::Stage => "scancorr.v1.StageBatch",
             Stream::Points => "scancorr.v1.CorrectedPointBatch",
             Stream::Alarms => "scancorr.v1.EstimatorAlarm",
         }
+    }
+
+    /// The stream tag (v1.1) its batches carry; `None` for the output streams, which have none.
+    pub fn kind(self) -> Option<v1::StreamKind> {
+        Some(match self {
+            Stream::Command => v1::StreamKind::Command,
+            Stream::Scale => v1::StreamKind::Scale,
+            Stream::Probe => v1::StreamKind::Probe,
+            Stream::Temperature => v1::StreamKind::Temperature,
+            Stream::Distance => v1::StreamKind::Distance,
+            Stream::Stage => v1::StreamKind::Stage,
+            Stream::Points | Stream::Alarms => return None,
+        })
+    }
+
+    /// The raw stream a stream tag names; `None` for `STREAM_KIND_UNSPECIFIED` and values this
+    /// version does not know.
+    pub fn of_kind(tag: i32) -> Option<Stream> {
+        Stream::RAW
+            .into_iter()
+            .find(|s| s.kind().is_some_and(|k| k as i32 == tag))
     }
 
     /// The key expression of this stream for one machine.
@@ -90,16 +143,7 @@ impl Stream {
     pub fn parse_key<'a>(prefix: &str, key: &'a str) -> Option<(&'a str, Stream)> {
         let rest = key.strip_prefix(prefix)?.strip_prefix('/')?;
         let (machine, suffix) = rest.split_once('/')?;
-        let stream = [
-            Stream::Command,
-            Stream::Scale,
-            Stream::Probe,
-            Stream::Temperature,
-            Stream::Points,
-            Stream::Alarms,
-        ]
-        .into_iter()
-        .find(|s| s.suffix() == suffix)?;
+        let stream = Stream::ALL.into_iter().find(|s| s.suffix() == suffix)?;
         names::is_valid(machine).then_some((machine, stream))
     }
 }
@@ -181,6 +225,37 @@ mod tests {
         };
         let bytes = b.encode_to_vec();
         assert_eq!(v1::ScaleBatch::decode(bytes.as_slice()).unwrap(), b);
+    }
+
+    #[test]
+    fn stream_lists_and_tags_agree() {
+        let raw_output: Vec<Stream> = Stream::RAW.into_iter().chain(Stream::OUTPUT).collect();
+        assert_eq!(raw_output, Stream::ALL);
+        let split: Vec<Stream> = Stream::CORRECTED
+            .into_iter()
+            .chain(Stream::MEASUREMENT)
+            .collect();
+        assert_eq!(split, Stream::RAW);
+        for s in Stream::RAW {
+            let k = s.kind().expect("raw streams are tagged");
+            assert_eq!(Stream::of_kind(k as i32), Some(s));
+            // The tag's name is the stream's key suffix: `STREAM_KIND_DISTANCE` ↔ `raw/distance`.
+            let name = k.as_str_name().trim_start_matches("STREAM_KIND_");
+            assert_eq!(format!("raw/{}", name.to_ascii_lowercase()), s.suffix());
+        }
+        assert_eq!(v1::StreamKind::Distance as i32, 5);
+        assert_eq!(v1::StreamKind::Stage as i32, 6);
+        assert_eq!(Stream::Points.kind(), None);
+        assert_eq!(Stream::of_kind(0), None);
+        assert_eq!(Stream::of_kind(99), None);
+        assert_eq!(
+            Stream::parse_key("cmm", "cmm/m1/raw/distance"),
+            Some(("m1", Stream::Distance))
+        );
+        assert_eq!(
+            Stream::parse_key("cmm", "cmm/m1/raw/stage"),
+            Some(("m1", Stream::Stage))
+        );
     }
 
     #[test]

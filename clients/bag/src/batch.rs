@@ -3,7 +3,8 @@
 use crate::BagError;
 use prost::Message;
 use scancorr_proto::v1::{
-    CommandBatch, CorrectedPointBatch, EstimatorAlarm, ProbeBatch, ScaleBatch, TemperatureBatch,
+    CommandBatch, CorrectedPointBatch, DistanceBatch, EstimatorAlarm, ProbeBatch, ScaleBatch,
+    StageBatch, StreamKind, TemperatureBatch,
 };
 use scancorr_proto::Stream;
 
@@ -21,6 +22,10 @@ pub enum RawBatch {
     Probe(ProbeBatch),
     /// `raw/temperature`.
     Temperature(TemperatureBatch),
+    /// `raw/distance` (v1.2).
+    Distance(DistanceBatch),
+    /// `raw/stage` (v1.2).
+    Stage(StageBatch),
     /// `corrected/points`.
     Points(CorrectedPointBatch),
     /// `alarms/estimator` (one alarm per message).
@@ -37,12 +42,46 @@ impl RawBatch {
         })
     }
 
+    /// Decodes `payload` as the message type of `stream` after checking the stream tag of a
+    /// raw batch (v1.1): a batch whose tag names another stream (a `DistanceBatch` recorded on
+    /// a `raw/stage` key) is [`BagError::WrongStream`], not decoded as the wrong message. An
+    /// untagged batch is taken as `stream`'s: the channel names its type (bags recorded before
+    /// v1.1). `context` goes into the errors (e.g. ` on cmm/m1/raw/stage at log time 5`).
+    pub fn decode_checked(stream: Stream, payload: &[u8], context: &str) -> Result<Self, BagError> {
+        let malformed = |error| BagError::Decode {
+            message: stream.message_name(),
+            context: context.to_owned(),
+            error,
+        };
+        if let Some(kind) = stream.kind() {
+            let tag = match stream_tag(payload) {
+                Some(tag) => tag,
+                // Bytes the walker does not take (e.g. groups) or that are not protobuf at
+                // all: prost reads the tag, or names what is wrong.
+                None => Self::decode_inner(stream, payload)
+                    .map_err(malformed)?
+                    .tag()
+                    .unwrap_or_default(),
+            };
+            if tag != StreamKind::Unspecified as i32 && tag != kind as i32 {
+                return Err(BagError::WrongStream {
+                    expected: stream,
+                    found: tag_name(tag),
+                    context: context.to_owned(),
+                });
+            }
+        }
+        Self::decode_inner(stream, payload).map_err(malformed)
+    }
+
     pub(crate) fn decode_inner(stream: Stream, b: &[u8]) -> Result<Self, prost::DecodeError> {
         Ok(match stream {
             Stream::Command => RawBatch::Command(CommandBatch::decode(b)?),
             Stream::Scale => RawBatch::Scale(ScaleBatch::decode(b)?),
             Stream::Probe => RawBatch::Probe(ProbeBatch::decode(b)?),
             Stream::Temperature => RawBatch::Temperature(TemperatureBatch::decode(b)?),
+            Stream::Distance => RawBatch::Distance(DistanceBatch::decode(b)?),
+            Stream::Stage => RawBatch::Stage(StageBatch::decode(b)?),
             Stream::Points => RawBatch::Points(CorrectedPointBatch::decode(b)?),
             Stream::Alarms => RawBatch::Alarm(EstimatorAlarm::decode(b)?),
         })
@@ -55,6 +94,8 @@ impl RawBatch {
             RawBatch::Scale(_) => Stream::Scale,
             RawBatch::Probe(_) => Stream::Probe,
             RawBatch::Temperature(_) => Stream::Temperature,
+            RawBatch::Distance(_) => Stream::Distance,
+            RawBatch::Stage(_) => Stream::Stage,
             RawBatch::Points(_) => Stream::Points,
             RawBatch::Alarm(_) => Stream::Alarms,
         }
@@ -67,6 +108,8 @@ impl RawBatch {
             RawBatch::Scale(b) => b.sample_count(),
             RawBatch::Probe(b) => b.sample_count(),
             RawBatch::Temperature(b) => b.sample_count(),
+            RawBatch::Distance(b) => b.sample_count(),
+            RawBatch::Stage(b) => b.sample_count(),
             RawBatch::Points(b) => b.sample_count(),
             RawBatch::Alarm(b) => b.sample_count(),
         }
@@ -79,8 +122,24 @@ impl RawBatch {
             RawBatch::Scale(b) => b.first_t_ns(),
             RawBatch::Probe(b) => b.first_t_ns(),
             RawBatch::Temperature(b) => b.first_t_ns(),
+            RawBatch::Distance(b) => b.first_t_ns(),
+            RawBatch::Stage(b) => b.first_t_ns(),
             RawBatch::Points(b) => b.first_t_ns(),
             RawBatch::Alarm(b) => b.first_t_ns(),
+        }
+    }
+
+    /// The stream tag (v1.1) of a raw batch, `STREAM_KIND_UNSPECIFIED` (0) when untagged;
+    /// `None` for points and alarms, which carry none.
+    pub fn tag(&self) -> Option<i32> {
+        match self {
+            RawBatch::Command(b) => Some(b.stream),
+            RawBatch::Scale(b) => Some(b.stream),
+            RawBatch::Probe(b) => Some(b.stream),
+            RawBatch::Temperature(b) => Some(b.stream),
+            RawBatch::Distance(b) => Some(b.stream),
+            RawBatch::Stage(b) => Some(b.stream),
+            RawBatch::Points(_) | RawBatch::Alarm(_) => None,
         }
     }
 
@@ -91,6 +150,8 @@ impl RawBatch {
             RawBatch::Scale(b) => b.encode_to_vec(),
             RawBatch::Probe(b) => b.encode_to_vec(),
             RawBatch::Temperature(b) => b.encode_to_vec(),
+            RawBatch::Distance(b) => b.encode_to_vec(),
+            RawBatch::Stage(b) => b.encode_to_vec(),
             RawBatch::Points(b) => b.encode_to_vec(),
             RawBatch::Alarm(b) => b.encode_to_vec(),
         }
@@ -138,6 +199,8 @@ batch_message!(CommandBatch, Stream::Command, samples, Command);
 batch_message!(ScaleBatch, Stream::Scale, samples, Scale);
 batch_message!(ProbeBatch, Stream::Probe, samples, Probe);
 batch_message!(TemperatureBatch, Stream::Temperature, samples, Temperature);
+batch_message!(DistanceBatch, Stream::Distance, samples, Distance);
+batch_message!(StageBatch, Stream::Stage, samples, Stage);
 batch_message!(CorrectedPointBatch, Stream::Points, points, Points);
 
 impl BatchMessage for EstimatorAlarm {
@@ -182,7 +245,7 @@ pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
     if stream == Stream::Alarms {
         return Some(BatchPeek {
             samples: 1,
-            first_t_ns: Some(find_t_ns(payload, T_NS)?),
+            first_t_ns: Some(varint_field(payload, T_NS)?),
         });
     }
     let mut samples = 0u64;
@@ -192,7 +255,7 @@ pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
         let (field, value) = next_field(&mut rest)?;
         if let (REPEATED, Value::Bytes(sample)) = (field, value) {
             if samples == 0 {
-                first = Some(find_t_ns(sample, T_NS)?);
+                first = Some(varint_field(sample, T_NS)?);
             }
             samples += 1;
         }
@@ -203,8 +266,31 @@ pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
     })
 }
 
+/// The stream tag (field 2, v1.1) of an encoded raw batch, 0 when absent, found by walking the
+/// wire format without decoding the samples; `None` for bytes that are not well-formed
+/// protobuf.
+///
+/// Exists so a batch on another stream's key is told by its tag before its samples are
+/// decoded as the wrong message (which may fail, or worse, succeed).
+pub fn stream_tag(payload: &[u8]) -> Option<i32> {
+    const STREAM: u32 = 2;
+    // An enum is an int32 on the wire: a varint whose low 32 bits are the value.
+    varint_field(payload, STREAM).map(|v| v as i32)
+}
+
+/// `stream` shown as a stream name: `distance` for `STREAM_KIND_DISTANCE`, `unknown (9)`.
+pub(crate) fn tag_name(tag: i32) -> String {
+    StreamKind::try_from(tag)
+        .map(|k| {
+            k.as_str_name()
+                .trim_start_matches("STREAM_KIND_")
+                .to_ascii_lowercase()
+        })
+        .unwrap_or_else(|_| format!("unknown ({tag})"))
+}
+
 /// The value of varint field `number` (last occurrence wins, 0 when absent, as in proto3).
-fn find_t_ns(mut msg: &[u8], number: u32) -> Option<i64> {
+fn varint_field(mut msg: &[u8], number: u32) -> Option<i64> {
     let mut t = 0i64;
     while !msg.is_empty() {
         if let (f, Value::Varint(v)) = next_field(&mut msg)? {

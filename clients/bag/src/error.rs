@@ -108,6 +108,21 @@ pub enum BagError {
         /// The prost error.
         error: prost::DecodeError,
     },
+    /// A raw batch whose stream tag (v1.1) names another stream than the channel it was
+    /// recorded on, e.g. a `DistanceBatch` published on a `raw/stage` key: not decoded as the
+    /// wrong message.
+    #[error(
+        "a {found} batch on the {} stream{context}: its stream tag names another stream than its key",
+        expected.suffix()
+    )]
+    WrongStream {
+        /// The channel's stream.
+        expected: scancorr_proto::Stream,
+        /// The stream the batch's tag names (`distance`, `unknown (9)`).
+        found: String,
+        /// Where (` on <topic> at log time <ns>`), empty when unknown.
+        context: String,
+    },
 }
 
 /// Shorthand for results of this crate.

@@ -7,8 +7,9 @@
 //!   fully-qualified message name (`scancorr.v1.ScaleBatch`) and schema data the serialized
 //!   `FileDescriptorSet` ([`scancorr_proto::FILE_DESCRIPTOR_SET`]);
 //! - each message is one batch (`CommandBatch`, `ScaleBatch`, `ProbeBatch`, `TemperatureBatch`,
-//!   `CorrectedPointBatch`, `EstimatorAlarm`) as prost encodes it; `log_time` is the receive
-//!   time, `publish_time` the sample time (`t_ns` of the first sample);
+//!   the v1.2 `DistanceBatch` and `StageBatch`, `CorrectedPointBatch`, `EstimatorAlarm`) as
+//!   prost encodes it; `log_time` is the receive time, `publish_time` the sample time (`t_ns`
+//!   of the first sample);
 //! - metadata records: `scancorr.artifact` ([`Artifact`]), any others the recorder adds (e.g.
 //!   `scancorr.run`), and `scancorr.sample_counts` (topic → samples, written on finish);
 //! - zstd-compressed chunks of 1 MiB: a file cut short (recorder killed) reads up to its last
@@ -18,6 +19,9 @@
 //! chunk's CRC of its uncompressed records; a CRC of 0 means "not computed"): damage is a
 //! [`BagError::Damaged`] error, or with [`ReadOptions::skip_damaged`] a skipped chunk listed by
 //! [`BagReader::damaged_chunks`] — never silently altered messages.
+//!
+//! [`measure`] reads the measurement streams the corrector does not use (v1.2 distance probes
+//! and micro-stage) of one machine as plain readings, for calibration procedures.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
@@ -26,11 +30,12 @@ mod batch;
 mod crc;
 mod error;
 mod layout;
+pub mod measure;
 mod reader;
 mod writer;
 
 pub use artifact::{Artifact, ArtifactKind, ARTIFACT_METADATA};
-pub use batch::{peek, BatchMessage, BatchPeek, RawBatch};
+pub use batch::{peek, stream_tag, BatchMessage, BatchPeek, RawBatch};
 pub use error::{BagError, Result};
 pub use reader::{
     BagMessage, BagReader, ChannelInfo, DamagedChunk, Messages, MetadataRecord, ReadOptions,

@@ -47,14 +47,6 @@ const FAKE_STRIDE: u64 = 64;
 const FILLER_OPCODE: u8 = 0x00;
 /// Bytes read at a time when computing a CRC over a file range.
 const HASH_BLOCK: u64 = 1 << 20;
-const ALL_STREAMS: [Stream; 6] = [
-    Stream::Command,
-    Stream::Scale,
-    Stream::Probe,
-    Stream::Temperature,
-    Stream::Points,
-    Stream::Alarms,
-];
 
 /// How [`BagReader::open_with`] reads a bag. The default fails on any damage.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -175,9 +167,19 @@ impl BagMessage {
     pub fn decode(&self) -> Result<RawBatch> {
         RawBatch::decode_inner(self.stream, &self.data).map_err(|error| BagError::Decode {
             message: self.stream.message_name(),
-            context: format!(" on {} at log time {}", self.topic, self.log_time),
+            context: self.context(),
             error,
         })
+    }
+
+    /// Decodes the payload like [`BagMessage::decode`], after checking that a raw batch's
+    /// stream tag names this channel's stream (or none): see [`RawBatch::decode_checked`].
+    pub fn decode_checked(&self) -> Result<RawBatch> {
+        RawBatch::decode_checked(self.stream, &self.data, &self.context())
+    }
+
+    fn context(&self) -> String {
+        format!(" on {} at log time {}", self.topic, self.log_time)
     }
 }
 
@@ -333,7 +335,7 @@ impl Catalog {
 
 /// The stream a topic ends in, whatever its prefix.
 fn stream_of_topic(topic: &str) -> Option<Stream> {
-    ALL_STREAMS.into_iter().find(|s| {
+    Stream::ALL.into_iter().find(|s| {
         topic
             .strip_suffix(s.suffix())
             .is_some_and(|head| head.ends_with('/'))

@@ -67,20 +67,23 @@ pub struct BagWriter {
     path: PathBuf,
     mcap: Option<mcap::Writer<BufWriter<File>>>,
     prefix: Option<String>,
-    schemas: [u16; 6],
+    schemas: [u16; Stream::ALL.len()],
     slots: Vec<Slot>,
     last: usize,
     scratch: Vec<u8>,
 }
 
+/// The stream's index in [`Stream::ALL`] (a match, so a new stream cannot be forgotten).
 fn stream_index(s: Stream) -> usize {
     match s {
         Stream::Command => 0,
         Stream::Scale => 1,
         Stream::Probe => 2,
         Stream::Temperature => 3,
-        Stream::Points => 4,
-        Stream::Alarms => 5,
+        Stream::Distance => 4,
+        Stream::Stage => 5,
+        Stream::Points => 6,
+        Stream::Alarms => 7,
     }
 }
 
@@ -120,7 +123,7 @@ impl BagWriter {
             path,
             mcap: Some(mcap),
             prefix: None,
-            schemas: [0; 6],
+            schemas: [0; Stream::ALL.len()],
             slots: Vec::new(),
             last: 0,
             scratch: Vec::new(),
@@ -335,5 +338,17 @@ impl BagWriter {
 impl Drop for BagWriter {
     fn drop(&mut self) {
         let _ = self.finish_inner();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stream_index_follows_the_list_of_all_streams() {
+        for (i, s) in Stream::ALL.into_iter().enumerate() {
+            assert_eq!(stream_index(s), i, "{s:?}");
+        }
     }
 }

@@ -437,6 +437,19 @@ impl Gaps {
                     self.see(&p.machine_id, stream, p.seq);
                 }
             }
+        } else {
+            // The v1.2 measurement streams (distance probes, micro-stage).
+            match scancorr_bag::RawBatch::decode(stream, bytes) {
+                Ok(scancorr_bag::RawBatch::Distance(b)) => b
+                    .samples
+                    .iter()
+                    .for_each(|s| self.see(&s.machine_id, stream, s.seq)),
+                Ok(scancorr_bag::RawBatch::Stage(b)) => b
+                    .samples
+                    .iter()
+                    .for_each(|s| self.see(&s.machine_id, stream, s.seq)),
+                _ => {}
+            }
         }
     }
 

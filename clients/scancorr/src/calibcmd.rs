@@ -86,6 +86,41 @@ pub enum CalibrateCmd {
         #[arg(long)]
         report: Option<PathBuf>,
     },
+    /// Error separation of a guide's straightness from a straightedge's, without a perfect
+    /// reference: distance probes on the carriage stepped along the travel (three probes
+    /// with pitch, two probes, or one probe on a shear micro-stage). Writes the axis's
+    /// guide_straightness (and pitch) table with its uncertainties.
+    Straightness {
+        /// three-probe, two-probe or shear-stage.
+        #[arg(long)]
+        method: String,
+        /// Bag of the measurement (scales, distance probes, and the stage).
+        #[arg(long)]
+        bag: PathBuf,
+        /// Bag of the reversal measurement (three probes: the straightedge turned over),
+        /// which separates the probes' zero offsets (otherwise a parabola is not seen).
+        #[arg(long)]
+        reversal: Option<PathBuf>,
+        /// The calibration to start from (the axis's guide table is replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The guide's axis (the carriage's travel).
+        #[arg(long, default_value = "x")]
+        axis: String,
+        /// The axis the probes read along (default: y for x, x for y and z).
+        #[arg(long)]
+        toward: Option<String>,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON: per station `stations_mm`, `guide_straightness_mm`,
+        /// `part_straightness_mm`, `pitch_rad`, each with `…_u`, and `cannot_see`.
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: guide and part profiles with uncertainty bands, the pitch.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
 }
 
 fn sigma_json(ps: &[Param]) -> (serde_json::Value, serde_json::Value) {
@@ -470,6 +505,27 @@ fn run_probe_force(
 /// Runs a procedure.
 pub fn run(cmd: CalibrateCmd) -> Result<()> {
     match cmd {
+        CalibrateCmd::Straightness {
+            method,
+            bag,
+            reversal,
+            calib,
+            axis,
+            toward,
+            out,
+            json,
+            report,
+        } => crate::calibsep::run(crate::calibsep::Args {
+            method,
+            bag,
+            reversal,
+            calib,
+            axis,
+            toward,
+            out,
+            json,
+            report,
+        }),
         CalibrateCmd::ProbeForce {
             bag,
             calib,

@@ -12,12 +12,14 @@ mod benchlive;
 mod benchproc;
 mod bus;
 mod calibcmd;
+mod calibsep;
 mod demo;
 mod labcmd;
 mod offline;
 mod report;
 mod shapecmd;
 mod simcmd;
+mod simsep;
 mod synth;
 
 use anyhow::{Context, Result};
@@ -151,7 +153,10 @@ enum Cmd {
 
 #[derive(clap::Args)]
 struct SimCli {
-    /// Scan program: ring, ring-speeds, campaign, part, dynamics, tips, geometry.
+    /// Scan program: ring, ring-speeds, campaign, part, dynamics, tips, probe-force,
+    /// probe-force-quarter, probe-force-approach, geometry, straightedge; or a straightness
+    /// error-separation measurement: straightness-three-probe, straightness-two-probe,
+    /// straightness-shear-stage.
     #[arg(long, default_value = "ring")]
     program: String,
     /// Seed of the run (noise, temperatures).
@@ -213,6 +218,10 @@ struct SimCli {
     /// With --live: speed (1.0 real time, `max` as fast as possible).
     #[arg(long, default_value = "1.0")]
     live_rate: String,
+    /// With straightness-three-probe: the reversal measurement (the straightedge turned over
+    /// about its length; same stations, probes and offsets).
+    #[arg(long)]
+    reversal: bool,
     #[command(flatten)]
     bus: bus::Bus,
 }
@@ -556,7 +565,54 @@ fn run(cli: Cli) -> Result<()> {
             },
         ),
         Cmd::Shape(ShapeCmd::Fit { kind, points, json }) => shapecmd::run(&kind, &points, json),
+        Cmd::Sim(a) if simsep::is_separation(&a.program) => {
+            simsep::refuse(
+                &[
+                    ("--hide", !a.hide.is_empty()),
+                    ("--with", !a.with.is_empty()),
+                    ("--fault", a.fault.is_some()),
+                    ("--fault-at", a.fault_at.is_some()),
+                    ("--minutes", a.minutes.is_some()),
+                    ("--no-arcs", a.no_arcs),
+                    ("--position", a.position.is_some()),
+                    ("--calib-out", a.calib_out.is_some()),
+                    ("--live", a.live),
+                ],
+                &a.program,
+            )?;
+            let mut guide = 1.0;
+            for e in &a.effect {
+                let (k, v) = simcmd::parse_effect(e)?;
+                anyhow::ensure!(
+                    k == "guide_straightness",
+                    "--effect {e}: a separation measurement sees only the guide \
+                     (--effect guide_straightness=F)"
+                );
+                guide = v;
+            }
+            let out = a.out.ok_or_else(|| anyhow::anyhow!("give --out FILE"))?;
+            simsep::run(simsep::SepArgs {
+                options: scancorr_sim::straightness::SeparationOptions {
+                    program: a.program,
+                    machine_seed: a.machine_seed,
+                    seed: a.seed,
+                    rate_hz: a.rate,
+                    guide_factor: guide,
+                    reversal: a.reversal,
+                },
+                machine: a.machine,
+                out,
+                truth: a.truth,
+                batch: a.batch,
+                prefix: a.bus.prefix,
+                json: a.json,
+            })
+        }
         Cmd::Sim(a) => {
+            anyhow::ensure!(
+                !a.reversal,
+                "--reversal: only for straightness-three-probe (the straightedge turned over)"
+            );
             output::check_machine("--machine", &a.machine)?;
             output::check_prefix(&a.bus.prefix)?;
             let mut effects = std::collections::BTreeMap::new();

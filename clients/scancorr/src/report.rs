@@ -886,3 +886,98 @@ pub fn tips(
     }
     page("scancorr calibrate tips", &body)
 }
+
+/// `calibrate straightness --report`: the guide's and the part's straightness with their
+/// uncertainty bands (±2σ), the pitch where the method separates it, what it cannot see.
+pub fn straightness(
+    start: &Calibration,
+    o: &scancorr_core::calibrate::separation::Outcome,
+    warnings: &[String],
+) -> String {
+    let s = &o.separation;
+    let mut body = format!(
+        "<p>Start: v{} of {}. <b>{}</b>: straightness of the {} guide towards {}, {} stations ({:.0}–{:.0} mm), {} readings averaged per probe and station. Straightness is each profile's deviation from its least-squares line; the pitch is about its mean. <b>Cannot see:</b> {}.</p>",
+        start.version,
+        esc(&start.machine_id),
+        esc(&s.method),
+        o.axis.name(),
+        o.toward.name(),
+        s.stations_mm.len(),
+        s.stations_mm.first().copied().unwrap_or(0.0),
+        s.stations_mm.last().copied().unwrap_or(0.0),
+        o.samples_per_reading,
+        esc(&s.cannot_see.join(", "))
+    );
+    let band = |label: &str, colour: &'static str, x: &[f64], v: &[f64], u: &[f64], k: f64| {
+        let line = |sign: f64| -> Vec<(f64, f64)> {
+            x.iter()
+                .zip(v.iter().zip(u))
+                .map(|(x, (v, u))| (*x, (v + sign * 2.0 * u) * k))
+                .collect()
+        };
+        vec![
+            (
+                label.to_string(),
+                colour,
+                x.iter().zip(v).map(|(x, v)| (*x, v * k)).collect(),
+                true,
+            ),
+            ("+2σ".to_string(), "#bbbbbb", line(1.0), true),
+            ("−2σ".to_string(), "#bbbbbb", line(-1.0), true),
+        ]
+    };
+    let _ = write!(
+        body,
+        "<h2>Guide</h2><figure>{}<figcaption>The carriage's lateral motion towards {} at the carriage positions the scales read, with ±2σ (the sequential methods integrate: the band widens along the travel).</figcaption></figure>",
+        xy(
+            "guide",
+            &band("guide", PALETTE[0], &s.stations_mm, &s.guide_straightness_mm, &s.guide_straightness_mm_u, 1e3),
+            &format!("{} (mm)", o.axis.name()),
+            "straightness (µm)"
+        ),
+        o.toward.name()
+    );
+    let _ = write!(
+        body,
+        "<h2>Part (straightedge)</h2><figure>{}<figcaption>The straightedge's own form, with ±2σ.</figcaption></figure>",
+        xy(
+            "part",
+            &band("part", PALETTE[1], &s.part_positions_mm, &s.part_straightness_mm, &s.part_straightness_mm_u, 1e3),
+            &format!("{} (mm)", o.axis.name()),
+            "straightness (µm)"
+        )
+    );
+    match (&s.pitch_rad, &s.pitch_rad_u) {
+        (Some(p), Some(u)) => {
+            let _ = write!(
+                body,
+                "<h2>Pitch</h2><figure>{}<figcaption>The carriage's rotation about the third axis, about its mean, with ±2σ.</figcaption></figure>",
+                xy(
+                    "pitch",
+                    &band("pitch", PALETTE[2], &s.stations_mm, p, u, 1e6),
+                    &format!("{} (mm)", o.axis.name()),
+                    "pitch (µrad)"
+                )
+            );
+        }
+        _ => {
+            body += "<p><b>Pitch:</b> not separated by this method.</p>";
+        }
+    }
+    for p in &s.params {
+        let _ = write!(
+            body,
+            "<p>{}: {:.6} ± {:.6}</p>",
+            esc(&p.name),
+            p.value,
+            p.sigma
+        );
+    }
+    for n in &s.notes {
+        let _ = write!(body, "<p class=\"muted\">{}</p>", esc(n));
+    }
+    for w in warnings {
+        let _ = write!(body, "<p><b>Warning:</b> {}</p>", esc(w));
+    }
+    page("scancorr calibrate straightness", &body)
+}

@@ -19,6 +19,7 @@
 pub mod machine;
 pub mod program;
 pub mod rng;
+pub mod straightness;
 
 use machine::{head_rotation, profile, TrueMachine, V3};
 use program::{FeatureInfo, Path, Plan, ProgramInfo, SegmentInfo, SegmentKind};

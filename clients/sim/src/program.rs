@@ -255,7 +255,7 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 10] = [
+pub const PROGRAMS: [&str; 11] = [
     "ring",
     "ring-speeds",
     "campaign",
@@ -266,6 +266,7 @@ pub const PROGRAMS: [&str; 10] = [
     "probe-force-quarter",
     "probe-force-approach",
     "geometry",
+    "straightedge",
 ];
 
 /// The master sphere (certified diameter 25.0004 mm) at `position` or its usual place.
@@ -601,6 +602,34 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 }
             }
         }
+        "straightedge" => {
+            // A workshop straightedge along X with a form of its own (a bow and waviness of
+            // a few µm: not a calibrated one), pressed from −y and scanned slowly along its
+            // length by the straight and the bent stylus (whose offset is an Abbe lever for
+            // the carriage's yaw), in both directions.
+            let c = position.unwrap_or(V3::new(500.0, 680.0, -260.0));
+            let se = b.feature(Feature {
+                id: 0,
+                artifact: "straightedge".into(),
+                kind: FeatureKind::Face,
+                center: c.into(),
+                radius_mm: 0.0,
+                nominal_diameter_mm: 0.0,
+                certificate_diameter_mm: None,
+                normal: [0.0, -1.0, 0.0],
+                form: vec![
+                    [1500.0, 3.0e-3, 1.4],
+                    [170.0, 0.8e-3, 0.4],
+                    [95.0, 0.5e-3, 2.1],
+                ],
+            });
+            for tip in [1u32, 2] {
+                b.set_tip(tip, 0.0, 0.0);
+                b.face_line(se, 290.0, -290.0, 20.0, 0.3);
+                b.face_line(se, -290.0, 290.0, 20.0, 0.3);
+            }
+            b.set_tip(1, 0.0, 0.0);
+        }
         "geometry" => {
             // The machine's geometry seen through a ring gauge: one ring stepped by its own
             // diameter along a line in X, in Y and in Z through the base position, so the
@@ -741,8 +770,9 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
         }
         other => {
             return Err(format!(
-                "unknown program `{other}` (known: {})",
-                PROGRAMS.join(", ")
+                "unknown program `{other}` (known: {}; straightness error separation: {})",
+                PROGRAMS.join(", "),
+                crate::straightness::PROGRAMS.join(", ")
             ))
         }
     }

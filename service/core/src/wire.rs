@@ -70,14 +70,68 @@ fn check_tag(stream: StreamId, tag: i32, tags: Tags, name: &'static str) -> Resu
     }
     Err(WireError::WrongStream {
         expected: stream.name(),
-        found: v1::StreamKind::try_from(tag)
-            .map(|k| {
-                k.as_str_name()
-                    .trim_start_matches("STREAM_KIND_")
-                    .to_ascii_lowercase()
-            })
-            .unwrap_or_else(|_| format!("unknown ({tag})")),
+        found: tag_name(tag),
     })
+}
+
+/// A stream tag as a stream name: `distance`, `unknown (9)`.
+fn tag_name(tag: i32) -> String {
+    v1::StreamKind::try_from(tag)
+        .map(|k| {
+            k.as_str_name()
+                .trim_start_matches("STREAM_KIND_")
+                .to_ascii_lowercase()
+        })
+        .unwrap_or_else(|_| format!("unknown ({tag})"))
+}
+
+/// The error of a raw batch of `stream` that prost could not decode: [`WireError::WrongStream`]
+/// when the bytes are a well-formed batch of another raw stream that carries that stream's tag
+/// (one whose samples lay out their fields differently, e.g. a v1.2 `DistanceBatch` on a scale
+/// key), else [`WireError::Malformed`]. Only on this error path are the other types tried.
+fn undecodable(
+    stream: StreamId,
+    bytes: &[u8],
+    message: &'static str,
+    e: scancorr_proto::prost::DecodeError,
+) -> WireError {
+    fn tagged_as<M: Message + Default>(
+        bytes: &[u8],
+        kind: v1::StreamKind,
+        tag: fn(&M) -> i32,
+    ) -> bool {
+        M::decode(bytes).is_ok_and(|m| tag(&m) == kind as i32)
+    }
+    use v1::StreamKind as K;
+    let other = [
+        K::Command,
+        K::Scale,
+        K::Probe,
+        K::Temperature,
+        K::Distance,
+        K::Stage,
+    ]
+    .into_iter()
+    .filter(|&k| k != stream_kind(stream))
+    .find(|&k| match k {
+        K::Command => tagged_as::<v1::CommandBatch>(bytes, k, |m| m.stream),
+        K::Scale => tagged_as::<v1::ScaleBatch>(bytes, k, |m| m.stream),
+        K::Probe => tagged_as::<v1::ProbeBatch>(bytes, k, |m| m.stream),
+        K::Temperature => tagged_as::<v1::TemperatureBatch>(bytes, k, |m| m.stream),
+        K::Distance => tagged_as::<v1::DistanceBatch>(bytes, k, |m| m.stream),
+        K::Stage => tagged_as::<v1::StageBatch>(bytes, k, |m| m.stream),
+        K::Unspecified => false,
+    });
+    match other {
+        Some(k) => WireError::WrongStream {
+            expected: stream.name(),
+            found: tag_name(k as i32),
+        },
+        None => WireError::Malformed {
+            message,
+            reason: e.to_string(),
+        },
+    }
 }
 
 /// The bytes of a raw batch with its v1.1 stream tag: appended when missing (protobuf merges
@@ -90,10 +144,7 @@ pub fn tagged(stream: StreamId, bytes: &[u8]) -> Result<std::borrow::Cow<'_, [u8
         StreamId::Probe => v1::ProbeBatch::decode(bytes).map(|b| b.stream),
         StreamId::Temperature => v1::TemperatureBatch::decode(bytes).map(|b| b.stream),
     }
-    .map_err(|e| WireError::Malformed {
-        message: "raw batch",
-        reason: e.to_string(),
-    })?;
+    .map_err(|e| undecodable(stream, bytes, "raw batch", e))?;
     check_tag(stream, tag, Tags::AllowUntagged, "raw batch")?;
     if tag != 0 {
         return Ok(std::borrow::Cow::Borrowed(bytes));
@@ -213,10 +264,8 @@ pub fn decode_with_tags(
     tags: Tags,
     mut f: impl FnMut(&str, Sample),
 ) -> Result<usize, WireError> {
-    let malformed = |message, e: scancorr_proto::prost::DecodeError| WireError::Malformed {
-        message,
-        reason: e.to_string(),
-    };
+    let malformed =
+        |message, e: scancorr_proto::prost::DecodeError| undecodable(stream, bytes, message, e);
     let (n, name) = match stream {
         StreamId::Command => {
             let b = v1::CommandBatch::decode(bytes).map_err(|e| malformed("CommandBatch", e))?;
@@ -680,6 +729,71 @@ mod tests {
         })
         .unwrap();
         assert_eq!(n, 1);
+    }
+
+    #[test]
+    fn a_measurement_batch_on_a_corrected_streams_key_is_the_wrong_stream() {
+        // v1.2 samples lay out their fields after `t_ns` differently: prost refuses them as
+        // a scale batch, and the error names what they are instead of "malformed".
+        let distance = v1::DistanceBatch {
+            samples: vec![v1::DistanceSample {
+                machine_id: "m1".into(),
+                seq: 1,
+                t_ns: 5,
+                probe_id: 2,
+                distance_mm: 0.01,
+                spacing_mm: 80.0,
+            }],
+            stream: v1::StreamKind::Distance as i32,
+        }
+        .encode_to_vec();
+        assert!(v1::ScaleBatch::decode(&distance[..]).is_err());
+        for tags in [Tags::Require, Tags::AllowUntagged] {
+            assert_eq!(
+                decode_with_tags(StreamId::Scale, &distance, tags, |_, _| panic!("decoded")),
+                Err(WireError::WrongStream {
+                    expected: "scale",
+                    found: "distance".into()
+                })
+            );
+        }
+        assert_eq!(
+            tagged(StreamId::Probe, &distance).unwrap_err(),
+            WireError::WrongStream {
+                expected: "probe",
+                found: "distance".into()
+            }
+        );
+        let stage = v1::StageBatch {
+            samples: vec![v1::StageSample {
+                machine_id: "m1".into(),
+                t_ns: 5,
+                commanded_mm: 0.1,
+                sensor_mm: 0.1,
+                probe_id: 2,
+                ..Default::default()
+            }],
+            stream: v1::StreamKind::Stage as i32,
+        }
+        .encode_to_vec();
+        assert_eq!(
+            decode(StreamId::Temperature, &stage).unwrap_err(),
+            WireError::WrongStream {
+                expected: "temperature",
+                found: "stage".into()
+            }
+        );
+        // Untagged, or not protobuf: malformed, as before.
+        let mut untagged = v1::DistanceBatch::decode(&distance[..]).unwrap();
+        untagged.stream = 0;
+        assert!(matches!(
+            decode(StreamId::Scale, &untagged.encode_to_vec()),
+            Err(WireError::Malformed { .. })
+        ));
+        assert!(matches!(
+            decode(StreamId::Scale, &[0xff, 0xff, 0xff]),
+            Err(WireError::Malformed { .. })
+        ));
     }
 
     #[test]

@@ -60,6 +60,9 @@ struct Extra {
     wrong_machine: u64,
     no_calibration: u64,
     messages: u64,
+    /// Messages on the machine's raw streams the service does not correct (v1.2
+    /// `raw/distance`, `raw/stage`): skipped, not an error, not in `messages`.
+    not_corrected: u64,
 }
 
 /// Messages and requests refused before they reached a machine, counted per reason.
@@ -73,6 +76,10 @@ struct Refused {
     bad_key: u64,
     /// Queries whose key names no valid machine.
     bad_query: u64,
+    /// Messages on raw streams the service does not correct (v1.2 `raw/distance` and
+    /// `raw/stage`, measurements for calibration procedures) of machines it does not serve
+    /// yet (a served machine counts them on its status): skipped, not an error.
+    not_corrected: u64,
 }
 
 /// Why a message or request was refused before it reached a machine.
@@ -262,6 +269,8 @@ struct State {
     machines: BTreeMap<String, Machine>,
     refused: Refused,
     log: LogGate,
+    /// Whether the log said that the measurement streams are not corrected (said once).
+    told_not_corrected: bool,
     /// What the core completed for the message in hand; published and cleared before the
     /// next message, so one buffer serves every machine.
     out: Output,
@@ -295,6 +304,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         machines: BTreeMap::new(),
         refused: Refused::default(),
         log: LogGate::default(),
+        told_not_corrected: false,
         out: Output::default(),
     };
     // Machines with a stored calibration are served from the start; one whose stored
@@ -472,8 +482,23 @@ impl State {
     async fn on_raw(&mut self, s: zenoh::sample::Sample) {
         let key = s.key_expr().as_str();
         // A wildcard or otherwise invalid machine id, or an unknown stream, is refused here.
-        let Some((machine, sid)) = Stream::parse_key(&self.cfg.prefix, key)
-            .and_then(|(m, st)| Some((m.to_string(), wire::stream_id(st)?)))
+        let parsed = Stream::parse_key(&self.cfg.prefix, key);
+        if let Some((machine, _)) = parsed.filter(|(_, st)| Stream::MEASUREMENT.contains(st)) {
+            // Distance probes and the micro-stage (v1.2) are measurements for calibration
+            // procedures, not inputs of the correction: never decoded, counted on the
+            // machine's status (no machine state is made for them), said once in the log.
+            if !self.told_not_corrected {
+                self.told_not_corrected = true;
+                info!("messages on raw/distance and raw/stage (measurements the service does not correct) are skipped and counted as `not_corrected` on the status");
+            }
+            match self.machines.get_mut(machine) {
+                Some(m) => m.extra.not_corrected += 1,
+                None => self.refused.not_corrected += 1,
+            }
+            return;
+        }
+        let Some((machine, sid)) =
+            parsed.and_then(|(m, st)| Some((m.to_string(), wire::stream_id(st)?)))
         else {
             let key = key.to_string();
             self.refuse(Refusal::BadKey, &key);

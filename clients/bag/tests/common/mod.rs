@@ -101,6 +101,34 @@ pub fn batch(
             ..Default::default()
         }
         .encode_to_vec(),
+        Stream::Distance => DistanceBatch {
+            samples: (0..n)
+                .map(|i| DistanceSample {
+                    machine_id: m.clone(),
+                    seq: seq(i),
+                    t_ns: t(i),
+                    probe_id: (i % 3) as u32,
+                    distance_mm: 0.01 * rng.f(),
+                    spacing_mm: [0.0, 40.0, 80.0][i % 3],
+                })
+                .collect(),
+            stream: StreamKind::Distance as i32,
+        }
+        .encode_to_vec(),
+        Stream::Stage => StageBatch {
+            samples: (0..n)
+                .map(|i| StageSample {
+                    machine_id: m.clone(),
+                    seq: seq(i),
+                    t_ns: t(i),
+                    commanded_mm: 0.002 * i as f64,
+                    sensor_mm: 0.002 * i as f64 + 1e-5 * rng.f(),
+                    probe_id: 2,
+                })
+                .collect(),
+            stream: StreamKind::Stage as i32,
+        }
+        .encode_to_vec(),
         Stream::Points => CorrectedPointBatch {
             points: (0..n)
                 .map(|i| CorrectedPoint {

@@ -9,11 +9,17 @@
 //! * [`tips`] — qualification of the styli on a master sphere.
 //! * [`probe_force`] — extrapolation to zero force: a force coefficient per tip and axis.
 //! * [`dynamics`] — the ring-gauge procedure: time constants, deflection matrix, phase, gain.
+//! * [`straightness`] — error separation of a guide's straightness (and pitch) from a
+//!   straightedge's: three probes, two probes, or one probe on a shear stage.
+//! * [`separation`] — `calibrate straightness`: the raw streams into stations, the
+//!   separation, the guide's table with its uncertainties in the calibration.
 //!
 //! [`Dataset`]: crate::lab::dataset::Dataset
 
 pub mod dynamics;
 pub mod probe_force;
+pub mod separation;
+pub mod straightness;
 pub mod tips;
 
 use serde::Serialize;

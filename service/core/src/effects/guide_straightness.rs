@@ -37,6 +37,14 @@ pub struct Config {
     /// Rotation axis of the pitch (default: y for x, x for y, y for z).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pitch_about: Option<Axis>,
+    /// Standard uncertainty of each straightness table at the knots, mm, where a measuring
+    /// procedure stated one (`scancorr calibrate straightness`); dropped when the values are
+    /// refitted.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub straightness_u: BTreeMap<Axis, Vec<f64>>,
+    /// Standard uncertainty of the pitch at the knots, rad (as `straightness_u`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pitch_rad_u: Option<Vec<f64>>,
 }
 
 /// Hot-path form.
@@ -68,6 +76,8 @@ impl Config {
             straightness,
             pitch_rad: pitch.then(|| vec![0.0; n]),
             pitch_about: None,
+            straightness_u: BTreeMap::new(),
+            pitch_rad_u: None,
         }
     }
     fn pitch_axis(&self) -> Axis {
@@ -119,6 +129,22 @@ impl Config {
                 Some((self.pitch_axis().unit(), v.clone()))
             }
         };
+        for (b, u) in &self.straightness_u {
+            let field = format!("straightness_u.{}", b.name());
+            if !self.straightness.contains_key(b) {
+                return Err(format!(
+                    "{field}: no straightness table towards {}",
+                    b.name()
+                ));
+            }
+            check_uncertainty(&field, u, n)?;
+        }
+        if let Some(u) = &self.pitch_rad_u {
+            if self.pitch_rad.is_none() {
+                return Err("pitch_rad_u: no pitch_rad table".into());
+            }
+            check_uncertainty("pitch_rad_u", u, n)?;
+        }
         if straight.is_empty() && pitch.is_none() {
             return Err(
                 "straightness: give straightness towards a perpendicular axis or pitch_rad".into(),
@@ -140,8 +166,10 @@ impl Config {
             .copied()
             .collect()
     }
-    /// Sets flat parameters.
+    /// Sets flat parameters (the stated uncertainties no longer hold and are dropped).
     pub fn set_params(&mut self, v: &[f64]) {
+        self.straightness_u.clear();
+        self.pitch_rad_u = None;
         let mut it = v.iter();
         for t in self.straightness.values_mut() {
             t.iter_mut().for_each(|x| *x = *it.next().unwrap());
@@ -170,6 +198,19 @@ impl Config {
         }
         v
     }
+}
+
+fn check_uncertainty(field: &str, u: &[f64], n: usize) -> Result<(), String> {
+    if u.len() != n {
+        return Err(format!(
+            "{field}: needs one value per knot ({n}), got {}",
+            u.len()
+        ));
+    }
+    if u.iter().any(|x| !(x.is_finite() && *x >= 0.0)) {
+        return Err(format!("{field}: must be finite and ≥ 0"));
+    }
+    Ok(())
 }
 
 impl Model {

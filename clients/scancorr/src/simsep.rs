@@ -1,0 +1,237 @@
+//! `scancorr sim --program straightness-…`: the error-separation measurements (distance
+//! probes on the X carriage, a micro-stage) written to a bag with their truth. The physics is
+//! `scancorr_sim::straightness`.
+
+use crate::output::AtomicOutput;
+use anyhow::{bail, Context, Result};
+use scancorr_bag::{BagHeader, BagWriter};
+use scancorr_proto::v1::{
+    DistanceBatch, DistanceSample, ScaleBatch, ScaleSample, StageBatch, StageSample, StreamKind,
+};
+use scancorr_sim::straightness::{self, Reading, SeparationOptions};
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+/// Arguments of a separation run.
+pub struct SepArgs {
+    pub options: SeparationOptions,
+    pub machine: String,
+    pub out: PathBuf,
+    pub truth: Option<PathBuf>,
+    pub batch: usize,
+    pub prefix: String,
+    pub json: bool,
+}
+
+/// Is `program` a separation program?
+pub fn is_separation(program: &str) -> bool {
+    straightness::PROGRAMS.contains(&program)
+}
+
+/// Flags of `scancorr sim` that a separation run does not take, refused by name.
+pub fn refuse(flags: &[(&str, bool)], program: &str) -> Result<()> {
+    let given: Vec<&str> = flags.iter().filter(|f| f.1).map(|f| f.0).collect();
+    if !given.is_empty() {
+        bail!(
+            "{}: not for `{program}` (a straightness error-separation measurement: distance \
+             probes on the X carriage; it takes --machine-seed, --seed, --rate, --effect \
+             guide_straightness=F, --reversal, --out, --truth)",
+            given.join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// Runs the measurement into `out` (and the truth), atomically.
+pub fn run(a: SepArgs) -> Result<()> {
+    let mut outs: Vec<(&str, &std::path::Path)> = vec![("--out", a.out.as_path())];
+    if let Some(p) = &a.truth {
+        outs.push(("--truth", p));
+    }
+    crate::output::refuse_same_file(&outs, &[])?;
+    crate::output::check_machine("--machine", &a.machine)?;
+    crate::output::check_prefix(&a.prefix)?;
+    anyhow::ensure!(a.batch >= 1, "--batch must be ≥ 1");
+    let bag_out = AtomicOutput::new("--out", &a.out)?;
+    let truth_out = a
+        .truth
+        .as_deref()
+        .map(|p| AtomicOutput::new("--truth", p))
+        .transpose()?;
+    let mut w = BagWriter::create(bag_out.path(), BagHeader::default())
+        .with_context(|| format!("creating {}", a.out.display()))?;
+    let m = a.machine.clone();
+    let latency_ns: i64 = 1_000_000;
+    let log = |t: i64| (t + latency_ns).max(0) as u64;
+    let mut scale = ScaleBatch {
+        samples: vec![],
+        stream: StreamKind::Scale as i32,
+    };
+    let mut dist = DistanceBatch {
+        samples: vec![],
+        stream: StreamKind::Distance as i32,
+    };
+    let mut stage = StageBatch {
+        samples: vec![],
+        stream: StreamKind::Stage as i32,
+    };
+    let mut err: Option<anyhow::Error> = None;
+    let counts = std::cell::Cell::new([0u64; 3]);
+    let t_start = std::time::Instant::now();
+    let truth = straightness::run(&a.options, |r| {
+        if err.is_some() {
+            return;
+        }
+        let mut c = counts.get();
+        let res = (|| -> Result<()> {
+            match r {
+                Reading::Scale { seq, t_ns, pos } => {
+                    c[0] += 1;
+                    scale.samples.push(ScaleSample {
+                        machine_id: m.clone(),
+                        seq,
+                        t_ns,
+                        x: pos[0],
+                        y: pos[1],
+                        z: pos[2],
+                    });
+                    if scale.samples.len() >= a.batch {
+                        w.write_msg(&m, &a.prefix, log(t_ns), &scale)?;
+                        scale.samples.clear();
+                    }
+                }
+                Reading::Distance {
+                    seq,
+                    t_ns,
+                    probe_id,
+                    distance_mm,
+                    spacing_mm,
+                } => {
+                    c[1] += 1;
+                    dist.samples.push(DistanceSample {
+                        machine_id: m.clone(),
+                        seq,
+                        t_ns,
+                        probe_id,
+                        distance_mm,
+                        spacing_mm,
+                    });
+                    if dist.samples.len() >= a.batch {
+                        w.write_msg(&m, &a.prefix, log(t_ns), &dist)?;
+                        dist.samples.clear();
+                    }
+                }
+                Reading::Stage {
+                    seq,
+                    t_ns,
+                    probe_id,
+                    commanded_mm,
+                    sensor_mm,
+                } => {
+                    c[2] += 1;
+                    stage.samples.push(StageSample {
+                        machine_id: m.clone(),
+                        seq,
+                        t_ns,
+                        commanded_mm,
+                        sensor_mm,
+                        probe_id,
+                    });
+                    if stage.samples.len() >= a.batch {
+                        w.write_msg(&m, &a.prefix, log(t_ns), &stage)?;
+                        stage.samples.clear();
+                    }
+                }
+            }
+            Ok(())
+        })();
+        counts.set(c);
+        if let Err(e) = res {
+            err = Some(e);
+        }
+    })
+    .map_err(anyhow::Error::msg)?;
+    if let Some(e) = err {
+        return Err(e.context(format!("writing {}", a.out.display())));
+    }
+    let last = |v: Option<i64>| log(v.unwrap_or(0));
+    if !scale.samples.is_empty() {
+        w.write_msg(
+            &m,
+            &a.prefix,
+            last(scale.samples.last().map(|s| s.t_ns)),
+            &scale,
+        )?;
+    }
+    if !dist.samples.is_empty() {
+        w.write_msg(
+            &m,
+            &a.prefix,
+            last(dist.samples.last().map(|s| s.t_ns)),
+            &dist,
+        )?;
+    }
+    if !stage.samples.is_empty() {
+        w.write_msg(
+            &m,
+            &a.prefix,
+            last(stage.samples.last().map(|s| s.t_ns)),
+            &stage,
+        )?;
+    }
+    let o = &a.options;
+    let run_meta: BTreeMap<String, String> = [
+        ("program", o.program.clone()),
+        ("machine_id", m.clone()),
+        ("seed", o.seed.to_string()),
+        ("machine_seed", o.machine_seed.to_string()),
+        ("rate_hz", o.rate_hz.to_string()),
+        ("reversal", o.reversal.to_string()),
+        (
+            "probe_resolution_mm",
+            truth.instruments.probe_resolution_mm.to_string(),
+        ),
+        ("source", "scancorr sim".to_string()),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    w.write_metadata(scancorr_bag::RUN_METADATA, &run_meta)?;
+    w.finish()
+        .with_context(|| format!("finishing {}", a.out.display()))?;
+    if let Some(t) = &truth_out {
+        t.write_all(serde_json::to_string_pretty(&truth)?)?;
+    }
+    crate::output::commit_all([Some(bag_out), truth_out])?;
+    let c = counts.get();
+    if a.json {
+        outln!(
+            "{}",
+            serde_json::json!({
+                "out": a.out,
+                "machine": m,
+                "program": o.program,
+                "reversal": o.reversal,
+                "samples": {"scale": c[0], "distance": c[1], "stage": c[2]},
+                "stations": truth.stations_mm.len(),
+                "probe_noise_mm": truth.probe_noise_mm,
+            })
+        )?;
+    } else {
+        eprintln!(
+            "simulated {}{} on machine {} (machine seed {}, seed {}): {} stations, {} distance \
+             and {} stage readings → {} in {:.1} s",
+            o.program,
+            if o.reversal { " (reversal)" } else { "" },
+            m,
+            o.machine_seed,
+            o.seed,
+            truth.stations_mm.len(),
+            c[1],
+            c[2],
+            a.out.display(),
+            t_start.elapsed().as_secs_f64()
+        );
+    }
+    Ok(())
+}
