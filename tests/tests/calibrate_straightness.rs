@@ -188,7 +188,10 @@ fn three_methods_separate_the_guide_from_the_straightedge() {
     );
     let html = std::fs::read_to_string(dir.join("sep.html")).unwrap();
     for plot in ["guide", "part", "pitch"] {
-        assert!(html.contains(&format!("data-plot=\"{plot}\"")), "{plot} plot");
+        assert!(
+            html.contains(&format!("data-plot=\"{plot}\"")),
+            "{plot} plot"
+        );
     }
     assert!(html.contains("Cannot see:") && !html.contains("NaN"));
     let cannot: Vec<&str> = r3r["cannot_see"]

@@ -187,7 +187,11 @@ fn hidden_servo_phase() {
 fn the_arc_gain_is_a_compliance_not_an_effect_to_hide() {
     let dir = scratch("no-gain");
     for flag in ["--hide", "--effect"] {
-        let arg = if flag == "--hide" { "servo_gain" } else { "servo_gain=2" };
+        let arg = if flag == "--hide" {
+            "servo_gain"
+        } else {
+            "servo_gain=2"
+        };
         fails(
             &dir,
             &["sim", "--program", "ring", "--out", "r.mcap", flag, arg],

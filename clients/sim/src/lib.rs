@@ -195,7 +195,10 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
     for (k, mono) in MONO.iter().enumerate() {
         for (i, a) in AX.iter().enumerate() {
             for (j, b) in AX.iter().enumerate() {
-                p.insert(format!("dynamics.P_{a}{b}.{mono}"), -m.compliance_total(k, i, j));
+                p.insert(
+                    format!("dynamics.P_{a}{b}.{mono}"),
+                    -m.compliance_total(k, i, j),
+                );
             }
         }
     }
