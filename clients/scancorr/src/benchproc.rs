@@ -69,7 +69,14 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
     for proc in procedures {
         let program = match proc.as_str() {
             "tips" | "dynamics" | "probe-force" => proc.as_str(),
-            p => bail!("procedure `{p}` (tips, probe-force, dynamics)"),
+            "straightness" => {
+                for method in ["three-probe", "shear-stage"] {
+                    let v = straightness(&dir, method, machine, runs, json)?;
+                    all.insert(format!("straightness {method}"), v);
+                }
+                continue;
+            }
+            p => bail!("procedure `{p}` (tips, probe-force, dynamics, straightness)"),
         };
         let mut t = Tally::default();
         for seed in 1..=runs {
@@ -133,6 +140,25 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                 eprintln!("{proc}: run {seed}/{runs} done");
             }
         }
+        let v = report(proc, &mut t, machine, runs, json)?;
+        all.insert(proc.clone(), v);
+    }
+    std::fs::remove_dir_all(&dir).ok();
+    if json {
+        outln!("{}", serde_json::to_string_pretty(&all)?)?;
+    }
+    Ok(())
+}
+
+/// The tally's figures (printed unless `json`).
+fn report(
+    proc: &str,
+    t: &mut Tally,
+    machine: u64,
+    runs: u64,
+    json: bool,
+) -> Result<serde_json::Value> {
+    {
         t.seconds.sort_by(f64::total_cmp);
         let worst: Vec<(String, f64)> = {
             let mut v: Vec<(String, f64)> = t
@@ -155,8 +181,13 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
             "worst": worst.iter().map(|(k, f)| serde_json::json!({"name": k, "within_2sigma": f})).collect::<Vec<_>>(),
         });
         if !json {
+            let (what, bound) = if proc.starts_with("straightness") {
+                ("profiles (every station)", "3σ")
+            } else {
+                ("parameters", "max(3σ, 5 %)")
+            };
             outln!(
-                "{proc}: {} parameters × {runs} runs of machine {machine}: {:.1} % within 2σ, {:.1} % within max(3σ, 5 %); {:.2} s per procedure (median)",
+                "{proc}: {} {what} × {runs} runs of machine {machine}: {:.1} % within 2σ, {:.1} % within {bound}; {:.2} s per procedure (median)",
                 t.per.len(),
                 100.0 * frac(t.in2),
                 100.0 * frac(t.in3),
@@ -171,11 +202,182 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                     .join(", ")
             )?;
         }
-        all.insert(proc.clone(), v);
+        Ok(v)
     }
-    std::fs::remove_dir_all(&dir).ok();
-    if json {
-        outln!("{}", serde_json::to_string_pretty(&all)?)?;
+}
+
+/// y less its least-squares line over x.
+fn detrend(x: &[f64], y: &[f64]) -> Vec<f64> {
+    let n = x.len().max(1) as f64;
+    let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+    let sxx: f64 = x.iter().map(|a| (a - mx).powi(2)).sum();
+    let b = if sxx > 0.0 {
+        x.iter()
+            .zip(y)
+            .map(|(a, c)| (a - mx) * (c - my))
+            .sum::<f64>()
+            / sxx
+    } else {
+        0.0
+    };
+    x.iter()
+        .zip(y)
+        .map(|(a, c)| c - my - b * (a - mx))
+        .collect()
+}
+
+/// Linear interpolation of (xs, ys) at x (xs increasing, ≥ 2 points).
+fn interp(xs: &[f64], ys: &[f64], x: f64) -> f64 {
+    let j = xs.partition_point(|a| *a <= x).clamp(1, xs.len() - 1);
+    let w = (x - xs[j - 1]) / (xs[j] - xs[j - 1]);
+    ys[j - 1] * (1.0 - w) + ys[j] * w
+}
+
+fn floats(v: &serde_json::Value) -> Result<Vec<f64>> {
+    v.as_array()
+        .context("an array")?
+        .iter()
+        .map(|x| x.as_f64().context("a number"))
+        .collect()
+}
+
+/// `calibrate straightness` by `method` on `runs` separation measurements of the guide of
+/// `machine` (run seeds 1…runs: each its own straightedge, offsets and noise): every station's
+/// guide, part and pitch against the truth (the line no method sees taken out of the
+/// difference; three probes with their reversal).
+fn straightness(
+    dir: &Path,
+    method: &str,
+    machine: u64,
+    runs: u64,
+    json: bool,
+) -> Result<serde_json::Value> {
+    let ms = machine.to_string();
+    // The user's start: nominal (the procedure writes only the guide table).
+    let mut a = vec![
+        "sim",
+        "--program",
+        "ring",
+        "--machine-seed",
+        &ms,
+        "--out",
+        "ring.mcap",
+        "--calib-out",
+        "start.json",
+    ];
+    for h in scancorr_sim::LIBRARY_EFFECTS {
+        a.extend(["--hide", h]);
     }
-    Ok(())
+    exe(dir, &a)?;
+    nominal(dir)?;
+    let program = format!("straightness-{method}");
+    let mut t = Tally::default();
+    for seed in 1..=runs {
+        let s = seed.to_string();
+        let sim = |out: &str, extra: &[&str]| -> Result<String> {
+            let mut a = vec![
+                "sim",
+                "--program",
+                &program,
+                "--machine-seed",
+                &ms,
+                "--seed",
+                &s,
+                "--out",
+                out,
+            ];
+            a.extend_from_slice(extra);
+            exe(dir, &a)
+        };
+        sim("m.mcap", &["--truth", "truth.json"])?;
+        let mut cal = vec![
+            "calibrate",
+            "straightness",
+            "--method",
+            method,
+            "--bag",
+            "m.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "out.json",
+            "--json",
+        ];
+        if method == "three-probe" {
+            sim("rev.mcap", &["--reversal"])?;
+            cal.extend(["--reversal", "rev.mcap"]);
+        }
+        let t0 = std::time::Instant::now();
+        let r: serde_json::Value = serde_json::from_str(&exe(dir, &cal)?)?;
+        t.seconds.push(t0.elapsed().as_secs_f64());
+        let truth = read(&dir.join("truth.json"))?;
+        let xs = floats(&r["stations_mm"])?;
+        let (tx, px, tpx) = (
+            floats(&truth["stations_mm"])?,
+            floats(&r["part_positions_mm"])?,
+            floats(&truth["part_positions_mm"])?,
+        );
+        let mut judge =
+            |name: &str, x: &[f64], v: &[f64], u: &[f64], tx: &[f64], tv: &[f64], line: bool| {
+                let d: Vec<f64> = x
+                    .iter()
+                    .zip(v)
+                    .map(|(x, v)| v - interp(tx, tv, *x))
+                    .collect();
+                let d = if line {
+                    detrend(x, &d)
+                } else {
+                    let m = d.iter().sum::<f64>() / d.len().max(1) as f64;
+                    d.iter().map(|v| v - m).collect()
+                };
+                let e = t.per.entry(name.to_string()).or_default();
+                for (d, u) in d.iter().zip(u) {
+                    let ok2 = d.abs() <= 2.0 * u;
+                    t.n += 1;
+                    t.in2 += ok2 as usize;
+                    t.in3 += (d.abs() <= 3.0 * u) as usize;
+                    e.0 += ok2 as usize;
+                    e.1 += 1;
+                }
+            };
+        judge(
+            "guide_straightness_mm",
+            &xs,
+            &floats(&r["guide_straightness_mm"])?,
+            &floats(&r["guide_straightness_mm_u"])?,
+            &tx,
+            &floats(&truth["guide_straightness_mm"])?,
+            true,
+        );
+        judge(
+            "part_straightness_mm",
+            &px,
+            &floats(&r["part_straightness_mm"])?,
+            &floats(&r["part_straightness_mm_u"])?,
+            &tpx,
+            &floats(&truth["part_straightness_mm"])?,
+            true,
+        );
+        if r["pitch_rad"].is_array() {
+            judge(
+                "pitch_rad",
+                &xs,
+                &floats(&r["pitch_rad"])?,
+                &floats(&r["pitch_rad_u"])?,
+                &tx,
+                &floats(&truth["pitch_rad"])?,
+                false,
+            );
+        }
+        if !json {
+            eprintln!("straightness {method}: run {seed}/{runs} done");
+        }
+    }
+    report(
+        &format!("straightness {method}"),
+        &mut t,
+        machine,
+        runs,
+        json,
+    )
 }

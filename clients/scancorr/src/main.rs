@@ -249,7 +249,8 @@ enum BenchCmd {
     /// simulated measurements of one machine from the nominal model; the share of parameters
     /// within 2σ and within max(3σ, 5 %) of the simulator's truth.
     Procedures {
-        /// Procedures (tips, probe-force, dynamics).
+        /// Procedures (tips, probe-force, dynamics, straightness: three probes with a
+        /// reversal and the shear stage, every station against the truth).
         #[arg(long, default_values_t = ["tips".to_string(), "probe-force".to_string(), "dynamics".to_string()])]
         procedure: Vec<String>,
         /// Runs (run seeds 1…N).
