@@ -535,3 +535,63 @@ fn straightness_refuses_what_it_cannot_separate() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Flatness: the shear stage's probe read in five lines stepped across the face (25 mm apart
+/// along z); the lines are tied by the readings' differences at the same carriage position
+/// (the guide cancels), and the surface about its plane matches the truth within 2 × the probe
+/// noise. What it cannot see is said: the plane, and the stepping axis's own straightness.
+#[test]
+fn lines_stepped_across_give_the_flatness() {
+    let dir = scratch("straightness-flatness");
+    nominal(&dir);
+    measure(
+        &dir,
+        "straightness-shear-stage",
+        "f.mcap",
+        &["--lines", "5", "--truth", "f.json"],
+    );
+    let r = calibrate(
+        &dir,
+        "shear-stage",
+        "f.mcap",
+        "cf.json",
+        &["--report", "f.html"],
+    );
+    let t = json(&std::fs::read_to_string(dir.join("f.json")).unwrap());
+    let noise = t["probe_noise_mm"].as_f64().unwrap();
+    let cannot = r["cannot_see"].to_string();
+    assert!(
+        cannot.contains("plane") && cannot.contains("stepping_axis_straightness"),
+        "{cannot}"
+    );
+    let lines = r["lines"].as_array().unwrap();
+    let truth = t["lines"].as_array().unwrap();
+    assert_eq!(lines.len(), 5);
+    let tp = arr(&t["part_positions_mm"]);
+    // Every point's error, then the plane of the errors taken out (the plane is not seen).
+    let mut rows = vec![];
+    for (l, tl) in lines.iter().zip(truth) {
+        let z = tl[0].as_f64().unwrap();
+        assert!((l["step_mm"].as_f64().unwrap() - z).abs() < 0.01);
+        let form = arr(&tl[1]);
+        for (x, h) in arr(&l["positions_mm"]).iter().zip(arr(&l["height_mm"])) {
+            rows.push((*x, z, h - at(&tp, &form, *x)));
+        }
+    }
+    let a = nalgebra::DMatrix::from_fn(rows.len(), 3, |i, j| [1.0, rows[i].0, rows[i].1][j]);
+    let b = nalgebra::DVector::from_iterator(rows.len(), rows.iter().map(|r| r.2));
+    let c = a.clone().svd(true, true).solve(&b, 1e-12).unwrap();
+    let e: Vec<f64> = (b - a * c).iter().copied().collect();
+    let pv = r["flatness_mm"].as_f64().unwrap();
+    eprintln!(
+        "flatness {:.3} µm over 5 lines; error {:.4} µm RMS (probe noise {:.3} µm)",
+        pv * 1e3,
+        rms(&e) * 1e3,
+        noise * 1e3
+    );
+    assert!(pv > 2e-3, "a surface of several µm: {pv}");
+    assert!(rms(&e) <= 2.0 * noise, "{} vs {noise}", rms(&e));
+    let html = std::fs::read_to_string(dir.join("f.html")).unwrap();
+    assert!(html.contains("data-plot=\"flatness\""));
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -250,6 +250,24 @@ pub fn run(a: Args) -> Result<()> {
             s.part_straightness_mm_u[k] * 1e3
         )?;
     }
+    if let Some(f) = o.flatness_mm {
+        outln!(
+            "  flatness of the surface over {} lines: {:.3} µm peak-to-valley about its \
+             least-squares plane",
+            o.lines.len(),
+            f * 1e3
+        )?;
+        for l in &o.lines {
+            let rmsu = rms(&l.height_mm_u) * 1e3;
+            outln!(
+                "    line at {:.2} mm: {:+.3} … {:+.3} µm (σ {:.3} µm RMS)",
+                l.step_mm,
+                l.height_mm.iter().cloned().fold(f64::MAX, f64::min) * 1e3,
+                l.height_mm.iter().cloned().fold(f64::MIN, f64::max) * 1e3,
+                rmsu
+            )?;
+        }
+    }
     outln!(
         "  cannot see: {} (straightness is the deviation from each profile's least-squares \
          line; the pitch about its mean)",

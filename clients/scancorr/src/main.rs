@@ -222,6 +222,10 @@ struct SimCli {
     /// about its length; same stations, probes and offsets).
     #[arg(long)]
     reversal: bool,
+    /// With straightness-…: lines stepped across the face (25 mm apart along z), for its
+    /// flatness.
+    #[arg(long, default_value_t = 1)]
+    lines: usize,
     #[command(flatten)]
     bus: bus::Bus,
 }
@@ -600,6 +604,7 @@ fn run(cli: Cli) -> Result<()> {
                     rate_hz: a.rate,
                     guide_factor: guide,
                     reversal: a.reversal,
+                    lines: a.lines,
                 },
                 machine: a.machine,
                 out,
@@ -613,6 +618,10 @@ fn run(cli: Cli) -> Result<()> {
             anyhow::ensure!(
                 !a.reversal,
                 "--reversal: only for straightness-three-probe (the straightedge turned over)"
+            );
+            anyhow::ensure!(
+                a.lines == 1,
+                "--lines: only for the straightness-… measurements (a surface in lines)"
             );
             output::check_machine("--machine", &a.machine)?;
             output::check_prefix(&a.bus.prefix)?;

@@ -964,6 +964,32 @@ pub fn straightness(
             body += "<p><b>Pitch:</b> not separated by this method.</p>";
         }
     }
+    if let Some(f) = o.flatness_mm {
+        let series: Vec<Series> = o
+            .lines
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                (
+                    format!("{} = {:.0} mm", "line", l.step_mm),
+                    PALETTE[i % PALETTE.len()],
+                    l.positions_mm
+                        .iter()
+                        .zip(&l.height_mm)
+                        .map(|(x, h)| (*x, h * 1e3))
+                        .collect(),
+                    true,
+                )
+            })
+            .collect();
+        let _ = write!(
+            body,
+            "<h2>Flatness</h2><p>{} lines stepped across: <b>{:.3} µm</b> peak-to-valley about the least-squares plane.</p><figure>{}<figcaption>Each line's height about the plane of all of them; the lines are tied by one probe's readings at the same carriage position (the guide cancels), so the stepping axis's own straightness between the lines is in them.</figcaption></figure>",
+            o.lines.len(),
+            f * 1e3,
+            xy("flatness", &series, &format!("{} (mm)", o.axis.name()), "height (µm)")
+        );
+    }
     for p in &s.params {
         let _ = write!(
             body,

@@ -35,7 +35,7 @@ pub fn refuse(flags: &[(&str, bool)], program: &str) -> Result<()> {
         bail!(
             "{}: not for `{program}` (a straightness error-separation measurement: distance \
              probes on the X carriage; it takes --machine-seed, --seed, --rate, --effect \
-             guide_straightness=F, --reversal, --out, --truth)",
+             guide_straightness=F, --reversal, --lines N, --out, --truth)",
             given.join(", ")
         );
     }

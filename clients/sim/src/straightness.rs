@@ -102,6 +102,13 @@ pub struct Straightedge {
     pub span_mm: [f64; 2],
     /// Waviness.
     pub waves: Vec<Wave>,
+    /// Across the face (z), for a surface measured in lines: the face's bow along z (its
+    /// sag over ±50 mm of the middle line, zero on it), mm.
+    #[serde(default)]
+    pub bow_z_mm: f64,
+    /// Twist: the height at (x − 500 mm = 400 mm, z − z_middle = 50 mm), mm.
+    #[serde(default)]
+    pub twist_mm: f64,
 }
 
 impl Straightedge {
@@ -116,13 +123,23 @@ impl Straightedge {
                 phase: r.range(0.0, std::f64::consts::TAU),
             })
             .collect();
+        // Across the face: its own stream, so the straightedge along its length is as before.
+        let mut rz = Rng::new(seed, "straightedge-across");
         Straightedge {
             face_y_mm: 700.0 + r.range(-0.5, 0.5),
             tilt_rad: r.range(-40e-6, 40e-6),
             bow_mm,
             span_mm: [100.0, 900.0],
             waves,
+            bow_z_mm: sign(&mut rz) * rz.range(0.5e-3, 1.5e-3),
+            twist_mm: sign(&mut rz) * rz.range(0.5e-3, 1.5e-3),
         }
+    }
+    /// The face's form at (x, dz), dz from the middle line, mm: the flatness a surface
+    /// measured in lines shows (about its plane).
+    pub fn surface_mm(&self, x: f64, dz: f64) -> f64 {
+        let v = dz / 50.0;
+        self.form_mm(x) + self.bow_z_mm * v * v + self.twist_mm * (x - 500.0) / 400.0 * v
     }
     /// The face's form (bow and waviness) at x, mm: the part straightness the methods
     /// recover (up to the line none can see).
@@ -229,6 +246,10 @@ pub struct SeparationTruth {
     pub part_straightness_mm: Vec<f64>,
     /// True for the reversal measurement (the form read with the opposite sign).
     pub reversal: bool,
+    /// With lines stepped across: each line's z (mm) and the face's form at
+    /// `part_positions_mm` on it (mm).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub lines: Vec<(f64, Vec<f64>)>,
     /// Noise of one probe reading (1σ), mm.
     pub probe_noise_mm: f64,
     /// Readings averaged per probe (and shear) at each station.
@@ -255,6 +276,9 @@ pub struct SeparationOptions {
     /// The reversal measurement: the straightedge turned over about its length (its form
     /// seen with the opposite sign), the same stations, probes and offsets.
     pub reversal: bool,
+    /// Lines stepped across the face along z, 25 mm apart about the middle one (1: one
+    /// line, the straightedge's): a surface for its flatness.
+    pub lines: usize,
 }
 
 /// Runs the measurement, handing every reading (in time order) to `sink`.
@@ -277,6 +301,13 @@ pub fn run(
         ));
     }
     let flip = if o.reversal { -1.0 } else { 1.0 };
+    if !(1..=21).contains(&o.lines) {
+        return Err(format!("--lines {}: 1 to 21", o.lines));
+    }
+    if o.lines > 1 && o.reversal {
+        return Err("--lines with --reversal: the reversal is of the first line only".into());
+    }
+    let dz_of = |j: usize| (j as f64 - (o.lines - 1) as f64 / 2.0) * 25.0;
     let m = TrueMachine::from_seed(o.machine_seed);
     let g = |x: f64| o.guide_factor * profile(&m.guide_y, x);
     let th = |x: f64| o.guide_factor * profile(&m.guide_pitch, x);
@@ -293,7 +324,7 @@ pub fn run(
     );
     let dt = 1.0 / o.rate_hz;
     let (move_s, settle_s, dwell_s) = (1.0, 0.3, 1.0);
-    let (y0, z0) = (edge.face_y_mm - 60.0, -250.0);
+    let (y0, z_mid) = (edge.face_y_mm - 60.0, -250.0);
     let mut t = 0.0;
     let (mut seq_s, mut seq_d, mut seq_g) = (0u64, 0u64, 0u64);
     let ns = |t: f64| (t * 1e9).round() as i64;
@@ -302,12 +333,14 @@ pub fn run(
     let mut per_reading = 0;
     let mut stage_at = 0.0;
     let mut stage_noise = Rng::new(o.seed, "separation-stage-sensor");
-    let gap = |x_carriage: f64, lever: f64, perp: f64| -> f64 {
+    let gap = |x_carriage: f64, lever: f64, perp: f64, dz: f64| -> f64 {
         let xs = x_carriage + lever;
         let mount_y = y0 + g(x_carriage) + th(x_carriage) * lever + perp;
-        edge.face_y_mm + edge.tilt_rad * (xs - 500.0) + flip * edge.form_mm(xs) - mount_y
+        edge.face_y_mm + edge.tilt_rad * (xs - 500.0) + flip * edge.surface_mm(xs, dz) - mount_y
     };
-    for &xk in &setup.stations_mm {
+    for (line, &xk) in (0..o.lines).flat_map(|j| setup.stations_mm.iter().map(move |x| (j, x))) {
+        let dz = dz_of(line);
+        let z0 = z_mid + dz;
         // Move (a smooth step), settle.
         let x_from = x;
         let steps = ((move_s + settle_s) / dt).round() as usize;
@@ -379,7 +412,7 @@ pub fn run(
                         Some(s) => (lever + s, inst.stage_perpendicular_rad * s),
                         None => (*lever, 0.0),
                     };
-                    let d = gap(x, lever_now, perp) - gap(0.0, 0.0, 0.0)
+                    let d = gap(x, lever_now, perp, dz) - gap(0.0, 0.0, 0.0, 0.0)
                         + inst.probe_offsets_mm[j]
                         + inst.probe_noise_mm * noise.normal();
                     sink(Reading::Distance {
@@ -416,6 +449,19 @@ pub fn run(
         part_positions_mm: part.clone(),
         part_straightness_mm: part.iter().map(|x| edge.form_mm(*x)).collect(),
         reversal: o.reversal,
+        lines: if o.lines > 1 {
+            (0..o.lines)
+                .map(|j| {
+                    let dz = dz_of(j);
+                    (
+                        z_mid + dz,
+                        part.iter().map(|x| edge.surface_mm(*x, dz)).collect(),
+                    )
+                })
+                .collect()
+        } else {
+            vec![]
+        },
         probe_noise_mm: inst.probe_noise_mm,
         samples_per_reading: per_reading,
         setup,
@@ -438,6 +484,7 @@ mod tests {
                 rate_hz: 200.0,
                 guide_factor: 1.0,
                 reversal: false,
+                lines: 1,
             },
             |r| v.push(r),
         )
@@ -517,6 +564,7 @@ mod tests {
                 rate_hz: 100.0,
                 guide_factor: 1.0,
                 reversal: false,
+                lines: 1,
             },
             |_| {}
         )

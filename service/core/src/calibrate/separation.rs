@@ -153,6 +153,11 @@ pub struct Outcome {
     pub samples_per_reading: usize,
     /// Samples left out, by reason.
     pub left_out: BTreeMap<String, u64>,
+    /// With lines stepped across the surface: each line's height profile, about the
+    /// least-squares plane of all of them (empty for one line).
+    pub lines: Vec<LineProfile>,
+    /// Flatness (peak-to-valley about the least-squares plane), mm, with lines.
+    pub flatness_mm: Option<f64>,
     /// Warnings.
     pub warnings: Vec<String>,
     /// The changed calibration (not yet versioned).
@@ -162,10 +167,12 @@ pub struct Outcome {
 
 /// One stand of the carriage: its position and the distance samples taken there.
 struct Stand {
+    /// Along the guide, mm.
     x: f64,
+    /// Scale readings x, y, z, mm.
+    pos: [f64; 3],
     samples: Vec<DistanceSample>,
     t0: i64,
-    t1: i64,
 }
 
 /// Splits the distance readings into stands of the carriage (see the module doc).
@@ -184,19 +191,119 @@ fn stands(raw: &Raw, axis: usize, left_out: &mut BTreeMap<String, u64>) -> Vec<S
         };
         let x = c.pos[axis];
         match out.last_mut() {
-            Some(s) if (x - s.x).abs() <= STAND_TOLERANCE_MM => {
+            Some(s) if (0..3).all(|i| (c.pos[i] - s.pos[i]).abs() <= STAND_TOLERANCE_MM) => {
                 s.samples.push(*d);
-                s.t1 = d.t_ns;
             }
             _ => out.push(Stand {
                 x,
+                pos: c.pos,
                 samples: vec![*d],
                 t0: d.t_ns,
-                t1: d.t_ns,
             }),
         }
     }
     out
+}
+
+/// Stands grouped into lines by their position along `step` (within 0.01 mm), in the order
+/// the lines were first measured.
+fn split_lines(stands: Vec<Stand>, step: usize) -> Vec<(f64, Vec<Stand>)> {
+    let mut lines: Vec<(f64, Vec<Stand>)> = vec![];
+    for s in stands {
+        let z = s.pos[step];
+        match lines
+            .iter_mut()
+            .find(|l| (l.0 - z).abs() <= 10.0 * STAND_TOLERANCE_MM)
+        {
+            Some(l) => l.1.push(s),
+            None => lines.push((z, vec![s])),
+        }
+    }
+    lines
+}
+
+/// One line of a surface stepped across.
+#[derive(Debug, Clone, Serialize)]
+pub struct LineProfile {
+    /// Position along the stepping axis, mm.
+    pub step_mm: f64,
+    /// Positions along the guide, mm.
+    pub positions_mm: Vec<f64>,
+    /// Height of the surface (towards the probed axis) about the least-squares plane, mm.
+    pub height_mm: Vec<f64>,
+    /// Its standard uncertainty, mm.
+    pub height_mm_u: Vec<f64>,
+}
+
+/// The surface from lines stepped across: the first line's separated part profile, and each
+/// other line as the first plus the difference of the reference probe's readings between the
+/// lines at each station (X_K, θ_K and the offsets cancel: m_j − m_0 = Y_j − Y_0 at the same
+/// carriage position); all about their least-squares plane. (profiles, peak-to-valley)
+fn flatness(
+    sep: &Separation,
+    refs: &[(f64, Vec<(f64, Reading)>)],
+    ref_lever: f64,
+    step: Axis,
+) -> Result<(Vec<LineProfile>, f64), ProcedureError> {
+    let part = |x: f64| {
+        (
+            interpolate(&sep.part_positions_mm, &sep.part_straightness_mm, x),
+            interpolate(&sep.part_positions_mm, &sep.part_straightness_mm_u, x),
+        )
+    };
+    let base = &refs[0].1;
+    let mut lines = vec![];
+    for (z, r) in refs {
+        let (mut xs, mut h, mut u) = (vec![], vec![], vec![]);
+        for (k, (x, b)) in base.iter().enumerate() {
+            let Some((_, v)) = r
+                .iter()
+                .find(|(xj, _)| (xj - x).abs() <= 10.0 * STAND_TOLERANCE_MM)
+            else {
+                return Err(ProcedureError::Missing(format!(
+                    "line {} (at {} = {z:.3} mm) has no reading at station {k} (x = {x:.3} mm) \
+                     that the first line has: every line must repeat the stations",
+                    lines.len() + 1,
+                    step.name()
+                )));
+            };
+            let pos = x + ref_lever;
+            let (y0, u0) = part(pos);
+            xs.push(pos);
+            h.push(y0 + v.value_mm - b.value_mm);
+            u.push((u0 * u0 + v.u_mm * v.u_mm + b.u_mm * b.u_mm).sqrt());
+        }
+        lines.push(LineProfile {
+            step_mm: *z,
+            positions_mm: xs,
+            height_mm: h,
+            height_mm_u: u,
+        });
+    }
+    // The least-squares plane h = a + b·x + c·z over every point.
+    let mut ata = nalgebra::Matrix3::<f64>::zeros();
+    let mut atb = nalgebra::Vector3::<f64>::zeros();
+    for l in &lines {
+        for (x, h) in l.positions_mm.iter().zip(&l.height_mm) {
+            let row = nalgebra::Vector3::new(1.0, *x, l.step_mm);
+            ata += row * row.transpose();
+            atb += row * *h;
+        }
+    }
+    let c = ata.try_inverse().map(|i| i * atb).ok_or_else(|| {
+        ProcedureError::IllConditioned(
+            "the lines do not span a plane: step them across the surface".into(),
+        )
+    })?;
+    let (mut lo, mut hi) = (f64::MAX, f64::MIN);
+    for l in lines.iter_mut() {
+        for (x, h) in l.positions_mm.iter().zip(l.height_mm.iter_mut()) {
+            *h -= c[0] + c[1] * x + c[2] * l.step_mm;
+            lo = lo.min(*h);
+            hi = hi.max(*h);
+        }
+    }
+    Ok((lines, hi - lo))
 }
 
 /// Averages `values`, with the resolution floor on the standard error.
@@ -243,17 +350,16 @@ fn probes(raw: &Raw, want: usize, method: &str) -> Result<Vec<(u32, f64)>, Proce
     Ok(v)
 }
 
-/// Station readings of the fixed probes `ps`, at probe A's positions.
+/// Station readings of the fixed probes `ps` at one line's stands, at probe A's positions.
 fn station_readings(
-    raw: &Raw,
-    axis: usize,
+    line: &[Stand],
     ps: &[(u32, f64)],
     floor: f64,
     left_out: &mut BTreeMap<String, u64>,
     used: &mut Vec<usize>,
 ) -> Result<Vec<StationReading>, ProcedureError> {
     let mut out = vec![];
-    for s in stands(raw, axis, left_out) {
+    for s in line {
         let per: Vec<Vec<f64>> = ps
             .iter()
             .map(|(id, _)| {
@@ -280,7 +386,6 @@ fn station_readings(
                 readings.push(Some(r));
             }
         }
-        let _ = (s.t0, s.t1);
         out.push(StationReading {
             x_mm: s.x + ps[0].1,
             readings,
@@ -289,10 +394,10 @@ fn station_readings(
     Ok(out)
 }
 
-/// Shear readings of the stage's probe.
+/// Shear readings of the stage's probe at one line's stands.
 fn shear_readings(
     raw: &Raw,
-    axis: usize,
+    line: &[Stand],
     floor: f64,
     left_out: &mut BTreeMap<String, u64>,
     used: &mut Vec<usize>,
@@ -317,7 +422,7 @@ fn shear_readings(
             ))
         })?;
     let mut out = vec![];
-    for s in stands(raw, axis, left_out) {
+    for s in line {
         // Each sample with the stage's last state at or before it.
         let mut by_cmd: BTreeMap<i64, (f64, Vec<(f64, f64)>)> = BTreeMap::new();
         let first = raw
@@ -399,7 +504,22 @@ pub fn run(req: &Request, start: &Calibration) -> Result<Outcome, ProcedureError
     let mut left_out = BTreeMap::new();
     let mut used = vec![];
     let mut warnings = vec![];
-    let (sep, ps, centre_lever) = match req.method {
+    let step_axis = Axis::ALL
+        .into_iter()
+        .find(|a| *a != req.axis && *a != req.toward)
+        .expect("three axes");
+    let lines = split_lines(stands(req.raw, ax, &mut left_out), step_axis.index());
+    if lines.is_empty() {
+        return Err(ProcedureError::Missing(
+            "no distance reading was taken while the carriage stood: record the probes at \
+             each station with the carriage at rest"
+                .into(),
+        ));
+    }
+    // Each line's reference readings: (carriage position, reading), one probe (the one at
+    // the ram axis, or the stage's at zero shear) — the lines' differences tie them.
+    let mut refs: Vec<(f64, Vec<(f64, Reading)>)> = vec![];
+    let (sep, ps, centre_lever, ref_lever) = match req.method {
         Method::ThreeProbe | Method::TwoProbe => {
             let (want, name) = if req.method == Method::ThreeProbe {
                 (3, "three-probe")
@@ -417,7 +537,21 @@ pub fn run(req: &Request, start: &Calibration) -> Result<Outcome, ProcedureError
                 )));
             }
             let mount = ProbeMount { spacing_mm: l };
-            let st = station_readings(req.raw, ax, &ps, floor, &mut left_out, &mut used)?;
+            let r = (0..ps.len())
+                .min_by(|a, b| ps[*a].1.abs().total_cmp(&ps[*b].1.abs()))
+                .expect("probes");
+            let mut first = None;
+            for line in &lines {
+                let st = station_readings(&line.1, &ps, floor, &mut left_out, &mut used)?;
+                refs.push((
+                    line.0,
+                    st.iter()
+                        .filter_map(|s| s.readings[r].map(|v| (s.x_mm - ps[0].1, v)))
+                        .collect(),
+                ));
+                first.get_or_insert(st);
+            }
+            let st = first.expect("a line");
             if want == 2 && req.reversal.is_some() {
                 warnings.push(
                     "--reversal is for the three-probe method (it separates the probes' \
@@ -427,8 +561,8 @@ pub fn run(req: &Request, start: &Calibration) -> Result<Outcome, ProcedureError
             }
             let sep = if want == 3 {
                 let rev = match req.reversal {
-                    Some(r) => {
-                        let rps = probes(r, 3, name)?;
+                    Some(rv) => {
+                        let rps = probes(rv, 3, name)?;
                         if rps.iter().map(|p| p.0).ne(ps.iter().map(|p| p.0)) {
                             return Err(ProcedureError::IllConditioned(
                                 "the reversal's probes are not the measurement's: the reversal \
@@ -436,9 +570,14 @@ pub fn run(req: &Request, start: &Calibration) -> Result<Outcome, ProcedureError
                                     .into(),
                             ));
                         }
+                        let rl = split_lines(stands(rv, ax, &mut left_out), step_axis.index());
+                        let Some(first) = rl.first() else {
+                            return Err(ProcedureError::Missing(
+                                "the reversal has no reading taken while the carriage stood".into(),
+                            ));
+                        };
                         Some(station_readings(
-                            r,
-                            ax,
+                            &first.1,
                             &ps,
                             floor,
                             &mut left_out,
@@ -453,14 +592,57 @@ pub fn run(req: &Request, start: &Calibration) -> Result<Outcome, ProcedureError
             };
             // Pitch centre: probe B (three), probe A (two), as levers from the ram.
             let c = if want == 3 { ps[1].1 } else { ps[0].1 };
-            (sep, ps, c)
+            (sep, ps.clone(), c, ps[r].1)
         }
         Method::ShearStage => {
-            let (rd, p) = shear_readings(req.raw, ax, floor, &mut left_out, &mut used)?;
+            let mut first = None;
+            let mut probe = (0, 0.0);
+            for line in &lines {
+                let (rd, p) = shear_readings(req.raw, &line.1, floor, &mut left_out, &mut used)?;
+                probe = p;
+                refs.push((
+                    line.0,
+                    rd.iter()
+                        .filter(|r| r.shear_mm.abs() <= STAND_TOLERANCE_MM)
+                        .map(|r| {
+                            (
+                                r.x_mm - p.1,
+                                Reading {
+                                    value_mm: r.value_mm,
+                                    u_mm: r.u_mm,
+                                },
+                            )
+                        })
+                        .collect(),
+                ));
+                first.get_or_insert(rd);
+            }
+            let rd = first.expect("a line");
             let sep = straightness::shear_stage(&rd, &ShearOptions::default())?;
-            (sep, vec![p], p.1)
+            (sep, vec![probe], probe.1, probe.1)
         }
     };
+    let (line_profiles, flatness_mm) = if refs.len() > 1 {
+        let (p, pv) = flatness(&sep, &refs, ref_lever, step_axis)?;
+        (p, Some(pv))
+    } else {
+        (vec![], None)
+    };
+    let mut sep = sep;
+    if flatness_mm.is_some() {
+        sep.cannot_see.push("plane".into());
+        sep.cannot_see.push("stepping_axis_straightness".into());
+        sep.notes.push(format!(
+            "flatness: {} lines stepped along {}, tied by the differences of one probe's \
+             readings between lines at each station (the guide's motion cancels in them); the \
+             stepping axis's own straightness towards {} between the lines is in those \
+             differences and is not seen — correct it with that axis's table; the surface is \
+             reported about its least-squares plane",
+            refs.len(),
+            step_axis.name(),
+            req.toward.name()
+        ));
+    }
     let sep = at_ram(sep, ps[0].1, centre_lever, &mut warnings);
     let cal = with_table(start, req, &sep)?;
     used.sort_unstable();
@@ -483,6 +665,8 @@ pub fn run(req: &Request, start: &Calibration) -> Result<Outcome, ProcedureError
         probes: ps,
         samples_per_reading,
         left_out,
+        lines: line_profiles,
+        flatness_mm,
         warnings,
         calibration: cal,
     })
