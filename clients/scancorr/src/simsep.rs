@@ -83,65 +83,70 @@ pub fn run(a: SepArgs) -> Result<()> {
             return;
         }
         let mut c = counts.get();
+        // Adds a sample to its batch, and writes the batch when it is full.
+        macro_rules! put {
+            ($batch:ident, $k:expr, $t:expr, $sample:expr) => {{
+                c[$k] += 1;
+                $batch.samples.push($sample);
+                if $batch.samples.len() >= a.batch {
+                    w.write_msg(&m, &a.prefix, log($t), &$batch)?;
+                    $batch.samples.clear();
+                }
+            }};
+        }
         let res = (|| -> Result<()> {
             match r {
-                Reading::Scale { seq, t_ns, pos } => {
-                    c[0] += 1;
-                    scale.samples.push(ScaleSample {
+                Reading::Scale { seq, t_ns, pos } => put!(
+                    scale,
+                    0,
+                    t_ns,
+                    ScaleSample {
                         machine_id: m.clone(),
                         seq,
                         t_ns,
                         x: pos[0],
                         y: pos[1],
                         z: pos[2],
-                    });
-                    if scale.samples.len() >= a.batch {
-                        w.write_msg(&m, &a.prefix, log(t_ns), &scale)?;
-                        scale.samples.clear();
                     }
-                }
+                ),
                 Reading::Distance {
                     seq,
                     t_ns,
                     probe_id,
                     distance_mm,
                     spacing_mm,
-                } => {
-                    c[1] += 1;
-                    dist.samples.push(DistanceSample {
+                } => put!(
+                    dist,
+                    1,
+                    t_ns,
+                    DistanceSample {
                         machine_id: m.clone(),
                         seq,
                         t_ns,
                         probe_id,
                         distance_mm,
                         spacing_mm,
-                    });
-                    if dist.samples.len() >= a.batch {
-                        w.write_msg(&m, &a.prefix, log(t_ns), &dist)?;
-                        dist.samples.clear();
                     }
-                }
+                ),
                 Reading::Stage {
                     seq,
                     t_ns,
                     probe_id,
                     commanded_mm,
                     sensor_mm,
-                } => {
-                    c[2] += 1;
-                    stage.samples.push(StageSample {
+                } => put!(
+                    stage,
+                    2,
+                    t_ns,
+                    StageSample {
                         machine_id: m.clone(),
                         seq,
                         t_ns,
                         commanded_mm,
                         sensor_mm,
                         probe_id,
-                    });
-                    if stage.samples.len() >= a.batch {
-                        w.write_msg(&m, &a.prefix, log(t_ns), &stage)?;
-                        stage.samples.clear();
                     }
-                }
+                ),
             }
             Ok(())
         })();
@@ -154,31 +159,17 @@ pub fn run(a: SepArgs) -> Result<()> {
     if let Some(e) = err {
         return Err(e.context(format!("writing {}", a.out.display())));
     }
-    let last = |v: Option<i64>| log(v.unwrap_or(0));
-    if !scale.samples.is_empty() {
-        w.write_msg(
-            &m,
-            &a.prefix,
-            last(scale.samples.last().map(|s| s.t_ns)),
-            &scale,
-        )?;
+    // What is left in the batches.
+    macro_rules! rest {
+        ($batch:ident) => {
+            if let Some(t) = $batch.samples.last().map(|s| s.t_ns) {
+                w.write_msg(&m, &a.prefix, log(t), &$batch)?;
+            }
+        };
     }
-    if !dist.samples.is_empty() {
-        w.write_msg(
-            &m,
-            &a.prefix,
-            last(dist.samples.last().map(|s| s.t_ns)),
-            &dist,
-        )?;
-    }
-    if !stage.samples.is_empty() {
-        w.write_msg(
-            &m,
-            &a.prefix,
-            last(stage.samples.last().map(|s| s.t_ns)),
-            &stage,
-        )?;
-    }
+    rest!(scale);
+    rest!(dist);
+    rest!(stage);
     let o = &a.options;
     let run_meta: BTreeMap<String, String> = [
         ("program", o.program.clone()),
