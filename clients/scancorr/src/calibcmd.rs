@@ -9,7 +9,7 @@ use crate::output::AtomicOutput;
 use anyhow::{Context, Result};
 use clap::Subcommand;
 use scancorr_core::calib::Calibration;
-use scancorr_core::calibrate::{dynamics, probe_force, tips, Param};
+use scancorr_core::calibrate::{dynamic_map, dynamics, probe_force, tips, Param};
 use scancorr_core::lab::analysis;
 use scancorr_core::lab::dataset::BagData;
 use scancorr_core::lab::dataset::{self, BuildOptions};
@@ -61,6 +61,36 @@ pub enum CalibrateCmd {
         json: bool,
         /// Write an HTML report: each setting's radius against deflection before and after,
         /// every parameter.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// The S1/F1/F2 joint method: a circle scanned slowly at deflection d1 (S1) and fast at
+    /// d2 (F1) and at d1 (F2), in one direction, gives a per-point map of the fast scan's error
+    /// (extrapolated to zero deflection against the slow scan) for that feature and speed; the
+    /// map corrects later fast scans of like parts by the same part program (same segment ids).
+    DynamicMap {
+        /// Bags of the measurement (S1, F1 and F2 of one circle).
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (its maps of these scans are replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Angle bins (the map's knots) around the circle.
+        #[arg(long, default_value_t = 72)]
+        bins: usize,
+        /// Speed search: the slow/fast difference (RMS over the bins of F2 − S1, µm) a speed
+        /// may show without a map; speeds are taken rising, maps stored only where it is left.
+        #[arg(long)]
+        tolerance_um: Option<f64>,
+        /// Print JSON (`params` and `uncertainty`, `maps` with every bin's S1, F1, F2, HSZD,
+        /// LSZD, e1, e2 and their σ in µm).
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: the scans, the extrapolations to zero deflection and e2 per
+        /// map.
         #[arg(long)]
         report: Option<PathBuf>,
     },
@@ -502,9 +532,151 @@ fn run_probe_force(
     Ok(())
 }
 
+fn run_dynamic_map(
+    bag: Vec<PathBuf>,
+    calib: PathBuf,
+    out: PathBuf,
+    bins: usize,
+    tolerance_um: Option<f64>,
+    json: bool,
+    report: Option<PathBuf>,
+) -> Result<()> {
+    let Opened {
+        out_file,
+        report_file,
+        start,
+        bags,
+    } = open(&bag, &calib, &out, report.as_deref())?;
+    // The maps are what this procedure measures: the points are taken without them (every
+    // point: a fast scan has a few dozen per bin).
+    let ds = points_without(&bags, &start, &["feature_map"], 1)?;
+    let o = dynamic_map::run(
+        &ds,
+        &start,
+        &dynamic_map::Options {
+            bins,
+            tolerance_mm: tolerance_um.map(|t| t * 1e-3),
+            ..Default::default()
+        },
+    )?;
+    let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
+    let e2 = o.maps.iter().map(|m| m.e2_rms_um).fold(0.0, f64::max);
+    new.note = format!(
+        "calibrate dynamic-map: {} map(s) ({}); e2 up to {e2:.3} µm RMS (noise floor {:.3} µm)",
+        o.maps.len(),
+        o.maps
+            .iter()
+            .map(|m| format!("{} at {:.0} mm/s", m.id, m.speed_mm_s))
+            .collect::<Vec<_>>()
+            .join(", "),
+        ds.noise_floor_um
+    );
+    commit_version(
+        &mut new,
+        vec![
+            ("dynamic_map_e2_rms_um", e2),
+            ("noise_floor_um", ds.noise_floor_um),
+        ],
+        out_file,
+        report_file,
+        || crate::report::dynamic_map(&start, &o, ds.noise_floor_um),
+    )?;
+    if json {
+        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
+        outln!("{}", serde_json::to_string_pretty(&v)?)?;
+        return Ok(());
+    }
+    outln!(
+        "S1/F1/F2 joint method: {} map(s) (noise floor {:.3} µm)",
+        o.maps.len(),
+        ds.noise_floor_um
+    )?;
+    for m in &o.maps {
+        outln!("  {} — {}", m.id, m.feature)?;
+        for s in &m.scans {
+            outln!(
+                "    {} segment {:>4}: {:>5.1} mm/s at {:.3} mm, {} points, mean radial {:+.3} µm",
+                s.role,
+                s.segment,
+                s.speed_mm_s,
+                s.deflection_mm,
+                s.points,
+                s.mean_radial_um
+            )?;
+        }
+        outln!(
+            "    e2 (fast scan's error at d1) {:.3} µm RMS (σ per bin {:.3} µm RMS); dynamic part at zero deflection {:.3} µm RMS; e1 (deflection at speed) {:.3} µm RMS; {} bins; applies to segments {:?}, tip {}, {:.0} mm/s",
+            m.e2_rms_um,
+            m.e2_u_rms_um,
+            m.dynamic_rms_um,
+            m.e1_rms_um,
+            m.theta_deg.len(),
+            m.segments,
+            m.tip,
+            m.speed_mm_s
+        )?;
+    }
+    outln!("parameters (± standard uncertainty):")?;
+    for p in &o.params {
+        outln!(
+            "  {:<44} {:>9.3} ± {:.3} µm{}",
+            p.name,
+            p.value * 1e3,
+            p.sigma * 1e3,
+            if p.name.ends_with("_per_mm") {
+                " per mm of deflection"
+            } else {
+                ""
+            }
+        )?;
+    }
+    for s in &o.speed_search {
+        outln!(
+            "  speed search, {} (tolerance {:.3} µm): {}; no map needed up to {}",
+            s.feature,
+            s.tolerance_um,
+            s.steps
+                .iter()
+                .map(|x| format!(
+                    "{:.0} mm/s {:.3} ± {:.3} µm{}",
+                    x.speed_mm_s,
+                    x.difference_um,
+                    x.difference_u_um,
+                    if x.within { "" } else { " (mapped)" }
+                ))
+                .collect::<Vec<_>>()
+                .join(", "),
+            s.fastest_within_mm_s
+                .map_or("no speed measured".into(), |v| format!("{v:.0} mm/s"))
+        )?;
+    }
+    for s in &o.skipped {
+        outln!("  not mapped: {s}")?;
+    }
+    for n in &o.notes {
+        outln!("  note: {n}")?;
+    }
+    outln!(
+        "→ {} (version {}, parent {})",
+        out.display(),
+        new.version,
+        start.version
+    )?;
+    Ok(())
+}
+
 /// Runs a procedure.
 pub fn run(cmd: CalibrateCmd) -> Result<()> {
     match cmd {
+        CalibrateCmd::DynamicMap {
+            bag,
+            calib,
+            out,
+            bins,
+            tolerance_um,
+            json,
+            report,
+        } => run_dynamic_map(bag, calib, out, bins, tolerance_um, json, report),
         CalibrateCmd::Straightness {
             method,
             bag,

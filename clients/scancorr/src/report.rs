@@ -1007,3 +1007,115 @@ pub fn straightness(
     }
     page("scancorr calibrate straightness", &body)
 }
+
+/// `calibrate dynamic-map --report`: per map the three scans' radial deviations, the two
+/// extrapolations to zero deflection, and e2 (the fast scan's error the map removes) with its
+/// uncertainty band.
+pub fn dynamic_map(
+    start: &Calibration,
+    o: &scancorr_core::calibrate::dynamic_map::Outcome,
+    noise_floor_um: f64,
+) -> String {
+    let mut body = format!(
+        "<p>Start: v{} of {}. {} map(s); noise floor {:.3} µm.</p>",
+        start.version,
+        esc(&start.machine_id),
+        o.maps.len(),
+        noise_floor_um
+    );
+    for m in &o.maps {
+        let line = |v: &[f64]| -> Vec<(f64, f64)> {
+            m.theta_deg.iter().copied().zip(v.iter().copied()).collect()
+        };
+        let band = |s: f64| -> Vec<(f64, f64)> {
+            m.theta_deg
+                .iter()
+                .zip(m.e2_um.iter().zip(&m.e2_u_um))
+                .map(|(t, (e, u))| (*t, e + s * 2.0 * u))
+                .collect()
+        };
+        let scans: Vec<Series> = vec![
+            ("S1 (slow, d1)".into(), PALETTE[0], line(&m.s1_um), true),
+            ("F1 (fast, d2)".into(), PALETTE[1], line(&m.f1_um), true),
+            ("F2 (fast, d1)".into(), PALETTE[2], line(&m.f2_um), true),
+        ];
+        let zero: Vec<Series> = vec![
+            ("LSZD".into(), PALETTE[0], line(&m.lszd_um), true),
+            ("HSZD".into(), PALETTE[2], line(&m.hszd_um), true),
+        ];
+        let e2: Vec<Series> = vec![
+            (
+                "e2 = F2 − LSZD".into(),
+                PALETTE[3 % PALETTE.len()],
+                line(&m.e2_um),
+                true,
+            ),
+            ("e2 + 2σ".into(), "#bbb", band(1.0), true),
+            ("e2 − 2σ".into(), "#bbb", band(-1.0), true),
+        ];
+        let _ = write!(
+            body,
+            "<h2>{}: {:.0} mm/s (slow {:.0} mm/s), d1 {:.3} mm, d2 {:.3} mm, segments {:?}</h2>\
+             <figure>{}<figcaption>Before: the radial deviation of each scan from the slow scan's circle, per bin (positive away from the centre).</figcaption></figure>\
+             <figure>{}<figcaption>Extrapolated to zero deflection: at low speed (LSZD, the reference) and at high speed (HSZD).</figcaption></figure>\
+             <figure>{}<figcaption>After: e2, what the map removes from a fast scan at d1 (RMS {:.3} µm, its σ {:.3} µm RMS); the dynamic part at zero deflection {:.3} µm RMS, the deflection's e1 {:.3} µm RMS.</figcaption></figure>",
+            esc(&m.feature),
+            m.speed_mm_s,
+            m.slow_speed_mm_s,
+            m.d1_mm,
+            m.d2_mm,
+            m.segments,
+            xy("dynamic-map-scans", &scans, "θ (°)", "radial deviation (µm)"),
+            xy("dynamic-map-zero", &zero, "θ (°)", "radial deviation (µm)"),
+            xy("dynamic-map-e2", &e2, "θ (°)", "e2 (µm)"),
+            m.e2_rms_um,
+            m.e2_u_rms_um,
+            m.dynamic_rms_um,
+            m.e1_rms_um
+        );
+    }
+    body += "<h2>Parameters</h2><table><tr><th>parameter</th><th>value (µm, µm/mm)</th><th>standard uncertainty</th></tr>";
+    for p in &o.params {
+        let _ = write!(
+            body,
+            "<tr><td>{}</td><td>{:.4}</td><td>{:.4}</td></tr>",
+            esc(&p.name),
+            p.value * 1e3,
+            p.sigma * 1e3
+        );
+    }
+    body += "</table>";
+    for s in &o.speed_search {
+        let _ = write!(
+            body,
+            "<h2>Speed search: {} (tolerance {:.3} µm)</h2><table><tr><th>speed (mm/s)</th><th>slow/fast difference, RMS of F2 − S1 (µm)</th><th>σ (µm)</th><th>map</th></tr>",
+            esc(&s.feature),
+            s.tolerance_um
+        );
+        for x in &s.steps {
+            let _ = write!(
+                body,
+                "<tr><td>{:.0}</td><td>{:.3}</td><td>{:.3}</td><td>{}</td></tr>",
+                x.speed_mm_s,
+                x.difference_um,
+                x.difference_u_um,
+                if x.mapped { "stored" } else { "not needed" }
+            );
+        }
+        let _ = write!(
+            body,
+            "</table><p>No map needed up to {}.</p>",
+            s.fastest_within_mm_s.map_or(
+                "— (the slowest fast speed already leaves the tolerance)".into(),
+                |v| format!("{v:.0} mm/s")
+            )
+        );
+    }
+    for s in &o.skipped {
+        let _ = write!(body, "<p><b>Not mapped:</b> {}</p>", esc(s));
+    }
+    for n in &o.notes {
+        let _ = write!(body, "<p class=\"muted\">{}</p>", esc(n));
+    }
+    page("scancorr calibrate dynamic-map", &body)
+}

@@ -255,7 +255,7 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 11] = [
+pub const PROGRAMS: [&str; 14] = [
     "ring",
     "ring-speeds",
     "campaign",
@@ -267,6 +267,9 @@ pub const PROGRAMS: [&str; 11] = [
     "probe-force-approach",
     "geometry",
     "straightedge",
+    "dynamic-map",
+    "dynamic-map-part",
+    "dynamic-map-speeds",
 ];
 
 /// The master sphere (certified diameter 25.0004 mm) at `position` or its usual place.
@@ -472,6 +475,22 @@ fn ring_feature(at: V3, form_seed: f64) -> Feature {
     }
 }
 
+/// The S1/F1/F2 joint method's scans (`dynamic-map`) of circle `f`, all counter-clockwise from
+/// angle 0 on one path: S1 slow at d1, F2 fast at d1, F1 fast at d2. A like part
+/// (`dynamic-map-part`) gets the first two only — its slow scan and its fast scan — so its
+/// fast scan has F2's segment id (the same part program).
+fn dynamic_map_scans(b: &mut Builder, f: u32, like_part: bool) {
+    const SLOW: f64 = 5.0;
+    const FAST: f64 = 80.0;
+    const D1: f64 = 0.3;
+    const D2: f64 = 0.5;
+    b.circle(f, SLOW, 1.0, D1, 0.0);
+    b.circle(f, FAST, 1.0, D1, 0.0);
+    if !like_part {
+        b.circle(f, FAST, 1.0, D2, 0.0);
+    }
+}
+
 /// Plans a program. `position` places the program's main artifact.
 pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, String> {
     let home = V3::new(500.0, 400.0, -100.0);
@@ -503,6 +522,42 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
             ));
             b.circle(f, 30.0, 1.0, 0.3, 0.0);
             b.circle(f, 30.0, -1.0, 0.3, PI);
+        }
+        "dynamic-map" => {
+            // The S1/F1/F2 joint method on the ring gauge (see `dynamic_map_scans`).
+            let f = b.feature(ring_feature(
+                position.unwrap_or(V3::new(400.0, 300.0, -250.0)),
+                0.7,
+            ));
+            dynamic_map_scans(&mut b, f, false);
+        }
+        "dynamic-map-speeds" => {
+            // The speed search: S1, then F2 and F1 at rising speeds, on the ring.
+            let f = b.feature(ring_feature(
+                position.unwrap_or(V3::new(400.0, 300.0, -250.0)),
+                0.7,
+            ));
+            b.circle(f, 5.0, 1.0, 0.3, 0.0);
+            for v in [20.0, 40.0, 80.0] {
+                b.circle(f, v, 1.0, 0.3, 0.0);
+                b.circle(f, v, 1.0, 0.5, 0.0);
+            }
+        }
+        "dynamic-map-part" => {
+            // A like part: a bore of the ring's nominal size in the ring's place, with a form
+            // of its own (a machined part's few µm), scanned by the same part program.
+            let f = b.feature(Feature {
+                id: 0,
+                artifact: "part".into(),
+                kind: FeatureKind::Bore,
+                center: position.unwrap_or(V3::new(400.0, 300.0, -250.0)).into(),
+                radius_mm: 50.003 / 2.0,
+                nominal_diameter_mm: 50.0,
+                certificate_diameter_mm: None,
+                normal: [0.0; 3],
+                form: vec![[2.0, 1.2e-3, 0.9], [3.0, 0.8e-3, 2.2], [7.0, 0.3e-3, 0.4]],
+            });
+            dynamic_map_scans(&mut b, f, true);
         }
         "ring-speeds" => {
             let f = b.feature(ring_feature(

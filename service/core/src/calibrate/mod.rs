@@ -8,6 +8,8 @@
 //!
 //! * [`tips`] — qualification of the styli on a master sphere.
 //! * [`probe_force`] — extrapolation to zero force: a force coefficient per tip and axis.
+//! * [`dynamic_map`] — the S1/F1/F2 joint method: a per-point map of a fast scan's error for
+//!   one feature and speed (slow and fast scans, extrapolated to zero deflection).
 //! * [`dynamics`] — the ring-gauge procedure: time constants, deflection matrix, phase, gain.
 //! * [`straightness`] — error separation of a guide's straightness (and pitch) from a
 //!   straightedge's: three probes, two probes, or one probe on a shear stage.
@@ -16,6 +18,7 @@
 //!
 //! [`Dataset`]: crate::lab::dataset::Dataset
 
+pub mod dynamic_map;
 pub mod dynamics;
 pub mod probe_force;
 pub mod separation;

@@ -10,6 +10,7 @@
 
 pub mod accel_deflection;
 pub mod custom;
+pub mod feature_map;
 pub mod guide_straightness;
 pub mod probe_force;
 pub mod probe_lobing;
@@ -46,10 +47,12 @@ pub enum EffectConfig {
     ProbeLobing(probe_lobing::Config),
     /// User-defined regressors.
     Custom(custom::Config),
+    /// A per-point correction map of one feature's scans at one speed (the dynamic map).
+    FeatureMap(feature_map::Config),
 }
 
 /// Names of the built-in kinds, as written in documents.
-pub const KINDS: [&str; 10] = [
+pub const KINDS: [&str; 11] = [
     "accel_deflection",
     "servo_phase",
     "servo_gain",
@@ -60,6 +63,7 @@ pub const KINDS: [&str; 10] = [
     "rigid_body",
     "probe_lobing",
     "custom",
+    "feature_map",
 ];
 
 /// A validated effect, ready for the hot path.
@@ -139,6 +143,7 @@ impl EffectConfig {
             EffectConfig::RigidBody(_) => "rigid_body",
             EffectConfig::ProbeLobing(_) => "probe_lobing",
             EffectConfig::Custom(_) => "custom",
+            EffectConfig::FeatureMap(_) => "feature_map",
         }
     }
 
@@ -155,6 +160,7 @@ impl EffectConfig {
             EffectConfig::RigidBody(c) => c.id.clone(),
             EffectConfig::ProbeLobing(c) => c.id.clone(),
             EffectConfig::Custom(c) => Some(c.id.clone()),
+            EffectConfig::FeatureMap(c) => c.id.clone(),
         };
         id.unwrap_or_else(|| self.kind().to_string())
     }
@@ -172,6 +178,7 @@ impl EffectConfig {
             EffectConfig::RigidBody(c) => c.id = id,
             EffectConfig::ProbeLobing(c) => c.id = id,
             EffectConfig::Custom(c) => c.id = id.unwrap_or_else(|| "custom".into()),
+            EffectConfig::FeatureMap(c) => c.id = id,
         }
     }
 
@@ -181,6 +188,8 @@ impl EffectConfig {
             EffectConfig::AccelDeflection(_)
             | EffectConfig::ServoPhase(_)
             | EffectConfig::ServoGain(_) => true,
+            // Applies at one path speed (the estimated velocity decides).
+            EffectConfig::FeatureMap(_) => true,
             EffectConfig::Custom(c) => c.dynamic,
             // Geometry and probe direction: functions of position and deflection only.
             EffectConfig::RigidBody(_) | EffectConfig::ProbeLobing(_) => false,
@@ -202,6 +211,7 @@ impl EffectConfig {
             EffectConfig::RigidBody(c) => Box::new(c.build()?),
             EffectConfig::ProbeLobing(c) => Box::new(c.build()?),
             EffectConfig::Custom(c) => Box::new(c.build(sensors)?),
+            EffectConfig::FeatureMap(c) => Box::new(c.build()?),
         };
         Ok(BuiltEffect {
             id: self.id(),
@@ -223,6 +233,7 @@ impl EffectConfig {
             EffectConfig::RigidBody(c) => c.params(),
             EffectConfig::ProbeLobing(c) => c.params(),
             EffectConfig::Custom(c) => c.coefficients.clone(),
+            EffectConfig::FeatureMap(c) => c.params(),
         }
     }
 
@@ -243,6 +254,7 @@ impl EffectConfig {
                 .iter()
                 .map(|t| format!("{}·[{}]", t.axis.name(), t.expr))
                 .collect(),
+            EffectConfig::FeatureMap(c) => c.param_names(),
         }
     }
 
@@ -268,6 +280,7 @@ impl EffectConfig {
             EffectConfig::RigidBody(c) => c.set_params(p),
             EffectConfig::ProbeLobing(c) => c.set_params(p),
             EffectConfig::Custom(c) => c.coefficients = p.to_vec(),
+            EffectConfig::FeatureMap(c) => c.set_params(p),
         }
         Ok(c)
     }

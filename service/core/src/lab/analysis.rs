@@ -541,6 +541,14 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
             EffectConfig::GuideStraightness(g)
         }
         "custom" => return Err(bad("a custom effect needs terms (--term AXIS:EXPR)".into())),
+        "feature_map" => {
+            return Err(LabError::Data(
+                "feature_map: a scan's dynamic map is measured, not fitted by the lab: \
+                 `scancorr calibrate dynamic-map` (slow and fast scans of the feature at two \
+                 deflections, e.g. `scancorr sim --program dynamic-map`)"
+                    .into(),
+            ))
+        }
         k => {
             return Err(LabError::Data(format!(
                 "unknown effect `{k}` (known: {})",
