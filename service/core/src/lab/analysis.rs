@@ -831,6 +831,15 @@ fn separating(a: &str, b: &str, cov: &[Lever]) -> Vec<String> {
     for l in lb.iter().filter(|l| !la.contains(l)) {
         out.push(lever_text(*l, kb, ka, cov.contains(l)));
     }
+    if [ka, kb].contains(&"guide_straightness") {
+        // A measurement outside the artifacts' scans determines the guide on its own.
+        out.push(
+            "the guide measured on its own by error separation (`scancorr calibrate \
+             straightness`: distance probes stepped along the travel, no perfect straightedge \
+             needed): its straightness and yaw without the artifacts' scans"
+                .into(),
+        );
+    }
     if out.is_empty() {
         out.push(format!("{ka} and {kb} respond to the same measurements; a custom effect that combines them may be the honest model"));
     }
