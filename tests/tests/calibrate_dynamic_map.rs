@@ -114,7 +114,7 @@ fn slow_fast(part: &(RunResult, Vec<Sample>), dir: &Path, cal: &str) -> (f64, f6
 fn dynamic_map_corrects_a_like_parts_fast_scan_to_the_slow_scans_error() {
     let dir = scratch("calibrate-dynamic-map");
     // From the nominal start straight away.
-    measure_from_nominal(&dir, "dynamic-map", MACHINE, "1", "dm.mcap", false);
+    measure_from_nominal(&dir, "dynamic-map", MACHINE, "1", "dm.mcap", true);
     let r = calibrate(
         &dir,
         "dynamic-map",
@@ -124,7 +124,7 @@ fn dynamic_map_corrects_a_like_parts_fast_scan_to_the_slow_scans_error() {
     );
     // With the stylus bending calibrated first (`probe-force` from the same nominal start),
     // so the slow scan is as good as the machine's static calibration makes it.
-    measure_from_nominal(&dir, "probe-force", MACHINE, "2", "pf.mcap", false);
+    measure_from_nominal(&dir, "probe-force", MACHINE, "2", "pf.mcap", true);
     calibrate(&dir, "probe-force", "pf.mcap", "nominal.json", "pf.json");
     let r2 = ok(
         &dir,
@@ -178,7 +178,7 @@ fn dynamic_map_corrects_a_like_parts_fast_scan_to_the_slow_scans_error() {
 
     // The speed search: F1 and F2 at 20, 40 and 80 mm/s; the difference grows with the speed,
     // maps only where it leaves the tolerance.
-    measure_from_nominal(&dir, "dynamic-map-speeds", MACHINE, "3", "sp.mcap", false);
+    measure_from_nominal(&dir, "dynamic-map-speeds", MACHINE, "3", "sp.mcap", true);
     let sp = json(&ok(
         &dir,
         &[

@@ -216,7 +216,7 @@ fn options(stride: usize) -> BuildOptions {
 
 /// Stamps `new` with `metrics`, checks it builds, writes it and (when asked) the report, and
 /// commits both together.
-fn commit_version(
+pub(crate) fn commit_version(
     new: &mut Calibration,
     metrics: Vec<(&str, f64)>,
     out_file: Option<AtomicOutput>,
@@ -233,6 +233,24 @@ fn commit_version(
         put(&report_file, report())?;
     }
     commit_all([out_file, report_file])
+}
+
+/// The closing lines of a procedure's text output: its notes, then where the new version is.
+pub(crate) fn closing(
+    notes: &[String],
+    out: &Path,
+    new: &Calibration,
+    start: &Calibration,
+) -> Result<()> {
+    for n in notes {
+        outln!("  note: {n}")?;
+    }
+    outln!(
+        "→ {} (version {}, parent {})",
+        out.display(),
+        new.version,
+        start.version
+    )
 }
 
 /// `--json` of a procedure: its outcome with `params` and `uncertainty` by the truth file's
@@ -382,16 +400,7 @@ fn run_dynamics(
     for u in &o.undetermined {
         outln!("  not determined: {u}")?;
     }
-    for n in &o.notes {
-        outln!("  note: {n}")?;
-    }
-    outln!(
-        "→ {} (version {}, parent {})",
-        out.display(),
-        new.version,
-        start.version
-    )?;
-    Ok(())
+    closing(&o.notes, &out, &new, &start)
 }
 
 fn print_param(p: &Param) -> String {
@@ -520,16 +529,7 @@ fn run_probe_force(
     for u in &o.undetermined {
         outln!("  not determined: {u}")?;
     }
-    for n in &o.notes {
-        outln!("  note: {n}")?;
-    }
-    outln!(
-        "→ {} (version {}, parent {})",
-        out.display(),
-        new.version,
-        start.version
-    )?;
-    Ok(())
+    closing(&o.notes, &out, &new, &start)
 }
 
 fn run_dynamic_map(
@@ -653,16 +653,7 @@ fn run_dynamic_map(
     for s in &o.skipped {
         outln!("  not mapped: {s}")?;
     }
-    for n in &o.notes {
-        outln!("  note: {n}")?;
-    }
-    outln!(
-        "→ {} (version {}, parent {})",
-        out.display(),
-        new.version,
-        start.version
-    )?;
-    Ok(())
+    closing(&o.notes, &out, &new, &start)
 }
 
 /// Runs a procedure.

@@ -3,9 +3,8 @@
 //! and writes the guide's table as a new calibration version. The logic is
 //! `scancorr_core::calibrate::separation`.
 
-use crate::labcmd::{now_rfc3339, outputs, put};
+use crate::labcmd::{now_rfc3339, outputs};
 use crate::offline;
-use crate::output::commit_all;
 use anyhow::{Context, Result};
 use scancorr_bag::measure::read_separation;
 use scancorr_bag::{BagReader, RawBatch, Stream};
@@ -171,32 +170,26 @@ pub fn run(a: Args) -> Result<()> {
         rms(&s.part_straightness_mm) * 1e3,
         s.cannot_see.join(", ")
     );
-    new.metrics = [
-        (
-            "guide_straightness_rms_um",
-            rms(&s.guide_straightness_mm) * 1e3,
-        ),
-        (
-            "guide_straightness_u_rms_um",
-            rms(&s.guide_straightness_mm_u) * 1e3,
-        ),
-        (
-            "part_straightness_rms_um",
-            rms(&s.part_straightness_mm) * 1e3,
-        ),
-    ]
-    .into_iter()
-    .map(|(k, v)| (k.to_string(), v))
-    .collect();
-    new.build().context("the new calibration")?;
-    put(&out_file, new.to_json())?;
-    if report_file.is_some() {
-        put(
-            &report_file,
-            crate::report::straightness(&start, &o, &warnings),
-        )?;
-    }
-    commit_all([out_file, report_file])?;
+    crate::calibcmd::commit_version(
+        &mut new,
+        vec![
+            (
+                "guide_straightness_rms_um",
+                rms(&s.guide_straightness_mm) * 1e3,
+            ),
+            (
+                "guide_straightness_u_rms_um",
+                rms(&s.guide_straightness_mm_u) * 1e3,
+            ),
+            (
+                "part_straightness_rms_um",
+                rms(&s.part_straightness_mm) * 1e3,
+            ),
+        ],
+        out_file,
+        report_file,
+        || crate::report::straightness(&start, &o, &warnings),
+    )?;
     for w in &warnings {
         eprintln!("warning: {w}");
     }
@@ -276,15 +269,5 @@ pub fn run(a: Args) -> Result<()> {
     for p in &s.params {
         outln!("  {}: {:.6} ± {:.6}", p.name, p.value, p.sigma)?;
     }
-    for n in &s.notes {
-        outln!("  note: {n}")?;
-    }
-    outln!(
-        "→ {} (version {}, parent {}): guide_straightness along {} with its uncertainties",
-        a.out.display(),
-        new.version,
-        start.version,
-        ax.name()
-    )?;
-    Ok(())
+    crate::calibcmd::closing(&s.notes, &a.out, &new, &start)
 }
