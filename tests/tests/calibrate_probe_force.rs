@@ -5,6 +5,8 @@
 
 mod common;
 use common::*;
+use scancorr_core::{shape, Calibration, Corrector, Output};
+use scancorr_sim::program::SegmentKind;
 use std::path::Path;
 
 fn json(s: &str) -> serde_json::Value {
@@ -106,6 +108,50 @@ fn probe_force_recovers_each_tips_bending_from_the_nominal_model() {
         assert!(spread(&a) < 0.3, "{s}");
     }
     assert!(r["rms_after_um"].as_f64().unwrap() < 0.2 * r["rms_before_um"].as_f64().unwrap());
+    // The static error map of each circle (two tips × three latitudes): the zero-force radius
+    // around it, whose mean is the setting's radius at zero force.
+    let maps = r["static_maps"].as_array().unwrap();
+    assert_eq!(maps.len(), 6, "{maps:#?}");
+    let mut circle_means = std::collections::BTreeMap::new();
+    for m in maps {
+        let v: Vec<f64> = m["radial_um"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let u: Vec<f64> = m["radial_u_um"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        assert_eq!((v.len(), u.len()), (72, 72));
+        // (Their σ are conservative: the fit's drift of each circle's centre and the residuals'
+        // correlation in time make the first harmonic uncertain by up to ~1.3 µm, while the
+        // maps correct a later run to within 0.1 µm of the noise floor — the test below.)
+        assert!(u.iter().all(|s| *s > 0.0 && *s < 3.0), "{m}");
+        let s = r["settings"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["tip"] == m["tip"])
+            .unwrap();
+        // Its mean is that circle's radius at zero force: the tip's zero-force radius is the
+        // mean over its circles.
+        let zero = s["radius_error_at_zero_um"][0].as_f64().unwrap();
+        let mean = v.iter().sum::<f64>() / v.len() as f64;
+        circle_means
+            .entry(m["tip"].as_u64().unwrap())
+            .or_insert((zero, vec![]))
+            .1
+            .push(mean);
+    }
+    for (tip, (zero, means)) in &circle_means {
+        let mean = means.iter().sum::<f64>() / means.len() as f64;
+        eprintln!("tip {tip}: circles at zero force {means:.3?} µm, the tip {zero:.3} µm");
+        assert!((mean - zero).abs() < 0.3, "tip {tip}: {means:?} vs {zero}");
+    }
     // The new version: per-tip coefficients, its parent, the note.
     let cal = json(&std::fs::read_to_string(dir.join("pf.json")).unwrap());
     assert_eq!(cal["version"], 2);
@@ -118,6 +164,20 @@ fn probe_force_recovers_each_tips_bending_from_the_nominal_model() {
         .find(|e| e["kind"] == "probe_force")
         .expect("a probe_force effect");
     assert_eq!(pf["per_tip"].as_object().unwrap().len(), 2, "{pf}");
+    // The static maps are stored beside it, one per circle, apart from the geometry.
+    let stored: Vec<_> = cal["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["kind"] == "feature_map")
+        .collect();
+    assert_eq!(stored.len(), 6, "{stored:#?}");
+    for m in stored {
+        assert!(
+            m.get("speed_mm_s").is_none() && m["radius_mm"].as_f64().unwrap() > 5.0,
+            "{m}"
+        );
+    }
     let html = std::fs::read_to_string(dir.join("pf.html")).unwrap();
     assert!(html.contains("radius-before") && html.contains("tip2.probe_k_w"));
 }
@@ -205,5 +265,179 @@ fn probe_force_variants_quarter_and_approach() {
                 .any(|u| u.as_str().unwrap().starts_with(&w)),
             "{r:#}"
         );
+    }
+}
+
+/// Variant (b) — one circle at a constant deflection and one whose deflection varies
+/// sinusoidally around it — recovers every coefficient; its real-time form (each wave's low
+/// and high halves paired: R0 = R1 − (R2 − R1)·F1/(F2 − F1)) removes most of the force's
+/// error at the lower force, landing near the fit's zero-force surface; and the procedure
+/// measures how much the wave accelerates the carriage in phase with the deflection (what a
+/// compliance would turn into a false force coefficient) and says so.
+#[test]
+fn probe_force_variant_sine_and_its_real_time_form() {
+    let dir = scratch("calibrate-probe-force-sine");
+    let (r, truth) = calibrate(&dir, "probe-force-sine", "8");
+    judge("(b)", &r, &truth, &["u", "v", "w"]);
+    let rt = r["real_time"].as_array().expect("real_time");
+    assert_eq!(
+        rt.len(),
+        6,
+        "one varying scan per tip and latitude: {rt:#?}"
+    );
+    for s in rt {
+        let f = |k: &str| s[k].as_f64().unwrap_or_else(|| panic!("{k}: {s}"));
+        eprintln!(
+            "tip {} lat {:+.0}: R1 {:.3} → R0 {:.3} µm (σ {:.3}), {} waves, a/d {:.1}",
+            s["tip"],
+            f("latitude_deg"),
+            f("before_um"),
+            f("rms_um"),
+            f("sigma_um"),
+            s["waves"],
+            f("accel_per_deflection_s2")
+        );
+        assert!(
+            (14..=16).contains(&s["waves"].as_u64().unwrap()),
+            "fifteen waves a turn: {s}"
+        );
+        assert!(s["extrapolated"].as_u64().unwrap() >= 12, "{s}");
+        assert!(
+            f("before_um") > 1.0,
+            "the force's error at F1 is microns: {s}"
+        );
+        assert!(
+            f("rms_um") < 0.3 * f("before_um") && f("rms_um") < 0.6,
+            "{s}"
+        );
+        assert!(
+            f("sigma_um") > 0.0 && f("accel_per_deflection_s2").abs() > 0.5,
+            "{s}"
+        );
+    }
+    let notes = r["notes"].to_string();
+    assert!(notes.contains("accelerate the carriage"), "{notes}");
+}
+
+/// Per tip, the RMS distance (µm) of a run's corrected contact points on the master sphere from
+/// the sphere of its true radius fitted to them (where the sphere stands is the one free
+/// thing), and the points used.
+fn sphere_errors(
+    run: &(scancorr_sim::RunResult, Vec<scancorr_core::Sample>),
+    cal: &Calibration,
+) -> Vec<(u32, f64, usize)> {
+    let mut c = Corrector::new(cal).unwrap();
+    let mut out = Output::default();
+    c.push_all(run.1.iter().cloned(), &mut out);
+    c.flush(&mut out);
+    let sphere = run
+        .0
+        .truth
+        .features
+        .iter()
+        .find(|f| f.artifact == "sphere")
+        .expect("the master sphere");
+    let scans: Vec<u32> = run
+        .0
+        .program
+        .segments
+        .iter()
+        .filter(|s| s.kind == SegmentKind::Scan)
+        .map(|s| s.id)
+        .collect();
+    let mut tips: Vec<u32> = out.points.iter().map(|p| p.tip_id).collect();
+    tips.sort_unstable();
+    tips.dedup();
+    tips.into_iter()
+        .map(|t| {
+            let pts: Vec<_> = out
+                .points
+                .iter()
+                .filter(|p| p.tip_id == t && p.normal.norm() > 0.5 && p.estimator_valid)
+                .filter(|p| scans.contains(&p.segment_id))
+                .map(|p| p.surface)
+                .collect();
+            let f = shape::fit_sphere_fixed_radius(&pts, sphere.radius_mm).unwrap();
+            (t, f.rms * 1e3, pts.len())
+        })
+        .collect()
+}
+
+/// The static error maps the new version stores (one per circle, at every speed, at the
+/// circle's place) correct a later measurement of the same circles by the same program —
+/// another run, its own noise and room — beyond what the force coefficients and tip radii
+/// alone do: the machine's static errors at the sphere (its geometry, the probe's lobing) are
+/// in the maps, kept apart from the geometry.
+#[test]
+fn probe_force_static_maps_correct_a_later_scan_of_the_same_circles() {
+    let dir = scratch("calibrate-probe-force-static");
+    // The machine's temperature response is switched off: the room changes between the two
+    // runs, and a map is a snapshot of the static errors, not of the scales' expansion (no
+    // procedure measures that yet; the styli's is `tips`').
+    let mut a = vec![
+        "sim",
+        "--program",
+        "probe-force",
+        "--machine-seed",
+        "47",
+        "--seed",
+        "5",
+        "--out",
+        "pf.mcap",
+        "--calib-out",
+        "start.json",
+        "--effect",
+        "scale_thermal=0",
+        "--effect",
+        "stylus_thermal=0",
+    ];
+    for h in scancorr_sim::LIBRARY_EFFECTS {
+        if !h.ends_with("_thermal") {
+            a.extend(["--hide", h]);
+        }
+    }
+    ok(&dir, &a);
+    nominal_start(&dir, "start.json", "nominal.json", true);
+    ok(
+        &dir,
+        &[
+            "calibrate",
+            "probe-force",
+            "--bag",
+            "pf.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "pf.json",
+        ],
+    );
+    let with =
+        Calibration::from_json(&std::fs::read_to_string(dir.join("pf.json")).unwrap()).unwrap();
+    let mut without = with.clone();
+    without.effects.retain(|e| e.kind() != "feature_map");
+    assert_eq!(with.effects.len(), without.effects.len() + 6);
+    let o = scancorr_sim::Options {
+        program: "probe-force".into(),
+        machine_seed: 47,
+        seed: 11,
+        effects: [("scale_thermal", 0.0), ("stylus_thermal", 0.0)]
+            .into_iter()
+            .map(|(k, v)| (k.to_string(), v))
+            .collect(),
+        ..Default::default()
+    };
+    let mut samples = vec![];
+    let res = scancorr_sim::run(&o, |s| samples.push(s)).expect("simulation runs");
+    let floor = res.truth.noise_floor_um;
+    let later = (res, samples);
+    let a = sphere_errors(&later, &without);
+    let b = sphere_errors(&later, &with);
+    for ((t, before, n), (_, after, _)) in a.iter().zip(&b) {
+        eprintln!(
+            "tip {t}: {n} points, {before:.3} µm RMS about the true sphere without the static maps, {after:.3} with (noise floor {floor:.3})"
+        );
+        assert!(*n > 5_000, "tip {t}: {n} points");
+        assert!(*after < 0.6 * before, "tip {t}: {before} → {after}");
+        assert!(*after < 2.0 * floor, "tip {t}: {after} vs floor {floor}");
     }
 }

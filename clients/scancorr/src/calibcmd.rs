@@ -433,8 +433,9 @@ fn run_probe_force(
         start,
         bags,
     } = open(&bag, &calib, &out, report.as_deref())?;
-    // The force correction is what this procedure measures: the points are taken without.
-    let ds = points_without(&bags, &start, &["probe_force"], 2)?;
+    // The force correction and the static maps are what this procedure measures: the points
+    // are taken without (the new maps replace the start's of the same tip and segments).
+    let ds = points_without(&bags, &start, &["probe_force", "feature_map"], 2)?;
     let o = probe_force::run(&ds, &start)?;
     let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
     new.geometry = o.calibration.geometry.clone();
@@ -507,6 +508,48 @@ fn run_probe_force(
             lv.join("  "),
             s.fit_rms_um
         )?;
+    }
+    if !o.static_maps.is_empty() {
+        outln!("static error maps (zero-force radius − certified around each circle; stored as feature_map effects, apart from the geometry, applied at every speed to scans of that circle; --json: static_maps):")?;
+        for m in &o.static_maps {
+            let (lo, hi) = m
+                .radial_um
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+                    (a.min(*v), b.max(*v))
+                });
+            let u = m.radial_u_um.iter().cloned().fold(0.0, f64::max);
+            outln!(
+                "  tip {} latitude {:+.0}°: {:+.3} to {:+.3} µm over {} knots (σ ≤ {:.3} µm)",
+                m.tip,
+                m.latitude_deg,
+                lo,
+                hi,
+                m.radial_um.len(),
+                u
+            )?;
+        }
+    }
+    if !o.real_time.is_empty() {
+        outln!("real-time form, R0 = R1 − (R2 − R1)·F1/(F2 − F1) per wave of the deflection, against the fit's zero-force values:")?;
+        for rt in &o.real_time {
+            outln!(
+                "  tip {} segment {} (latitude {:+.0}°, {:.2}–{:.2} mm): {} waves, {} extrapolated, {} at a force below significance, {} alike; R1 {:.3} µm RMS from the fit's zero force → R0 {:.3} µm RMS (statistical σ {:.3} µm); radial acceleration {:+.1} mm/s² per mm of deflection",
+                rt.tip,
+                rt.segment,
+                rt.latitude_deg,
+                rt.deflection_mm[0],
+                rt.deflection_mm[1],
+                rt.waves,
+                rt.extrapolated,
+                rt.force_zero,
+                rt.alike,
+                rt.before_um,
+                rt.rms_um,
+                rt.sigma_um,
+                rt.accel_per_deflection_s2
+            )?;
+        }
     }
     outln!("parameters (± standard uncertainty):")?;
     for p in &o.params {

@@ -154,7 +154,7 @@ enum Cmd {
 #[derive(clap::Args)]
 struct SimCli {
     /// Scan program: ring, ring-speeds, campaign, part, dynamics, tips, probe-force,
-    /// probe-force-quarter, probe-force-approach, geometry, straightedge; or a straightness
+    /// probe-force-quarter, probe-force-approach, probe-force-sine, geometry, straightedge; or a straightness
     /// error-separation measurement: straightness-three-probe, straightness-two-probe,
     /// straightness-shear-stage.
     #[arg(long, default_value = "ring")]
@@ -254,7 +254,8 @@ enum BenchCmd {
     /// within 2σ and within max(3σ, 5 %) of the simulator's truth.
     Procedures {
         /// Procedures (tips, probe-force, dynamics, straightness: three probes with a
-        /// reversal and the shear stage, every station against the truth).
+        /// reversal and the shear stage, every station against the truth; dynamic-map: every
+        /// bin of its maps against the runs' scatter).
         #[arg(long, default_values_t = ["tips".to_string(), "probe-force".to_string(), "dynamics".to_string()])]
         procedure: Vec<String>,
         /// Runs (run seeds 1…N).

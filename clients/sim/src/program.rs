@@ -123,6 +123,12 @@ pub enum Path {
         start: f64,
         /// Signed sweep, rad.
         sweep: f64,
+        /// Radial wave on the radius, mm (0: a plain arc): the radius is
+        /// `radius + wave_mm·sin(wave_cycles·(θ − start))`, so a probe pressed against a
+        /// round feature sees its deflection vary sinusoidally around it.
+        wave_mm: f64,
+        /// Waves per turn.
+        wave_cycles: f64,
     },
     /// Standing still.
     Dwell {
@@ -156,9 +162,12 @@ impl Path {
                 radius,
                 start,
                 sweep,
+                wave_mm,
+                wave_cycles,
             } => {
                 let th = start + sweep.signum() * s / radius;
-                center + V3::new(radius * th.cos(), radius * th.sin(), 0.0)
+                let r = radius + wave_mm * (wave_cycles * (th - start)).sin();
+                center + V3::new(r * th.cos(), r * th.sin(), 0.0)
             }
             Path::Dwell { at, .. } => at,
         }
@@ -255,7 +264,7 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 14] = [
+pub const PROGRAMS: [&str; 15] = [
     "ring",
     "ring-speeds",
     "campaign",
@@ -265,6 +274,7 @@ pub const PROGRAMS: [&str; 14] = [
     "probe-force",
     "probe-force-quarter",
     "probe-force-approach",
+    "probe-force-sine",
     "geometry",
     "straightedge",
     "dynamic-map",
@@ -401,6 +411,8 @@ impl<'a> Builder<'a> {
             radius: nominal_r,
             start,
             sweep,
+            wave_mm: 0.0,
+            wave_cycles: 0.0,
         };
         self.scan(path, speed, ramp, fid, defl);
     }
@@ -411,6 +423,21 @@ impl<'a> Builder<'a> {
     }
     /// `turns` of a circle on a sphere from angle 0 (plus the ramps), as [`Self::sphere_circle`].
     fn sphere_arc(&mut self, fid: u32, speed: f64, dir: f64, defl: f64, lat_deg: f64, turns: f64) {
+        self.sphere_wave(fid, speed, dir, defl, lat_deg, turns, (0.0, 0.0));
+    }
+    /// As [`Self::sphere_arc`], the deflection varying as `defl + a·sin(n·θ)` around the
+    /// circle (`wave` = (a mm, n per turn)).
+    #[allow(clippy::too_many_arguments)]
+    fn sphere_wave(
+        &mut self,
+        fid: u32,
+        speed: f64,
+        dir: f64,
+        defl: f64,
+        lat_deg: f64,
+        turns: f64,
+        wave: (f64, f64),
+    ) {
         let f = self.features[fid as usize - 1].clone();
         let r_tip = self.stylus(self.tip).radius_mm;
         let off = self.offset(self.tip, self.a1, self.a2);
@@ -424,6 +451,10 @@ impl<'a> Builder<'a> {
             radius,
             start: 0.0,
             sweep: dir * (turns * TAU + speed * ramp / radius),
+            // The path's radius shrinks where the deflection grows: moving the tip in by δ
+            // horizontally presses it in by δ·cos(lat) along the sphere's radius.
+            wave_mm: -wave.0 / lat.cos(),
+            wave_cycles: wave.1,
         };
         self.scan(path, speed, ramp, fid, defl);
     }
@@ -765,6 +796,23 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 for lat in [-35.0, 0.0, 35.0] {
                     b.sphere_arc(sphere, 5.0, 1.0, 0.3, lat, 1.0);
                     b.sphere_arc(sphere, 5.0, 1.0, 0.1, lat, 0.25);
+                }
+            }
+        }
+        "probe-force-sine" => {
+            // Variant (b): per tip and latitude one circle at a constant 0.3 mm and one whose
+            // deflection varies as 0.3 + 0.2·sin(15θ) mm around it — fifteen waves a turn,
+            // above the static map's harmonics, so the change of each point with the
+            // deflection is seen within the one scan (the real-time form pairs each wave's
+            // low and high halves). Slowly (1 mm/s, a wave in 6 s): the wave accelerates the
+            // carriage by ω²·0.2 mm in phase with the deflection, and the structure's
+            // compliance under that acceleration would pass for a force coefficient.
+            let sphere = b.feature(master_sphere(position));
+            for tip in b.m.styli.iter().map(|s| s.id).collect::<Vec<_>>() {
+                b.set_tip(tip, 0.0, 0.0);
+                for lat in [-35.0, 0.0, 35.0] {
+                    b.sphere_arc(sphere, 1.0, 1.0, 0.3, lat, 1.0);
+                    b.sphere_wave(sphere, 1.0, 1.0, 0.3, lat, 1.0, (0.2, 15.0));
                 }
             }
         }

@@ -514,12 +514,10 @@ pub fn run(ds: &Dataset, start: &Calibration, o: &Options) -> Result<Outcome, Pr
             ProcedureError::Missing(msg)
         });
     }
-    // The new maps replace the start's maps of the same tip and segments.
+    // The new maps replace the start's maps of the same scans (static maps stay: they add).
     let mut calibration = start.clone();
     calibration.effects.retain(|e| match e {
-        EffectConfig::FeatureMap(old) => !configs.iter().any(|n: &feature_map::Config| {
-            n.tip == old.tip && n.segments.iter().any(|s| old.segments.contains(s))
-        }),
+        EffectConfig::FeatureMap(old) => !configs.iter().any(|n| n.replaces(old)),
         _ => true,
     });
     calibration
@@ -740,9 +738,15 @@ fn one_map(
             segments: m.segments.clone(),
             tip,
             head_deg: m.head_deg,
-            speed_mm_s: f2.speed,
-            speed_tolerance_mm_s: o.speed_tolerance * f2.speed,
+            speed_mm_s: Some(f2.speed),
+            speed_tolerance_mm_s: Some(o.speed_tolerance * f2.speed),
             center_mm: center,
+            // A like part need not stand exactly where the master did: no place of its own
+            // beyond the segments and the centre the angle is taken about.
+            radius_mm: None,
+            z_mm: None,
+            place_tolerance_mm: 1.0,
+            latitude_deg: 0.0,
             values_mm: a,
             per_deflection: b,
             deflection_mm: Some(f2.defl),

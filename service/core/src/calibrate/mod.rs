@@ -24,6 +24,7 @@ pub mod probe_force;
 pub mod separation;
 pub mod straightness;
 pub mod tips;
+pub mod zero_force;
 
 use serde::Serialize;
 

@@ -21,14 +21,29 @@
 //! from k_u, k_v, and the angle around each circle separates k_u from k_v (cos² against sin²).
 //! The RMS of the fit about the zero-force map is reported per setting.
 //!
+//! Variant (b) — a circle at a constant deflection and one whose deflection varies
+//! sinusoidally around it — enters the same fit (its points carry their own deflections). Such
+//! a varying scan also gets the real-time form ([`super::zero_force`]): per wave, the points
+//! below and above the wave's median deflection are two readings (R1, F1), (R2, F2) of that
+//! place, R0 = R1 − (R2 − R1)·F1/(F2 − F1), compared with what the fit's zero-force model
+//! gives for the same points (and the lower-force reading R1 with it: the error removed). The wave accelerates the carriage radially
+//! in phase with the deflection (a = −ω²·d for a sinusoid): a compliance C of the structure
+//! bends it by C·a, which the force fit cannot tell from a force coefficient −C·ω². The
+//! procedure measures that coupling (the estimated radial acceleration against the
+//! deflection) and names the bias a typical compliance would cause when the starting
+//! calibration does not correct the compliance (`accel_deflection`).
+//!
 //! Source idea: Renishaw's calibration of a coordinate positioning apparatus — scan the same
 //! path at two or more deflections and extrapolate each point to zero deflection; the
 //! coefficient is a property of the stylus (one per tip, ISO 10360-5 qualifies stylus by
 //! stylus), not of the machine.
 
+use super::zero_force::{self, Reading, ZeroForce};
 use super::{Param, ProcedureError};
 use crate::calib::Calibration;
-use crate::effects::{probe_force, scale_thermal, stylus_thermal, Effect, EffectConfig};
+use crate::effects::{
+    feature_map, probe_force, scale_thermal, stylus_thermal, Effect, EffectConfig,
+};
 use crate::lab::dataset::Dataset;
 use crate::lab::fit::Normal;
 use crate::lab::program::FeatureKind;
@@ -56,6 +71,11 @@ const PER_CIRCLE: usize = 1 + 2 * HARMONICS;
 /// Drift columns per circle: the centre moving linearly in time (mm per 100 s) while its
 /// deflections are scanned.
 const DRIFT: usize = 3;
+/// Least within-scan spread (5th to 95th percentile) of a scan whose deflection varies, mm.
+const VARYING_MM: f64 = 0.1;
+/// A bridge CMM's compliance, for the bias a wave's acceleration would cause: 30 µm per m/s²,
+/// in s² (mm per mm/s²).
+const TYPICAL_COMPLIANCE_S2: f64 = 30e-6;
 
 /// One setting: a tip at one head angle on the sphere, every deflection.
 #[derive(Debug, Clone, Serialize)]
@@ -102,10 +122,78 @@ pub struct Outcome {
     /// Reduced χ² of the cells (circle × deflection) after the fit; the σ are scaled by it
     /// when above 1 (what the model leaves beyond noise, the Birge ratio).
     pub cell_chi2: f64,
+    /// The static error map of every circle: its zero-force radius around it.
+    pub static_maps: Vec<StaticMap>,
+    /// The real-time form on each scan whose deflection varies within it (variant b).
+    pub real_time: Vec<RealTime>,
     /// What this measurement cannot determine, and why.
     pub undetermined: Vec<String>,
     /// Remarks.
     pub notes: Vec<String>,
+}
+
+/// The static error map of one circle on the sphere (a setting at one latitude): what each
+/// point extrapolates to at zero deflection, as the radius of the sphere there minus its
+/// certified radius, at knots around the circle. It is kept apart from the machine's
+/// geometry (which this procedure does not change) and from the force coefficients.
+#[derive(Debug, Clone, Serialize)]
+pub struct StaticMap {
+    /// Tip.
+    pub tip: u32,
+    /// Head angles, degrees.
+    pub head_deg: [f64; 2],
+    /// Latitude of the circle on the sphere, degrees.
+    pub latitude_deg: f64,
+    /// Command segments scanned on it.
+    pub segments: Vec<u32>,
+    /// Knots: angle about the sphere's axis, degrees.
+    pub theta_deg: Vec<f64>,
+    /// Radius at zero force minus the certified radius at the knots, µm.
+    pub radial_um: Vec<f64>,
+    /// Standard uncertainty of each (statistical, the σ of the fit), µm.
+    pub radial_u_um: Vec<f64>,
+    /// What the new version stores (effect `feature_map`, every speed, at this circle's place,
+    /// along the sphere's normal): minus the map, less the tip's own change of radius (which
+    /// the new tip radius holds).
+    pub stored: feature_map::Config,
+}
+
+/// Knots of a static map (every 5°: the map's 12 harmonics, linearly interpolated, within 3 %).
+const STATIC_KNOTS: usize = 72;
+
+/// The real-time form (two forces per place, R0 = R1 − (R2 − R1)·F1/(F2 − F1)) on one scan
+/// whose deflection varies within it.
+#[derive(Debug, Clone, Serialize)]
+pub struct RealTime {
+    /// Tip.
+    pub tip: u32,
+    /// Head angles, degrees.
+    pub head_deg: [f64; 2],
+    /// Command segment of the scan.
+    pub segment: u32,
+    /// Latitude of the circle on the sphere, degrees.
+    pub latitude_deg: f64,
+    /// Deflection range scanned (5th, 95th percentile), mm.
+    pub deflection_mm: [f64; 2],
+    /// Waves of the deflection around the scan (one pair of readings each).
+    pub waves: usize,
+    /// Waves extrapolated to zero force.
+    pub extrapolated: usize,
+    /// Waves whose lower force was below significance (taken as zero).
+    pub force_zero: usize,
+    /// Waves whose two forces did not differ significantly (no zero-force value).
+    pub alike: usize,
+    /// RMS over the waves of the lower-force reading R1 minus the fit's zero-force value of
+    /// the same points: the force's error that the real-time form removes, µm.
+    pub before_um: f64,
+    /// RMS of R0 minus the fit's zero-force value of the same points, µm.
+    pub rms_um: f64,
+    /// RMS of R0's statistical standard uncertainty (the points' noise), µm; what `rms_um`
+    /// holds beyond it is what the fit leaves systematically between a wave's two halves.
+    pub sigma_um: f64,
+    /// The carriage's radial acceleration per mm of deflection in this scan (estimated from
+    /// the command), mm/s² per mm: a compliance C acts like a force coefficient −C times this.
+    pub accel_per_deflection_s2: f64,
 }
 
 struct Group {
@@ -301,6 +389,31 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     let mut ne = Normal::new(n_cols);
     let mut dense = vec![0.0; n_dense];
     let mut r = vec![Vec3::zeros(); n_dense];
+    // The thermal regressors about their mean over the measurement: they model what changes
+    // while it runs, and the static maps hold the circles at the measurement's mean
+    // temperature (about the calibration's reference temperature, an expansion coefficient
+    // this measurement barely determines would carry its whole uncertainty into every map).
+    let mut thermal_mean = vec![Vec3::zeros(); n_dense];
+    let mut n_mean = 0usize;
+    for g in &groups {
+        for &i in &g.idx {
+            let mut off = n_force;
+            for m in &thermal {
+                let k = m.n_params();
+                m.regressors(&ds.points[i].ctx, &mut r[off..off + k]);
+                off += k;
+            }
+            for (a, b) in thermal_mean.iter_mut().zip(&r).skip(n_force) {
+                if b.iter().all(|x| x.is_finite()) {
+                    *a += b;
+                }
+            }
+            n_mean += 1;
+        }
+    }
+    for a in &mut thermal_mean {
+        *a /= n_mean.max(1) as f64;
+    }
     let mut sparse = Vec::with_capacity(DRIFT + PER_CIRCLE);
     let row = |gi: usize,
                i: usize,
@@ -318,9 +431,9 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             m.regressors(&p.ctx, &mut r[off..off + k]);
             off += k;
         }
-        for (d, ri) in dense.iter_mut().zip(r.iter()) {
+        for ((d, ri), mi) in dense.iter_mut().zip(r.iter()).zip(&thermal_mean) {
             *d = if ri.iter().all(|x| x.is_finite()) {
-                n.dot(ri)
+                n.dot(&(ri - mi))
             } else {
                 0.0
             };
@@ -588,6 +701,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     // radius error (the corrector puts the surface a tip radius from the tip centre), mean
     // over the tip's settings.
     let mut calibration = start.clone();
+    let mut tip_shift: BTreeMap<u32, f64> = BTreeMap::new();
     for &t in &tips {
         let ss: Vec<&Setting> = settings
             .iter()
@@ -611,11 +725,269 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             .sum::<f64>()
             / (n * n);
         g.radius_mm += e;
+        tip_shift.insert(t, e);
         params.push(Param {
             name: format!("tip{t}.radius_at_zero_force_mm"),
             value: g.radius_mm,
             sigma: v.sqrt(),
         });
+    }
+    // The static map of each circle at its knots: mean radius plus harmonics, with the σ of
+    // that linear combination of the circle's columns.
+    let mut static_maps = vec![];
+    for ((gi, _), &c) in &circles {
+        let (gi, g) = (*gi, &groups[*gi]);
+        if !lin[gi].sphere {
+            continue;
+        }
+        let k0 = n_dense + DRIFT * n_circles + PER_CIRCLE * c;
+        let members: Vec<usize> = g
+            .idx
+            .iter()
+            .copied()
+            .filter(|&i| circle_of[i] == c)
+            .collect();
+        let lat = members
+            .iter()
+            .map(|&i| dir(gi, i).z.clamp(-1.0, 1.0).asin())
+            .sum::<f64>()
+            / members.len().max(1) as f64;
+        let mut segments: Vec<u32> = members.iter().map(|&i| ds.points[i].segment).collect();
+        segments.sort_unstable();
+        segments.dedup();
+        let (mut th_deg, mut val, mut unc) = (vec![], vec![], vec![]);
+        for j in 0..STATIC_KNOTS {
+            let th = std::f64::consts::TAU * j as f64 / STATIC_KNOTS as f64;
+            let mut w = vec![(k0, 1.0)];
+            for h in 1..=HARMONICS {
+                let a = h as f64 * th;
+                w.push((k0 + 2 * h - 1, a.cos()));
+                w.push((k0 + 2 * h, a.sin()));
+            }
+            let v: f64 = w.iter().map(|(col, f)| f * theta[*col]).sum();
+            let cov = &sol.cov;
+            let var: f64 = w
+                .iter()
+                .flat_map(|(a, fa)| w.iter().map(move |(b, fb)| fa * fb * cov[(*a, *b)]))
+                .sum::<f64>()
+                * sigma2;
+            th_deg.push(th.to_degrees());
+            val.push((lin[gi].radius + v - spheres[&g.feature]) * 1e3);
+            unc.push(var.max(0.0).sqrt() * 1e3);
+        }
+        // Its place: the circle's carriage path (scales + deflection, where the corrector
+        // takes the map's angle), the same at every deflection.
+        let carr: Vec<Vec3> = members
+            .iter()
+            .map(|&i| ds.points[i].ctx.scale + ds.points[i].ctx.deflection)
+            .collect();
+        let Ok(path) = shape::fit_circle(&carr) else {
+            continue;
+        };
+        let z = carr.iter().map(|p| p.z).sum::<f64>() / carr.len() as f64;
+        let shift = tip_shift.get(&g.tip).copied().unwrap_or(0.0);
+        let stored = feature_map::Config {
+            id: Some(format!(
+                "static_map_tip{}_lat{:.0}_s{}",
+                g.tip,
+                lat.to_degrees(),
+                segments.first().copied().unwrap_or(0)
+            )),
+            feature: Some(format!(
+                "master sphere, tip {} at head ({}, {})°, circle at latitude {:+.1}°: its error \
+                 at zero force (calibrate probe-force)",
+                g.tip,
+                g.head[0],
+                g.head[1],
+                lat.to_degrees()
+            )),
+            segments: segments.clone(),
+            tip: g.tip,
+            head_deg: g.head,
+            speed_mm_s: None,
+            speed_tolerance_mm_s: None,
+            center_mm: [path.center.x, path.center.y],
+            radius_mm: Some(path.radius),
+            z_mm: Some(z),
+            place_tolerance_mm: 1.0,
+            latitude_deg: lat.to_degrees(),
+            values_mm: val.iter().map(|v| -(v * 1e-3 - shift)).collect(),
+            per_deflection: vec![],
+            deflection_mm: None,
+            values_u_mm: unc.iter().map(|u| u * 1e-3).collect(),
+        };
+        if stored.build().is_err() {
+            continue;
+        }
+        static_maps.push(StaticMap {
+            tip: g.tip,
+            head_deg: g.head,
+            latitude_deg: lat.to_degrees(),
+            segments,
+            theta_deg: th_deg,
+            radial_um: val,
+            radial_u_um: unc,
+            stored,
+        });
+    }
+    // The real-time form on the scans whose deflection varies within them.
+    let point_sigma = (point_var * inflate).sqrt();
+    let compliance_corrected = start.effects.iter().any(|e| e.kind() == "accel_deflection");
+    let mut real_time = vec![];
+    for (gi, g) in groups.iter().enumerate() {
+        let mut by_seg: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
+        for &i in &g.idx {
+            by_seg.entry(ds.points[i].segment).or_default().push(i);
+        }
+        for (seg, idx) in by_seg {
+            let defl = |i: usize| ds.points[i].ctx.deflection_probe.norm();
+            let mut d: Vec<f64> = idx.iter().map(|&i| defl(i)).collect();
+            d.sort_by(|a, b| a.total_cmp(b));
+            let pct = |q: f64| d[((d.len() - 1) as f64 * q).round() as usize];
+            let (d5, d50, d95) = (pct(0.05), pct(0.5), pct(0.95));
+            if d95 - d5 < VARYING_MM || idx.len() < 40 {
+                continue;
+            }
+            // Points in order around the circle; the waves from the crossings of the median.
+            let mut order: Vec<(f64, usize)> = idx
+                .iter()
+                .map(|&i| {
+                    let n = dir(gi, i);
+                    (n.y.atan2(n.x), i)
+                })
+                .collect();
+            order.sort_by(|a, b| a.0.total_cmp(&b.0));
+            // Crossings with hysteresis (a quarter of the wave's amplitude either side of the
+            // median): the deflection's noise near the median makes no crossing of its own.
+            let band = 0.125 * (d95 - d5);
+            let mut side = 0i8;
+            let mut crossings = 0usize;
+            for (_, i) in &order {
+                let now = if defl(*i) > d50 + band {
+                    1
+                } else if defl(*i) < d50 - band {
+                    -1
+                } else {
+                    continue;
+                };
+                if side != 0 && now != side {
+                    crossings += 1;
+                }
+                side = now;
+            }
+            let waves = (crossings / 2).max(1);
+            // The fit's zero-force value of a point (its model without the force, no noise)
+            // and the point's own radial reading.
+            let model0 = |i: usize,
+                          dense: &mut Vec<f64>,
+                          r: &mut Vec<Vec3>,
+                          sparse: &mut Vec<(usize, f64)>| {
+                let y = row(gi, i, dense, r, sparse);
+                let force: f64 = dense[..n_force]
+                    .iter()
+                    .zip(&theta)
+                    .map(|(a, t)| a * t)
+                    .sum();
+                let e = residual(gi, i, &theta, dense, r, sparse);
+                (y, y + force - e)
+            };
+            // The deflection's noise from its second differences in time (the wave is smooth
+            // over three samples): σ² = E[(d₋ − 2d + d₊)²]/6.
+            let mut by_t = idx.clone();
+            by_t.sort_by_key(|&i| ds.points[i].ctx.t_ns);
+            let d2: Vec<f64> = by_t
+                .windows(3)
+                .map(|w| (defl(w[0]) - 2.0 * defl(w[1]) + defl(w[2])).powi(2))
+                .collect();
+            let f_sigma = (d2.iter().sum::<f64>() / (6.0 * d2.len().max(1) as f64))
+                .sqrt()
+                .max(1e-6);
+            let (mut n_ex, mut n_zero, mut n_alike) = (0, 0, 0);
+            let (mut ss, mut su, mut sb) = (0.0, 0.0, 0.0);
+            let per = order.len() as f64 / waves as f64;
+            for w in 0..waves {
+                let lo_i = (w as f64 * per).round() as usize;
+                let hi_i = (((w + 1) as f64 * per).round() as usize).min(order.len());
+                let bin = &order[lo_i..hi_i];
+                let mut bd: Vec<f64> = bin.iter().map(|(_, i)| defl(*i)).collect();
+                bd.sort_by(|a, b| a.total_cmp(b));
+                if bd.len() < 8 {
+                    continue;
+                }
+                let med = bd[bd.len() / 2];
+                // Sums per half: n, R, F, model.
+                let mut h = [[0.0f64; 4]; 2];
+                for (_, i) in bin {
+                    let (y, m) = model0(*i, &mut dense, &mut r, &mut sparse);
+                    let k = usize::from(defl(*i) > med);
+                    h[k][0] += 1.0;
+                    h[k][1] += y;
+                    h[k][2] += defl(*i);
+                    h[k][3] += m;
+                }
+                if h[0][0] < 3.0 || h[1][0] < 3.0 {
+                    continue;
+                }
+                let read = |k: usize, col: usize| Reading {
+                    r: h[k][col] / h[k][0],
+                    r_sigma: point_sigma / h[k][0].sqrt(),
+                    f: h[k][2] / h[k][0],
+                    f_sigma: f_sigma / h[k][0].sqrt(),
+                };
+                let z = zero_force::two_force(read(0, 1), read(1, 1));
+                let m = zero_force::two_force(read(0, 3), read(1, 3));
+                match z {
+                    ZeroForce::Extrapolated { .. } => n_ex += 1,
+                    ZeroForce::ForceZero { .. } => n_zero += 1,
+                    ZeroForce::Alike => n_alike += 1,
+                }
+                if let (Some((r0, s0)), Some((m0, _))) = (z.value(), m.value()) {
+                    ss += (r0 - m0).powi(2);
+                    su += s0 * s0;
+                    let lower = usize::from(h[1][2] / h[1][0] < h[0][2] / h[0][0]);
+                    sb += ((h[lower][1] - h[lower][3]) / h[lower][0]).powi(2);
+                }
+            }
+            let used = (n_ex + n_zero).max(1) as f64;
+            // The radial acceleration against the deflection (least-squares slope).
+            let (mut sd, mut sa, mut sdd, mut sda, mut sn) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for &i in &idx {
+                let p = &ds.points[i];
+                let a = dir(gi, i).dot(&p.ctx.est_acc);
+                let x = defl(i);
+                sn += 1.0;
+                sd += x;
+                sa += a;
+                sdd += x * x;
+                sda += x * a;
+            }
+            let var = sdd / sn - (sd / sn).powi(2);
+            let slope = if var > 0.0 {
+                (sda / sn - sd / sn * sa / sn) / var
+            } else {
+                0.0
+            };
+            let lat = order
+                .iter()
+                .map(|(_, i)| dir(gi, *i).z.clamp(-1.0, 1.0).asin())
+                .sum::<f64>()
+                / order.len() as f64;
+            real_time.push(RealTime {
+                tip: g.tip,
+                head_deg: g.head,
+                segment: seg,
+                latitude_deg: lat.to_degrees(),
+                deflection_mm: [d5, d95],
+                waves,
+                extrapolated: n_ex,
+                force_zero: n_zero,
+                alike: n_alike,
+                before_um: (sb / used).sqrt() * 1e3,
+                rms_um: (ss / used).sqrt() * 1e3,
+                sigma_um: (su / used).sqrt() * 1e3,
+                accel_per_deflection_s2: slope,
+            });
+        }
     }
     let mut notes = vec![
         "the radii at zero force carry every radial error of these circles that does not \
@@ -623,6 +995,41 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
          speed): their σ is the statistical part only; the force coefficients are free of it"
             .to_string(),
     ];
+    // A wave of the deflection accelerates the carriage in phase with it: unless the start
+    // corrects the compliance, a typical one biases the coefficients by C·(a per d).
+    if let Some(worst) = real_time
+        .iter()
+        .map(|rt| rt.accel_per_deflection_s2.abs())
+        .max_by(|a, b| a.total_cmp(b))
+    {
+        let bias = TYPICAL_COMPLIANCE_S2 * worst;
+        let sigma_k = params
+            .iter()
+            .filter(|p| p.name.contains(".probe_k_"))
+            .map(|p| p.sigma)
+            .fold(f64::INFINITY, f64::min);
+        if compliance_corrected {
+            notes.push(format!(
+                "the deflection's waves accelerate the carriage by up to {worst:.1} mm/s² per mm \
+                 of deflection; the start's accel_deflection corrects the structure's bending \
+                 under it"
+            ));
+        } else if bias > sigma_k {
+            notes.push(format!(
+                "confounded: the deflection's waves accelerate the carriage by up to \
+                 {worst:.1} mm/s² per mm of deflection, in phase with the deflection — a \
+                 compliance of 30 µm per m/s² would shift the force coefficients by {bias:.5} \
+                 (their σ: {sigma_k:.5}); slow the wave (fewer waves per turn, a slower scan) \
+                 or calibrate dynamics first and start from its accel_deflection"
+            ));
+        } else {
+            notes.push(format!(
+                "the deflection's waves accelerate the carriage by up to {worst:.2} mm/s² per \
+                 mm of deflection: a compliance of 30 µm per m/s² would shift the force \
+                 coefficients by {bias:.6}, below their σ ({sigma_k:.5})"
+            ));
+        }
+    }
     if groups.iter().any(|g| g.head != [0.0, 0.0]) {
         notes.push(
             "a tip measured at several head angles gets one coefficient triple in its probe \
@@ -652,6 +1059,24 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         Some(e) => *e = effect,
         None => calibration.effects.push(effect),
     }
+    // The static maps replace the start's static maps of the same scans.
+    let maps: Vec<feature_map::Config> = static_maps.iter().map(|m| m.stored.clone()).collect();
+    calibration.effects.retain(|e| match e {
+        EffectConfig::FeatureMap(old) => !maps.iter().any(|n| n.replaces(old)),
+        _ => true,
+    });
+    calibration
+        .effects
+        .extend(maps.into_iter().map(EffectConfig::FeatureMap));
+    if !static_maps.is_empty() {
+        notes.push(
+            "each circle's static error map is stored as a `feature_map` (at every speed, at \
+             the circle's place, for its segments and tip): a later scan of that circle by the \
+             same program is corrected by it, apart from the machine's geometry; a dynamic map \
+             of the same scan adds to it"
+                .to_string(),
+        );
+    }
     Ok(Outcome {
         calibration,
         params,
@@ -659,6 +1084,8 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         rms_before_um: (ss_before / n_rows.max(1) as f64).sqrt() * 1e3,
         rms_after_um: (ss_after / n_rows.max(1) as f64).sqrt() * 1e3,
         cell_chi2: chi2_red,
+        static_maps,
+        real_time,
         undetermined,
         notes,
     })

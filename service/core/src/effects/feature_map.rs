@@ -2,11 +2,14 @@
 //! of `scancorr calibrate dynamic-map`).
 //!
 //! Equation: for a point of a listed scan segment, with the map's tip and head angles, moving at
-//! the map's speed (| |V̂| − v_map | ≤ tolerance, V̂ the estimated velocity), with
-//! θ = atan2 of (s + d − c) in the XY plane (s the scales, d the deflection in machine axes,
-//! c the map's centre in the same carriage coordinates), n̂ = (cos θ, sin θ, 0) pointing away
-//! from the centre and hat functions h_j(θ) interpolating linearly (periodically) between N
-//! knots θ_j = 2πj/N,
+//! the map's speed (| |V̂| − v_map | ≤ tolerance, V̂ the estimated velocity; a map without a
+//! speed applies at every speed), at the map's place when it has one (the carriage point's
+//! distance from the centre within a tolerance of the map's radius, its height of the map's
+//! z), with θ = atan2 of (s + d − c) in the XY plane (s the scales, d the deflection in machine
+//! axes, c the map's centre in the same carriage coordinates), n̂ = (cos φ·cos θ, cos φ·sin θ,
+//! sin φ) pointing away from the centre (φ the latitude of the feature's normal: 0 on a ring,
+//! the circle's latitude on a sphere) and hat functions h_j(θ) interpolating linearly
+//! (periodically) between N knots θ_j = 2πj/N,
 //!
 //! δ = n̂ · Σ_j h_j(θ)·(a_j + b_j·|d_probe|),
 //!
@@ -15,6 +18,11 @@
 //! the direction away from the centre whatever the feature (bore or boss): a point measured
 //! 1 µm too far from the centre gets a_j + b_j·|d| = −1 µm. Elsewhere (another segment,
 //! tip, speed — ramps included) δ = 0.
+//!
+//! Two kinds are stored: the dynamic map of a fast scan (`calibrate dynamic-map`, at its speed)
+//! and the static error map of a feature (`calibrate probe-force`: the zero-force error of each
+//! circle on the master sphere, at every speed and its place). Both apply to a fast scan of
+//! the feature they share, their corrections added: one correction vector.
 //!
 //! Source idea: Renishaw's calibration of a coordinate positioning apparatus (the S1/F1/F2
 //! method): the error of a fast scan of a feature, measured once against slow scans of the
@@ -48,12 +56,27 @@ pub struct Config {
     /// Head angles A1, A2 the map applies to, degrees (within 0.01°).
     #[serde(default)]
     pub head_deg: [f64; 2],
-    /// Path speed the map applies to, mm/s.
-    pub speed_mm_s: f64,
-    /// Largest difference of the estimated path speed from `speed_mm_s`, mm/s.
-    pub speed_tolerance_mm_s: f64,
+    /// Path speed the map applies to, mm/s (none: every speed — a static map).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub speed_mm_s: Option<f64>,
+    /// Largest difference of the estimated path speed from `speed_mm_s`, mm/s (with a speed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub speed_tolerance_mm_s: Option<f64>,
     /// Centre of the scan's carriage path (scales + deflection), X and Y, mm.
     pub center_mm: [f64; 2],
+    /// The place: radius of the scan's carriage path about the centre, mm (none: any).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radius_mm: Option<f64>,
+    /// The place: height (Z) of the scan's carriage path, mm (none: any).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_mm: Option<f64>,
+    /// How far a point may be from the place (radius and height) and still be of it, mm.
+    #[serde(default = "default_place_tolerance")]
+    pub place_tolerance_mm: f64,
+    /// Latitude of the correction's direction, degrees: 0 horizontal (a ring); a circle on a
+    /// sphere at latitude φ is corrected along the sphere's normal.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub latitude_deg: f64,
     /// Radial correction at zero deflection at the knots θ_j = 360°·j/N, mm.
     pub values_mm: Vec<f64>,
     /// Change of the radial correction per mm of deflection at the knots (empty: none).
@@ -68,15 +91,31 @@ pub struct Config {
     pub values_u_mm: Vec<f64>,
 }
 
+fn default_place_tolerance() -> f64 {
+    1.0
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
+
 /// Hot-path form.
 #[derive(Debug, Clone)]
 pub struct Model {
     segments: Vec<u32>,
     tip: u32,
     head: [f64; 2],
+    /// Speed and tolerance (tolerance infinite: every speed).
     speed: f64,
     tol: f64,
     center: [f64; 2],
+    /// Radius and height of the place (NaN: any) and their tolerance.
+    radius: f64,
+    z: f64,
+    place_tol: f64,
+    /// cos φ, sin φ of the latitude.
+    cos_lat: f64,
+    sin_lat: f64,
     a: Vec<f64>,
     b: Vec<f64>,
 }
@@ -109,13 +148,38 @@ impl Config {
             return Err("segments: list the command segment ids the map applies to".into());
         }
         check_finite("head_deg", &self.head_deg)?;
-        if !(self.speed_mm_s.is_finite() && self.speed_mm_s > 0.0) {
-            return Err("speed_mm_s: must be a finite number > 0".into());
-        }
-        if !(self.speed_tolerance_mm_s.is_finite() && self.speed_tolerance_mm_s > 0.0) {
-            return Err("speed_tolerance_mm_s: must be a finite number > 0".into());
-        }
+        let (speed, tol) = match (self.speed_mm_s, self.speed_tolerance_mm_s) {
+            (None, None) => (0.0, f64::INFINITY),
+            (Some(v), Some(t)) => {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err("speed_mm_s: must be a finite number > 0".into());
+                }
+                if !(t.is_finite() && t > 0.0) {
+                    return Err("speed_tolerance_mm_s: must be a finite number > 0".into());
+                }
+                (v, t)
+            }
+            _ => {
+                return Err(
+                    "speed_mm_s, speed_tolerance_mm_s: give both (a map at one speed) \
+                            or neither (a static map, every speed)"
+                        .into(),
+                )
+            }
+        };
         check_finite("center_mm", &self.center_mm)?;
+        if let Some(r) = self.radius_mm {
+            if !(r.is_finite() && r > 0.0) {
+                return Err("radius_mm: must be a finite number > 0".into());
+            }
+        }
+        check_finite("z_mm", &self.z_mm.into_iter().collect::<Vec<_>>())?;
+        if !(self.place_tolerance_mm.is_finite() && self.place_tolerance_mm > 0.0) {
+            return Err("place_tolerance_mm: must be a finite number > 0".into());
+        }
+        if !(self.latitude_deg.is_finite() && self.latitude_deg.abs() < 90.0) {
+            return Err("latitude_deg: must be a finite number of degrees within ±90".into());
+        }
         let n = self.values_mm.len();
         if n < MIN_KNOTS {
             return Err(format!(
@@ -154,12 +218,41 @@ impl Config {
             segments: self.segments.clone(),
             tip: self.tip,
             head: self.head_deg,
-            speed: self.speed_mm_s,
-            tol: self.speed_tolerance_mm_s,
+            speed,
+            tol,
             center: self.center_mm,
+            radius: self.radius_mm.unwrap_or(f64::NAN),
+            z: self.z_mm.unwrap_or(f64::NAN),
+            place_tol: self.place_tolerance_mm,
+            cos_lat: self.latitude_deg.to_radians().cos(),
+            sin_lat: self.latitude_deg.to_radians().sin(),
             a: self.values_mm.clone(),
             b: self.per_deflection.clone(),
         })
+    }
+    /// Whether `self` maps the same scan as `other` and so replaces it: the same tip and head
+    /// angles, a segment in common, both static or both at a speed (within either's
+    /// tolerance), centres within the place tolerance. A static map and a dynamic map of one
+    /// scan are both kept (their corrections add).
+    pub fn replaces(&self, other: &Config) -> bool {
+        let same_speed = match (
+            (self.speed_mm_s, self.speed_tolerance_mm_s),
+            (other.speed_mm_s, other.speed_tolerance_mm_s),
+        ) {
+            ((None, _), (None, _)) => true,
+            ((Some(a), ta), (Some(b), tb)) => {
+                (a - b).abs() <= ta.unwrap_or(0.0).max(tb.unwrap_or(0.0))
+            }
+            _ => false,
+        };
+        let tol = self.place_tolerance_mm.max(other.place_tolerance_mm);
+        self.tip == other.tip
+            && (0..2).all(|k| (self.head_deg[k] - other.head_deg[k]).abs() <= 0.01)
+            && self.segments.iter().any(|s| other.segments.contains(s))
+            && same_speed
+            && (self.center_mm[0] - other.center_mm[0])
+                .hypot(self.center_mm[1] - other.center_mm[1])
+                <= tol
     }
     /// Flat parameters: `values_mm`, then `per_deflection`.
     pub fn params(&self) -> Vec<f64> {
@@ -199,6 +292,19 @@ impl Model {
             && (ctx.head_a2_deg - self.head[1]).abs() <= 0.01
             && (ctx.est_vel.norm() - self.speed).abs() <= self.tol
             && self.segments.contains(&ctx.segment_id)
+            && self.at_place(ctx)
+    }
+    /// Whether the point is at the map's place (true when it has none).
+    #[inline]
+    fn at_place(&self, ctx: &PointContext) -> bool {
+        let p = ctx.scale + ctx.deflection;
+        let r = (p.x - self.center[0]).hypot(p.y - self.center[1]);
+        !((r - self.radius).abs() > self.place_tol || (p.z - self.z).abs() > self.place_tol)
+    }
+    /// The direction of the correction from the horizontal one away from the centre.
+    #[inline]
+    fn direction(&self, n_hat: Vec3) -> Vec3 {
+        Vec3::new(n_hat.x * self.cos_lat, n_hat.y * self.cos_lat, self.sin_lat)
     }
 }
 
@@ -214,6 +320,7 @@ impl Effect for Model {
         let Some((th, n_hat)) = angle(ctx, self.center) else {
             return;
         };
+        let n_hat = self.direction(n_hat);
         let n = self.a.len();
         let (j, k, w) = hat(th, n);
         out[j] += n_hat * w;
@@ -232,6 +339,7 @@ impl Effect for Model {
         let Some((th, n_hat)) = angle(ctx, self.center) else {
             return Vec3::zeros();
         };
+        let n_hat = self.direction(n_hat);
         let (j, k, w) = hat(th, self.a.len());
         let mut v = w * self.a[j] + (1.0 - w) * self.a[k];
         if !self.b.is_empty() {
@@ -253,9 +361,13 @@ mod tests {
             segments: vec![7, 11],
             tip: 1,
             head_deg: [0.0, 0.0],
-            speed_mm_s: 80.0,
-            speed_tolerance_mm_s: 4.0,
+            speed_mm_s: Some(80.0),
+            speed_tolerance_mm_s: Some(4.0),
             center_mm: [100.0, 50.0],
+            radius_mm: None,
+            z_mm: None,
+            place_tolerance_mm: 1.0,
+            latitude_deg: 0.0,
             values_mm: vec![1e-3, 2e-3, 3e-3, 4e-3],
             per_deflection: vec![0.0, 1e-2, 0.0, 0.0],
             deflection_mm: Some(0.3),
@@ -308,13 +420,90 @@ mod tests {
         c.segments.clear();
         assert!(c.build().unwrap_err().starts_with("segments"));
         let mut c = cfg();
-        c.speed_tolerance_mm_s = 0.0;
+        c.speed_tolerance_mm_s = Some(0.0);
         assert!(c.build().unwrap_err().starts_with("speed_tolerance_mm_s"));
+        let mut c = cfg();
+        c.speed_tolerance_mm_s = None;
+        assert!(c.build().unwrap_err().contains("give both"));
+        let mut c = cfg();
+        c.latitude_deg = 90.0;
+        assert!(c.build().unwrap_err().starts_with("latitude_deg"));
+        let mut c = cfg();
+        c.radius_mm = Some(-1.0);
+        assert!(c.build().unwrap_err().starts_with("radius_mm"));
+        // A document of the first form (no place, no latitude) still reads.
+        let old = r#"{"kind":"feature_map","segments":[3],"tip":1,"speed_mm_s":80.0,
+            "speed_tolerance_mm_s":4.0,"center_mm":[0.0,0.0],"values_mm":[0.0,0.0,0.0,0.0]}"#;
+        let EffectConfig::FeatureMap(o) = serde_json::from_str::<EffectConfig>(old).unwrap() else {
+            panic!("a feature map")
+        };
+        assert_eq!(
+            (o.radius_mm, o.latitude_deg, o.place_tolerance_mm),
+            (None, 0.0, 1.0)
+        );
         let j = serde_json::to_string(&EffectConfig::FeatureMap(cfg())).unwrap();
         assert!(j.contains("\"kind\":\"feature_map\""), "{j}");
         let back: EffectConfig = serde_json::from_str(&j).unwrap();
         assert_eq!(back, EffectConfig::FeatureMap(cfg()));
         let typo = j.replace("\"tip\"", "\"tipp\"");
         assert!(serde_json::from_str::<EffectConfig>(&typo).is_err());
+    }
+
+    #[test]
+    fn a_static_map_applies_at_every_speed_at_its_place_along_the_spheres_normal() {
+        let mut c = cfg();
+        c.speed_mm_s = None;
+        c.speed_tolerance_mm_s = None;
+        c.per_deflection.clear();
+        c.radius_mm = Some(10.0);
+        c.z_mm = Some(-200.0);
+        c.latitude_deg = 30.0;
+        let m = c.build().unwrap();
+        // At 90° on the place (radius 10, z −200), at any speed: 2 µm along the normal of a
+        // sphere's circle at latitude 30° (cos 30° horizontally, sin 30° up).
+        let mut ctx = PointContext::at_rest(Vec3::new(100.0, 60.0, -200.0));
+        ctx.segment_id = 7;
+        for v in [0.5, 80.0, 300.0] {
+            ctx.est_vel = Vec3::new(v, 0.0, 0.0);
+            let d = m.correction(&ctx);
+            let want = Vec3::new(0.0, 30f64.to_radians().cos(), 0.5) * 2e-3;
+            assert!((d - want).norm() < 1e-15, "{v} mm/s: {d:?}");
+            assert_linear(&m, &EffectConfig::FeatureMap(c.clone()), &ctx);
+        }
+        // Off its place (another radius, another height): nothing.
+        for at in [
+            Vec3::new(100.0, 62.0, -200.0),
+            Vec3::new(100.0, 60.0, -198.0),
+        ] {
+            let mut o = ctx;
+            o.scale = at;
+            assert_eq!(m.correction(&o), Vec3::zeros());
+            assert_linear(&m, &EffectConfig::FeatureMap(c.clone()), &o);
+        }
+    }
+
+    #[test]
+    fn a_map_replaces_the_same_scans_map_of_its_kind_only() {
+        let dynamic = cfg();
+        let mut newer = cfg();
+        newer.values_mm = vec![0.0; 4];
+        assert!(newer.replaces(&dynamic));
+        // The static map of the same scan is kept beside it; so are other segments, tips,
+        // speeds and places.
+        let mut stat = cfg();
+        stat.speed_mm_s = None;
+        stat.speed_tolerance_mm_s = None;
+        assert!(!stat.replaces(&dynamic) && !dynamic.replaces(&stat));
+        let others: [fn(&mut Config); 4] = [
+            |c| c.segments = vec![8],
+            |c| c.tip = 2,
+            |c| c.speed_mm_s = Some(40.0),
+            |c| c.center_mm = [300.0, 50.0],
+        ];
+        for f in others {
+            let mut o = cfg();
+            f(&mut o);
+            assert!(!o.replaces(&dynamic), "{o:?}");
+        }
     }
 }
