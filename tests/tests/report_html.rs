@@ -589,23 +589,42 @@ fn reports_render_in_headless_chromium() {
                     "{name}: expected a polar plot per ring (≥ 3), got {}",
                     polar.len()
                 );
-                for s in &polar {
+                // Before and after side by side, per ring, on the report's one scale, with
+                // the same traces (direction × speed) in both.
+                let attr = |s: &str, a: &str| -> String {
+                    s.split(&format!("{a}=\""))
+                        .nth(1)
+                        .and_then(|x| x.split('"').next())
+                        .unwrap_or("")
+                        .to_string()
+                };
+                assert_eq!(polar.len() % 2, 0, "{name}: before/after pairs");
+                let scale = attr(polar[0], "data-um-per-div");
+                for pair in polar.chunks(2) {
+                    assert_eq!(
+                        (
+                            attr(pair[0], "data-role").as_str(),
+                            attr(pair[1], "data-role").as_str()
+                        ),
+                        ("before", "after"),
+                        "{name}: a before and an after plot per ring"
+                    );
+                    for s in pair {
+                        assert_eq!(attr(s, "data-um-per-div"), scale, "{name}: one scale");
+                    }
+                    let traces = |s: &str| s.matches("data-trace=").count();
                     assert!(
-                        s.contains("stroke=\"#d55\"") && s.contains("stroke=\"#2266cc\""),
-                        "{name}: a polar plot lacks the before (red) or after (blue) curve"
+                        traces(pair[0]) >= 2 && traces(pair[0]) == traces(pair[1]),
+                        "{name}: traces per direction and speed"
                     );
                 }
                 assert_eq!(count("error-fall"), 1, "{name}: the error-fall chart");
                 let polars = laid_out(name, &lay, "polar");
                 for (i, n) in check_polars(name, &polars).into_iter().enumerate() {
-                    assert_eq!(n, 2, "{name}: polar plot {i}: before and after curves");
-                    let s: Vec<&str> = polars[i]["paths"]
-                        .as_array()
-                        .unwrap()
-                        .iter()
-                        .map(|c| c["stroke"].as_str().unwrap_or(""))
-                        .collect();
-                    assert_ne!(s[0], s[1], "{name}: before and after drawn alike");
+                    assert!(
+                        n >= 2,
+                        "{name}: polar plot {i}: a curve per direction and speed"
+                    );
                 }
                 let (_, bars) = check_bars(name, &laid_out(name, &lay, "error-fall"));
                 assert!(
@@ -679,4 +698,170 @@ fn reports_render_in_headless_chromium() {
         d.display()
     );
     let _ = std::fs::remove_dir_all(&d);
+}
+
+/// The compare report of a campaign with `servo_phase` left out of the calibration draws each
+/// ring as a circular test does: one trace per direction and speed (not their mean, which
+/// hides the mirror-image ovals of a servo mismatch), on a stated scale, with the certified
+/// circle and the axes marked and each trace's circularity printed beside it; `lab compare
+/// --json` lists the same traces.
+#[test]
+fn compare_report_draws_one_trace_per_direction_and_speed() {
+    let d = scratch("report-compare-traces");
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "campaign",
+            "--seed",
+            "1",
+            "--hide",
+            "servo_phase",
+            "--out",
+            "c.mcap",
+            "--calib-out",
+            "start.json",
+        ],
+    );
+    let args = ["lab", "compare", "--bag", "c.mcap", "--calib", "start.json"];
+    ok(&d, &[&args[..], &["--report", "compare.html"]].concat());
+    let j: Value = serde_json::from_str(&ok(&d, &[&args[..], &["--json"]].concat())).unwrap();
+    let traces = j["traces"].as_array().expect("traces");
+    // The campaign's rings: both directions at each of its speeds.
+    let mut rings: std::collections::BTreeMap<u64, Vec<(i64, f64, f64)>> = Default::default();
+    for t in traces.iter().filter(|t| t["artifact"] == "ring") {
+        rings
+            .entry(t["feature"].as_u64().unwrap())
+            .or_default()
+            .push((
+                t["direction"].as_i64().unwrap(),
+                t["speed_mm_s"].as_f64().unwrap(),
+                t["circularity_um"].as_f64().unwrap(),
+            ));
+    }
+    assert!(rings.len() >= 3, "{rings:?}");
+    let fast_min = 60.0;
+    for (f, ts) in &rings {
+        let ccw = ts.iter().filter(|t| t.0 == 1).count();
+        assert!(ccw >= 3 && ccw * 2 == ts.len(), "ring {f}: {ts:?}");
+        for t in ts.iter().filter(|t| t.1 >= fast_min) {
+            assert!(t.2 > 5.0, "ring {f}: the servo mismatch at speed: {t:?}");
+        }
+        for t in ts.iter().filter(|t| t.1 <= 10.0) {
+            assert!(t.2 < 2.0, "ring {f}: slowly the mismatch is small: {t:?}");
+        }
+    }
+
+    let chrome = chromium();
+    let path = d.join("compare.html");
+    let html = std::fs::read_to_string(&path).unwrap();
+    assert_self_contained("compare.html", &html);
+    let dom = dump_dom(&chrome, &d, "dom-compare", &path, &[]);
+    let p = plots(&dom);
+    let polar = of_kind(&p, "polar");
+    assert_eq!(
+        polar.len(),
+        rings.len() + 1,
+        "a polar plot per ring and the sphere"
+    );
+    for (svg, (f, ts)) in polar.iter().zip(&rings) {
+        // One path per trace, each its own direction and speed; the axes and scale labelled.
+        let drawn: Vec<(String, String, f64)> = svg
+            .split("<path ")
+            .skip(1)
+            .map(|s| {
+                let a = |k: &str| {
+                    s.split(&format!("{k}=\""))
+                        .nth(1)
+                        .unwrap()
+                        .split('"')
+                        .next()
+                        .unwrap()
+                        .to_string()
+                };
+                (
+                    a("data-direction"),
+                    a("data-speed-mm-s"),
+                    a("data-circularity-um").parse().unwrap(),
+                )
+            })
+            .collect();
+        assert_eq!(drawn.len(), ts.len(), "ring {f}: {drawn:?}");
+        let mut keys: Vec<_> = drawn.iter().map(|x| (x.0.clone(), x.1.clone())).collect();
+        keys.sort();
+        keys.dedup();
+        assert_eq!(
+            keys.len(),
+            drawn.len(),
+            "ring {f}: a trace per direction and speed"
+        );
+        assert!(
+            svg.contains("+X") && svg.contains("+Y") && svg.contains("µm/div"),
+            "ring {f}"
+        );
+        assert!(svg.contains("data-um-per-div"), "ring {f}");
+        for (dir, v, c) in &drawn {
+            let t = ts
+                .iter()
+                .find(|t| (t.0 == 1) == (dir == "ccw") && format!("{}", t.1) == *v)
+                .unwrap_or_else(|| panic!("ring {f}: {dir} {v} not in the JSON"));
+            assert!(
+                (t.2 - c).abs() < 1e-3,
+                "ring {f}: {dir} {v}: {c} vs {}",
+                t.2
+            );
+        }
+    }
+    // The circularity printed beside each trace (the figure's legend), the fast ones above
+    // 5 µm on every ring.
+    let figures: Vec<&str> = dom
+        .split("<figure>")
+        .skip(1)
+        .map(|f| f.split("</figure>").next().unwrap())
+        .collect();
+    let mut n_ring_figures = 0;
+    for fig in &figures {
+        let legend: Vec<(String, f64)> = fig
+            .split("<li>")
+            .skip(1)
+            .filter_map(|li| {
+                let li = li.split("</li>").next()?;
+                let c: f64 = li
+                    .split("data-circularity-um=\"")
+                    .nth(1)?
+                    .split('"')
+                    .next()?
+                    .parse()
+                    .ok()?;
+                Some((li.to_string(), c))
+            })
+            .collect();
+        assert_eq!(
+            legend.len(),
+            fig.matches("<path ").count(),
+            "a legend line per trace: {fig}"
+        );
+        if !fig.contains("<b>ring") {
+            continue;
+        }
+        n_ring_figures += 1;
+        let fast: Vec<&(String, f64)> = legend
+            .iter()
+            .filter(|(li, _)| li.contains(" 60 mm/s") || li.contains(" 90 mm/s"))
+            .collect();
+        assert_eq!(fast.len(), 4, "{legend:?}");
+        for (li, c) in fast {
+            assert!(
+                *c > 5.0 && li.contains("circularity") && li.contains("µm"),
+                "{li}"
+            );
+        }
+    }
+    assert_eq!(n_ring_figures, rings.len());
+    // Laid out: every trace drawn with a length and extent.
+    let lay = layout(&chrome, &d, "compare.html");
+    for n in check_polars("compare.html", &laid_out("compare.html", &lay, "polar")) {
+        assert!(n >= 2);
+    }
 }

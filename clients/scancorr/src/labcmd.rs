@@ -892,6 +892,36 @@ fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
             )?;
         }
     }
+    let mut features: Vec<usize> = c.traces.iter().map(|t| t.feature).collect();
+    features.dedup();
+    if !features.is_empty() {
+        outln!(
+            "  circularity per direction and speed (each trace about its own centre, 1° means):"
+        )?;
+    }
+    for fi in features {
+        let ts: Vec<String> = c
+            .traces
+            .iter()
+            .filter(|t| t.feature == fi)
+            .map(|t| {
+                format!(
+                    "{} {} mm/s {} µm",
+                    if t.direction > 0 { "CCW" } else { "CW" },
+                    t.speed_mm_s,
+                    um(t.circularity_um)
+                )
+            })
+            .collect();
+        let t0 = c.traces.iter().find(|t| t.feature == fi).expect("listed");
+        outln!(
+            "    {} {} (Ø{} mm): {}",
+            t0.artifact,
+            fi + 1,
+            t0.diameter_mm,
+            ts.join(", ")
+        )?;
+    }
     for h in &c.harmonics {
         let a: Vec<String> = h
             .amplitude_um

@@ -3,7 +3,7 @@
 
 use scancorr_core::lab::analysis::{Comparison, Diagnosis};
 use scancorr_core::lab::dataset::Dataset;
-use scancorr_core::lab::program::FeatureKind;
+use scancorr_core::lab::traces::Trace;
 use scancorr_core::Calibration;
 use serde::Serialize;
 use std::fmt::Write;
@@ -40,86 +40,124 @@ td:first-child,th:first-child{{text-align:left}}.fail{{color:#b00;font-weight:bo
     )
 }
 
-/// Polar deviation plot of circle feature `fi`: deviation magnified around a reference circle.
-fn polar(
-    ds: &Dataset,
-    res: &[f64],
-    fi: usize,
-    title: &str,
-    before: Option<(&Dataset, &[f64])>,
-) -> String {
-    let collect = |ds: &Dataset, res: &[f64]| -> Vec<(f64, f64)> {
-        let c = ds.features[fi].1.nominal_center;
-        // Mean deviation per degree of angle.
-        let mut bins = vec![(0.0, 0usize); 360];
-        for (i, p) in ds.points.iter().enumerate() {
-            if p.feature != fi {
-                continue;
-            }
-            let th = (p.surface.y - c[1])
-                .atan2(p.surface.x - c[0])
-                .to_degrees()
-                .rem_euclid(360.0);
-            let b = &mut bins[(th as usize).min(359)];
-            b.0 += res[i];
-            b.1 += 1;
-        }
-        bins.iter()
-            .enumerate()
-            .filter(|(_, b)| b.1 > 0)
-            .map(|(d, b)| ((d as f64 + 0.5).to_radians(), b.0 / b.1 as f64))
-            .collect()
+/// Colours of the traces, by speed (slowest first).
+const TRACE_COLOURS: [&str; 6] = [
+    "#2266cc", "#2a9d4b", "#e08a00", "#c2185b", "#6a3d9a", "#555555",
+];
+
+/// A round scale for polar plots: 1, 2 or 5 × 10ᵏ µm per division, so that `maxdev` fits in
+/// four divisions.
+fn um_per_div(maxdev: f64) -> f64 {
+    let raw = (maxdev / 4.0).max(0.01);
+    let e = 10f64.powf(raw.log10().floor());
+    [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * e)
+        .find(|v| *v >= raw * (1.0 - 1e-9))
+        .unwrap_or(10.0 * e)
+}
+
+fn dir_name(d: i32) -> &'static str {
+    if d > 0 {
+        "CCW"
+    } else {
+        "CW"
+    }
+}
+
+/// Polar plot of one circle feature's traces (one per direction and speed), as a circular
+/// test draws them: the certified circle solid, ±4 divisions of `upd` µm dashed, +X to the
+/// right and +Y up, each trace de-centred (its own 1θ taken out) with its circularity in the
+/// legend. `speeds` fixes the colours (the same speed, the same colour, in every plot).
+fn polar(title: &str, role: &str, traces: &[&Trace], upd: f64, speeds: &[i64]) -> String {
+    let (w, r0, div) = (400.0, 100.0, 20.0);
+    let c = w / 2.0;
+    let speed_key = |t: &Trace| (t.speed_mm_s * 10.0).round() as i64;
+    let colour = |t: &Trace| {
+        let k = speeds.iter().position(|v| *v == speed_key(t)).unwrap_or(0);
+        TRACE_COLOURS[k % TRACE_COLOURS.len()]
     };
-    let after = collect(ds, res);
-    let bef = before.map(|(d, r)| collect(d, r));
-    let maxdev = after
-        .iter()
-        .chain(bef.iter().flatten())
-        .map(|(_, e)| e.abs())
-        .fold(0.1f64, f64::max);
-    let (w, r0, span) = (320.0, 90.0, 60.0);
-    let k = span / maxdev;
-    let path = |v: &[(f64, f64)]| -> String {
-        let mut s = String::new();
-        for (j, (th, e)) in v.iter().enumerate() {
-            let r = r0 + e * k;
+    let mut svg = format!(
+        "<svg data-plot=\"polar\" data-role=\"{role}\" data-um-per-div=\"{upd}\" xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{w}\" viewBox=\"0 0 {w} {w}\">"
+    );
+    let _ = write!(svg, "<line x1=\"8\" x2=\"{}\" y1=\"{c}\" y2=\"{c}\" stroke=\"#e4e4e4\"/><line x1=\"{c}\" x2=\"{c}\" y1=\"8\" y2=\"{}\" stroke=\"#e4e4e4\"/>", w - 8.0, w - 8.0);
+    for k in -4i32..=4 {
+        let rr = r0 + k as f64 * div;
+        let (stroke, dash) = if k == 0 {
+            ("#444", "")
+        } else {
+            ("#ccc", "3 3")
+        };
+        let _ = write!(svg, "<circle cx=\"{c}\" cy=\"{c}\" r=\"{rr}\" fill=\"none\" stroke=\"{stroke}\" stroke-dasharray=\"{dash}\"/>");
+    }
+    let _ = write!(
+        svg,
+        "<text x=\"{}\" y=\"{}\" font-size=\"11\">+X</text><text x=\"{}\" y=\"14\" font-size=\"11\">+Y</text>",
+        w - 24.0,
+        c - 4.0,
+        c + 4.0
+    );
+    let _ = write!(
+        svg,
+        "<text x=\"6\" y=\"14\" font-size=\"11\">{} µm/div</text><text x=\"6\" y=\"{}\" font-size=\"10\" fill=\"#444\">solid circle: certified Ø</text>",
+        fmt_scale(upd),
+        w - 6.0
+    );
+    for t in traces {
+        let mut d = String::new();
+        for (j, (th, e)) in t.theta_deg.iter().zip(&t.deviation_um).enumerate() {
+            let r = (r0 + e / upd * div).clamp(2.0, c - 2.0);
+            let th = th.to_radians();
             let _ = write!(
-                s,
+                d,
                 "{}{:.1},{:.1} ",
                 if j == 0 { "M" } else { "L" },
-                w / 2.0 + r * th.cos(),
-                w / 2.0 - r * th.sin()
+                c + r * th.cos(),
+                c - r * th.sin()
             );
         }
-        s + "Z"
-    };
-    let mut svg = format!("<svg data-plot=\"polar\" xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{w}\" viewBox=\"0 0 {w} {w}\">");
-    for (rr, dash) in [(r0, ""), (r0 + span, "4 3"), (r0 - span, "4 3")] {
-        let _ = write!(svg, "<circle cx=\"{c}\" cy=\"{c}\" r=\"{rr}\" fill=\"none\" stroke=\"#bbb\" stroke-dasharray=\"{dash}\"/>", c = w / 2.0);
-    }
-    if let Some(b) = &bef {
+        if t.theta_deg.len() >= 350 {
+            d.push('Z');
+        }
         let _ = write!(
             svg,
-            "<path d=\"{}\" fill=\"none\" stroke=\"#d55\" stroke-width=\"1.2\"/>",
-            path(b)
+            "<path data-trace=\"{} {} mm/s\" data-direction=\"{}\" data-speed-mm-s=\"{}\" data-circularity-um=\"{:.3}\" d=\"{d}\" fill=\"none\" stroke=\"{}\" stroke-width=\"1.4\"{}/>",
+            dir_name(t.direction),
+            t.speed_mm_s,
+            dir_name(t.direction).to_lowercase(),
+            t.speed_mm_s,
+            t.circularity_um,
+            colour(t),
+            if t.direction < 0 { " stroke-dasharray=\"6 3\"" } else { "" }
         );
     }
-    let _ = write!(
-        svg,
-        "<path d=\"{}\" fill=\"none\" stroke=\"#2266cc\" stroke-width=\"1.5\"/>",
-        path(&after)
-    );
-    let _ = write!(
-        svg,
-        "<text x=\"6\" y=\"14\" font-size=\"11\">±{:.2} µm at dashed circles</text></svg>",
-        maxdev
-    );
-    let legend = if bef.is_some() {
-        " <span style=\"color:#d55\">before</span> / <span style=\"color:#2266cc\">after</span>"
+    svg += "</svg>";
+    let mut legend = String::from("<ul class=\"traces\">");
+    for t in traces {
+        let _ = write!(
+            legend,
+            "<li><span style=\"color:{}\">{}</span> {} {} mm/s: circularity <b data-circularity-um=\"{:.3}\">{:.2} µm</b></li>",
+            colour(t),
+            if t.direction < 0 { "╌╌" } else { "━━" },
+            dir_name(t.direction),
+            t.speed_mm_s,
+            t.circularity_um,
+            t.circularity_um
+        );
+    }
+    legend += "</ul>";
+    format!(
+        "<figure>{svg}<figcaption><b>{}</b>: deviation from the certified circle per direction and speed (1° means, each trace's own centre taken out: the 1θ term is where the circle lies, not its form; circularity = range of the trace){legend}</figcaption></figure>",
+        esc(title)
+    )
+}
+
+fn fmt_scale(v: f64) -> String {
+    if v >= 1.0 {
+        format!("{v:.0}")
     } else {
-        ""
-    };
-    format!("<figure>{svg}<figcaption>{}{legend}: deviation from the fitted circle (certified size), mean per degree</figcaption></figure>", esc(title))
+        format!("{v}")
+    }
 }
 
 /// Horizontal bar chart.
@@ -206,25 +244,56 @@ fn summary(cal: &Calibration, cmp: &Comparison) -> String {
     s
 }
 
+/// Polar plots of every circle feature with traces, on one scale for the whole report; with
+/// `before`, a before and an after plot per feature.
 fn polars(ds: &Dataset, cmp: &Comparison, before: Option<(&Dataset, &Comparison)>) -> String {
-    let mut s = String::from("<h2>Deviation of each circle</h2>");
+    let mut s = String::from("<h2>Deviation of each circle, per direction and speed</h2>");
+    let all: Vec<&Trace> = cmp
+        .traces
+        .iter()
+        .chain(before.iter().flat_map(|(_, b)| b.traces.iter()))
+        .collect();
+    if all.is_empty() {
+        s += "<p class=\"muted\">No circle was scanned at a steady speed over a quarter turn or more: nothing to draw.</p>";
+        return s;
+    }
+    let maxdev = all
+        .iter()
+        .flat_map(|t| t.deviation_um.iter())
+        .fold(0.0f64, |a, e| a.max(e.abs()));
+    let upd = um_per_div(maxdev);
+    let mut speeds: Vec<i64> = all
+        .iter()
+        .map(|t| (t.speed_mm_s * 10.0).round() as i64)
+        .collect();
+    speeds.sort_unstable();
+    speeds.dedup();
     for (fi, (_, f)) in ds.features.iter().enumerate() {
-        if f.kind == FeatureKind::Face || !ds.points.iter().any(|p| p.feature == fi) {
+        fn of(c: &Comparison, fi: usize) -> Vec<&Trace> {
+            c.traces.iter().filter(|t| t.feature == fi).collect()
+        }
+        let after = of(cmp, fi);
+        if after.is_empty() {
             continue;
         }
         let title = format!(
-            "{} {} (Ø{})",
+            "{} {} (Ø{} mm)",
             f.artifact,
             fi + 1,
             f.certificate_diameter_mm.unwrap_or(f.nominal_diameter_mm)
         );
-        s += &polar(
-            ds,
-            &cmp.residual_um,
-            fi,
-            &title,
-            before.map(|(d, c)| (d, c.residual_um.as_slice())),
-        );
+        if let Some((_, b)) = before {
+            s += &polar(
+                &format!("{title} — before"),
+                "before",
+                &of(b, fi),
+                upd,
+                &speeds,
+            );
+            s += &polar(&format!("{title} — after"), "after", &after, upd, &speeds);
+        } else {
+            s += &polar(&title, "now", &after, upd, &speeds);
+        }
     }
     s
 }

@@ -1293,6 +1293,8 @@ pub struct Comparison {
     pub tracking: Vec<(usize, u32, f64)>,
     /// Points.
     pub points: usize,
+    /// One trace per circle feature, direction and speed (see [`super::traces`]).
+    pub traces: Vec<super::traces::Trace>,
     /// Residual per point, µm (for plots).
     #[serde(skip)]
     pub residual_um: Vec<f64>,
@@ -1544,6 +1546,7 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
         harmonics,
         tracking,
         points: n,
+        traces: super::traces::traces(ds, &res_um),
         residual_um: res_um,
     })
 }

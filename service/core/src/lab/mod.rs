@@ -14,6 +14,7 @@ pub mod nominal;
 pub mod program;
 pub mod select;
 pub mod structure;
+pub mod traces;
 pub mod version;
 
 /// Why the lab cannot answer.

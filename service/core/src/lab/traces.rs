@@ -1,0 +1,201 @@
+//! Circular-test traces: the residual of each circle feature, one trace per direction and
+//! programmed speed, as a ballbar or an ISO 230-4 circular test draws them.
+//!
+//! Per trace (a circle feature × direction × speed, steady-speed points only) the residual
+//! against the artifact is averaged in 1° bins of the angle about the feature's nominal
+//! centre, e(θ_k). The trace's own centre is taken out by least squares — e(θ) ≈ a + b·cos θ +
+//! c·sin θ, and b·cos θ + c·sin θ removed (the 1θ term is where the circle lies, not its form;
+//! ISO 230-4 evaluates about the least-squares circle of each trace) — keeping a, the radius
+//! against the certified circle. The **circularity** of the trace is the range (maximum −
+//! minimum) of the de-centred bin means: ISO 230-4's circular deviation G evaluated on 1°
+//! means, so the points' noise (a 0.1 µm floor) does not widen it by its own extremes.
+//!
+//! Averaging the traces of both directions or of several speeds hides what distinguishes them:
+//! a servo mismatch between two axes draws mirror-image ovals in the two directions (their 2θ
+//! terms opposite), which cancel in a mean over the directions.
+
+use super::dataset::{Dataset, Phase};
+use super::program::FeatureKind;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Bins per turn.
+const BINS: usize = 360;
+/// Least bins a trace needs to be evaluated (a quarter of the circle).
+const MIN_BINS: usize = 90;
+
+/// One trace.
+#[derive(Debug, Clone, Serialize)]
+pub struct Trace {
+    /// Index of the feature in the dataset.
+    pub feature: usize,
+    /// Its artifact.
+    pub artifact: String,
+    /// Certified (or nominal) diameter, mm.
+    pub diameter_mm: f64,
+    /// +1 counter-clockwise, −1 clockwise.
+    pub direction: i32,
+    /// Programmed speed, mm/s.
+    pub speed_mm_s: f64,
+    /// Points in the trace.
+    pub points: usize,
+    /// Circularity: range of the de-centred 1° means, µm.
+    pub circularity_um: f64,
+    /// Mean radius against the certified circle (a), µm.
+    pub radius_um: f64,
+    /// Centre taken out (b, c: X and Y), µm.
+    pub center_um: [f64; 2],
+    /// Bin centres with data, degrees from +X towards +Y.
+    pub theta_deg: Vec<f64>,
+    /// De-centred deviation at each, µm (outwards positive).
+    pub deviation_um: Vec<f64>,
+}
+
+/// The de-centred bins and the fit of a set of (θ radians, e µm) samples: (θ° of the bins with
+/// data, their de-centred means, a, [b, c]); `None` with fewer than `MIN_BINS` bins.
+pub fn decentre(samples: impl IntoIterator<Item = (f64, f64)>) -> Option<Decentred> {
+    let mut bins = vec![(0.0, 0usize); BINS];
+    for (th, e) in samples {
+        if !(th.is_finite() && e.is_finite()) {
+            continue;
+        }
+        let d = th.to_degrees().rem_euclid(360.0);
+        let b = &mut bins[(d as usize).min(BINS - 1)];
+        b.0 += e;
+        b.1 += 1;
+    }
+    let pts: Vec<(f64, f64)> = bins
+        .iter()
+        .enumerate()
+        .filter(|(_, b)| b.1 > 0)
+        .map(|(k, b)| ((k as f64 + 0.5).to_radians(), b.0 / b.1 as f64))
+        .collect();
+    if pts.len() < MIN_BINS {
+        return None;
+    }
+    // Least squares of e ≈ a + b cos θ + c sin θ over the bins (3×3 normal equations).
+    let mut m = nalgebra::Matrix3::<f64>::zeros();
+    let mut v = nalgebra::Vector3::<f64>::zeros();
+    for (th, e) in &pts {
+        let g = nalgebra::Vector3::new(1.0, th.cos(), th.sin());
+        m += g * g.transpose();
+        v += g * *e;
+    }
+    let x = m.try_inverse()? * v;
+    let dev: Vec<f64> = pts
+        .iter()
+        .map(|(th, e)| e - x[1] * th.cos() - x[2] * th.sin())
+        .collect();
+    let (lo, hi) = dev
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), d| {
+            (a.min(*d), b.max(*d))
+        });
+    Some(Decentred {
+        theta_deg: pts.iter().map(|(th, _)| th.to_degrees()).collect(),
+        deviation_um: dev,
+        radius_um: x[0],
+        center_um: [x[1], x[2]],
+        circularity_um: hi - lo,
+    })
+}
+
+/// What [`decentre`] finds.
+#[derive(Debug, Clone)]
+pub struct Decentred {
+    /// Bin centres with data, degrees.
+    pub theta_deg: Vec<f64>,
+    /// De-centred means, µm.
+    pub deviation_um: Vec<f64>,
+    /// a, µm.
+    pub radius_um: f64,
+    /// b, c, µm.
+    pub center_um: [f64; 2],
+    /// Range of `deviation_um`, µm.
+    pub circularity_um: f64,
+}
+
+/// The traces of every circle feature of `ds`, `residual_um` the residual of each point (as
+/// [`super::analysis::Comparison::residual_um`]); by feature, then direction, then speed.
+pub fn traces(ds: &Dataset, residual_um: &[f64]) -> Vec<Trace> {
+    // (feature, direction, speed in 0.1 mm/s) → points.
+    let mut groups: BTreeMap<(usize, i32, i64), Vec<usize>> = BTreeMap::new();
+    for (i, p) in ds.points.iter().enumerate() {
+        let kind = ds.features[p.feature].1.kind;
+        if kind == FeatureKind::Face || p.direction == 0 || p.phase != Phase::Steady {
+            continue;
+        }
+        groups
+            .entry((p.feature, p.direction, (p.speed * 10.0).round() as i64))
+            .or_default()
+            .push(i);
+    }
+    let mut out = vec![];
+    for ((fi, dir, v), idx) in groups {
+        let f = &ds.features[fi].1;
+        let c = f.nominal_center;
+        let samples = idx.iter().filter_map(|&i| {
+            let p = &ds.points[i];
+            residual_um
+                .get(i)
+                .map(|e| ((p.surface.y - c[1]).atan2(p.surface.x - c[0]), *e))
+        });
+        let Some(d) = decentre(samples) else {
+            continue;
+        };
+        out.push(Trace {
+            feature: fi,
+            artifact: f.artifact.clone(),
+            diameter_mm: f.certificate_diameter_mm.unwrap_or(f.nominal_diameter_mm),
+            direction: dir,
+            speed_mm_s: v as f64 / 10.0,
+            points: idx.len(),
+            circularity_um: d.circularity_um,
+            radius_um: d.radius_um,
+            center_um: d.center_um,
+            theta_deg: d.theta_deg,
+            deviation_um: d.deviation_um,
+        });
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f64::consts::TAU;
+
+    #[test]
+    fn an_oval_off_centre_keeps_its_oval_and_loses_its_centre() {
+        // 0.5 µm larger than certified, 3 µm off centre along X, a 2θ oval of ±4 µm.
+        let s = (0..3600).map(|k| {
+            let th = TAU * k as f64 / 3600.0;
+            (th, 0.5 + 3.0 * th.cos() + 4.0 * (2.0 * th).cos())
+        });
+        let d = decentre(s).unwrap();
+        assert_eq!(d.theta_deg.len(), 360);
+        assert!((d.radius_um - 0.5).abs() < 1e-9, "{}", d.radius_um);
+        assert!((d.center_um[0] - 3.0).abs() < 1e-3 && d.center_um[1].abs() < 1e-3);
+        // The range of 4·cos 2θ on 1° means: 8 µm, less a hair for averaging across a bin.
+        assert!(
+            (d.circularity_um - 8.0).abs() < 0.01,
+            "{}",
+            d.circularity_um
+        );
+    }
+
+    #[test]
+    fn too_little_of_the_circle_is_no_trace() {
+        let s = (0..80).map(|k| ((k as f64).to_radians(), 1.0));
+        assert!(decentre(s).is_none());
+        assert!(decentre(std::iter::empty()).is_none());
+        // Non-finite samples are left out, not spread.
+        let s = (0..360).map(|k| {
+            (
+                (k as f64 + 0.5).to_radians(),
+                if k == 7 { f64::NAN } else { 0.0 },
+            )
+        });
+        assert_eq!(decentre(s).unwrap().circularity_um, 0.0);
+    }
+}
