@@ -169,7 +169,7 @@ mod tests {
     fn an_oval_off_centre_keeps_its_oval_and_loses_its_centre() {
         // 0.5 µm larger than certified, 3 µm off centre along X, a 2θ oval of ±4 µm.
         let s = (0..3600).map(|k| {
-            let th = TAU * k as f64 / 3600.0;
+            let th = TAU * (k as f64 + 0.5) / 3600.0;
             (th, 0.5 + 3.0 * th.cos() + 4.0 * (2.0 * th).cos())
         });
         let d = decentre(s).unwrap();
