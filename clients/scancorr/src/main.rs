@@ -14,6 +14,7 @@ mod bus;
 mod calibcmd;
 mod calibsep;
 mod demo;
+mod export;
 mod labcmd;
 mod offline;
 mod report;
@@ -70,6 +71,25 @@ enum Cmd {
     /// Least-squares geometry fits (the ones the lab uses).
     #[command(subcommand)]
     Shape(ShapeCmd),
+    /// Corrected points of a bag as ASCII: CSV (every point, every field, the per-effect
+    /// breakdown) or x y z rows of the contact points (vendor CMM software, numpy).
+    Export {
+        /// A bag of corrected points (`scancorr correct … --out` or `scancorr record`).
+        #[arg(long)]
+        bag: PathBuf,
+        /// csv or xyz.
+        #[arg(long, default_value = "csv")]
+        format: String,
+        /// Only this scan segment.
+        #[arg(long)]
+        segment: Option<u32>,
+        /// The machine, when the bag holds several.
+        #[arg(long)]
+        machine: Option<String>,
+        /// Output file.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// The model lab: compare, diagnose, add, fit, history.
     #[command(subcommand)]
     Lab(labcmd::LabCmd),
@@ -238,7 +258,7 @@ enum ShapeCmd {
         /// circle, sphere, line or plane.
         #[arg(long)]
         kind: String,
-        /// The points file.
+        /// The points file (`x y z` or `x y` rows), or `-` for standard input.
         #[arg(long)]
         points: PathBuf,
         /// Print JSON (`center`, `normal`, `diameter`, `rms`).
@@ -571,6 +591,18 @@ fn run(cli: Cli) -> Result<()> {
             },
         ),
         Cmd::Shape(ShapeCmd::Fit { kind, points, json }) => shapecmd::run(&kind, &points, json),
+        Cmd::Export {
+            bag,
+            format,
+            segment,
+            machine,
+            out,
+        } => {
+            if let Some(m) = &machine {
+                output::check_machine("--machine", m)?;
+            }
+            export::run(&bag, &format, segment, machine.as_deref(), &out)
+        }
         Cmd::Sim(a) if simsep::is_separation(&a.program) => {
             simsep::refuse(
                 &[

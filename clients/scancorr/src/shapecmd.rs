@@ -1,7 +1,9 @@
-//! `scancorr shape fit --kind circle|sphere|line|plane --points FILE [--json]`: an
-//! orthogonal-distance least-squares fit of a geometric feature to an ASCII point file
-//! (`x y z` rows, whitespace or comma separated, `#` comments, optional point count on the
-//! first line).
+//! `scancorr shape fit --kind circle|sphere|line|plane --points FILE|- [--json]`: an
+//! orthogonal-distance least-squares fit of a geometric feature to an ASCII point file or
+//! standard input (`x y z` rows, or `x y` rows for a profile in the XY plane; whitespace or
+//! comma separated, `#` comments, optional point count on the first line). Prints the form
+//! too: the peak-to-valley of the residual about the fitted feature (for a circle its
+//! roundness, least-squares reference).
 
 use anyhow::{Context, Result};
 use scancorr_core::shape::{fit_circle, fit_line, fit_plane, fit_sphere, parse_points, ShapeKind};
@@ -21,14 +23,41 @@ struct Summary {
     diameter: Option<f64>,
     rms: f64,
     max_abs_residual: f64,
+    /// Peak-to-valley of the residual, mm.
+    form: f64,
+}
+
+fn peak_to_valley(r: &[f64]) -> f64 {
+    let (lo, hi) = r
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+            (a.min(*x), b.max(*x))
+        });
+    if hi >= lo {
+        hi - lo
+    } else {
+        0.0
+    }
 }
 
 /// Runs `scancorr shape fit`: reads `points_file`, fits a feature of `kind` and prints the
 /// result, as JSON when `json` is set.
 pub fn run(kind: &str, points_file: &Path, json: bool) -> Result<()> {
     let kind: ShapeKind = kind.parse()?;
-    let text = std::fs::read_to_string(points_file)
-        .with_context(|| format!("cannot read the point file {}", points_file.display()))?;
+    let text = if points_file == Path::new("-") {
+        let mut t = String::new();
+        std::io::Read::read_to_string(&mut std::io::stdin(), &mut t)
+            .context("cannot read the points from standard input")?;
+        t
+    } else {
+        std::fs::read_to_string(points_file)
+            .with_context(|| format!("cannot read the point file {}", points_file.display()))?
+    };
+    let points_file = if points_file == Path::new("-") {
+        Path::new("standard input")
+    } else {
+        points_file
+    };
     let points =
         parse_points(&text).with_context(|| format!("point file {}", points_file.display()))?;
     let summary =
@@ -54,6 +83,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 diameter: Some(f.diameter),
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
+                form: peak_to_valley(&f.residuals),
             }
         }
         ShapeKind::Sphere => {
@@ -66,6 +96,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 diameter: Some(f.diameter),
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
+                form: peak_to_valley(&f.residuals),
             }
         }
         ShapeKind::Line => {
@@ -78,6 +109,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 diameter: None,
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
+                form: peak_to_valley(&f.residuals),
             }
         }
         ShapeKind::Plane => {
@@ -90,6 +122,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 diameter: None,
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
+                form: peak_to_valley(&f.residuals),
             }
         }
     })
@@ -109,6 +142,10 @@ struct JsonSummary {
     diameter: Option<f64>,
     rms: f64,
     max_abs_residual: f64,
+    /// Peak-to-valley of the residual (for a circle: roundness), mm.
+    peak_to_valley: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    roundness: Option<f64>,
 }
 
 fn to_json(s: &Summary) -> JsonSummary {
@@ -120,6 +157,8 @@ fn to_json(s: &Summary) -> JsonSummary {
         diameter: s.diameter,
         rms: s.rms,
         max_abs_residual: s.max_abs_residual,
+        peak_to_valley: s.form,
+        roundness: (s.kind == ShapeKind::Circle).then_some(s.form),
     }
 }
 
@@ -170,6 +209,15 @@ fn print_human(s: &Summary, file: &Path) -> Result<()> {
         "  {:<16} {}  mm",
         "max |residual|",
         fixed(s.max_abs_residual, 6)
+    )?;
+    let form = if s.kind == ShapeKind::Circle {
+        "roundness"
+    } else {
+        "form (P−V)"
+    };
+    outln!(
+        "  {form:<16} {}  mm  (peak-to-valley of the residual)",
+        fixed(s.form, 6)
     )?;
     Ok(())
 }

@@ -454,14 +454,16 @@ pub fn fit_plane(points: &[Vec3]) -> Result<PlaneFit, ShapeError> {
     })
 }
 
-/// Parses an ASCII point file: one `x y z` row per point, the numbers separated by
-/// whitespace and/or commas. Blank lines and `#` comments (to the end of the line) are
-/// ignored. The first row may hold only the number of points (an integer), which is then
-/// checked against the rows that follow. Errors name the one-based line.
+/// Parses an ASCII point file: one `x y z` row per point — or `x y` rows (z = 0), as a
+/// roundness profile comes — the numbers separated by whitespace and/or commas; the first
+/// point row fixes which. Blank lines and `#` comments (to the end of the line) are ignored.
+/// The first row may hold only the number of points (an integer), which is then checked
+/// against the rows that follow. Errors name the one-based line.
 pub fn parse_points(text: &str) -> Result<Vec<Vec3>, ShapeError> {
     let mut points = Vec::new();
     let mut declared: Option<(usize, usize)> = None;
     let mut first = true;
+    let mut width: Option<usize> = None;
     for (i, raw) in text.lines().enumerate() {
         let line = i + 1;
         let content = raw.split('#').next().unwrap_or("");
@@ -487,11 +489,18 @@ pub fn parse_points(text: &str) -> Result<Vec<Vec3>, ShapeError> {
                 continue;
             }
         }
-        if tokens.len() != 3 {
+        let want = *width.get_or_insert(if tokens.len() == 2 { 2 } else { 3 });
+        if tokens.len() != want {
             return Err(ShapeError::Parse {
                 line,
                 message: format!(
-                    "expected 3 numbers (x y z), found {} field(s): `{}`",
+                    "expected {want} numbers ({}{}), found {} field(s): `{}`",
+                    if want == 2 { "x y" } else { "x y z" },
+                    if points.is_empty() {
+                        ""
+                    } else {
+                        ", as the rows before"
+                    },
                     tokens.len(),
                     content.trim()
                 ),
@@ -1414,6 +1423,17 @@ mod tests {
             Err(ShapeError::Parse { line: 1, .. })
         ));
         assert!(parse_points("1 2 3 4\n").is_err());
+        // x y rows: a profile in the XY plane; the first row fixes the width.
+        assert_eq!(
+            parse_points("# profile\n1, 2\n3 4\n").unwrap(),
+            vec![Vec3::new(1.0, 2.0, 0.0), Vec3::new(3.0, 4.0, 0.0)]
+        );
+        let e = parse_points("1 2\n3 4 5\n").unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("line 2: expected 2 numbers (x y, as the rows before)"),
+            "{e}"
+        );
     }
 
     #[test]

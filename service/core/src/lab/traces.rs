@@ -39,6 +39,11 @@ pub struct Trace {
     pub speed_mm_s: f64,
     /// Points in the trace.
     pub points: usize,
+    /// Command segments of its points.
+    pub segments: Vec<u32>,
+    /// Diameter of the least-squares circle through its corrected points, mm (what
+    /// `scancorr shape fit --kind circle` gives for the same points).
+    pub diameter_fit_mm: Option<f64>,
     /// Circularity: range of the de-centred 1° means, µm.
     pub circularity_um: f64,
     /// Mean radius against the certified circle (a), µm.
@@ -143,6 +148,11 @@ pub fn traces(ds: &Dataset, residual_um: &[f64]) -> Vec<Trace> {
         let Some(d) = decentre(samples) else {
             continue;
         };
+        let mut segments: Vec<u32> = idx.iter().map(|&i| ds.points[i].segment).collect();
+        segments.sort_unstable();
+        segments.dedup();
+        let pts: Vec<_> = idx.iter().map(|&i| ds.points[i].surface).collect();
+        let diameter_fit_mm = crate::shape::fit_circle(&pts).ok().map(|c| c.diameter);
         out.push(Trace {
             feature: fi,
             artifact: f.artifact.clone(),
@@ -150,6 +160,8 @@ pub fn traces(ds: &Dataset, residual_um: &[f64]) -> Vec<Trace> {
             direction: dir,
             speed_mm_s: v as f64 / 10.0,
             points: idx.len(),
+            segments,
+            diameter_fit_mm,
             circularity_um: d.circularity_um,
             radius_um: d.radius_um,
             center_um: d.center_um,

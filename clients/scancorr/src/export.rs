@@ -1,0 +1,328 @@
+//! `scancorr export --bag corrected.mcap --format csv|xyz [--segment N] [--machine M] --out F`:
+//! the corrected points of a bag in the ASCII forms vendor CMM software, spreadsheets and
+//! numpy read.
+//!
+//! * `csv`: one row per corrected point, with a header — machine, seq, time, segment, tip,
+//!   calibration version, estimator validity, the contact flag (a normal was known), the
+//!   surface point, the tip centre, the normal, and per effect of the calibration its
+//!   correction (`<effect>_dx_mm`, …; the union of the effects over the bag, empty where a
+//!   point's calibration did not have it).
+//! * `xyz`: `x y z` rows of the surface points in contact (what `scancorr shape fit` and most
+//!   CMM software read), `#` comment lines first saying what they are.
+//!
+//! The bag is read twice (the effects' names first), so a long recording is never held in
+//! memory; the output is written under a temporary name and renamed when complete.
+
+use crate::output::{refuse_same_file, AtomicOutput};
+use anyhow::{bail, Context, Result};
+use scancorr_bag::{BagReader, Stream};
+use scancorr_proto::v1::CorrectedPoint;
+use scancorr_proto::Message;
+use std::collections::BTreeSet;
+use std::io::{BufWriter, Write};
+use std::path::Path;
+
+/// Export formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    /// Comma-separated values with a header.
+    Csv,
+    /// `x y z` rows of the contact points.
+    Xyz,
+}
+
+impl std::str::FromStr for Format {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "csv" => Ok(Format::Csv),
+            "xyz" => Ok(Format::Xyz),
+            other => bail!("--format `{other}`: csv (every point, every field) or xyz (x y z rows of the contact points)"),
+        }
+    }
+}
+
+/// What was exported.
+#[derive(Debug, Default)]
+pub struct Summary {
+    /// Points written.
+    pub points: u64,
+    /// Of them in contact.
+    pub contact: u64,
+    /// Segments seen in the output.
+    pub segments: BTreeSet<u32>,
+    /// Calibration versions seen in the output.
+    pub versions: BTreeSet<u64>,
+    /// Corrected-point batches that could not be decoded (skipped, counted).
+    pub bad_batches: u64,
+}
+
+/// Calls `f` with every corrected point of `machine` in the bag, in order; counts batches that
+/// do not decode.
+fn each_point(
+    bag: &BagReader,
+    machine: &str,
+    bad: &mut u64,
+    mut f: impl FnMut(&CorrectedPoint) -> Result<()>,
+) -> Result<()> {
+    for m in bag.messages()? {
+        let m = m?;
+        if m.stream != Stream::Points || &*m.machine != machine {
+            continue;
+        }
+        match scancorr_proto::v1::CorrectedPointBatch::decode(&*m.data) {
+            Ok(b) => {
+                for p in &b.points {
+                    f(p)?;
+                }
+            }
+            Err(_) => *bad += 1,
+        }
+    }
+    Ok(())
+}
+
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+fn v3(v: &Option<scancorr_proto::v1::Vec3>) -> [f64; 3] {
+    v.as_ref().map_or([0.0; 3], |v| [v.x, v.y, v.z])
+}
+
+/// Runs the export.
+pub fn run(
+    bag_path: &Path,
+    format: &str,
+    segment: Option<u32>,
+    machine: Option<&str>,
+    out: &Path,
+) -> Result<()> {
+    let format: Format = format.parse()?;
+    refuse_same_file(&[("--out", out)], &[("--bag", bag_path)])?;
+    let bag = BagReader::open(bag_path).with_context(|| format!("--bag {}", bag_path.display()))?;
+    let with_points: Vec<String> = bag
+        .channels()
+        .iter()
+        .filter(|c| c.stream == Stream::Points)
+        .map(|c| c.machine.clone())
+        .collect();
+    let machine = match (machine, with_points.as_slice()) {
+        (_, []) => bail!(
+            "{} holds no corrected points (only {}): correct it first, `scancorr correct --bag {} --calib C --out corrected.mcap`",
+            bag_path.display(),
+            bag.channels()
+                .iter()
+                .map(|c| c.topic.as_str())
+                .collect::<Vec<_>>()
+                .join(", "),
+            bag_path.display()
+        ),
+        (Some(m), list) if list.iter().any(|x| x == m) => m.to_string(),
+        (Some(m), list) => bail!(
+            "--machine {m}: no corrected points of it in {} (machines: {})",
+            bag_path.display(),
+            list.join(", ")
+        ),
+        (None, [one]) => one.clone(),
+        (None, list) => bail!(
+            "{} holds the corrected points of {} machines ({}): name one with --machine",
+            bag_path.display(),
+            list.len(),
+            list.join(", ")
+        ),
+    };
+    let keep = |p: &CorrectedPoint| segment.is_none_or(|s| p.segment_id == s);
+    // First pass: which effects, which segments (to name them when the one asked for is not
+    // there).
+    let mut effects: Vec<String> = vec![];
+    let mut all_segments = BTreeSet::new();
+    let mut bad = 0;
+    each_point(&bag, &machine, &mut bad, |p| {
+        all_segments.insert(p.segment_id);
+        if keep(p) {
+            for c in &p.corrections {
+                if !effects.iter().any(|e| *e == c.effect) {
+                    effects.push(c.effect.clone());
+                }
+            }
+        }
+        Ok(())
+    })?;
+    if let Some(s) = segment {
+        if !all_segments.contains(&s) {
+            bail!(
+                "--segment {s}: no corrected point of segment {s} in {} (segments: {})",
+                bag_path.display(),
+                compact(&all_segments)
+            );
+        }
+    }
+    let file = AtomicOutput::new("--out", out)?;
+    let mut w = BufWriter::new(
+        std::fs::OpenOptions::new()
+            .write(true)
+            .truncate(true)
+            .open(file.path())
+            .with_context(|| format!("writing {}", out.display()))?,
+    );
+    let mut sum = Summary::default();
+    let mut bad2 = 0;
+    match format {
+        Format::Csv => {
+            let mut head = String::from(
+                "machine,seq,t_ns,segment_id,tip_id,calibration_version,estimator_valid,contact,\
+                 surface_x_mm,surface_y_mm,surface_z_mm,tip_center_x_mm,tip_center_y_mm,\
+                 tip_center_z_mm,normal_x,normal_y,normal_z",
+            );
+            for e in &effects {
+                for a in ["dx", "dy", "dz"] {
+                    head += &format!(",{}", csv_field(&format!("{e}_{a}_mm")));
+                }
+            }
+            writeln!(w, "{head}")?;
+            let m = csv_field(&machine);
+            each_point(&bag, &machine, &mut bad2, |p| {
+                if !keep(p) {
+                    return Ok(());
+                }
+                let n = v3(&p.normal);
+                let contact = n.iter().any(|x| *x != 0.0);
+                let (s, t) = (v3(&p.surface), v3(&p.tip_center));
+                write!(
+                    w,
+                    "{m},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+                    p.seq,
+                    p.t_ns,
+                    p.segment_id,
+                    p.tip_id,
+                    p.calibration_version,
+                    u8::from(p.estimator_valid),
+                    u8::from(contact),
+                    s[0],
+                    s[1],
+                    s[2],
+                    t[0],
+                    t[1],
+                    t[2],
+                    n[0],
+                    n[1],
+                    n[2]
+                )?;
+                for e in &effects {
+                    match p.corrections.iter().find(|c| c.effect == *e) {
+                        Some(c) => write!(w, ",{},{},{}", c.dx, c.dy, c.dz)?,
+                        None => write!(w, ",,,")?,
+                    }
+                }
+                writeln!(w)?;
+                sum.points += 1;
+                sum.contact += u64::from(contact);
+                sum.segments.insert(p.segment_id);
+                sum.versions.insert(p.calibration_version);
+                Ok(())
+            })?;
+        }
+        Format::Xyz => {
+            writeln!(
+                w,
+                "# scancorr export: corrected surface points in contact, mm (x y z), machine {}, {}",
+                machine,
+                match segment {
+                    Some(s) => format!("segment {s}"),
+                    None => "every segment".to_string(),
+                }
+            )?;
+            writeln!(w, "# from {}", bag_path.display())?;
+            each_point(&bag, &machine, &mut bad2, |p| {
+                if !keep(p) {
+                    return Ok(());
+                }
+                let n = v3(&p.normal);
+                sum.points += 1;
+                if n.iter().all(|x| *x == 0.0) {
+                    return Ok(());
+                }
+                let s = v3(&p.surface);
+                writeln!(w, "{} {} {}", s[0], s[1], s[2])?;
+                sum.contact += 1;
+                sum.segments.insert(p.segment_id);
+                sum.versions.insert(p.calibration_version);
+                Ok(())
+            })?;
+        }
+    }
+    sum.bad_batches = bad;
+    let written = match format {
+        Format::Csv => sum.points,
+        Format::Xyz => sum.contact,
+    };
+    if written == 0 {
+        bail!(
+            "nothing to export: {} points of machine {machine}{} and none in contact",
+            sum.points,
+            segment
+                .map(|s| format!(" in segment {s}"))
+                .unwrap_or_default()
+        );
+    }
+    w.flush()?;
+    drop(w);
+    file.commit()?;
+    if sum.bad_batches > 0 {
+        eprintln!(
+            "warning: {} corrected-point batch(es) of {machine} could not be decoded and were skipped",
+            sum.bad_batches
+        );
+    }
+    eprintln!(
+        "exported {written} point(s) of machine {machine} ({} in contact of {} corrected; segments {}; calibration version(s) {}) → {}",
+        sum.contact,
+        sum.points,
+        compact(&sum.segments),
+        sum.versions
+            .iter()
+            .map(|v| v.to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        out.display()
+    );
+    Ok(())
+}
+
+/// `1–4, 7, 9–10`.
+fn compact(s: &BTreeSet<u32>) -> String {
+    let mut out: Vec<String> = vec![];
+    let mut it = s.iter().copied().peekable();
+    while let Some(a) = it.next() {
+        let mut b = a;
+        while it.peek() == Some(&(b + 1)) {
+            b = it.next().unwrap_or(b);
+        }
+        out.push(if a == b {
+            a.to_string()
+        } else {
+            format!("{a}–{b}")
+        });
+    }
+    out.join(", ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ranges_and_fields() {
+        let s: BTreeSet<u32> = [1, 2, 3, 4, 7, 9, 10].into_iter().collect();
+        assert_eq!(compact(&s), "1–4, 7, 9–10");
+        assert_eq!(compact(&BTreeSet::new()), "");
+        assert_eq!(csv_field("m1"), "m1");
+        assert_eq!(csv_field("a,\"b\""), "\"a,\"\"b\"\"\"");
+        assert!("tsv".parse::<Format>().is_err());
+    }
+}
