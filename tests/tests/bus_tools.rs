@@ -232,6 +232,36 @@ fn the_service_running_but_nothing_there_is_an_error() {
         &["status", "--machine", "nosuch", "--connect", &ep],
         &["nosuch", "does not serve"],
     );
+    // The same through a zenoh configuration file naming the endpoint (as a TLS deployment's
+    // would), and a file that is not one: its name and zenoh's reason.
+    std::fs::write(
+        d.join("client.json5"),
+        format!("{{ connect: {{ endpoints: [\"{ep}\"] }} }}"),
+    )
+    .unwrap();
+    fails_fast(
+        &d,
+        &[
+            "status",
+            "--machine",
+            "nosuch",
+            "--zenoh-config",
+            "client.json5",
+        ],
+        &["nosuch", "does not serve"],
+    );
+    std::fs::write(d.join("broken.json5"), "{ connect: { endpoints: [ }").unwrap();
+    fails_fast(
+        &d,
+        &[
+            "status",
+            "--machine",
+            "m1",
+            "--zenoh-config",
+            "broken.json5",
+        ],
+        &["--zenoh-config broken.json5"],
+    );
     // Nothing published: tail and record say so, and record writes no file.
     fails_fast(
         &d,

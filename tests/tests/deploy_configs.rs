@@ -12,6 +12,9 @@ fn deploy_configs_parse() {
         "{text}"
     );
     zenoh::Config::from_file(dir.join("zenoh-client-tls.json5")).expect("zenoh-client-tls.json5");
+    let op = zenoh::Config::from_file(dir.join("zenoh-operator-tls.json5"))
+        .expect("zenoh-operator-tls.json5");
+    assert!(op.get_json("connect/endpoints").unwrap().contains("tls/"));
     let mut svc = scancorrd::Config::load(&dir.join("scancorrd.json5")).expect("scancorrd.json5");
     assert_eq!(svc.mode, "client");
     assert!(!svc.allow_any_machine && svc.serves("m1") && !svc.serves("m9"));

@@ -20,12 +20,21 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 use zenoh::qos::CongestionControl;
 
+/// The endpoint when neither `--connect` nor a zenoh configuration names one.
+const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+
 /// Where the bus is.
 #[derive(clap::Args, Clone, Debug)]
 pub struct Bus {
-    /// Zenoh endpoint of scancorrd or a router (PROTOCOL/HOST:PORT).
-    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    /// Zenoh endpoint of scancorrd or a router (PROTOCOL/HOST:PORT; repeatable). Default:
+    /// the zenoh configuration's `connect.endpoints`, else tcp/127.0.0.1:7447.
+    #[arg(long)]
     pub connect: Vec<String>,
+    /// A zenoh configuration file (JSON5), as zenoh's own tools take one: TLS certificates,
+    /// endpoints, timeouts (the deployment's `deploy/` files). The CLI always runs as a
+    /// client; `--connect` replaces the file's endpoints.
+    #[arg(long, value_name = "FILE")]
+    pub zenoh_config: Option<std::path::PathBuf>,
     /// Key-expression prefix.
     #[arg(long, default_value = scancorr_proto::DEFAULT_PREFIX)]
     pub prefix: String,
@@ -49,17 +58,80 @@ impl Bus {
     /// Checks `--prefix` and every `--connect` endpoint before anything is done.
     pub fn check(&self) -> Result<()> {
         crate::output::check_prefix(&self.prefix)?;
-        if self.connect.is_empty() {
-            bail!("--connect: give an endpoint, e.g. tcp/127.0.0.1:7447");
-        }
         for e in &self.connect {
             check_endpoint(e)?;
         }
-        Ok(())
+        self.config().map(|_| ())
+    }
+
+    /// The zenoh configuration of a CLI session: the file's (or zenoh's defaults) as a
+    /// client, no listening, no multicast scouting, the endpoints of `--connect` (or the
+    /// file's, or the default). Errors name the file or the key.
+    pub fn config(&self) -> Result<zenoh::Config> {
+        let mut cfg = match &self.zenoh_config {
+            Some(p) => zenoh::Config::from_file(p).map_err(|e| {
+                anyhow::anyhow!(
+                    "--zenoh-config {}: {}",
+                    p.display(),
+                    one_line(&e.to_string())
+                )
+            })?,
+            None => zenoh::Config::default(),
+        };
+        let endpoints = self.endpoint_list(&cfg)?;
+        for (k, v) in [
+            ("mode", "\"client\"".to_string()),
+            ("listen/endpoints", "[]".to_string()),
+            ("scouting/multicast/enabled", "false".to_string()),
+            (
+                "connect/endpoints",
+                serde_json::to_string(&endpoints).expect("strings"),
+            ),
+        ] {
+            cfg.insert_json5(k, &v)
+                .map_err(|e| anyhow::anyhow!("zenoh configuration `{k}`: {e}"))?;
+        }
+        Ok(cfg)
+    }
+
+    /// `--connect`, else the configuration file's endpoints, else the default.
+    fn endpoint_list(&self, cfg: &zenoh::Config) -> Result<Vec<String>> {
+        if !self.connect.is_empty() {
+            return Ok(self.connect.clone());
+        }
+        if self.zenoh_config.is_some() {
+            let from_file: Vec<String> = cfg
+                .get_json("connect/endpoints")
+                .ok()
+                .and_then(|j| serde_json::from_str::<serde_json::Value>(&j).ok())
+                .map(|v| {
+                    // A list, or per-mode lists ({ router: [...], peer: [...], client: [...] }).
+                    let list = v.get("client").cloned().unwrap_or(v);
+                    list.as_array()
+                        .map(|a| {
+                            a.iter()
+                                .filter_map(|e| e.as_str().map(String::from))
+                                .collect()
+                        })
+                        .unwrap_or_default()
+                })
+                .unwrap_or_default();
+            if !from_file.is_empty() {
+                return Ok(from_file);
+            }
+        }
+        Ok(vec![DEFAULT_ENDPOINT.to_string()])
     }
 
     fn endpoints(&self) -> String {
-        self.connect.join(", ")
+        match self.config().and_then(|c| {
+            let j = c.get_json("connect/endpoints").map_err(z)?;
+            let list: Vec<String> = serde_json::from_str(&j)?;
+            Ok(list)
+        }) {
+            Ok(l) => l.join(", "),
+            Err(_) => self.connect.join(", "),
+        }
     }
 }
 
@@ -99,7 +171,7 @@ fn z(e: impl std::fmt::Display) -> anyhow::Error {
 
 async fn open(bus: &Bus) -> Result<zenoh::Session> {
     bus.check()?;
-    let cfg = scancorrd::config::zenoh_config("client", &[], &bus.connect, false)?;
+    let cfg = bus.config()?;
     // A client tries each endpoint once and fails when none answers (zenoh's client defaults,
     // made explicit): the CLI never waits in silence for a service that is not there.
     let mut cfg = cfg;
