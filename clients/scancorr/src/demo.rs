@@ -23,15 +23,12 @@ use std::path::{Path, PathBuf};
 /// Runs the demo. `with` switches on physics the default machine does not have
 /// (e.g. `probe_lobing`, `cyclic_error`).
 pub fn run(with: &[String], dir: Option<PathBuf>, json: bool) -> Result<()> {
-    let keep = dir.is_some();
-    let dir = dir.unwrap_or_else(|| {
-        std::env::temp_dir().join(format!("scancorr-demo-{}", std::process::id()))
-    });
+    // Its files (bags, versions, reports) stay where the user can open them: `--dir`, or
+    // `scancorr-demo/` in the current folder.
+    let keep = true;
+    let dir = dir.unwrap_or_else(|| PathBuf::from("scancorr-demo"));
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let result = run_in(with, &dir, keep, json);
-    if !keep {
-        std::fs::remove_dir_all(&dir).ok();
-    }
     if json {
         outln!("{}", result?)?;
         return Ok(());
@@ -133,6 +130,7 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
             .collect(),
         ..Default::default()
     };
+    let build_opts = build.clone();
     let ds1 = dataset::build(&bags, &start, &build)?;
     let cmp = analysis::compare(&ds1)?;
     say(format!(
@@ -243,6 +241,33 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
         "   (corrected {} points of the held-out bag with v1 and v{}; alarms: {} / {})",
         s2.points, last.version, s1.alarms, s2.alarms
     ))?;
+    // The reports: the start against the artifacts, and the loop (error fall, before and
+    // after on the held-out circles).
+    let mut reports = vec![];
+    if keep {
+        let ds2 = dataset::build(&bags, last, &build_opts)?;
+        let cmp2 = analysis::compare(&ds2)?;
+        crate::provenance::register(&[
+            ("--bag", p("campaign.mcap").as_path()),
+            ("--validate", p("heldout.mcap").as_path()),
+            ("--calib", p("v1.json").as_path()),
+        ]);
+        for (name, html) in [
+            (
+                "compare-v1.html",
+                crate::report::compare(&start, &ds1, &cmp, None),
+            ),
+            (
+                "discover.html",
+                crate::report::discover(&start, &d, Some(((&ds1, &cmp), (&ds2, &cmp2)))),
+            ),
+        ] {
+            let o = Some(crate::output::AtomicOutput::new("report", &p(name))?);
+            labcmd::put(&o, html)?;
+            crate::output::commit_all([o])?;
+            reports.push(p(name));
+        }
+    }
     let summary = serde_json::json!({
         "with": with,
         "steps": d.steps,
@@ -254,9 +279,18 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
     });
     if keep {
         say(format!(
-            "\nfiles in {} (bags, truth.json, v1.json, steps/, calibration.json); try: scancorr lab diagnose --bag {} --validate {} --calib {} --report report.html",
-            dir.display(),
+            "\nfiles in {} (bags, truth.json, v1.json, steps/, calibration.json)",
+            dir.display()
+        ))?;
+        for r in &reports {
+            say(format!("report: {}", r.display()))?;
+        }
+        say(format!(
+            "\nnext:\n  open {} (the error fall, before and after on the held-out circles)\n  scancorr lab diagnose --bag {} --validate {} --calib {} --report diagnose.html   # what is left\n  scancorr correct --bag {} --calib {} --out corrected.mcap && scancorr export --bag corrected.mcap --format xyz --out points.xyz   # the corrected points, for other software\n  scancorr calibrate tips|probe-force|dynamics …   # measure a real machine's parameters instead (README: Calibration procedures)",
+            p("discover.html").display(),
             p("campaign.mcap").display(),
+            p("heldout.mcap").display(),
+            p("calibration.json").display(),
             p("heldout.mcap").display(),
             p("calibration.json").display()
         ))?;

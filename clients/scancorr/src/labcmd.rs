@@ -275,6 +275,7 @@ pub(crate) fn outputs<const N: usize>(
         .filter_map(|(f, p)| p.map(|p| (*f, p)))
         .collect();
     refuse_same_file(&named, inputs)?;
+    crate::provenance::register(inputs);
     let mut v = Vec::with_capacity(N);
     for (f, p) in outs {
         v.push(p.map(|p| AtomicOutput::new(f, p)).transpose()?);
@@ -282,10 +283,16 @@ pub(crate) fn outputs<const N: usize>(
     Ok(v.try_into().unwrap_or_else(|_| unreachable!("N outputs")))
 }
 
-/// Writes `text` to a prepared output.
+/// Writes `text` to a prepared output; an HTML report gets the provenance block.
 pub(crate) fn put(o: &Option<AtomicOutput>, text: impl AsRef<[u8]>) -> Result<()> {
     if let Some(o) = o {
-        o.write_all(text)?;
+        let t = text.as_ref();
+        if t.starts_with(b"<!doctype html>") {
+            let doc = String::from_utf8_lossy(t);
+            o.write_all(crate::provenance::insert(&doc, &now_rfc3339()))?;
+        } else {
+            o.write_all(t)?;
+        }
     }
     Ok(())
 }
@@ -815,6 +822,7 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 .transpose()
                 .map_err(|e| anyhow::anyhow!("--artifact: {e}"))?;
             for (p, c) in &cals {
+                let mut floor = c.metrics.get("noise_floor_um").copied();
                 let (rms, held) = if bags.is_empty() {
                     (
                         c.metrics
@@ -834,9 +842,40 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                     };
                     let ds = dataset::build(&bags, c, &opts)?;
                     let pr = analysis::prepare(&ds)?;
+                    floor = Some(ds.noise_floor_um);
                     (Some(pr.rms_fit_um), Some(pr.rms_held_um))
                 };
+                // What this version added to (or removed from) its parent's effects.
+                let parent = cals
+                    .iter()
+                    .find(|(_, q)| Some(q.version) == c.parent_version)
+                    .map(|(_, q)| q.effects.iter().map(|e| e.id()).collect::<Vec<_>>());
+                let ids: Vec<String> = c.effects.iter().map(|e| e.id()).collect();
+                let change = match &parent {
+                    None if c.parent_version.is_none() => "start".to_string(),
+                    None => "parent not in the folder".to_string(),
+                    Some(pe) => {
+                        let added: Vec<String> = ids
+                            .iter()
+                            .filter(|e| !pe.contains(e))
+                            .map(|e| format!("+{e}"))
+                            .collect();
+                        let removed: Vec<String> = pe
+                            .iter()
+                            .filter(|e| !ids.contains(e))
+                            .map(|e| format!("−{e}"))
+                            .collect();
+                        let all: Vec<String> = added.into_iter().chain(removed).collect();
+                        if all.is_empty() {
+                            "refit".to_string()
+                        } else {
+                            all.join(" ")
+                        }
+                    }
+                };
                 rows.push(report::HistoryRow {
+                    change,
+                    noise_floor_um: floor,
                     file: p
                         .file_name()
                         .map(|f| f.to_string_lossy().to_string())
@@ -880,8 +919,13 @@ fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
     if c.failures.is_empty() {
         outln!("  no bin stands out (every bin within 1.3 × the RMS or 2 × the noise floor)")?;
     } else {
-        outln!("  where it fails (bins standing out):")?;
-        for b in c.failures.iter().take(10) {
+        outln!("  where it fails (bins standing out; bins of the same points seen through a correlated feature under the worst):")?;
+        for b in c
+            .failures
+            .iter()
+            .filter(|b| b.same_points_as.is_none())
+            .take(10)
+        {
             outln!(
                 "    {:<22} {:<28} RMS {:>7} µm  mean {:>7} µm  ({} points)",
                 b.feature,
@@ -890,6 +934,16 @@ fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
                 um(b.mean_um),
                 b.n
             )?;
+            let label = format!("{} {}", b.feature, b.bin);
+            let same: Vec<String> = c
+                .failures
+                .iter()
+                .filter(|o| o.same_points_as.as_deref() == Some(label.as_str()))
+                .map(|o| format!("{} {}", o.feature, o.bin))
+                .collect();
+            if !same.is_empty() {
+                outln!("      the same points as {}", same.join(", "))?;
+            }
         }
     }
     let mut features: Vec<usize> = c.traces.iter().map(|t| t.feature).collect();
@@ -930,7 +984,7 @@ fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
             .map(|(k, a)| format!("{}θ {:.3}", k + 1, a))
             .collect();
         outln!(
-            "  {} {} harmonics (µm): {}",
+            "  {} {} harmonics (µm; 1θ is the centre, taken out by the fit): {}",
             h.artifact,
             h.feature + 1,
             a.join("  ")

@@ -17,6 +17,7 @@ mod demo;
 mod export;
 mod labcmd;
 mod offline;
+mod provenance;
 mod report;
 mod shapecmd;
 mod simcmd;

@@ -18,6 +18,10 @@ pub struct HistoryRow {
     pub note: String,
     pub rms_um: Option<f64>,
     pub heldout_rms_um: Option<f64>,
+    /// What it changed against its parent: `+effect`, `−effect`, `refit`, `start`.
+    pub change: String,
+    /// The noise floor of the data it was judged on, where known, µm.
+    pub noise_floor_um: Option<f64>,
 }
 
 fn esc(s: &str) -> String {
@@ -234,12 +238,26 @@ fn summary(cal: &Calibration, cmp: &Comparison) -> String {
         cmp.pv_um,
         cmp.noise_floor_um
     );
-    if !cmp.failures.is_empty() {
-        s += "<h2>Where it fails</h2><table><tr><th>feature</th><th>bin</th><th>points</th><th>RMS µm</th><th>mean µm</th></tr>";
-        for b in cmp.failures.iter().take(15) {
-            let _ = write!(s, "<tr class=\"fail\"><td>{}</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td></tr>", esc(&b.feature), esc(&b.bin), b.n, b.rms_um, b.mean_um);
+    if cmp.failures.is_empty() {
+        s += "<h2>Where it fails</h2><p>No bin stands out: every bin is within 1.3 × the RMS or 2 × the noise floor. The plots below still show the data.</p>";
+    } else {
+        s += "<h2>Where it fails</h2><table><tr><th>feature</th><th>bin</th><th>points</th><th>RMS µm</th><th>mean µm</th><th>the same points as</th></tr>";
+        for b in cmp
+            .failures
+            .iter()
+            .filter(|b| b.same_points_as.is_none())
+            .take(15)
+        {
+            let label = format!("{} {}", b.feature, b.bin);
+            let same: Vec<String> = cmp
+                .failures
+                .iter()
+                .filter(|o| o.same_points_as.as_deref() == Some(label.as_str()))
+                .map(|o| format!("{} {}", o.feature, o.bin))
+                .collect();
+            let _ = write!(s, "<tr class=\"fail\"><td>{}</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td><td class=\"muted\">{}</td></tr>", esc(&b.feature), esc(&b.bin), b.n, b.rms_um, b.mean_um, esc(&same.join(", ")));
         }
-        s += "</table>";
+        s += "</table><p class=\"muted\">Bins holding (nearly) the same points — one ring's fast scans seen by speed, acceleration and rotation frequency — are one row: which of those features matters the data of those scans alone cannot say; scans that separate them (another diameter, spin-up and slow-down) can.</p>";
     }
     s
 }
@@ -432,18 +450,21 @@ pub fn history_text(rows: &[HistoryRow]) -> String {
 
 /// `lab history --report`.
 pub fn history(rows: &[HistoryRow]) -> String {
+    let current = rows.iter().map(|r| r.version).max();
     let bars_rows: Vec<(String, f64, bool)> = rows
         .iter()
         .filter_map(|r| {
             r.heldout_rms_um.or(r.rms_um).map(|v| {
                 (
                     format!(
-                        "v{} {}",
+                        "v{} {}{}",
                         r.version,
-                        r.effects
-                            .last()
-                            .cloned()
-                            .unwrap_or_else(|| "nominal".into())
+                        r.change,
+                        if Some(r.version) == current {
+                            " (current)"
+                        } else {
+                            ""
+                        }
                     ),
                     v,
                     false,
@@ -451,11 +472,20 @@ pub fn history(rows: &[HistoryRow]) -> String {
             })
         })
         .collect();
-    let mut body = format!("<figure>{}<figcaption>Error fall across calibration versions (held-out RMS where recorded)</figcaption></figure>", bars("error-fall", &bars_rows, "µm", None));
-    body += "<table><tr><th>version</th><th>parent</th><th>RMS µm</th><th>held-out µm</th><th>effects</th><th>note</th></tr>";
+    let floor = rows
+        .iter()
+        .filter_map(|r| r.noise_floor_um)
+        .fold(f64::NAN, f64::min);
+    let reference = floor.is_finite().then_some((floor, "noise floor"));
+    let mut body = if bars_rows.is_empty() {
+        "<p class=\"muted\">No version has a recorded residual: give --bag to evaluate each on measurements.</p>".to_string()
+    } else {
+        format!("<figure>{}<figcaption>Error fall across calibration versions, each labelled by what it changed (held-out RMS where recorded; the dashed line is the noise floor)</figcaption></figure>", bars("error-fall", &bars_rows, "µm", reference))
+    };
+    body += "<table><tr><th>version</th><th>parent</th><th>changed</th><th>RMS µm</th><th>held-out µm</th><th>effects</th><th>note</th></tr>";
     for r in rows {
         let f = |x: Option<f64>| x.map(|v| format!("{v:.3}")).unwrap_or_else(|| "—".into());
-        let _ = write!(body, "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"muted\">{}</td></tr>", r.version, r.parent.map(|p| p.to_string()).unwrap_or_default(), f(r.rms_um), f(r.heldout_rms_um), esc(&r.effects.join(" + ")), esc(&r.note));
+        let _ = write!(body, "<tr><td>{}{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td class=\"muted\">{}</td></tr>", r.version, if Some(r.version) == current { " (current)" } else { "" }, r.parent.map(|p| p.to_string()).unwrap_or_default(), esc(&r.change), f(r.rms_um), f(r.heldout_rms_um), esc(&r.effects.join(" + ")), esc(&r.note));
     }
     body += "</table>";
     page("scancorr lab — history", &body)

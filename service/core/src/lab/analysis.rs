@@ -1261,6 +1261,32 @@ pub struct Bin {
     pub mean_um: f64,
     /// Stands out from the rest.
     pub failing: bool,
+    /// A worse failing bin of another feature holding (≥ 80 % of the smaller's) points: this
+    /// one is those scans seen another way (`feature bin`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub same_points_as: Option<String>,
+}
+
+/// |a ∩ b| / min(|a|, |b|) of two sorted index lists (the overlap coefficient).
+fn overlap(a: &[u32], b: &[u32]) -> f64 {
+    let (mut i, mut j, mut both) = (0, 0, 0usize);
+    while i < a.len() && j < b.len() {
+        match a[i].cmp(&b[j]) {
+            std::cmp::Ordering::Less => i += 1,
+            std::cmp::Ordering::Greater => j += 1,
+            std::cmp::Ordering::Equal => {
+                both += 1;
+                i += 1;
+                j += 1;
+            }
+        }
+    }
+    let small = a.len().min(b.len());
+    if small == 0 {
+        0.0
+    } else {
+        both as f64 / small as f64
+    }
 }
 
 /// Harmonics of a circle feature's residual.
@@ -1330,15 +1356,16 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
             i => format!("{}–{}{unit}", fmt(edges[i - 1]), fmt(edges[i])),
         }
     };
+    /// Three significant digits (no bin edge prints as 0.000 or as its neighbour).
     fn fmt(x: f64) -> String {
-        if x.abs() >= 100.0 {
+        let a = x.abs();
+        if a == 0.0 || !a.is_finite() {
+            "0".to_string()
+        } else if a >= 100.0 {
             format!("{x:.0}")
-        } else if x.abs() >= 10.0 {
-            format!("{x:.1}")
-        } else if x.abs() >= 1.0 {
-            format!("{x:.2}")
         } else {
-            format!("{x:.3}")
+            let d = (2 - a.log10().floor() as i32).clamp(0, 9) as usize;
+            format!("{x:.d$}")
         }
     }
     // Bins in value order: "< a", "a–b" by a, "≥ b"; categories alphabetically.
@@ -1370,7 +1397,8 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
         let mut e: Vec<f64> = (1..5)
             .map(|k| v[(v.len() * k / 5).min(v.len() - 1)])
             .collect();
-        e.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+        // Edges that print alike would make a bin that reads `a–a`.
+        e.dedup_by(|a, b| fmt(*a) == fmt(*b));
         e
     };
     let edges_speed = quantiles(ds.points.iter().map(|p| p.ctx.est_vel.norm()).collect());
@@ -1463,8 +1491,12 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
             Box::new(move |p| Some(q(p.ctx.t_ns as f64 * 1e-9, &edges_t, " s"))),
         ),
     ];
+    // The points of each failing bin, to tell bins that are the same scans seen through
+    // correlated features (speed, acceleration, rotation frequency on one ring).
+    let mut members: Vec<Vec<u32>> = vec![];
     for (name, key) in &keys {
-        let mut acc: std::collections::BTreeMap<String, (usize, f64, f64)> = Default::default();
+        type Acc = (usize, f64, f64, Vec<u32>);
+        let mut acc: std::collections::BTreeMap<String, Acc> = Default::default();
         for (i, p) in ds.points.iter().enumerate() {
             if !all[i] {
                 continue;
@@ -1474,14 +1506,15 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
                 a.0 += 1;
                 a.1 += res_um[i];
                 a.2 += res_um[i] * res_um[i];
+                a.3.push(i as u32);
             }
         }
-        let mut acc: Vec<(String, (usize, f64, f64))> = acc.into_iter().collect();
+        let mut acc: Vec<(String, Acc)> = acc.into_iter().collect();
         acc.sort_by(|a, b| {
             let (oa, ob) = (order(&a.0), order(&b.0));
             oa.0.total_cmp(&ob.0).then(oa.1.cmp(&ob.1))
         });
-        for (k, (cnt, s, s2)) in acc {
+        for (k, (cnt, s, s2, idx)) in acc {
             let r = (s2 / cnt as f64).sqrt();
             let failing = cnt >= 30 && r > 1.3 * rms && r > 2.0 * noise;
             bins.push(Bin {
@@ -1491,11 +1524,28 @@ pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
                 rms_um: r,
                 mean_um: s / cnt as f64,
                 failing,
+                same_points_as: None,
             });
+            members.push(if failing { idx } else { vec![] });
         }
     }
-    let mut failures: Vec<Bin> = bins.iter().filter(|b| b.failing).cloned().collect();
-    failures.sort_by(|a, b| b.rms_um.total_cmp(&a.rms_um));
+    let mut order_fail: Vec<usize> = (0..bins.len()).filter(|&b| bins[b].failing).collect();
+    order_fail.sort_by(|a, b| bins[*b].rms_um.total_cmp(&bins[*a].rms_um));
+    // Greedy groups: a failing bin that shares ≥ 80 % of the smaller one's points with a
+    // worse one of another feature is that one seen another way.
+    let mut leaders: Vec<usize> = vec![];
+    for &b in &order_fail {
+        let lead = leaders.iter().copied().find(|&l| {
+            bins[l].feature != bins[b].feature && overlap(&members[l], &members[b]) >= 0.8
+        });
+        match lead {
+            Some(l) => {
+                bins[b].same_points_as = Some(format!("{} {}", bins[l].feature, bins[l].bin))
+            }
+            None => leaders.push(b),
+        }
+    }
+    let failures: Vec<Bin> = order_fail.iter().map(|&b| bins[b].clone()).collect();
     // Harmonics of circle features.
     let mut harmonics = vec![];
     for (fi, f) in art.features.iter().enumerate() {
