@@ -230,7 +230,7 @@ async fn the_service_skips_the_measurements_and_counts_them() {
     }
     tokio::time::sleep(Duration::from_millis(800)).await;
     // The recorded bag, measurement streams and all, as a controller would publish it.
-    run_bus(&["replay", "--bag", "rds.mcap", "--rate", "max"]);
+    run_bus(&["replay", "--bag", "rds.mcap", "--speed", "max"]);
     let want = 2 + added;
     let t0 = Instant::now();
     let mut st = status(&s, "m1").await;

@@ -221,6 +221,7 @@ fn a_python_zenoh_subscriber_receives_what_the_offline_corrector_computes() {
             "v1.json",
             "--connect",
             &bus,
+            "--json",
         ],
     );
     assert!(put.contains("\"version\":1"), "{put}");
@@ -233,7 +234,7 @@ fn a_python_zenoh_subscriber_receives_what_the_offline_corrector_computes() {
             "replay",
             "--bag",
             "r.mcap",
-            "--rate",
+            "--speed",
             "max",
             "--connect",
             &bus,

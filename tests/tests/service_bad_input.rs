@@ -183,7 +183,7 @@ async fn bad_input_is_counted_and_never_stops_the_service() {
     assert_eq!(m9["served"], false);
     assert!(m9["refused"]["not_served"].as_u64().unwrap() >= 1, "{m9}");
     // The other machine is still served.
-    let mut a: Vec<String> = ["replay", "--bag", "m2.mcap", "--rate", "max"]
+    let mut a: Vec<String> = ["replay", "--bag", "m2.mcap", "--speed", "max"]
         .iter()
         .map(|s| s.to_string())
         .collect();

@@ -42,7 +42,15 @@ fn live_equals_offline_calibration_switch_and_restart() {
 
     // --- Live equals offline. ---
     let svc = Service::start(&d, port);
-    let put = run_bus(&["calib", "put", "--machine", "m1", "--file", "v1.json"]);
+    let put = run_bus(&[
+        "calib",
+        "put",
+        "--machine",
+        "m1",
+        "--file",
+        "v1.json",
+        "--json",
+    ]);
     assert!(put.contains("\"version\":1"), "{put}");
     let mut rec = Command::new(scancorr())
         .args(with_bus(&[
@@ -61,10 +69,10 @@ fn live_equals_offline_calibration_switch_and_restart() {
         .spawn()
         .unwrap();
     std::thread::sleep(Duration::from_millis(800));
-    run_bus(&["replay", "--bag", "r.mcap", "--rate", "max"]);
+    run_bus(&["replay", "--bag", "r.mcap", "--speed", "max"]);
     std::thread::sleep(Duration::from_millis(500));
     let status: serde_json::Value =
-        serde_json::from_str(&run_bus(&["status", "--machine", "m1"])).unwrap();
+        serde_json::from_str(&run_bus(&["status", "--machine", "m1", "--json"])).unwrap();
     assert_eq!(status["calibration_version"], 1, "{status}");
     svc.stop(); // flushes what is buffered
     assert!(rec.wait().unwrap().success());
@@ -87,7 +95,7 @@ fn live_equals_offline_calibration_switch_and_restart() {
     // --- Restart keeps the calibration; a new version mid-stream loses no point. ---
     let svc = Service::start(&d, port);
     let h: serde_json::Value =
-        serde_json::from_str(&run_bus(&["calib", "history", "--machine", "m1"])).unwrap();
+        serde_json::from_str(&run_bus(&["calib", "history", "--machine", "m1", "--json"])).unwrap();
     assert_eq!(h.as_array().unwrap().len(), 1, "{h}");
     let mut v2: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(d.join("v1.json")).unwrap()).unwrap();
@@ -112,13 +120,21 @@ fn live_equals_offline_calibration_switch_and_restart() {
         .unwrap();
     std::thread::sleep(Duration::from_millis(800));
     let mut rep = Command::new(scancorr())
-        .args(with_bus(&["replay", "--bag", "r.mcap", "--rate", "20"]))
+        .args(with_bus(&["replay", "--bag", "r.mcap", "--speed", "20"]))
         .current_dir(&d)
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
     std::thread::sleep(Duration::from_millis(1500));
-    let put = run_bus(&["calib", "put", "--machine", "m1", "--file", "v2.json"]);
+    let put = run_bus(&[
+        "calib",
+        "put",
+        "--machine",
+        "m1",
+        "--file",
+        "v2.json",
+        "--json",
+    ]);
     assert!(put.contains("\"version\":2"), "{put}");
     assert!(rep.wait().unwrap().success());
     std::thread::sleep(Duration::from_millis(500));
@@ -180,7 +196,7 @@ fn live_equals_offline_calibration_switch_and_restart() {
         .unwrap();
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("m2"));
     let h: serde_json::Value =
-        serde_json::from_str(&run_bus(&["calib", "history", "--machine", "m1"])).unwrap();
+        serde_json::from_str(&run_bus(&["calib", "history", "--machine", "m1", "--json"])).unwrap();
     let versions: Vec<u64> = h
         .as_array()
         .unwrap()
@@ -212,7 +228,8 @@ fn simulator_publishes_live_and_the_service_corrects() {
     let ep = format!("tcp/127.0.0.1:{port}");
     sim_ring(&d, "v1.json");
     let svc = Service::start(&d, port);
-    ok(
+    // Text by default, the service's reply with --json.
+    let put = ok(
         &d,
         &[
             "calib",
@@ -225,6 +242,15 @@ fn simulator_publishes_live_and_the_service_corrects() {
             &ep,
         ],
     );
+    assert!(
+        put.starts_with("m1: stored and made current") && !put.contains('{'),
+        "{put}"
+    );
+    let hist = ok(
+        &d,
+        &["calib", "history", "--machine", "m1", "--connect", &ep],
+    );
+    assert!(hist.starts_with("v1 ") && !hist.contains('{'), "{hist}");
     ok(
         &d,
         &[
@@ -239,8 +265,11 @@ fn simulator_publishes_live_and_the_service_corrects() {
         ],
     );
     std::thread::sleep(Duration::from_millis(500));
-    let st: serde_json::Value =
-        serde_json::from_str(&ok(&d, &["status", "--machine", "m1", "--connect", &ep])).unwrap();
+    let st: serde_json::Value = serde_json::from_str(&ok(
+        &d,
+        &["status", "--machine", "m1", "--connect", &ep, "--json"],
+    ))
+    .unwrap();
     let off: serde_json::Value = serde_json::from_str(&ok(
         &d,
         &["correct", "--bag", "r.mcap", "--calib", "v1.json", "--json"],
@@ -256,6 +285,11 @@ fn simulator_publishes_live_and_the_service_corrects() {
         "{live} live vs {offline} offline: {st}"
     );
     assert_eq!(st["messages"]["malformed"], 0);
+    let text = ok(&d, &["status", "--machine", "m1", "--connect", &ep]);
+    assert!(
+        text.contains(&format!("points out: {live}")) && !text.contains('{'),
+        "{text}"
+    );
     svc.stop();
     std::fs::remove_dir_all(&d).ok();
 }

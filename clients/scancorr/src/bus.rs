@@ -614,7 +614,7 @@ pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
 
 /// `tail`: prints points and alarms as they arrive, until the bound or Ctrl-C; an error when
 /// nothing arrived.
-pub fn tail(bus: &Bus, machine: &str, bound: Bound) -> Result<()> {
+pub fn tail(bus: &Bus, machine: &str, bound: Bound, json: bool) -> Result<()> {
     crate::output::check_machine("--machine", machine)?;
     bus.check()?;
     bound.check()?;
@@ -641,10 +641,17 @@ pub fn tail(bus: &Bus, machine: &str, bound: Bound) -> Result<()> {
                             n += 1;
                             last = Some(Instant::now());
                             for p in &b.points {
-                                if let Some(l) = last_seq { if p.seq != l + 1 { outln!("!! {m}: missed {} point(s)", p.seq.saturating_sub(l + 1))?; } }
+                                if let Some(l) = last_seq { if p.seq != l + 1 {
+                                    let missed = p.seq.saturating_sub(l + 1);
+                                    if json { outln!("{}", serde_json::json!({"machine": m, "missed_points": missed, "before_seq": p.seq}))?; } else { outln!("!! {m}: missed {missed} point(s)")?; }
+                                } }
                                 last_seq = Some(p.seq);
+                                if json {
+                                    let v = |x: Option<scancorr_proto::v1::Vec3>| x.map(|v| [v.x, v.y, v.z]).unwrap_or_default();
+                                    outln!("{}", serde_json::json!({"machine": m, "seq": p.seq, "t_ns": p.t_ns, "segment_id": p.segment_id, "tip_id": p.tip_id, "calibration_version": p.calibration_version, "estimator_valid": p.estimator_valid, "surface_mm": v(p.surface), "tip_center_mm": v(p.tip_center), "normal": v(p.normal)}))?;
+                                }
                             }
-                            if let Some(p) = b.points.last() {
+                            if let (Some(p), false) = (b.points.last(), json) {
                                 let s = p.surface.unwrap_or_default();
                                 outln!("{m} #{:<9} t={:.3}s  surface ({:9.4} {:9.4} {:9.4}) mm  v{} {}{}", p.seq, p.t_ns as f64 * 1e-9, s.x, s.y, s.z, p.calibration_version, if p.estimator_valid { "" } else { "FLAGGED " }, if b.points.len() > 1 { format!("(+{} in batch)", b.points.len() - 1) } else { String::new() })?;
                             }
@@ -653,7 +660,11 @@ pub fn tail(bus: &Bus, machine: &str, bound: Bound) -> Result<()> {
                             if let Ok(a) = scancorr_proto::v1::EstimatorAlarm::decode(&*bytes) {
                                 n += 1;
                                 last = Some(Instant::now());
-                                outln!("{m} ALARM {} axis {:?} t={:.3}s estimated {:.1} measured {:.1} mm/s² (threshold {:.0})", if a.raised { "RAISED" } else { "cleared" }, a.axis(), a.t_ns as f64 * 1e-9, a.estimated_accel, a.measured_accel, a.threshold)?;
+                                if json {
+                                    outln!("{}", serde_json::json!({"machine": m, "alarm": if a.raised { "raised" } else { "cleared" }, "axis": format!("{:?}", a.axis()), "t_ns": a.t_ns, "estimated_accel_mm_s2": a.estimated_accel, "measured_accel_mm_s2": a.measured_accel, "threshold_mm_s2": a.threshold}))?;
+                                } else {
+                                    outln!("{m} ALARM {} axis {:?} t={:.3}s estimated {:.1} measured {:.1} mm/s² (threshold {:.0})", if a.raised { "RAISED" } else { "cleared" }, a.axis(), a.t_ns as f64 * 1e-9, a.estimated_accel, a.measured_accel, a.threshold)?;
+                                }
                             }
                         }
                         _ => {}

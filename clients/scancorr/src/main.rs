@@ -15,6 +15,7 @@ mod calibcmd;
 mod calibsep;
 mod demo;
 mod export;
+mod human;
 mod labcmd;
 mod offline;
 mod provenance;
@@ -102,6 +103,9 @@ enum Cmd {
         /// Machine.
         #[arg(long, default_value = "m1")]
         machine: String,
+        /// Print JSON (the service's reply) instead of text.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -110,12 +114,16 @@ enum Cmd {
         /// The bag.
         #[arg(long)]
         bag: PathBuf,
-        /// Speed: 1.0 real time, 2.0 twice as fast, `max` as fast as possible.
+        /// Playback speed: 1.0 real time, 2.0 twice as fast, `max` as fast as possible (sim's
+        /// `--rate` is a sample rate; this is not).
         #[arg(long, default_value = "1.0")]
-        rate: String,
+        speed: String,
         /// Start again at the end.
         #[arg(long = "loop")]
         looping: bool,
+        /// Print a JSON summary on stdout.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -136,6 +144,9 @@ enum Cmd {
         /// Stop after this many messages.
         #[arg(long)]
         count: Option<u64>,
+        /// Print a JSON summary on stdout.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -150,6 +161,9 @@ enum Cmd {
         /// Stop after this many messages (point batches and alarms).
         #[arg(long)]
         count: Option<u64>,
+        /// One JSON object per point and alarm (JSON lines) instead of text.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -381,6 +395,9 @@ enum CalibCmd {
         /// The JSON document.
         #[arg(long)]
         file: PathBuf,
+        /// Print JSON (the service's reply) instead of text.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -395,6 +412,9 @@ enum CalibCmd {
         /// Write it here instead of printing.
         #[arg(long)]
         file: Option<PathBuf>,
+        /// Accepted for uniformity: the document is JSON either way.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -403,6 +423,9 @@ enum CalibCmd {
         /// Machine.
         #[arg(long)]
         machine: String,
+        /// Print JSON (the service's reply) instead of text.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -499,14 +522,31 @@ fn run(cli: Cli) -> Result<()> {
             );
             Ok(())
         }
-        Cmd::Calib(CalibCmd::Put { machine, file, bus }) => {
-            outln!("{}", bus::calib_put(&bus, &machine, &file)?)?;
+        Cmd::Calib(CalibCmd::Put {
+            machine,
+            file,
+            json,
+            bus,
+        }) => {
+            let reply = bus::calib_put(&bus, &machine, &file)?;
+            if json {
+                outln!("{reply}")?;
+            } else {
+                match serde_json::from_str::<serde_json::Value>(&reply) {
+                    Ok(v) => outln!(
+                        "{machine}: stored and made current\n{}",
+                        human::object(&v, 2).trim_end()
+                    )?,
+                    Err(_) => outln!("{reply}")?,
+                }
+            }
             Ok(())
         }
         Cmd::Calib(CalibCmd::Get {
             machine,
             version,
             file,
+            json: _,
             bus,
         }) => {
             output::check_machine("--machine", &machine)?;
@@ -531,33 +571,49 @@ fn run(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
-        Cmd::Calib(CalibCmd::History { machine, bus }) => {
+        Cmd::Calib(CalibCmd::History { machine, json, bus }) => {
             output::check_machine("--machine", &machine)?;
             let key = scancorr_proto::calibration_key(&bus.prefix, &machine);
-            outln!("{}", bus::query(&bus, format!("{key}?history"))?)?;
+            let reply = bus::query(&bus, format!("{key}?history"))?;
+            match serde_json::from_str::<serde_json::Value>(&reply) {
+                Ok(v) if !json => outln!("{}", human::history(&v).trim_end())?,
+                _ => outln!("{reply}")?,
+            }
             Ok(())
         }
-        Cmd::Status { machine, bus } => {
-            outln!("{}", bus::status(&bus, &machine)?)?;
+        Cmd::Status { machine, json, bus } => {
+            let reply = bus::status(&bus, &machine)?;
+            match serde_json::from_str::<serde_json::Value>(&reply) {
+                Ok(v) if !json => outln!("{}", human::object(&v, 0).trim_end())?,
+                _ => outln!("{reply}")?,
+            }
             Ok(())
         }
         Cmd::Replay {
             bag,
-            rate,
+            speed,
             looping,
+            json,
             bus,
         } => {
-            let r = if rate == "max" {
+            let r = if speed == "max" {
                 None
             } else {
-                let v: f64 = rate
+                let v: f64 = speed
                     .parse()
-                    .with_context(|| format!("--rate {rate}: a number or max"))?;
-                anyhow::ensure!(v.is_finite() && v > 0.0, "--rate must be > 0");
+                    .with_context(|| format!("--speed {speed}: a number (1.0 real time) or max"))?;
+                anyhow::ensure!(v.is_finite() && v > 0.0, "--speed must be > 0");
                 Some(v)
             };
             let n = bus::replay(&bus, &bag, r, looping)?;
-            eprintln!("replayed {n} message(s) from {}", bag.display());
+            if json {
+                outln!(
+                    "{}",
+                    serde_json::json!({"replayed_messages": n, "bag": bag.display().to_string()})
+                )?;
+            } else {
+                eprintln!("replayed {n} message(s) from {}", bag.display());
+            }
             Ok(())
         }
         Cmd::Record {
@@ -566,6 +622,7 @@ fn run(cli: Cli) -> Result<()> {
             seconds,
             idle,
             count,
+            json,
             bus,
         } => {
             let bound = bus::Bound {
@@ -574,13 +631,21 @@ fn run(cli: Cli) -> Result<()> {
                 count,
             };
             let n = bus::record(&bus, &keys, &out, bound)?;
-            eprintln!("recorded {n} message(s) → {}", out.display());
+            if json {
+                outln!(
+                    "{}",
+                    serde_json::json!({"recorded_messages": n, "out": out.display().to_string()})
+                )?;
+            } else {
+                eprintln!("recorded {n} message(s) → {}", out.display());
+            }
             Ok(())
         }
         Cmd::Tail {
             machine,
             seconds,
             count,
+            json,
             bus,
         } => bus::tail(
             &bus,
@@ -590,6 +655,7 @@ fn run(cli: Cli) -> Result<()> {
                 idle: None,
                 count,
             },
+            json,
         ),
         Cmd::Shape(ShapeCmd::Fit { kind, points, json }) => shapecmd::run(&kind, &points, json),
         Cmd::Export {
