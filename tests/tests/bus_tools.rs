@@ -226,6 +226,12 @@ fn the_service_running_but_nothing_there_is_an_error() {
         ],
         &["nobody subscribes", "other/m1/raw/"],
     );
+    // No machine served yet: listing them is an error that says how one is served.
+    fails_fast(
+        &d,
+        &["status", "--connect", &ep],
+        &["serves a machine", "calib put"],
+    );
     // A machine the service does not serve.
     fails_fast(
         &d,

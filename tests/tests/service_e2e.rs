@@ -285,6 +285,17 @@ fn simulator_publishes_live_and_the_service_corrects() {
         "{live} live vs {offline} offline: {st}"
     );
     assert_eq!(st["messages"]["malformed"], 0);
+    // The lag in the controller's clock (not wall clock minus a clock that starts at 0).
+    let lag = st["stream_lag_ms"].as_f64().expect("stream_lag_ms");
+    assert!((0.0..1000.0).contains(&lag), "{st}");
+    assert!(
+        st["last_sample_age_ms"].as_f64().unwrap() < 60_000.0,
+        "{st}"
+    );
+    // Without a machine: the machines served.
+    let list: serde_json::Value =
+        serde_json::from_str(&ok(&d, &["status", "--connect", &ep, "--json"])).unwrap();
+    assert_eq!(list["machines"], serde_json::json!(["m1"]), "{list}");
     let text = ok(&d, &["status", "--machine", "m1", "--connect", &ep]);
     assert!(
         text.contains(&format!("points out: {live}")) && !text.contains('{'),

@@ -302,6 +302,47 @@ pub fn status(bus: &Bus, machine: &str) -> Result<String> {
     Ok(text)
 }
 
+/// `status` without a machine: the machines served on the bus (each scancorrd declares a
+/// liveliness token `<prefix>/<machine>/scancorrd` per machine it serves); an error when none.
+pub fn machines(bus: &Bus) -> Result<Vec<String>> {
+    bus.check()?;
+    let key = format!("{}/*/scancorrd", bus.prefix);
+    let mut list: Vec<String> = rt()?.block_on(async {
+        let s = open(bus).await?;
+        let replies = s
+            .liveliness()
+            .get(key.as_str())
+            .timeout(Duration::from_secs(3))
+            .await
+            .map_err(z)?;
+        let mut v = vec![];
+        while let Ok(r) = replies.recv_async().await {
+            if let Ok(sample) = r.result() {
+                if let Some(m) = sample
+                    .key_expr()
+                    .as_str()
+                    .strip_prefix(&format!("{}/", bus.prefix))
+                    .and_then(|r| r.strip_suffix("/scancorrd"))
+                {
+                    v.push(m.to_string());
+                }
+            }
+        }
+        s.close().await.ok();
+        Ok::<_, anyhow::Error>(v)
+    })?;
+    list.sort();
+    list.dedup();
+    if list.is_empty() {
+        bail!(
+            "no scancorrd at {} serves a machine under prefix `{}` (a service serves a machine once a calibration is put for it: `scancorr calib put --machine M --file CAL.json`)",
+            bus.endpoints(),
+            bus.prefix
+        );
+    }
+    Ok(list)
+}
+
 /// An open session to the bus, with its runtime: connect first (failing at once when nothing
 /// is there), then do the work.
 pub struct Conn {

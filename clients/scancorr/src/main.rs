@@ -100,9 +100,9 @@ enum Cmd {
     Calibrate(calibcmd::CalibrateCmd),
     /// A machine's status in scancorrd (samples, points, drops, alarms, version, stalls).
     Status {
-        /// Machine.
-        #[arg(long, default_value = "m1")]
-        machine: String,
+        /// Machine (without: the machines the services on the bus serve).
+        #[arg(long)]
+        machine: Option<String>,
         /// Print JSON (the service's reply) instead of text.
         #[arg(long)]
         json: bool,
@@ -581,7 +581,24 @@ fn run(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
-        Cmd::Status { machine, json, bus } => {
+        Cmd::Status {
+            machine: None,
+            json,
+            bus,
+        } => {
+            let list = bus::machines(&bus)?;
+            if json {
+                outln!("{}", serde_json::json!({ "machines": list }))?;
+            } else {
+                outln!("served: {} machine(s): {}", list.len(), list.join(", "))?;
+            }
+            Ok(())
+        }
+        Cmd::Status {
+            machine: Some(machine),
+            json,
+            bus,
+        } => {
             let reply = bus::status(&bus, &machine)?;
             match serde_json::from_str::<serde_json::Value>(&reply) {
                 Ok(v) if !json => outln!("{}", human::object(&v, 0).trim_end())?,

@@ -259,7 +259,8 @@ struct Machine {
     extra: Extra,
     last_arrival: [Option<Instant>; 4],
     stalled: [bool; 4],
-    last_lag_ms: f64,
+    /// Controller time of the newest point produced, ns.
+    last_point_t_ns: Option<i64>,
 }
 
 struct State {
@@ -452,7 +453,7 @@ impl State {
                     extra: Extra::default(),
                     last_arrival: [None; 4],
                     stalled: [false; 4],
-                    last_lag_ms: 0.0,
+                    last_point_t_ns: None,
                 },
             );
         }
@@ -562,12 +563,8 @@ impl State {
         if corr.stats().seq_resets > seq_resets {
             warn!(machine = %machine, stream = sid.name(), "sequence numbers restarted (a counter wrap or restart): the stream's sequence continues from the new numbers");
         }
-        if let Some(t) = corr.watermarks()[1] {
-            let now_ns = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_nanos() as i64)
-                .unwrap_or(0);
-            m.last_lag_ms = (now_ns - t) as f64 * 1e-6;
+        if let Some(p) = out.points.last() {
+            m.last_point_t_ns = Some(p.t_ns);
         }
         publish(m, out, &machine);
     }
@@ -651,7 +648,15 @@ impl State {
                     "pending": {"command": pending[0], "scale": pending[1], "probe": pending[2], "temperature": pending[3]},
                     "watermarks_ns": wm,
                     "stalled": stalled,
-                    "stream_lag_ms": m.last_lag_ms,
+                    // In the controller's own clock (which need not be wall time): how far
+                    // the newest point lags the newest sample taken in (samples waiting for
+                    // the other streams to join them).
+                    "stream_lag_ms": match (wm.iter().flatten().max(), m.last_point_t_ns) {
+                        (Some(newest), Some(point)) => Some((newest - point).max(0) as f64 * 1e-6),
+                        _ => None,
+                    },
+                    // Wall time since the newest raw message arrived, ms.
+                    "last_sample_age_ms": m.last_arrival.iter().flatten().map(|t| t.elapsed()).min().map(|d| d.as_secs_f64() * 1e3),
                     "state_bytes": m.corrector.as_ref().map(|c| c.state_bytes()).unwrap_or(0),
                     "max_pending": m.corrector.as_ref().map(|c| c.max_pending()),
                 })
