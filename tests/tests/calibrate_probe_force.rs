@@ -19,6 +19,15 @@ fn measure(dir: &Path, program: &str, seed: &str, out: &str) {
     measure_from_nominal(dir, program, "47", seed, out, true);
 }
 
+/// A JSON array of numbers.
+fn floats(v: &serde_json::Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap_or_else(|| panic!("not an array: {v}"))
+        .iter()
+        .map(|x| x.as_f64().unwrap_or_else(|| panic!("not a number: {x}")))
+        .collect()
+}
+
 /// Each named coefficient is printed with a positive σ and lies within max(3σ, 5 %) of the
 /// truth.
 fn judge(label: &str, r: &serde_json::Value, truth: &serde_json::Value, axes: &[&str]) {
@@ -89,18 +98,8 @@ fn probe_force_recovers_each_tips_bending_from_the_nominal_model() {
     );
     // The radius no longer depends on the deflection.
     for s in r["settings"].as_array().unwrap() {
-        let b: Vec<f64> = s["radius_error_before_um"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|x| x.as_f64().unwrap())
-            .collect();
-        let a: Vec<f64> = s["radius_error_after_um"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|x| x.as_f64().unwrap())
-            .collect();
+        let b = floats(&s["radius_error_before_um"]);
+        let a = floats(&s["radius_error_after_um"]);
         let spread = |v: &[f64]| {
             v.iter().cloned().fold(f64::MIN, f64::max) - v.iter().cloned().fold(f64::MAX, f64::min)
         };
@@ -114,18 +113,8 @@ fn probe_force_recovers_each_tips_bending_from_the_nominal_model() {
     assert_eq!(maps.len(), 6, "{maps:#?}");
     let mut circle_means = std::collections::BTreeMap::new();
     for m in maps {
-        let v: Vec<f64> = m["radial_um"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|x| x.as_f64().unwrap())
-            .collect();
-        let u: Vec<f64> = m["radial_u_um"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|x| x.as_f64().unwrap())
-            .collect();
+        let v = floats(&m["radial_um"]);
+        let u = floats(&m["radial_u_um"]);
         assert_eq!((v.len(), u.len()), (72, 72));
         // (Their σ are conservative: the fit's drift of each circle's centre and the residuals'
         // correlation in time make the first harmonic uncertain by up to ~1.3 µm, while the

@@ -87,44 +87,7 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
         };
         let mut t = Tally::default();
         for seed in 1..=runs {
-            let ms = machine.to_string();
-            let s = seed.to_string();
-            let mut a = vec![
-                "sim",
-                "--program",
-                program,
-                "--machine-seed",
-                &ms,
-                "--seed",
-                &s,
-                "--out",
-                "m.mcap",
-                "--calib-out",
-                "start.json",
-                "--truth",
-                "truth.json",
-            ];
-            for h in scancorr_sim::LIBRARY_EFFECTS {
-                a.extend(["--hide", h]);
-            }
-            exe(&dir, &a)?;
-            nominal(&dir)?;
-            let t0 = std::time::Instant::now();
-            let r: serde_json::Value = serde_json::from_str(&exe(
-                &dir,
-                &[
-                    "calibrate",
-                    proc,
-                    "--bag",
-                    "m.mcap",
-                    "--calib",
-                    "nominal.json",
-                    "--out",
-                    "out.json",
-                    "--json",
-                ],
-            )?)?;
-            t.seconds.push(t0.elapsed().as_secs_f64());
+            let r = measure_and_calibrate(&dir, program, proc, machine, seed, &mut t)?;
             let truth = read(&dir.join("truth.json"))?;
             for (name, v) in r["params"].as_object().context("params")? {
                 let (Some(v), Some(s), Some(tv)) = (
@@ -191,7 +154,7 @@ fn report(
             let (what, bound) = if proc.starts_with("straightness") {
                 ("profiles (every station)", "3σ")
             } else if proc == "dynamic-map" {
-                ("map values (every bin, about the runs' mean)", "3σ")
+                ("map series (every bin of each, about the runs' mean)", "3σ")
             } else {
                 ("parameters", "max(3σ, 5 %)")
             };
@@ -401,46 +364,11 @@ fn dynamic_map(dir: &Path, machine: u64, runs: u64, json: bool) -> Result<serde_
     if runs < 2 {
         bail!("dynamic-map: at least 2 runs (its σ are judged by the runs' scatter)");
     }
-    let ms = machine.to_string();
     let mut t = Tally::default();
     // Per series name: each run's values and σ.
     let mut series: BTreeMap<String, Vec<(Vec<f64>, Vec<f64>)>> = BTreeMap::new();
     for seed in 1..=runs {
-        let s = seed.to_string();
-        let mut a = vec![
-            "sim",
-            "--program",
-            "dynamic-map",
-            "--machine-seed",
-            &ms,
-            "--seed",
-            &s,
-            "--out",
-            "m.mcap",
-            "--calib-out",
-            "start.json",
-        ];
-        for h in scancorr_sim::LIBRARY_EFFECTS {
-            a.extend(["--hide", h]);
-        }
-        exe(dir, &a)?;
-        nominal(dir)?;
-        let t0 = std::time::Instant::now();
-        let r: serde_json::Value = serde_json::from_str(&exe(
-            dir,
-            &[
-                "calibrate",
-                "dynamic-map",
-                "--bag",
-                "m.mcap",
-                "--calib",
-                "nominal.json",
-                "--out",
-                "out.json",
-                "--json",
-            ],
-        )?)?;
-        t.seconds.push(t0.elapsed().as_secs_f64());
+        let r = measure_and_calibrate(dir, "dynamic-map", "dynamic-map", machine, seed, &mut t)?;
         for m in r["maps"].as_array().context("maps")? {
             let id = m["id"].as_str().context("map id")?;
             for key in ["e2", "e1"] {
@@ -479,4 +407,55 @@ fn dynamic_map(dir: &Path, machine: u64, runs: u64, json: bool) -> Result<serde_
         bail!("dynamic-map: no map came out of the runs");
     }
     report("dynamic-map", &mut t, machine, runs, json)
+}
+
+/// Simulates `program` on `machine` (run `seed`, every library effect left out of the start,
+/// the truth to `truth.json`), writes the nominal start and runs `calibrate proc` on it; its
+/// time goes into the tally; returns its `--json`.
+fn measure_and_calibrate(
+    dir: &Path,
+    program: &str,
+    proc: &str,
+    machine: u64,
+    seed: u64,
+    t: &mut Tally,
+) -> Result<serde_json::Value> {
+    let (ms, s) = (machine.to_string(), seed.to_string());
+    let mut a = vec![
+        "sim",
+        "--program",
+        program,
+        "--machine-seed",
+        &ms,
+        "--seed",
+        &s,
+        "--out",
+        "m.mcap",
+        "--calib-out",
+        "start.json",
+        "--truth",
+        "truth.json",
+    ];
+    for h in scancorr_sim::LIBRARY_EFFECTS {
+        a.extend(["--hide", h]);
+    }
+    exe(dir, &a)?;
+    nominal(dir)?;
+    let t0 = std::time::Instant::now();
+    let r = serde_json::from_str(&exe(
+        dir,
+        &[
+            "calibrate",
+            proc,
+            "--bag",
+            "m.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "out.json",
+            "--json",
+        ],
+    )?)?;
+    t.seconds.push(t0.elapsed().as_secs_f64());
+    Ok(r)
 }

@@ -934,13 +934,7 @@ fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
                 um(b.mean_um),
                 b.n
             )?;
-            let label = format!("{} {}", b.feature, b.bin);
-            let same: Vec<String> = c
-                .failures
-                .iter()
-                .filter(|o| o.same_points_as.as_deref() == Some(label.as_str()))
-                .map(|o| format!("{} {}", o.feature, o.bin))
-                .collect();
+            let same = c.same_points(b);
             if !same.is_empty() {
                 outln!("      the same points as {}", same.join(", "))?;
             }

@@ -248,13 +248,7 @@ fn summary(cal: &Calibration, cmp: &Comparison) -> String {
             .filter(|b| b.same_points_as.is_none())
             .take(15)
         {
-            let label = format!("{} {}", b.feature, b.bin);
-            let same: Vec<String> = cmp
-                .failures
-                .iter()
-                .filter(|o| o.same_points_as.as_deref() == Some(label.as_str()))
-                .map(|o| format!("{} {}", o.feature, o.bin))
-                .collect();
+            let same = cmp.same_points(b);
             let _ = write!(s, "<tr class=\"fail\"><td>{}</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td><td class=\"muted\">{}</td></tr>", esc(&b.feature), esc(&b.bin), b.n, b.rms_um, b.mean_um, esc(&same.join(", ")));
         }
         s += "</table><p class=\"muted\">Bins holding (nearly) the same points — one ring's fast scans seen by speed, acceleration and rotation frequency — are one row: which of those features matters the data of those scans alone cannot say; scans that separate them (another diameter, spin-up and slow-down) can.</p>";

@@ -1326,6 +1326,19 @@ pub struct Comparison {
     pub residual_um: Vec<f64>,
 }
 
+impl Comparison {
+    /// The failing bins that hold (nearly) the points of failing bin `b`, seen through another
+    /// feature (`feature bin` labels).
+    pub fn same_points(&self, b: &Bin) -> Vec<String> {
+        let label = format!("{} {}", b.feature, b.bin);
+        self.failures
+            .iter()
+            .filter(|o| o.same_points_as.as_deref() == Some(label.as_str()))
+            .map(|o| format!("{} {}", o.feature, o.bin))
+            .collect()
+    }
+}
+
 /// Compares the dataset's corrected points with their artifacts.
 pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
     let prep = prepare(ds)?;
