@@ -429,6 +429,8 @@ impl Conn {
                 }
             }
             let mut sent = 0u64;
+            let mut progress = crate::output::Progress::new();
+            let total = reader.message_count();
             loop {
                 let start = Instant::now();
                 let mut first: Option<u64> = None;
@@ -456,11 +458,13 @@ impl Conn {
                     };
                     p.put(data).await.map_err(z)?;
                     sent += 1;
+                    progress.tick(|| format!("replaying {}: {sent} of {total} message(s){}", bag.display(), if looping { " (looping)" } else { "" }));
                 }
                 if !looping {
                     break;
                 }
             }
+            progress.finish();
             // Let the last messages leave before closing.
             tokio::time::sleep(Duration::from_millis(300)).await;
             // A subscriber that went away (the service stopped) did not get everything.
@@ -605,6 +609,7 @@ pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
         let mut gaps = Gaps::default();
         let mut last_flush = Instant::now();
         eprintln!("recording `{keys}` from {} → {}", bus.endpoints(), out.display());
+        let mut progress = crate::output::Progress::new();
         let ctrl_c = tokio::signal::ctrl_c();
         tokio::pin!(ctrl_c);
         loop {
@@ -620,6 +625,7 @@ pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
                     gaps.message(stream, &bytes);
                     n += 1;
                     last = Some(Instant::now());
+                    progress.tick(|| format!("recording: {n} message(s) in {:.1} s", t0.elapsed().as_secs_f64()));
                     if last_flush.elapsed() > Duration::from_secs(1) {
                         w.flush()?;
                         last_flush = Instant::now();
@@ -632,6 +638,7 @@ pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
                 break;
             }
         }
+        progress.finish();
         if n == 0 {
             if other > 0 {
                 bail!("received nothing on `{keys}` that is a scancorr stream under prefix `{}` ({other} other message(s)) {}; nothing written", bus.prefix, bound.waited(t0));

@@ -283,3 +283,55 @@ mod tests {
         fs::remove_dir_all(&d).ok();
     }
 }
+
+/// A one-line progress report on stderr for long work, redrawn in place at most every 0.25 s,
+/// only when stderr is a terminal (a log or a pipe gets the closing line alone).
+pub struct Progress {
+    tty: bool,
+    last: Option<std::time::Instant>,
+    shown: bool,
+}
+
+impl Progress {
+    /// A progress line (drawn only on a terminal).
+    pub fn new() -> Progress {
+        use std::io::IsTerminal;
+        Progress {
+            tty: std::io::stderr().is_terminal(),
+            last: None,
+            shown: false,
+        }
+    }
+    /// Redraws the line with `msg()` when it is due (`msg` is called only then).
+    pub fn tick(&mut self, msg: impl FnOnce() -> String) {
+        if !self.tty || self.last.is_some_and(|t| t.elapsed().as_millis() < 250) {
+            return;
+        }
+        self.last = Some(std::time::Instant::now());
+        let mut e = std::io::stderr().lock();
+        let _ = write!(e, "\r\x1b[2K{}", msg());
+        let _ = e.flush();
+        self.shown = true;
+    }
+    /// Clears the line.
+    pub fn finish(&mut self) {
+        if self.shown {
+            let mut e = std::io::stderr().lock();
+            let _ = write!(e, "\r\x1b[2K");
+            let _ = e.flush();
+            self.shown = false;
+        }
+    }
+}
+
+impl Default for Progress {
+    fn default() -> Self {
+        Progress::new()
+    }
+}
+
+impl Drop for Progress {
+    fn drop(&mut self) {
+        self.finish();
+    }
+}
