@@ -287,7 +287,7 @@ fn probe_force_variant_sine_and_its_real_time_form() {
             f("accel_per_deflection_s2")
         );
         assert!(
-            (14..=16).contains(&s["waves"].as_u64().unwrap()),
+            s["waves"].as_u64().unwrap() == 15,
             "fifteen waves a turn: {s}"
         );
         assert!(s["extrapolated"].as_u64().unwrap() >= 12, "{s}");
@@ -295,10 +295,9 @@ fn probe_force_variant_sine_and_its_real_time_form() {
             f("before_um") > 1.0,
             "the force's error at F1 is microns: {s}"
         );
-        assert!(
-            f("rms_um") < 0.3 * f("before_um") && f("rms_um") < 0.6,
-            "{s}"
-        );
+        // Most of the bending goes; what is left (about 15 % here) is far above R0's statistical
+        // σ: systematic, and the output shows it (R0 against the fit, beside its σ).
+        assert!(f("rms_um") < 0.2 * f("before_um"), "{s}");
         assert!(
             f("sigma_um") > 0.0 && f("accel_per_deflection_s2").abs() > 0.5,
             "{s}"

@@ -40,17 +40,66 @@ fn compare_diagnose_add_fit_history() {
     for k in ["rms_um", "pv_um", "noise_floor_um"] {
         assert!(cmp[k].as_f64().unwrap().is_finite(), "{k}");
     }
-    let fails = cmp["failures"].as_array().unwrap();
+    let failing = cmp["failures"].as_array().unwrap();
     assert!(
-        !fails.is_empty(),
+        !failing.is_empty(),
         "servo_phase hidden: some bins must stand out"
     );
-    for f in fails {
+    for f in failing {
         assert!(
             f["feature"].is_string() && f["bin"].is_string() && f["rms_um"].as_f64().unwrap() > 0.0
         );
     }
     assert!(cmp["rms_um"].as_f64().unwrap() > 3.0 * cmp["noise_floor_um"].as_f64().unwrap());
+    // Every plotted series as CSV: a row per trace and 1° bin, per residual bin, per harmonic
+    // (the same numbers as the JSON), and the diagnosis's ranking.
+    ok(
+        &d,
+        &[
+            "lab", "compare", "--bag", "c.mcap", "--calib", "v1.json", "--csv", "plots",
+        ],
+    );
+    let traces = std::fs::read_to_string(d.join("plots/traces.csv")).unwrap();
+    let rows = traces.lines().count() - 1;
+    let want: usize = cmp["traces"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["theta_deg"].as_array().unwrap().len())
+        .sum();
+    assert_eq!(rows, want);
+    assert!(traces.starts_with("feature,artifact,diameter_mm,direction,speed_mm_s,circularity_um"));
+    let bins = std::fs::read_to_string(d.join("plots/bins.csv")).unwrap();
+    assert_eq!(
+        bins.lines().count() - 1,
+        cmp["bins"].as_array().unwrap().len()
+    );
+    assert!(
+        std::fs::read_to_string(d.join("plots/harmonics.csv"))
+            .unwrap()
+            .lines()
+            .count()
+            > 5
+    );
+    ok(
+        &d,
+        &[
+            "lab", "diagnose", "--bag", "c.mcap", "--calib", "v1.json", "--csv", "plots",
+        ],
+    );
+    let cand = std::fs::read_to_string(d.join("plots/candidates.csv")).unwrap();
+    assert!(
+        cand.lines().nth(1).unwrap().contains("servo_phase"),
+        "{cand}"
+    );
+    std::fs::write(d.join("afile"), "x").unwrap();
+    fails(
+        &d,
+        &[
+            "lab", "compare", "--bag", "c.mcap", "--calib", "v1.json", "--csv", "afile",
+        ],
+        &["--csv afile: is a file"],
+    );
     // Diagnose with held-out scans of the same bag (no --validate).
     let dg = json(&ok(
         &d,

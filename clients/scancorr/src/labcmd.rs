@@ -24,12 +24,15 @@ pub enum LabCmd {
         /// Also correct with this calibration and show it as "before" in the report.
         #[arg(long)]
         before: Option<PathBuf>,
-        /// Print JSON (`rms_um`, `pv_um`, `noise_floor_um`, `failures`, …).
+        /// Print JSON (`rms_um`, `pv_um`, `noise_floor_um`, `failures`, `traces`, …).
         #[arg(long)]
         json: bool,
         /// Write a self-contained HTML report.
         #[arg(long)]
         report: Option<PathBuf>,
+        /// Write every plotted series as CSV into this folder (traces, bins, harmonics).
+        #[arg(long, value_name = "DIR")]
+        csv: Option<PathBuf>,
     },
     /// Rank the effects missing from the model by the residual they explain on held-out data.
     Diagnose {
@@ -41,6 +44,10 @@ pub enum LabCmd {
         /// Write a self-contained HTML report.
         #[arg(long)]
         report: Option<PathBuf>,
+        /// Write every plotted series as CSV into this folder (the candidates, and the
+        /// comparison's traces, bins and harmonics).
+        #[arg(long, value_name = "DIR")]
+        csv: Option<PathBuf>,
     },
     /// Add an effect (built-in, with variant, or custom), fit it, write a new version.
     Add {
@@ -305,7 +312,11 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             before,
             json,
             report,
+            csv,
         } => {
+            if let Some(d) = &csv {
+                crate::plotdata::prepare(d)?;
+            }
             let mut inputs = data.inputs();
             if let Some(b) = &before {
                 inputs.push(("--before", b));
@@ -329,6 +340,13 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 commit_all([report_out])?;
                 eprintln!("report: {}", p.display());
             }
+            if let Some(d) = &csv {
+                let mut files = crate::plotdata::comparison(d, "", &cmp)?;
+                if let Some((_, b)) = &before {
+                    files.extend(crate::plotdata::comparison(d, "before-", b)?);
+                }
+                eprintln!("csv: {} in {}", files.join(", "), d.display());
+            }
             if json {
                 outln!("{}", serde_json::to_string_pretty(&cmp)?)?;
             } else {
@@ -336,16 +354,33 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             }
             Ok(())
         }
-        LabCmd::Diagnose { data, json, report } => {
+        LabCmd::Diagnose {
+            data,
+            json,
+            report,
+            csv,
+        } => {
             let [report_out] = outputs([("--report", report.as_deref())], &data.inputs())?;
+            if let Some(d) = &csv {
+                crate::plotdata::prepare(d)?;
+            }
             let l = load(&data)?;
             let ds = dataset_for(&l, &l.cal)?;
             let dg = analysis::diagnose(&ds)?;
-            if let Some(p) = &report {
-                let cmp = analysis::compare(&ds)?;
-                put(&report_out, report::diagnose(&l.cal, &ds, &cmp, &dg))?;
+            let cmp = if report.is_some() || csv.is_some() {
+                Some(analysis::compare(&ds)?)
+            } else {
+                None
+            };
+            if let (Some(p), Some(cmp)) = (&report, &cmp) {
+                put(&report_out, report::diagnose(&l.cal, &ds, cmp, &dg))?;
                 commit_all([report_out])?;
                 eprintln!("report: {}", p.display());
+            }
+            if let (Some(d), Some(cmp)) = (&csv, &cmp) {
+                let mut files = crate::plotdata::diagnosis(d, &dg)?;
+                files.extend(crate::plotdata::comparison(d, "", cmp)?);
+                eprintln!("csv: {} in {}", files.join(", "), d.display());
             }
             if json {
                 outln!("{}", serde_json::to_string_pretty(&dg)?)?;

@@ -18,6 +18,7 @@ mod export;
 mod human;
 mod labcmd;
 mod offline;
+mod plotdata;
 mod provenance;
 mod report;
 mod shapecmd;

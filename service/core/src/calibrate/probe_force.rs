@@ -860,9 +860,12 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             // Crossings with hysteresis (a quarter of the wave's amplitude either side of the
             // median): the deflection's noise near the median makes no crossing of its own.
             let band = 0.125 * (d95 - d5);
-            let mut side = 0i8;
+            let (mut side, mut first) = (0i8, 0i8);
             let mut crossings = 0usize;
-            for (_, i) in &order {
+            // Where the first upward crossing is: the waves are cut there, so that each holds
+            // one rise above the median and one fall below it, side by side.
+            let mut rise_at: Option<usize> = None;
+            for (k, (_, i)) in order.iter().enumerate() {
                 let now = if defl(*i) > d50 + band {
                     1
                 } else if defl(*i) < d50 - band {
@@ -872,8 +875,18 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
                 };
                 if side != 0 && now != side {
                     crossings += 1;
+                    if now == 1 && rise_at.is_none() {
+                        rise_at = Some(k);
+                    }
+                }
+                if first == 0 {
+                    first = now;
                 }
                 side = now;
+            }
+            // Around the circle: the crossing between the last point and the first.
+            if first != 0 && side != first {
+                crossings += 1;
             }
             let waves = (crossings / 2).max(1);
             // The fit's zero-force value of a point (its model without the force, no noise)
@@ -904,6 +917,9 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
                 .max(1e-6);
             let (mut n_ex, mut n_zero, mut n_alike) = (0, 0, 0);
             let (mut ss, mut su, mut sb) = (0.0, 0.0, 0.0);
+            if let Some(k) = rise_at {
+                order.rotate_left(k);
+            }
             let per = order.len() as f64 / waves as f64;
             for w in 0..waves {
                 let lo_i = (w as f64 * per).round() as usize;
