@@ -444,13 +444,31 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
         .filter(|(p, _)| *p)
         .map(|(_, v)| v)
         .collect();
+    // A feature map applies only to its own part program's scans: one that none of these
+    // scans is is expected, and said once.
+    let maps: Vec<String> = cal
+        .effects
+        .iter()
+        .filter(|e| e.kind() == "feature_map")
+        .map(|e| e.id())
+        .collect();
     if let Some(first) = with_points.first() {
+        let mut idle_maps = 0;
         for e in first.iter() {
             if with_points.iter().all(|v| v.contains(e)) {
+                if maps.contains(e) {
+                    idle_maps += 1;
+                    continue;
+                }
                 warnings.push(format!(
                     "effect `{e}` contributed to no point of these bags: inactive for lack of its signal, so the lab cannot judge it here"
                 ));
             }
+        }
+        if idle_maps > 0 {
+            warnings.push(format!(
+                "{idle_maps} feature map(s) of the calibration apply to none of these scans (a map applies only to its own part program's scans: segment ids, tip, place, speed)"
+            ));
         }
     }
     if points.is_empty() {
