@@ -19,25 +19,6 @@ fn json(s: &str) -> serde_json::Value {
     serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
 }
 
-fn calibrate(dir: &Path, procedure: &str, bag: &str, from: &str, to: &str) -> serde_json::Value {
-    let out = ok(
-        dir,
-        &[
-            "calibrate",
-            procedure,
-            "--bag",
-            bag,
-            "--calib",
-            from,
-            "--out",
-            to,
-            "--json",
-        ],
-    );
-    assert!(!out.contains("NaN"), "{out}");
-    json(&out)
-}
-
 /// The like part, run in process (run `seed`; every library effect in the machine).
 fn like_part(seed: u64) -> (RunResult, Vec<Sample>) {
     let o = Options {
@@ -115,7 +96,7 @@ fn dynamic_map_corrects_a_like_parts_fast_scan_to_the_slow_scans_error() {
     let dir = scratch("calibrate-dynamic-map");
     // From the nominal start straight away.
     measure_from_nominal(&dir, "dynamic-map", MACHINE, "1", "dm.mcap", true);
-    let r = calibrate(
+    let r = calibrate_json(
         &dir,
         "dynamic-map",
         "dm.mcap",
@@ -125,7 +106,7 @@ fn dynamic_map_corrects_a_like_parts_fast_scan_to_the_slow_scans_error() {
     // With the stylus bending calibrated first (`probe-force` from the same nominal start),
     // so the slow scan is as good as the machine's static calibration makes it.
     measure_from_nominal(&dir, "probe-force", MACHINE, "2", "pf.mcap", true);
-    calibrate(&dir, "probe-force", "pf.mcap", "nominal.json", "pf.json");
+    calibrate_json(&dir, "probe-force", "pf.mcap", "nominal.json", "pf.json");
     let r2 = ok(
         &dir,
         &[

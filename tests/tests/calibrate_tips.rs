@@ -225,22 +225,8 @@ fn tips_agree_within_the_noise_floor_once_the_force_is_calibrated() {
         a.extend(machine);
         ok(&dir, &a);
     };
-    let calibrate = |proc: &str, bag: &str, from: &str, to: &str| {
-        json(&ok(
-            &dir,
-            &[
-                "calibrate",
-                proc,
-                "--bag",
-                bag,
-                "--calib",
-                from,
-                "--out",
-                to,
-                "--json",
-            ],
-        ))
-    };
+    let calibrate =
+        |proc: &str, bag: &str, from: &str, to: &str| calibrate_json(&dir, proc, bag, from, to);
     sim("tips", "1", "t1.mcap", true);
     nominal(&dir, "start.json", "catalogue.json");
     let q = calibrate("tips", "t1.mcap", "catalogue.json", "q.json");

@@ -226,22 +226,20 @@ fn straightness(
 ) -> Result<serde_json::Value> {
     let ms = machine.to_string();
     // The user's start: nominal (the procedure writes only the guide table).
-    let mut a = vec![
-        "sim",
-        "--program",
-        "ring",
-        "--machine-seed",
-        &ms,
-        "--out",
-        "ring.mcap",
-        "--calib-out",
-        "start.json",
-    ];
-    for h in scancorr_sim::LIBRARY_EFFECTS {
-        a.extend(["--hide", h]);
-    }
-    exe(dir, &a)?;
-    nominal(dir)?;
+    sim_nominal(
+        dir,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--machine-seed",
+            &ms,
+            "--out",
+            "ring.mcap",
+            "--calib-out",
+            "start.json",
+        ],
+    )?;
     let program = format!("straightness-{method}");
     let mut t = Tally::default();
     for seed in 1..=runs {
@@ -421,26 +419,24 @@ fn measure_and_calibrate(
     t: &mut Tally,
 ) -> Result<serde_json::Value> {
     let (ms, s) = (machine.to_string(), seed.to_string());
-    let mut a = vec![
-        "sim",
-        "--program",
-        program,
-        "--machine-seed",
-        &ms,
-        "--seed",
-        &s,
-        "--out",
-        "m.mcap",
-        "--calib-out",
-        "start.json",
-        "--truth",
-        "truth.json",
-    ];
-    for h in scancorr_sim::LIBRARY_EFFECTS {
-        a.extend(["--hide", h]);
-    }
-    exe(dir, &a)?;
-    nominal(dir)?;
+    sim_nominal(
+        dir,
+        &[
+            "sim",
+            "--program",
+            program,
+            "--machine-seed",
+            &ms,
+            "--seed",
+            &s,
+            "--out",
+            "m.mcap",
+            "--calib-out",
+            "start.json",
+            "--truth",
+            "truth.json",
+        ],
+    )?;
     let t0 = std::time::Instant::now();
     let r = serde_json::from_str(&exe(
         dir,
@@ -458,4 +454,15 @@ fn measure_and_calibrate(
     )?)?;
     t.seconds.push(t0.elapsed().as_secs_f64());
     Ok(r)
+}
+
+/// Runs `sim_args` with every library effect left out of the start, then writes the nominal
+/// start (`nominal.json`) from its `start.json`.
+fn sim_nominal(dir: &Path, sim_args: &[&str]) -> Result<()> {
+    let mut a = sim_args.to_vec();
+    for h in scancorr_sim::LIBRARY_EFFECTS {
+        a.extend(["--hide", h]);
+    }
+    exe(dir, &a)?;
+    nominal(dir)
 }

@@ -365,3 +365,31 @@ pub fn nominal_start(dir: &Path, from: &str, to: &str, catalogue: bool) {
     }
     std::fs::write(dir.join(to), serde_json::to_string_pretty(&c).unwrap()).unwrap();
 }
+
+/// `scancorr calibrate PROC --bag BAG --calib FROM --out TO --json` in `dir`: its JSON output,
+/// which must hold no NaN.
+#[allow(dead_code)]
+pub fn calibrate_json(
+    dir: &Path,
+    proc: &str,
+    bag: &str,
+    from: &str,
+    to: &str,
+) -> serde_json::Value {
+    let out = ok(
+        dir,
+        &[
+            "calibrate",
+            proc,
+            "--bag",
+            bag,
+            "--calib",
+            from,
+            "--out",
+            to,
+            "--json",
+        ],
+    );
+    assert!(!out.contains("NaN"), "{out}");
+    serde_json::from_str(&out).unwrap_or_else(|e| panic!("not JSON ({e}): {out}"))
+}
