@@ -293,12 +293,39 @@ fn outside_case(effect: &str, check: impl Fn(&serde_json::Value) -> bool) {
     let _ = Path::new("");
 }
 
+/// The structure's profile (what the report plots: the residual against the axis with the
+/// fitted period over it) has the period's shape: 12 bins a period, and the binned residual
+/// within half the fitted swing of the fitted curve.
+fn profile_follows_the_fit(s: &serde_json::Value) -> bool {
+    let p = &s["profile"];
+    let v = |k: &str| -> Vec<f64> {
+        p[k].as_array()
+            .map(|a| a.iter().filter_map(|x| x.as_f64()).collect())
+            .unwrap_or_default()
+    };
+    let (x, m, f) = (v("x"), v("measured_um"), v("fitted_um"));
+    if p["coordinate"] != "x, mm" || x.len() < 24 || m.len() != x.len() || f.len() != x.len() {
+        eprintln!("profile: {p:#}");
+        return false;
+    }
+    let rms = |a: &mut dyn Iterator<Item = f64>| {
+        let (s, n) = a.fold((0.0, 0usize), |(s, n), v| (s + v * v, n + 1));
+        (s / n as f64).sqrt()
+    };
+    let off = rms(&mut m.iter().zip(&f).map(|(a, b)| a - b));
+    let swing = rms(&mut f.iter().copied());
+    let per_bin = s["period_mm"].as_f64().unwrap() / (x[1] - x[0]);
+    eprintln!("profile: {} bins, {per_bin:.1} a period, fitted {swing:.3} µm rms, residual off it {off:.3} µm rms", x.len());
+    (per_bin - 12.0).abs() < 1.0 && off < 0.5 * swing
+}
+
 #[test]
 fn outside_cyclic_error() {
     outside_case("cyclic_error", |s| {
         s["kind"] == "period"
             && s["axis"] == "x"
             && (s["period_mm"].as_f64().unwrap() - 4.0).abs() < 0.04
+            && profile_follows_the_fit(s)
     });
 }
 

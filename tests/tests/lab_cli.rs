@@ -92,6 +92,21 @@ fn compare_diagnose_add_fit_history() {
         cand.lines().nth(1).unwrap().contains("servo_phase"),
         "{cand}"
     );
+    // The prediction plot's series: the best candidate's traces, measured and predicted.
+    let pred = std::fs::read_to_string(d.join("plots/prediction.csv")).unwrap();
+    let layers = |l: &str| {
+        pred.lines()
+            .filter(|r| r.contains(&format!(",{l},")))
+            .count()
+    };
+    assert!(
+        layers("measured") >= 360 && layers("measured") == layers("predicted"),
+        "prediction.csv: {} measured rows, {} predicted",
+        layers("measured"),
+        layers("predicted")
+    );
+    let par = std::fs::read_to_string(d.join("plots/parameters.csv")).unwrap();
+    assert!(par.lines().count() > 1 && !par.contains("·1 "), "{par}");
     std::fs::write(d.join("afile"), "x").unwrap();
     fails(
         &d,

@@ -581,6 +581,48 @@ fn reports_render_in_headless_chromium() {
                     );
                 }
                 check_bars(name, &laid_out(name, &lay, "ranking"));
+                // The best candidate's predicted residual drawn over the measurement, per
+                // ring: each plot holds both layers, and what the candidate (the hidden
+                // effect) predicts is rounder than what was measured.
+                let predicted: Vec<&str> = of_kind(&p, "polar")
+                    .into_iter()
+                    .filter(|s| s.contains("data-role=\"predicted\""))
+                    .collect();
+                assert!(
+                    predicted.len() >= 3,
+                    "{name}: a prediction plot per ring, got {}",
+                    predicted.len()
+                );
+                let circ = |s: &str, layer: &str| -> f64 {
+                    s.split("<path ")
+                        .filter(|p| p.contains(&format!("data-layer=\"{layer}\"")))
+                        .filter_map(|p| {
+                            p.split("data-circularity-um=\"")
+                                .nth(1)?
+                                .split('"')
+                                .next()?
+                                .parse::<f64>()
+                                .ok()
+                        })
+                        .sum()
+                };
+                let (m, q): (f64, f64) = predicted
+                    .iter()
+                    .map(|s| (circ(s, "measured"), circ(s, "predicted")))
+                    .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+                eprintln!("{name}: circularity summed over the traces: measured {m:.2} µm, predicted {q:.2} µm");
+                assert!(
+                    m > 0.0 && q < 0.8 * m,
+                    "{name}: measured {m} µm, predicted {q} µm"
+                );
+                // The candidate's fitted parameters, with units and uncertainties, and names
+                // a metrologist reads.
+                assert!(html.contains("data-params"), "{name}: no parameter table");
+                assert!(
+                    html.contains("(mm per mm/s²)") && html.contains(" ± "),
+                    "{name}: parameters without units or σ"
+                );
+                assert!(!html.contains("·1 ("), "{name}: a `·1` suffix");
             }
             "add.html" => {
                 let polar = of_kind(&p, "polar");
@@ -632,6 +674,10 @@ fn reports_render_in_headless_chromium() {
                     "{name}: the error fall needs before and after"
                 );
                 check_bars(name, &laid_out(name, &lay, "residual"));
+                assert!(
+                    html.contains("data-params") && html.contains(" ± ") && !html.contains("·1 ("),
+                    "{name}: the refitted parameters with units and uncertainties"
+                );
             }
             "history.html" => {
                 assert_eq!(count("error-fall"), 1, "{name}: the error-fall chart");

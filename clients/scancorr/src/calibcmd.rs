@@ -179,7 +179,9 @@ fn open(bag: &[PathBuf], calib: &Path, out: &Path, report: Option<&Path>) -> Res
     inputs.extend(bag.iter().map(|b| ("--bag", b.as_path())));
     let [out_file, report_file] = outputs([("--out", Some(out)), ("--report", report)], &inputs)?;
     let start = offline::load_calibration(calib)?;
+    crate::output::stage(&format!("reading {} bag(s) …", bag.len()));
     let bags = load_bags(bag, &[], &start.machine_id)?;
+    crate::output::stage("bags read; measuring …");
     Ok(Opened {
         out_file,
         report_file,
@@ -198,7 +200,9 @@ fn points_without(
 ) -> Result<dataset::Dataset> {
     let mut bare = cal.clone();
     bare.effects.retain(|e| !kinds.contains(&e.kind()));
+    crate::output::stage("correcting the scans …");
     let ds = dataset::build(bags, &bare, &options(stride))?;
+    crate::output::stage(&format!("{} points; fitting …", ds.points.len()));
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
@@ -310,11 +314,11 @@ fn run_dynamics(
         start,
         bags,
     } = open(&bag, &calib, &out, report.as_deref())?;
-    eprintln!("refitting the nominal model's time constants …");
+    crate::output::stage("refitting the nominal model's time constants …");
     let raw: Vec<&dyn dataset::Samples> = bags.iter().map(|b| &*b.samples).collect();
     let (refit, axes) = scancorr_core::lab::nominal::fit_nominal(&raw, &start)?;
     // The dynamic effects are what this procedure measures: the points are taken without.
-    eprintln!("correcting the rings …");
+    crate::output::stage("correcting the rings …");
     let ds = points_without(
         &bags,
         &refit,
@@ -322,7 +326,7 @@ fn run_dynamics(
         4,
     )?;
     let prep = analysis::prepare(&ds)?;
-    eprintln!("fitting …");
+    crate::output::stage("fitting …");
     let o = dynamics::run(&ds, &prep, &refit, &axes)?;
     let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
     new.nominal = o.calibration.nominal.clone();
@@ -701,6 +705,7 @@ fn run_dynamic_map(
 
 /// Runs a procedure.
 pub fn run(cmd: CalibrateCmd) -> Result<()> {
+    crate::output::started();
     match cmd {
         CalibrateCmd::DynamicMap {
             bag,

@@ -208,6 +208,10 @@ struct Loaded {
 
 fn load(d: &DataArgs) -> Result<Loaded> {
     let cal = offline::load_calibration(&d.calib)?;
+    crate::output::stage(&format!(
+        "reading {} bag(s) …",
+        d.bag.len() + d.validate.len()
+    ));
     let bags = load_bags(&d.bag, &d.validate, &cal.machine_id)?;
     let artifact = d
         .artifact
@@ -225,7 +229,9 @@ fn load(d: &DataArgs) -> Result<Loaded> {
 }
 
 fn dataset_for(l: &Loaded, cal: &Calibration) -> Result<Dataset> {
+    crate::output::stage(&format!("correcting the scans with v{} …", cal.version));
     let ds = dataset::build(&l.bags, cal, &l.opts)?;
+    crate::output::stage(&format!("{} points; analysing …", ds.points.len()));
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
@@ -306,6 +312,7 @@ pub(crate) fn put(o: &Option<AtomicOutput>, text: impl AsRef<[u8]>) -> Result<()
 
 /// Runs a lab command.
 pub fn run(cmd: LabCmd) -> Result<()> {
+    crate::output::started();
     match cmd {
         LabCmd::Compare {
             data,
@@ -489,7 +496,7 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 let cmp_a = analysis::compare(&ds_after)?;
                 put(
                     &report_out,
-                    report::add(&l.cal, &new, &ds, &cmp_b, &ds_after, &cmp_a),
+                    report::add(&l.cal, &new, &o, &ds, &cmp_b, &ds_after, &cmp_a),
                 )?;
             }
             // Every output complete: only now do they replace anything.
@@ -538,15 +545,26 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                     um(after.rms_held_um),
                     um(ds.noise_floor_um)
                 )?;
-                for p in o.params.last().into_iter().flatten().take(12) {
+                let ps = o.params.last().map(Vec::as_slice).unwrap_or_default();
+                for p in ps.iter().take(12) {
                     match p.sigma {
-                        Some(s) => outln!("    {:<44} {:>12.4e} ± {:.1e}", p.name, p.value, s)?,
-                        None => outln!(
-                            "    {:<44} {:>12.4e} (not determined by this data)",
+                        Some(_) => outln!(
+                            "    {:<44} {}",
                             p.name,
-                            p.value
+                            report::value_sigma(p.value, p.sigma)
+                        )?,
+                        None => outln!(
+                            "    {:<44} {} (not determined by this data)",
+                            p.name,
+                            report::value_sigma(p.value, None)
                         )?,
                     }
+                }
+                if ps.len() > 12 {
+                    outln!(
+                        "    … {} more (every one in --json and --report)",
+                        ps.len() - 12
+                    )?;
                 }
                 if !o.unidentifiable.is_empty() {
                     outln!(

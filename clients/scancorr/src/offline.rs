@@ -349,8 +349,18 @@ pub fn correct(
         output.clear();
     };
     let mut last_log = 0;
-    for msg in reader.messages()? {
+    let total = reader.message_count().max(1);
+    let mut progress = crate::output::Progress::new();
+    for (k, msg) in reader.messages()?.enumerate() {
         let msg = msg.with_context(|| format!("reading {}", bag.display()))?;
+        progress.tick(|| {
+            format!(
+                "correcting {}: {:.0} % of {total} messages, {:.1} s",
+                bag.display(),
+                100.0 * k as f64 / total as f64,
+                t0.elapsed().as_secs_f64()
+            )
+        });
         if &*msg.machine != machine.as_str() {
             continue;
         }
@@ -372,6 +382,7 @@ pub fn correct(
     }
     corr.flush(&mut output);
     send(&mut output, last_log);
+    progress.finish();
 
     drop(tx);
     if let Some(h) = writer_thread {

@@ -335,3 +335,21 @@ impl Drop for Progress {
         self.finish();
     }
 }
+
+/// When the command started (the first call to [`stage`] or [`started`]).
+static STARTED: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+
+/// Marks the command's start (for [`stage`]'s elapsed times).
+pub fn started() {
+    STARTED.get_or_init(std::time::Instant::now);
+}
+
+/// Says which stage long work has reached — `[  3.2 s] fitting …` — on stderr when it is a
+/// terminal; a log or a pipe gets nothing (the result says what was done).
+pub fn stage(msg: &str) {
+    use std::io::IsTerminal;
+    let t0 = *STARTED.get_or_init(std::time::Instant::now);
+    if std::io::stderr().is_terminal() {
+        eprintln!("[{:>6.1} s] {msg}", t0.elapsed().as_secs_f64());
+    }
+}

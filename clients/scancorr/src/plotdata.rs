@@ -1,8 +1,11 @@
 //! `--csv DIR`: every series a lab report plots, as CSV files an engineer can redraw in
 //! matplotlib or a spreadsheet — the polar traces (`traces.csv`: one row per trace and 1°
 //! bin), the residual per bin of each feature (`bins.csv`), the circles' harmonics
-//! (`harmonics.csv`) and, for `diagnose`, the candidate ranking (`candidates.csv`). Each file
-//! is written under a temporary name and renamed when complete; the folder is created.
+//! (`harmonics.csv`) and, for `diagnose`, the candidate ranking (`candidates.csv`), the best
+//! candidate's predicted traces beside the measured ones (`prediction.csv`), the residual
+//! along each unexplained structure's coordinate with the fitted structure (`structure.csv`)
+//! and the best candidate's parameters (`parameters.csv`). Each file is written under a
+//! temporary name and renamed when complete; the folder is created.
 
 use crate::output::AtomicOutput;
 use anyhow::{bail, Context, Result};
@@ -102,7 +105,71 @@ pub fn diagnosis(dir: &Path, d: &Diagnosis) -> Result<Vec<String>> {
             c.k
         );
     }
-    write_all(dir, [("candidates.csv".to_string(), s)])
+    let mut pred = String::from(
+        "effect,layer,feature,artifact,direction,speed_mm_s,circularity_um,theta_deg,deviation_um\n",
+    );
+    if let Some(p) = &d.prediction {
+        for (layer, ts) in [("measured", &p.measured), ("predicted", &p.predicted)] {
+            for t in ts {
+                for (th, e) in t.theta_deg.iter().zip(&t.deviation_um) {
+                    let _ = writeln!(
+                        pred,
+                        "{},{layer},{},{},{},{},{},{th},{e}",
+                        q(&p.effect),
+                        t.feature + 1,
+                        q(&t.artifact),
+                        if t.direction > 0 { "ccw" } else { "cw" },
+                        t.speed_mm_s,
+                        t.circularity_um
+                    );
+                }
+            }
+        }
+    }
+    let mut st = String::from(
+        "structure,kind,axis,period_mm,harmonic,coordinate,x,points,measured_um,fitted_um\n",
+    );
+    for (i, x) in d.unexplained.iter().enumerate() {
+        let Some(p) = &x.profile else { continue };
+        for k in 0..p.x.len() {
+            let _ = writeln!(
+                st,
+                "{},{},{},{},{},{},{},{},{},{}",
+                i + 1,
+                q(&x.kind),
+                q(&x.axis),
+                x.period_mm.map(|v| v.to_string()).unwrap_or_default(),
+                x.harmonic.map(|v| v.to_string()).unwrap_or_default(),
+                q(&p.coordinate),
+                p.x[k],
+                p.points[k],
+                p.measured_um[k],
+                p.fitted_um[k]
+            );
+        }
+    }
+    let mut par = String::from("effect,parameter,value,sigma\n");
+    if let Some(c) = d.candidates.first() {
+        for p in &c.params {
+            let _ = writeln!(
+                par,
+                "{},{},{},{}",
+                q(&c.effect),
+                q(&p.name),
+                p.value,
+                p.sigma.map(|v| v.to_string()).unwrap_or_default()
+            );
+        }
+    }
+    write_all(
+        dir,
+        [
+            ("candidates.csv".to_string(), s),
+            ("prediction.csv".to_string(), pred),
+            ("structure.csv".to_string(), st),
+            ("parameters.csv".to_string(), par),
+        ],
+    )
 }
 
 fn write_all<const N: usize>(dir: &Path, files: [(String, String); N]) -> Result<Vec<String>> {

@@ -74,6 +74,19 @@ fn dir_name(d: i32) -> &'static str {
 /// right and +Y up, each trace de-centred (its own 1θ taken out) with its circularity in the
 /// legend. `speeds` fixes the colours (the same speed, the same colour, in every plot).
 fn polar(title: &str, role: &str, traces: &[&Trace], upd: f64, speeds: &[i64]) -> String {
+    polar_over(title, role, traces, &[], upd, speeds)
+}
+
+/// [`polar`] with `under` drawn first, faint, in the same colours: a prediction (`traces`)
+/// drawn over the measurement (`under`), each legend line giving both circularities.
+fn polar_over(
+    title: &str,
+    role: &str,
+    traces: &[&Trace],
+    under: &[&Trace],
+    upd: f64,
+    speeds: &[i64],
+) -> String {
     let (w, r0, div) = (400.0, 100.0, 20.0);
     let c = w / 2.0;
     let speed_key = |t: &Trace| (t.speed_mm_s * 10.0).round() as i64;
@@ -107,7 +120,11 @@ fn polar(title: &str, role: &str, traces: &[&Trace], upd: f64, speeds: &[i64]) -
         fmt_scale(upd),
         w - 6.0
     );
-    for t in traces {
+    let layers = under
+        .iter()
+        .map(|t| (t, true))
+        .chain(traces.iter().map(|t| (t, false)));
+    for (t, faint) in layers {
         let mut d = String::new();
         for (j, (th, e)) in t.theta_deg.iter().zip(&t.deviation_um).enumerate() {
             let r = (r0 + e / upd * div).clamp(2.0, c - 2.0);
@@ -125,22 +142,30 @@ fn polar(title: &str, role: &str, traces: &[&Trace], upd: f64, speeds: &[i64]) -
         }
         let _ = write!(
             svg,
-            "<path data-trace=\"{} {} mm/s\" data-direction=\"{}\" data-speed-mm-s=\"{}\" data-circularity-um=\"{:.3}\" d=\"{d}\" fill=\"none\" stroke=\"{}\" stroke-width=\"1.4\"{}/>",
+            "<path data-trace=\"{} {} mm/s\" data-layer=\"{}\" data-direction=\"{}\" data-speed-mm-s=\"{}\" data-circularity-um=\"{:.3}\" d=\"{d}\" fill=\"none\" stroke=\"{}\" stroke-width=\"{}\"{}{}/>",
             dir_name(t.direction),
             t.speed_mm_s,
+            if faint { "measured" } else { role },
             dir_name(t.direction).to_lowercase(),
             t.speed_mm_s,
             t.circularity_um,
             colour(t),
+            if faint { "3" } else { "1.4" },
+            if faint { " stroke-opacity=\"0.25\"" } else { "" },
             if t.direction < 0 { " stroke-dasharray=\"6 3\"" } else { "" }
         );
     }
     svg += "</svg>";
     let mut legend = String::from("<ul class=\"traces\">");
     for t in traces {
+        let was = under
+            .iter()
+            .find(|u| u.direction == t.direction && speed_key(u) == speed_key(t))
+            .map(|u| format!("measured {:.2} µm → predicted ", u.circularity_um))
+            .unwrap_or_default();
         let _ = write!(
             legend,
-            "<li><span style=\"color:{}\">{}</span> {} {} mm/s: circularity <b data-circularity-um=\"{:.3}\">{:.2} µm</b></li>",
+            "<li><span style=\"color:{}\">{}</span> {} {} mm/s: circularity {was}<b data-circularity-um=\"{:.3}\">{:.2} µm</b></li>",
             colour(t),
             if t.direction < 0 { "╌╌" } else { "━━" },
             dir_name(t.direction),
@@ -150,8 +175,13 @@ fn polar(title: &str, role: &str, traces: &[&Trace], upd: f64, speeds: &[i64]) -
         );
     }
     legend += "</ul>";
+    let what = if under.is_empty() {
+        "deviation from the certified circle per direction and speed"
+    } else {
+        "predicted deviation (bold) drawn over the measured one (faint), per direction and speed"
+    };
     format!(
-        "<figure>{svg}<figcaption><b>{}</b>: deviation from the certified circle per direction and speed (1° means, each trace's own centre taken out: the 1θ term is where the circle lies, not its form; circularity = range of the trace){legend}</figcaption></figure>",
+        "<figure>{svg}<figcaption><b>{}</b>: {what} (1° means, each trace's own centre taken out: the 1θ term is where the circle lies, not its form; circularity = range of the trace){legend}</figcaption></figure>",
         esc(title)
     )
 }
@@ -162,6 +192,174 @@ fn fmt_scale(v: f64) -> String {
     } else {
         format!("{v}")
     }
+}
+
+/// A value with its standard uncertainty in engineering form: both to the σ's second
+/// significant digit, with a common power of ten outside 10⁻³…10⁴ (`(2.31 ± 0.04)e-6`);
+/// without σ, four significant digits.
+pub fn value_sigma(v: f64, sigma: Option<f64>) -> String {
+    if !v.is_finite() {
+        return "—".into();
+    }
+    let big = sigma
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .map_or(v.abs(), |s| s.max(v.abs()));
+    let e = if big > 0.0 {
+        big.log10().floor() as i32
+    } else {
+        0
+    };
+    let (scale, suffix) = if (-3..4).contains(&e) {
+        (1.0, String::new())
+    } else {
+        (10f64.powi(e), format!("e{e}"))
+    };
+    match sigma.filter(|s| s.is_finite() && *s > 0.0) {
+        Some(s) => {
+            let digits = (1 - (s / scale).log10().floor() as i32).clamp(0, 9) as usize;
+            let body = format!("{:.digits$} ± {:.digits$}", v / scale, s / scale);
+            if suffix.is_empty() {
+                body
+            } else {
+                format!("({body}){suffix}")
+            }
+        }
+        None if v == 0.0 => "0".into(),
+        None => {
+            let digits = (3 - (v.abs() / scale).log10().floor() as i32).clamp(0, 9) as usize;
+            format!("{:.digits$}{suffix}", v / scale)
+        }
+    }
+}
+
+/// The fitted parameters of each effect: name (with unit), value ± standard uncertainty; a
+/// parameter the data cannot determine says so in its row (and nowhere else). Effects with
+/// many parameters (tables, maps) fold under their name.
+fn params_table(heading: &str, groups: &[scancorr_core::lab::analysis::EffectParams]) -> String {
+    if groups.iter().all(|g| g.params.is_empty()) {
+        return String::new();
+    }
+    let undetermined: usize = groups
+        .iter()
+        .map(|g| g.params.iter().filter(|p| p.sigma.is_none()).count())
+        .sum();
+    let mut s = format!("<h2>{}</h2>", esc(heading));
+    if undetermined > 0 {
+        let _ = write!(s, "<p class=\"muted\">{undetermined} parameter(s) this data cannot determine are marked <i>not determined</i>: they keep their minimum-norm values and correct nothing this data can check.</p>");
+    }
+    for g in groups.iter().filter(|g| !g.params.is_empty()) {
+        let mut t = String::from("<table data-params=\"1\"><tr><th>parameter (unit)</th><th>value ± standard uncertainty</th></tr>");
+        for p in &g.params {
+            let _ = write!(
+                t,
+                "<tr><td>{}</td><td>{}</td></tr>",
+                esc(&p.name),
+                match p.sigma {
+                    Some(_) => value_sigma(p.value, p.sigma),
+                    None => format!(
+                        "{} <i class=\"muted\">not determined</i>",
+                        value_sigma(p.value, None)
+                    ),
+                }
+            );
+        }
+        t += "</table>";
+        if g.params.len() > 12 {
+            let _ = write!(
+                s,
+                "<details><summary><b>{}</b> ({} parameters)</summary>{t}</details>",
+                esc(&g.effect),
+                g.params.len()
+            );
+        } else {
+            let _ = write!(s, "<p><b>{}</b></p>{t}", esc(&g.effect));
+        }
+    }
+    s
+}
+
+/// Each structure's residual against its coordinate with the fitted structure over it.
+fn structure_profiles(st: &[scancorr_core::lab::analysis::Structure]) -> String {
+    let mut s = String::new();
+    for x in st {
+        let Some(p) = &x.profile else { continue };
+        let what = match (x.period_mm, x.harmonic) {
+            (Some(per), _) => format!("fitted period {per} mm along {}", x.axis),
+            (_, Some(k)) => format!("fitted {k}θ harmonic of the probing direction"),
+            _ => x.kind.clone(),
+        };
+        let series: Vec<Series> = vec![
+            (
+                "residual (bin means)".into(),
+                "#1f77b4",
+                p.x.iter()
+                    .copied()
+                    .zip(p.measured_um.iter().copied())
+                    .collect(),
+                false,
+            ),
+            (
+                format!("fitted, ±{:.2} µm", x.amplitude_um),
+                "#d62728",
+                p.x.iter()
+                    .copied()
+                    .zip(p.fitted_um.iter().copied())
+                    .collect(),
+                true,
+            ),
+        ];
+        let _ = write!(
+            s,
+            "<figure>{}<figcaption>Residual along {} against {} with the {what} ({:.0} % of the residual; each point's residual divided by how much of the error direction it sees, averaged in bins).</figcaption></figure>",
+            xy("structure", &series, &p.coordinate, "error, µm"),
+            esc(&x.axis),
+            esc(&p.coordinate),
+            x.explained * 100.0
+        );
+    }
+    s
+}
+
+/// The best candidate's predicted traces drawn over the measured ones, one plot per circle,
+/// on one scale.
+fn prediction_polars(ds: &Dataset, p: &scancorr_core::lab::analysis::Prediction) -> String {
+    let verb = match p.action {
+        scancorr_core::lab::analysis::Move::Add => "adding",
+        scancorr_core::lab::analysis::Move::Swap => "swapping in",
+        scancorr_core::lab::analysis::Move::Drop => "dropping",
+    };
+    let mut s = format!(
+        "<h2>What {verb} {} predicts for each circle</h2>",
+        esc(&p.effect)
+    );
+    let all: Vec<&Trace> = p.measured.iter().chain(&p.predicted).collect();
+    let maxdev = all
+        .iter()
+        .flat_map(|t| t.deviation_um.iter())
+        .fold(0.0f64, |a, e| a.max(e.abs()));
+    let upd = um_per_div(maxdev);
+    let mut speeds: Vec<i64> = all
+        .iter()
+        .map(|t| (t.speed_mm_s * 10.0).round() as i64)
+        .collect();
+    speeds.sort_unstable();
+    speeds.dedup();
+    for (fi, (_, f)) in ds.features.iter().enumerate() {
+        let pred: Vec<&Trace> = p.predicted.iter().filter(|t| t.feature == fi).collect();
+        let meas: Vec<&Trace> = p.measured.iter().filter(|t| t.feature == fi).collect();
+        if pred.is_empty() {
+            continue;
+        }
+        let title = format!(
+            "{} {} (Ø{} mm) — {verb} {}",
+            f.artifact,
+            fi + 1,
+            f.certificate_diameter_mm.unwrap_or(f.nominal_diameter_mm),
+            p.effect
+        );
+        s += &polar_over(&title, "predicted", &pred, &meas, upd, &speeds);
+    }
+    s
 }
 
 /// Horizontal bar chart.
@@ -373,6 +571,20 @@ pub fn diagnose(cal: &Calibration, ds: &Dataset, cmp: &Comparison, d: &Diagnosis
     for s in &d.unexplained {
         let _ = write!(body, "<p><b>Unexplained structure:</b> {} along {} ({:.3} µm, {:.0} % of the residual). Start a custom effect with <code>{}</code>.</p>", esc(&s.kind), esc(&s.axis), s.amplitude_um, s.explained * 100.0, esc(&s.custom_terms.join(" ")));
     }
+    body += &structure_profiles(&d.unexplained);
+    if let Some(best) = d.candidates.first() {
+        let group = [scancorr_core::lab::analysis::EffectParams {
+            effect: best.effect.clone(),
+            params: best.params.clone(),
+        }];
+        body += &params_table(
+            &format!("Fitted parameters of the best candidate, {}", best.effect),
+            &group,
+        );
+    }
+    if let Some(p) = &d.prediction {
+        body += &prediction_polars(ds, p);
+    }
     body += &polars(ds, cmp, None);
     body += "<h2>Residual against each feature</h2>";
     body += &breakdown(cmp);
@@ -383,6 +595,7 @@ pub fn diagnose(cal: &Calibration, ds: &Dataset, cmp: &Comparison, d: &Diagnosis
 pub fn add(
     old: &Calibration,
     new: &Calibration,
+    fit: &scancorr_core::lab::analysis::FitOutcome,
     dsb: &Dataset,
     cb: &Comparison,
     dsa: &Dataset,
@@ -403,6 +616,13 @@ pub fn add(
         )
     );
     body += &polars(dsa, ca, Some((dsb, cb)));
+    body += &params_table(
+        &format!(
+            "Fitted parameters of v{} (every effect refitted)",
+            new.version
+        ),
+        &fit.by_effect(),
+    );
     body += "<h2>Residual against each feature (after)</h2>";
     body += &breakdown(ca);
     page("scancorr lab — add", &body)
@@ -552,12 +772,14 @@ pub fn discover(
             esc(&c.separate_by.join("; "))
         );
     }
-    if !d.unidentifiable.is_empty() {
-        let _ = write!(body, "<p><b>Not determined by this campaign</b> ({} parameters, kept at their minimum-norm values): {}</p>", d.unidentifiable.len(), esc(&d.unidentifiable.iter().take(12).cloned().collect::<Vec<_>>().join("; ")));
-    }
     for s in &d.unexplained {
         let _ = write!(body, "<p><b>Left unexplained:</b> {} along {} ({:.3} µm, {:.0} % of the residual): <code>{}</code></p>", esc(&s.kind), esc(&s.axis), s.amplitude_um, s.explained * 100.0, esc(&s.custom_terms.join(" ")));
     }
+    body += &structure_profiles(&d.unexplained);
+    body += &params_table(
+        &format!("Parameters of the final model, v{}", f.version),
+        &f.params,
+    );
     if let Some(((ds0, c0), (ds1, c1))) = circles {
         body += "<p>Each circle before (the start, red) and after (the final version, blue):</p>";
         body += &polars(ds1, c1, Some((ds0, c0)));
@@ -1211,4 +1433,21 @@ pub fn dynamic_map(
         let _ = write!(body, "<p class=\"muted\">{}</p>", esc(n));
     }
     page("scancorr calibrate dynamic-map", &body)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::value_sigma;
+
+    #[test]
+    fn values_carry_their_uncertainty_to_its_second_digit() {
+        assert_eq!(value_sigma(2.3127e-6, Some(4.2e-8)), "(2.313 ± 0.042)e-6");
+        assert_eq!(value_sigma(0.01234, Some(0.00051)), "0.01234 ± 0.00051");
+        assert_eq!(value_sigma(12.34, Some(1.2)), "12.3 ± 1.2");
+        assert_eq!(value_sigma(-1.5e-9, None), "-1.500e-9");
+        assert_eq!(value_sigma(0.0, None), "0");
+        assert_eq!(value_sigma(f64::NAN, Some(1.0)), "—");
+        // A value far below its σ keeps σ's exponent.
+        assert_eq!(value_sigma(1e-12, Some(3.0e-7)), "(0.0 ± 3.0)e-7");
+    }
 }

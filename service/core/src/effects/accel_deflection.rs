@@ -118,7 +118,14 @@ impl Config {
         let ax = ["x", "y", "z"];
         self.index()
             .into_iter()
-            .map(|(m, i, j)| format!("P[{}][{}]·{} (mm per mm/s²)", ax[i], ax[j], MONOMIALS[m]))
+            .map(|(m, i, j)| {
+                format!(
+                    "P[{}][{}]{} (mm per mm/s²)",
+                    ax[i],
+                    ax[j],
+                    super::monomial_suffix(m)
+                )
+            })
             .collect()
     }
 }

@@ -318,6 +318,16 @@ impl Default for PositionBasis {
 /// Names of the monomials of order 2, in basis order.
 pub const MONOMIALS: [&str; 10] = ["1", "x", "y", "z", "x²", "y²", "z²", "xy", "xz", "yz"];
 
+/// How a parameter's name says which monomial of the position basis it multiplies: nothing
+/// for the constant, `· ξx` (ξ = (position − origin) / scale, dimensionless) for the others —
+/// so the unit of every coefficient is the unit of the constant term.
+pub fn monomial_suffix(m: usize) -> String {
+    match m {
+        0 => String::new(),
+        _ => format!(" · ξ{}", MONOMIALS[m.min(MONOMIALS.len() - 1)]),
+    }
+}
+
 impl PositionBasis {
     /// Number of monomials.
     pub fn len(&self) -> usize {

@@ -8,7 +8,7 @@
 //! with a frequency-dependent gain, so a circle scanned fast comes out smaller, and elliptic
 //! when the axes differ; the correction is applied about the commanded centre.
 
-use super::{check_finite, Effect, PositionBasis, MONOMIALS};
+use super::{check_finite, Effect, PositionBasis};
 use crate::sample::{PointContext, Vec3};
 use serde::{Deserialize, Serialize};
 
@@ -104,14 +104,30 @@ impl Config {
     pub fn param_names(&self) -> Vec<String> {
         let mut v = vec![];
         for ax in ["x", "y", "z"] {
-            for m in MONOMIALS.iter().take(self.position.len()) {
+            for m in 0..self.position.len() {
                 for p in &self.powers {
-                    v.push(format!("α_{ax}·f^{p}·{m} (1/Hz^{p})"));
+                    let (pow, unit) = match p {
+                        1 => ("".to_string(), "1/Hz".to_string()),
+                        p => (superscript(*p), format!("1/Hz{}", superscript(*p))),
+                    };
+                    v.push(format!(
+                        "α_{ax} of f{pow}{} ({unit})",
+                        super::monomial_suffix(m)
+                    ));
                 }
             }
         }
         v
     }
+}
+
+/// `n` as superscript digits (`2` → `²`).
+fn superscript(n: u32) -> String {
+    const D: [char; 10] = ['⁰', '¹', '²', '³', '⁴', '⁵', '⁶', '⁷', '⁸', '⁹'];
+    n.to_string()
+        .chars()
+        .map(|c| D[c.to_digit(10).unwrap_or(0) as usize])
+        .collect()
 }
 
 impl Effect for Model {

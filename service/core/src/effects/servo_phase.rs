@@ -29,7 +29,7 @@
 //! documents —, ψ only with `direction_dependent: false`, or both) on held-out runs of both
 //! senses. Parameters: φ's (b0..b2 per monomial, y then z) first, then ψ's.
 
-use super::{check_finite, Effect, PositionBasis, MONOMIALS};
+use super::{check_finite, Effect, PositionBasis};
 use crate::sample::{PointContext, Vec3};
 use serde::{Deserialize, Serialize};
 
@@ -197,21 +197,24 @@ impl Config {
             }
         }
     }
-    /// Parameter names: `φ_y b1·x (rad/Hz)`, …, `static y c0·1 (rad)`, ….
+    /// Parameter names: `φ_y b1 · ξx (rad/Hz)`, …, `static y c0 (rad)`, ….
     pub fn param_names(&self) -> Vec<String> {
         const UNITS: [&str; 3] = ["rad", "rad/Hz", "rad/Hz²"];
         let mut v = vec![];
         for (ax, arr) in [("y", &self.y), ("z", &self.z)] {
-            for m in MONOMIALS.iter().take(arr.len()) {
+            for m in 0..arr.len() {
                 for (k, unit) in UNITS.iter().enumerate() {
-                    v.push(format!("φ_{ax} b{k}·{m} ({unit})"));
+                    v.push(format!("φ_{ax} b{k}{} ({unit})", super::monomial_suffix(m)));
                 }
             }
         }
         for (ax, arr) in [("y", &self.static_terms.y), ("z", &self.static_terms.z)] {
-            for m in MONOMIALS.iter().take(arr.len()) {
+            for m in 0..arr.len() {
                 for (k, unit) in UNITS.iter().enumerate() {
-                    v.push(format!("static {ax} c{k}·{m} ({unit})"));
+                    v.push(format!(
+                        "static {ax} c{k}{} ({unit})",
+                        super::monomial_suffix(m)
+                    ));
                 }
             }
         }
@@ -456,11 +459,11 @@ mod tests {
             }
         }
         let names = Config::zeros_variant(0, true, true).param_names();
-        assert_eq!(names[0], "φ_y b0·1 (rad)");
-        assert_eq!(names[6], "static y c0·1 (rad)");
-        assert_eq!(names[11], "static z c2·1 (rad/Hz²)");
+        assert_eq!(names[0], "φ_y b0 (rad)");
+        assert_eq!(names[6], "static y c0 (rad)");
+        assert_eq!(names[11], "static z c2 (rad/Hz²)");
         let names = Config::zeros_variant(1, false, true).param_names();
-        assert_eq!(names[4], "static y c1·x (rad/Hz)");
+        assert_eq!(names[4], "static y c1 · ξx (rad/Hz)");
     }
 
     #[test]

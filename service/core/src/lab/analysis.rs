@@ -153,6 +153,15 @@ pub struct Param {
     pub sigma: Option<f64>,
 }
 
+/// The fitted parameters of one effect.
+#[derive(Debug, Clone, Serialize)]
+pub struct EffectParams {
+    /// The effect's id.
+    pub effect: String,
+    /// Its parameters, in the effect's order.
+    pub params: Vec<Param>,
+}
+
 /// The outcome of fitting some effects' parameters jointly with the artifact placements.
 #[derive(Debug, Clone, Serialize)]
 pub struct FitOutcome {
@@ -216,6 +225,20 @@ pub fn fit_effects(
         .collect();
     o.predicted = predicted(ds, prep, &pairs)?;
     Ok(o)
+}
+
+impl FitOutcome {
+    /// The parameters of each fitted effect, by id.
+    pub fn by_effect(&self) -> Vec<EffectParams> {
+        self.configs
+            .iter()
+            .zip(&self.params)
+            .map(|(c, p)| EffectParams {
+                effect: c.id(),
+                params: p.clone(),
+            })
+            .collect()
+    }
 }
 
 fn delta(before: &EffectConfig, after: &EffectConfig) -> Vec<f64> {
@@ -681,6 +704,25 @@ pub struct Diagnosis {
     pub points: [usize; 2],
     /// Candidates this data cannot test, and why.
     pub skipped: Vec<String>,
+    /// What the best candidate predicts for the circles (absent without circles or
+    /// candidates).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub prediction: Option<Prediction>,
+}
+
+/// The residual a candidate move predicts, beside the measured one: the circles' traces
+/// before (the model refitted as it is) and after the move (every effect refitted), both
+/// from the same artifact fit, so they share their scale and centre treatment.
+#[derive(Debug, Clone, Serialize)]
+pub struct Prediction {
+    /// The move's effect (with variant) or the id dropped.
+    pub effect: String,
+    /// The move.
+    pub action: Move,
+    /// The measured traces.
+    pub measured: Vec<super::traces::Trace>,
+    /// The traces the move predicts.
+    pub predicted: Vec<super::traces::Trace>,
 }
 
 /// Whether a move should be made: an addition or swap must remove, on scans it was not fitted
@@ -1200,6 +1242,28 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
             .collect();
         super::structure::structure(ds, &prep, &resid)?
     };
+    // The best candidate's predicted residual, drawn over the measured one.
+    let prediction = match results.first() {
+        Some((c, _, spec, _, o, _)) => {
+            let pred = move_prediction(ds, &prep, &sc.space, spec, o, false)?;
+            let um = |d: Option<&[f64]>| -> Vec<f64> {
+                prep.art
+                    .residual
+                    .iter()
+                    .enumerate()
+                    .map(|(i, e)| (e + d.map_or(0.0, |d| d[i])) * 1e3)
+                    .collect()
+            };
+            let measured = super::traces::traces(ds, &um(None));
+            (!measured.is_empty()).then(|| Prediction {
+                effect: c.effect.clone(),
+                action: c.action.clone(),
+                measured,
+                predicted: super::traces::traces(ds, &um(Some(&pred))),
+            })
+        }
+        None => None,
+    };
     let npts = [
         prep.fit_mask.iter().filter(|m| **m).count(),
         prep.held_mask.iter().filter(|m| **m).count(),
@@ -1243,6 +1307,7 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         unexplained,
         points: npts,
         skipped: sc.skipped,
+        prediction,
     })
 }
 

@@ -82,6 +82,9 @@ pub struct Final {
     pub kinds: Vec<String>,
     /// The final version.
     pub version: u64,
+    /// The final model's parameters with their standard uncertainties (every effect refitted
+    /// on the final dataset; a parameter the campaign cannot determine has none).
+    pub params: Vec<super::analysis::EffectParams>,
 }
 
 /// The loop's outcome.
@@ -302,6 +305,7 @@ pub fn discover(
         prep = prep_next;
     }
     let fin = analysis::fit_effects(&ds, &prep, &cal.effects)?;
+    let fin_params = fin.by_effect();
     Ok(Discovery {
         start_heldout_rms_um: p0.rms_held_um,
         start_rms_um: p0.rms_fit_um,
@@ -318,6 +322,7 @@ pub fn discover(
             effects: cal.effects.iter().map(|e| e.id()).collect(),
             kinds: cal.effects.iter().map(|e| e.kind().to_string()).collect(),
             version: cal.version,
+            params: fin_params,
         },
         skipped: last_dg.skipped,
     })

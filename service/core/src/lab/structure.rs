@@ -71,6 +71,119 @@ pub struct Structure {
     pub custom_terms: Vec<String>,
     /// Harmonic order k of the probing direction (`probe_direction`).
     pub harmonic: Option<u32>,
+    /// The residual against the structure's coordinate with the fitted structure over it
+    /// (periodic and probing-direction structure; absent for a reversal).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub profile: Option<Profile>,
+}
+
+/// The residual seen along a structure's coordinate: each point's residual (placements taken
+/// out) divided by how much of the error direction it sees (its gradient along the axis, or
+/// along the probing direction; points that see less than half of it are left out), averaged
+/// in bins of the coordinate, and the fitted structure at the bins' centres.
+#[derive(Debug, Clone, Serialize)]
+pub struct Profile {
+    /// The coordinate with its unit (`x, mm`; `probing direction φ, °`).
+    pub coordinate: String,
+    /// Bin centres.
+    pub x: Vec<f64>,
+    /// Mean residual along the error direction in each bin, µm.
+    pub measured_um: Vec<f64>,
+    /// The fitted structure there, µm.
+    pub fitted_um: Vec<f64>,
+    /// Points in each bin.
+    pub points: Vec<usize>,
+}
+
+/// Least share of the error direction a point must see to enter a [`Profile`].
+const PROFILE_MIN_GAIN: f64 = 0.5;
+/// Most bins of a profile.
+const PROFILE_MAX_BINS: usize = 600;
+
+/// Bins `(x, e/g)` samples over `[lo, hi)` in `nbins` bins and evaluates `fitted` (mm) at each
+/// bin with data. Empty bins are left out.
+fn profile(
+    coordinate: String,
+    samples: impl Iterator<Item = (f64, f64, f64)>,
+    (lo, hi): (f64, f64),
+    nbins: usize,
+    fitted: impl Fn(f64) -> f64,
+) -> Option<Profile> {
+    let nbins = nbins.clamp(8, PROFILE_MAX_BINS);
+    let w = (hi - lo) / nbins as f64;
+    if !(w > 0.0 && w.is_finite()) {
+        return None;
+    }
+    let mut acc = vec![(0.0, 0usize); nbins];
+    for (x, e, g) in samples {
+        if g.abs() < PROFILE_MIN_GAIN || !(x.is_finite() && e.is_finite()) || x < lo || x >= hi {
+            continue;
+        }
+        let b = &mut acc[(((x - lo) / w) as usize).min(nbins - 1)];
+        b.0 += e / g;
+        b.1 += 1;
+    }
+    let mut p = Profile {
+        coordinate,
+        x: vec![],
+        measured_um: vec![],
+        fitted_um: vec![],
+        points: vec![],
+    };
+    for (k, (sum, n)) in acc.into_iter().enumerate() {
+        if n > 0 {
+            let xc = lo + (k as f64 + 0.5) * w;
+            p.x.push(xc);
+            p.measured_um.push(sum / n as f64 * 1e3);
+            p.fitted_um.push(fitted(xc) * 1e3);
+            p.points.push(n);
+        }
+    }
+    (p.x.len() >= 4).then_some(p)
+}
+
+/// The profile of a found structure: along its axis for a period (12 bins a period, at most
+/// 50 periods from the start of the span), along the probing direction for a harmonic of it.
+fn profile_of(ds: &Dataset, nu: &Nuisance, e: &[f64], f: &Found) -> Option<Profile> {
+    let coef = f.coef.clone();
+    match (f.s.kind.as_str(), f.s.period_mm, f.s.harmonic) {
+        ("period", Some(p), _) => {
+            let a = Axis::ALL.into_iter().find(|a| a.name() == f.s.axis)?;
+            let ai = a.index();
+            let (lo, hi) = axis_span(ds, a);
+            let hi = hi.min(lo + 50.0 * p);
+            let w = TAU / p;
+            profile(
+                format!("{}, mm", a.name()),
+                (0..ds.points.len())
+                    .filter(|&i| nu.used(i))
+                    .map(|i| (ds.points[i].ctx.scale[ai], e[i], nu.art.grad[i][ai])),
+                (lo, hi + 1e-9),
+                ((hi - lo) / p * 12.0).ceil() as usize,
+                move |x| coef[0] * (w * x).sin() + coef[1] * (w * x).cos(),
+            )
+        }
+        ("probe_direction", _, Some(k)) => {
+            let k = k as f64;
+            profile(
+                "probing direction φ, °".into(),
+                (0..ds.points.len())
+                    .filter(|&i| nu.used(i))
+                    .filter_map(|i| {
+                        let (nx, ny, phi) = probing_direction(&ds.points[i].ctx)?;
+                        let g = nu.art.grad[i];
+                        Some((phi.to_degrees(), e[i], g.x * nx + g.y * ny))
+                    }),
+                (-180.0, 180.0),
+                (k as usize * 12).max(72),
+                move |deg| {
+                    let phi = deg.to_radians();
+                    coef[0] * (k * phi).cos() + coef[1] * (k * phi).sin()
+                },
+            )
+        }
+        _ => None,
+    }
 }
 
 /// Shortest period searched, mm.
@@ -399,6 +512,7 @@ fn period_along(ds: &Dataset, nu: &Nuisance, e: &[f64], total: f64, a: Axis) -> 
                 format!("{nm}:cos(2*pi*{nm}/{p:.5})"),
             ],
             harmonic: None,
+            profile: None,
         },
     )
 }
@@ -432,6 +546,7 @@ fn reversal_along(ds: &Dataset, nu: &Nuisance, e: &[f64], total: f64, a: Axis) -
             explained: 0.0,
             custom_terms: vec![format!("{0}:sign(v{0})", a.name())],
             harmonic: None,
+            profile: None,
         },
     )
 }
@@ -481,6 +596,7 @@ fn probe_harmonic(ds: &Dataset, nu: &Nuisance, e: &[f64], total: f64, k: u32) ->
             explained: 0.0,
             custom_terms: probe_terms(k),
             harmonic: Some(k),
+            profile: None,
         },
     )
 }
@@ -513,15 +629,28 @@ fn select(mut all: Vec<Found>) -> Vec<Found> {
 }
 
 /// All structures found in `residual`, strongest first, with their residual and columns.
+#[cfg(test)]
 fn search(ds: &Dataset, prep: &Prepared, residual: &[f64]) -> (Vec<f64>, Vec<Found>) {
-    let (e, all) = candidates(ds, prep, residual);
+    let nu = Nuisance::new(ds, &prep.art);
+    search_with(ds, &nu, residual)
+}
+
+/// [`search`] with the placements' projection made.
+fn search_with(ds: &Dataset, nu: &Nuisance, residual: &[f64]) -> (Vec<f64>, Vec<Found>) {
+    let (e, all) = candidates_with(ds, nu, residual);
     (e, select(all))
 }
 
 /// Every candidate structure explaining more than 5 % of the residual (unsorted), with the
 /// residual freed of the placements.
+#[cfg(test)]
 fn candidates(ds: &Dataset, prep: &Prepared, residual: &[f64]) -> (Vec<f64>, Vec<Found>) {
     let nu = Nuisance::new(ds, &prep.art);
+    candidates_with(ds, &nu, residual)
+}
+
+/// [`candidates`] with the placements' projection made.
+fn candidates_with(ds: &Dataset, nu: &Nuisance, residual: &[f64]) -> (Vec<f64>, Vec<Found>) {
     let r: Vec<f64> = (0..ds.points.len())
         .map(|i| {
             if nu.used(i) && residual[i].is_finite() {
@@ -538,11 +667,11 @@ fn candidates(ds: &Dataset, prep: &Prepared, residual: &[f64]) -> (Vec<f64>, Vec
     }
     let mut all = vec![];
     for a in Axis::ALL {
-        all.extend(period_along(ds, &nu, &e, total, a));
-        all.extend(reversal_along(ds, &nu, &e, total, a));
+        all.extend(period_along(ds, nu, &e, total, a));
+        all.extend(reversal_along(ds, nu, &e, total, a));
     }
     for k in HARMONICS {
-        all.extend(probe_harmonic(ds, &nu, &e, total, k));
+        all.extend(probe_harmonic(ds, nu, &e, total, k));
     }
     (e, all)
 }
@@ -553,10 +682,14 @@ pub fn structure(
     prep: &Prepared,
     residual: &[f64],
 ) -> Result<Vec<Structure>, LabError> {
-    Ok(search(ds, prep, residual)
-        .1
+    let nu = Nuisance::new(ds, &prep.art);
+    let (e, found) = search_with(ds, &nu, residual);
+    Ok(found
         .into_iter()
-        .map(|f| f.s)
+        .map(|f| {
+            let profile = profile_of(ds, &nu, &e, &f);
+            Structure { profile, ..f.s }
+        })
         .collect())
 }
 
@@ -743,6 +876,27 @@ mod tests {
                 "{:?}",
                 p.custom_terms
             );
+            // The profile: the residual along x with the fitted period over it, 12 bins a
+            // period; the fitted curve swings ±2 µm and the binned residual follows it.
+            let pr = p.profile.as_ref().expect("a period has a profile");
+            assert_eq!(pr.coordinate, "x, mm");
+            let bins_per_period = period / (pr.x[1] - pr.x[0]);
+            assert!((bins_per_period - 12.0).abs() < 1.0, "{bins_per_period}");
+            let peak = pr.fitted_um.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            assert!((peak - 2.0).abs() < 0.15, "{peak}");
+            let n = pr.x.len() as f64;
+            let off = (pr
+                .measured_um
+                .iter()
+                .zip(&pr.fitted_um)
+                .map(|(m, f)| (m - f).powi(2))
+                .sum::<f64>()
+                / n)
+                .sqrt();
+            assert!(
+                off < 0.3,
+                "the binned residual is {off} µm rms off the fitted period"
+            );
         }
     }
 
@@ -774,6 +928,30 @@ mod tests {
             best.s.amplitude_um
         );
         assert!(best.s.explained > 0.95, "{}", best.s.explained);
+        // Its profile against the probing direction: 3 waves of ±1.5 µm over the turn.
+        let st = structure(&ds, &prep, &prep.art.residual).unwrap();
+        let pr = st[0].profile.as_ref().expect("a harmonic has a profile");
+        assert_eq!(pr.coordinate, "probing direction φ, °");
+        let peak = pr.fitted_um.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        assert!((peak - 1.5).abs() < 0.15, "{peak}");
+        let crossings = pr
+            .fitted_um
+            .windows(2)
+            .filter(|w| w[0].signum() != w[1].signum())
+            .count();
+        assert!(
+            (5..=7).contains(&crossings),
+            "{crossings} sign changes for 3 waves"
+        );
+        let off = (pr
+            .measured_um
+            .iter()
+            .zip(&pr.fitted_um)
+            .map(|(m, f)| (m - f).powi(2))
+            .sum::<f64>()
+            / pr.x.len() as f64)
+            .sqrt();
+        assert!(off < 0.3, "{off}");
         // No period offered for what the harmonic explains, though one fits part of it.
         assert!(s.iter().all(|x| x.kind != "period"), "{s:#?}");
         let (_, all) = candidates(&ds, &prep, &prep.art.residual);
