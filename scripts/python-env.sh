@@ -4,9 +4,11 @@
 #   scripts/python-env.sh            -> last line of stdout: /abs/path/to/target/pyenv/bin/python
 #
 # The venv lives at <workspace>/target/pyenv (override with SCANCORR_PYENV) and holds exactly
-# the pinned packages of tests/python/requirements.txt. pip runs only when the venv is new or
-# the requirements (or the base interpreter) changed since the last successful install, so
-# after the first run this works offline. Everything but the final path goes to stderr.
+# the pinned packages of tests/python/requirements.txt, then the project's Python package
+# (`pip install ./clients/python`, as a user installs it). pip runs only when the venv is new
+# or the requirements, the package's sources (or the base interpreter) changed since the last
+# successful install, so after the first run this works offline. Everything but the final
+# path goes to stderr.
 # The base interpreter is $PYTHON if set, else python3 (Python >= 3.9 with the venv module).
 set -euo pipefail
 
@@ -61,6 +63,22 @@ if [ "$(cat "$stamp" 2>/dev/null || true)" != "$want" ]; then
         "$py" -m pip install --quiet -r "$req" >&2 ||
         die "pip install -r $req failed (is PyPI reachable?)"
     echo "$want" >"$stamp"
+fi
+
+# The project's package: reinstalled when its sources change (not editable: the tests use it
+# as installed).
+pkg="$root/clients/python"
+pkg_stamp="$venv/.scancorr-package.stamp"
+pkg_want="$( (cd "$pkg" && find pyproject.toml README.md scancorr -type f ! -name '*.pyc' | LC_ALL=C sort | xargs cat) |
+    (sha256sum 2>/dev/null || shasum -a 256) | cut -d' ' -f1)"
+if [ "$(cat "$pkg_stamp" 2>/dev/null || true)" != "$pkg_want" ]; then
+    echo "python-env.sh: installing the scancorr package from clients/python" >&2
+    rm -f "$pkg_stamp"
+    PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_INPUT=1 \
+        "$py" -m pip install --quiet --no-deps --no-build-isolation --force-reinstall "$pkg" >&2 ||
+        die "pip install clients/python failed"
+    rm -rf "$pkg/build" "$pkg"/*.egg-info
+    echo "$pkg_want" >"$pkg_stamp"
 fi
 
 echo "$py"

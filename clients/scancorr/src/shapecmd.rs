@@ -109,7 +109,9 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 diameter: None,
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
-                form: peak_to_valley(&f.residuals),
+                // A line's residuals are distances (≥ 0): its straightness is the diameter of
+                // the cylinder about the least-squares line that holds every point.
+                form: 2.0 * f.max_abs_residual(),
             }
         }
         ShapeKind::Plane => {
@@ -146,6 +148,10 @@ struct JsonSummary {
     peak_to_valley: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
     roundness: Option<f64>,
+    /// A line's straightness: the diameter of the cylinder about the least-squares line that
+    /// holds every point, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    straightness: Option<f64>,
 }
 
 fn to_json(s: &Summary) -> JsonSummary {
@@ -159,6 +165,7 @@ fn to_json(s: &Summary) -> JsonSummary {
         max_abs_residual: s.max_abs_residual,
         peak_to_valley: s.form,
         roundness: (s.kind == ShapeKind::Circle).then_some(s.form),
+        straightness: (s.kind == ShapeKind::Line).then_some(s.form),
     }
 }
 
@@ -210,14 +217,14 @@ fn print_human(s: &Summary, file: &Path) -> Result<()> {
         "max |residual|",
         fixed(s.max_abs_residual, 6)
     )?;
-    let form = if s.kind == ShapeKind::Circle {
-        "roundness"
-    } else {
-        "form (P−V)"
+    let (form, what) = match s.kind {
+        ShapeKind::Circle => ("roundness", "peak-to-valley of the residual"),
+        ShapeKind::Line => (
+            "straightness",
+            "Ø of the cylinder about the least-squares line holding every point",
+        ),
+        _ => ("form (P−V)", "peak-to-valley of the residual"),
     };
-    outln!(
-        "  {form:<16} {}  mm  (peak-to-valley of the residual)",
-        fixed(s.form, 6)
-    )?;
+    outln!("  {form:<16} {}  mm  ({what})", fixed(s.form, 6))?;
     Ok(())
 }

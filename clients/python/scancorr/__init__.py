@@ -1,0 +1,52 @@
+"""scancorr: corrected CMM scanning points, calibrations and shape fits from Python.
+
+    import scancorr
+    with scancorr.connect("tcp/127.0.0.1:7447") as bus:
+        with bus.subscribe_points("m1") as sub:
+            for batch in sub.batches(idle=5):
+                print(len(batch.points), batch.points["surface"][0], sub.missed)
+
+- `connect(endpoint | zenoh_config=FILE)` → `Client`: `subscribe_points`, `subscribe_alarms`,
+  `get_calibration`, `put_calibration`, `history`, `status`, `machines`
+- `read_bag(path)` → `Bag`: every channel as numpy arrays (pandas with `Bag.frames()`)
+- `scancorr.shape`: `fit_circle`, `fit_sphere`, `fit_line`, `fit_plane`, `roundness`,
+  `straightness`
+- `POINT_DTYPE`, `ALARM_DTYPE`: the arrays' layouts (`scancorr.arrays`)
+"""
+
+from . import arrays, shape
+from .arrays import ALARM_DTYPE, POINT_DTYPE, DecodeError
+from .bag import Bag, Channel, read_bag
+from .client import (
+    AlarmSubscription,
+    Client,
+    NoService,
+    NotServed,
+    PointBatch,
+    PointSubscription,
+    ScancorrError,
+    ServiceError,
+    connect,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ALARM_DTYPE",
+    "POINT_DTYPE",
+    "AlarmSubscription",
+    "Bag",
+    "Channel",
+    "Client",
+    "DecodeError",
+    "NoService",
+    "NotServed",
+    "PointBatch",
+    "PointSubscription",
+    "ScancorrError",
+    "ServiceError",
+    "arrays",
+    "connect",
+    "read_bag",
+    "shape",
+]
