@@ -1,0 +1,399 @@
+//! A real router with mutual TLS and access control: `scancorr-router` (zenoh's router mode)
+//! loads `deploy/router.json5` as shipped — only its certificate paths and its port are
+//! replaced — with the certificates `scripts/make-certs.sh` makes. scancorrd joins it with
+//! `deploy/scancorrd.json5` and `deploy/zenoh-client-tls.json5`; every other role connects
+//! with `deploy/zenoh-operator-tls.json5` carrying that role's certificate. Each right and
+//! each refusal is checked against the service's state afterwards (its status and calibration
+//! history, asked as an operator), not against what the refused client believes.
+
+mod common;
+use common::*;
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+
+struct Proc(Child, PathBuf);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Proc {
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.1).unwrap_or_default()
+    }
+}
+
+fn spawn(dir: &Path, bin: &Path, args: &[&str], log: &str) -> Proc {
+    let log = dir.join(log);
+    let child = Command::new(bin)
+        .args(args)
+        .current_dir(dir)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap_or_else(|e| panic!("{}: {e}", bin.display()));
+    Proc(child, log)
+}
+
+/// A deploy file with its certificate folder, router endpoint and data folder replaced.
+fn deployed(dir: &Path, name: &str, port: u16, certs: &Path) -> String {
+    std::fs::read_to_string(root().join("deploy").join(name))
+        .unwrap()
+        .replace("/etc/scancorr/tls/", &format!("{}/", certs.display()))
+        .replace("tls/0.0.0.0:7447", &format!("tls/127.0.0.1:{port}"))
+        .replace("tls/router.example:7447", &format!("tls/127.0.0.1:{port}"))
+        .replace(
+            "tls/cmm-router.local:7447",
+            &format!("tls/127.0.0.1:{port}"),
+        )
+        .replace("/var/lib/scancorr", &dir.join("data").display().to_string())
+        .replace(
+            "/etc/scancorr/zenoh-client-tls.json5",
+            &dir.join("zenoh-client-tls.json5").display().to_string(),
+        )
+}
+
+/// The operator's client file with `role`'s certificate (`role-cert.pem`, `role-key.pem`).
+fn role(dir: &Path, role: &str, port: u16, certs: &Path) -> PathBuf {
+    let text = deployed(dir, "zenoh-operator-tls.json5", port, certs)
+        .replace("operator-", &format!("{role}-"));
+    let p = dir.join(format!("{role}.json5"));
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn cli(dir: &Path, cfg: &Path, args: &[&str]) -> std::process::Output {
+    let mut a: Vec<&str> = args.to_vec();
+    a.extend(["--zenoh-config", cfg.to_str().unwrap()]);
+    run(dir, &a)
+}
+
+fn status(dir: &Path, op: &Path, machine: &str) -> Value {
+    let out = cli(dir, op, &["status", "--machine", machine, "--json"]);
+    assert!(
+        out.status.success(),
+        "status {machine}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// The status once what reached the service stopped growing.
+fn settled(dir: &Path, op: &Path, machine: &str) -> Value {
+    let mut s = status(dir, op, machine);
+    let t0 = Instant::now();
+    loop {
+        std::thread::sleep(Duration::from_millis(1000));
+        let again = status(dir, op, machine);
+        if again["samples_in"] == s["samples_in"] || t0.elapsed() > Duration::from_secs(30) {
+            return again;
+        }
+        s = again;
+    }
+}
+
+fn versions(dir: &Path, op: &Path, machine: &str) -> usize {
+    let out = cli(
+        dir,
+        op,
+        &["calib", "history", "--machine", machine, "--json"],
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    v.as_array().map(|a| a.len()).unwrap_or(0)
+}
+
+/// A zenoh session as `role` (client mode), or the error it got.
+fn session(cfg: &Path) -> Result<zenoh::Session, String> {
+    let mut c = zenoh::Config::from_file(cfg).map_err(|e| e.to_string())?;
+    c.insert_json5("mode", "\"client\"").unwrap();
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    zenoh::open(c).wait().map_err(|e| e.to_string())
+}
+
+#[test]
+fn roles_can_do_exactly_what_the_router_allows() {
+    let d = scratch("router-acl");
+    let certs = d.join("certs");
+    let st = Command::new("bash")
+        .arg(root().join("scripts/make-certs.sh"))
+        .arg(&certs)
+        .status()
+        .unwrap();
+    assert!(st.success(), "scripts/make-certs.sh failed");
+    let port = free_port();
+    std::fs::write(
+        d.join("router.json5"),
+        deployed(&d, "router.json5", port, &certs),
+    )
+    .unwrap();
+    let bin = scancorrd().parent().unwrap().to_path_buf();
+    let router = spawn(
+        &d,
+        &bin.join("scancorr-router"),
+        &["-c", "router.json5"],
+        "router.log",
+    );
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(20),
+            "router did not start:\n{}",
+            router.log()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::fs::write(
+        d.join("zenoh-client-tls.json5"),
+        deployed(&d, "zenoh-client-tls.json5", port, &certs),
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("scancorrd.json5"),
+        deployed(&d, "scancorrd.json5", port, &certs),
+    )
+    .unwrap();
+    let svc = spawn(
+        &d,
+        &bin.join("scancorrd"),
+        &["--config", "scancorrd.json5"],
+        "scancorrd.log",
+    );
+
+    let op = role(&d, "operator", port, &certs);
+    let app = role(&d, "app-shape-analysis", port, &certs);
+    let c1 = role(&d, "controller-m1", port, &certs);
+    let rogue = role(&d, "rogue", port, &certs);
+
+    // The operator puts a calibration per machine (it waits for the service's route).
+    sim_ring(&d, "v1.json");
+    let v1 = std::fs::read_to_string(d.join("v1.json")).unwrap();
+    std::fs::write(
+        d.join("v1-m2.json"),
+        v1.replace("\"machine_id\": \"m1\"", "\"machine_id\": \"m2\""),
+    )
+    .unwrap();
+    for (m, f) in [("m1", "v1.json"), ("m2", "v1-m2.json")] {
+        let out = cli(&d, &op, &["calib", "put", "--machine", m, "--file", f]);
+        assert!(
+            out.status.success(),
+            "operator calib put {m}: {}\nscancorrd:\n{}\nrouter:\n{}",
+            String::from_utf8_lossy(&out.stderr),
+            svc.log(),
+            router.log()
+        );
+    }
+
+    // An app may not put a calibration: the service never sees it.
+    let out = cli(
+        &d,
+        &app,
+        &["calib", "put", "--machine", "m1", "--file", "v1.json"],
+    );
+    assert!(!out.status.success(), "an app put a calibration");
+    assert_eq!(
+        versions(&d, &op, "m1"),
+        1,
+        "the app's put changed the history"
+    );
+    // … nor read one (only operators).
+    assert!(!cli(&d, &app, &["calib", "get", "--machine", "m1"])
+        .status
+        .success());
+    // An app may ask for status and see which machines are served.
+    assert!(cli(&d, &app, &["status", "--machine", "m1", "--json"])
+        .status
+        .success());
+    let listed = String::from_utf8_lossy(&cli(&d, &app, &["status", "--json"]).stdout).to_string();
+    assert!(listed.contains("m1") && listed.contains("m2"), "{listed}");
+
+    // Controller m1 publishes its own machine's raw streams: the service corrects them.
+    let out = cli(
+        &d,
+        &c1,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--live",
+            "--live-rate",
+            "max",
+            "--machine",
+            "m1",
+        ],
+    );
+    assert!(
+        out.status.success(),
+        "controller-m1 → m1: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // … and m2's: refused by the router; the service sees nothing of it.
+    let _ = cli(
+        &d,
+        &c1,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--live",
+            "--live-rate",
+            "max",
+            "--machine",
+            "m2",
+            "--seed",
+            "2",
+        ],
+    );
+    let s1 = settled(&d, &op, "m1");
+    let s2 = status(&d, &op, "m2");
+    assert_eq!(s1["samples_in"], 51829, "m1: {s1}");
+    assert_eq!(
+        s2["samples_in"], 0,
+        "controller-m1 reached m2's raw streams: {s2}"
+    );
+    let points = s1["points_out"].as_u64().unwrap();
+    assert!(points > 10_000, "{s1}");
+
+    // The app and the operator listen to m1's corrected points; the app then forges one and
+    // declares the service's liveliness token for a machine nobody serves.
+    let app_s = session(&app).expect("the app connects");
+    let op_s = session(&op).expect("the operator connects");
+    let got_op = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Vec<u8>>::new()));
+    let got_app = std::sync::Arc::new(std::sync::Mutex::new(0usize));
+    let g = got_op.clone();
+    let _so = op_s
+        .declare_subscriber("cmm/m1/corrected/points")
+        .callback(move |s| g.lock().unwrap().push(s.payload().to_bytes().to_vec()))
+        .wait()
+        .unwrap();
+    let g = got_app.clone();
+    let _sa = app_s
+        .declare_subscriber("cmm/m1/corrected/points")
+        .callback(move |_| *g.lock().unwrap() += 1)
+        .wait()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    // A second scan of m1: its points reach both.
+    let out = cli(
+        &d,
+        &c1,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--live",
+            "--live-rate",
+            "max",
+            "--machine",
+            "m1",
+            "--seed",
+            "3",
+        ],
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let t0 = Instant::now();
+    while (got_op.lock().unwrap().is_empty() || *got_app.lock().unwrap() == 0)
+        && t0.elapsed() < Duration::from_secs(10)
+    {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (op_n, app_n) = (got_op.lock().unwrap().len(), *got_app.lock().unwrap());
+    assert!(
+        op_n > 0 && app_n > 0,
+        "the service's points reach the operator ({op_n}) and the app ({app_n})"
+    );
+    let s1 = settled(&d, &op, "m1");
+
+    // Forgeries from the app.
+    let before = got_op.lock().unwrap().len();
+    app_s
+        .put("cmm/m1/corrected/points", b"FORGED".to_vec())
+        .wait()
+        .unwrap();
+    app_s
+        .put("cmm/m1/raw/scale", b"FORGED".to_vec())
+        .wait()
+        .unwrap();
+    let _token = app_s
+        .liveliness()
+        .declare_token("cmm/m9/scancorrd")
+        .wait()
+        .unwrap();
+    // An operator may record but not inject raw samples (a put of its own would reach its own
+    // subscriber inside its session, without the router: not what is tried here).
+    op_s.put("cmm/m1/raw/scale", b"FORGED".to_vec())
+        .wait()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1000));
+    let forged = got_op.lock().unwrap()[before..]
+        .iter()
+        .filter(|p| p.as_slice() == b"FORGED")
+        .count();
+    assert_eq!(forged, 0, "forged corrected points reached the operator");
+    let s1b = status(&d, &op, "m1");
+    assert_eq!(
+        s1b["messages"]["messages"], s1["messages"]["messages"],
+        "raw messages injected: {s1b}"
+    );
+    assert_eq!(s1b["messages"]["malformed"], 0, "{s1b}");
+    let listed = String::from_utf8_lossy(&cli(&d, &op, &["status", "--json"]).stdout).to_string();
+    assert!(
+        !listed.contains("m9"),
+        "an app declared the service's liveliness token: {listed}"
+    );
+
+    // Certificates: none, a rogue CA's, or plain TCP: no connection at all.
+    let nocert = d.join("nocert.json5");
+    std::fs::write(
+        &nocert,
+        std::fs::read_to_string(&op)
+            .unwrap()
+            .lines()
+            .filter(|l| !l.contains("connect_private_key") && !l.contains("connect_certificate"))
+            .collect::<Vec<_>>()
+            .join("\n"),
+    )
+    .unwrap();
+    for (what, cfg) in [
+        ("no certificate", &nocert),
+        ("a rogue CA's certificate", &rogue),
+    ] {
+        assert!(session(cfg).is_err(), "{what}: connected");
+        let out = cli(&d, cfg, &["calib", "history", "--machine", "m1"]);
+        assert!(!out.status.success(), "{what}: the CLI got an answer");
+    }
+    let out = run(
+        &d,
+        &[
+            "calib",
+            "history",
+            "--machine",
+            "m1",
+            "--connect",
+            &format!("tcp/127.0.0.1:{port}"),
+        ],
+    );
+    assert!(
+        !out.status.success(),
+        "plain TCP to the TLS port got an answer"
+    );
+    assert_eq!(versions(&d, &op, "m1"), 1);
+    drop(svc);
+    drop(router);
+    std::fs::remove_dir_all(&d).ok();
+}
