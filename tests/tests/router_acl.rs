@@ -98,6 +98,26 @@ fn settled(dir: &Path, op: &Path, machine: &str) -> Value {
     }
 }
 
+/// The tests' Python (`scripts/python-env.sh`: the venv with the scancorr package).
+fn python() -> PathBuf {
+    let out = Command::new("bash")
+        .arg(root().join("scripts/python-env.sh"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    PathBuf::from(
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .last()
+            .unwrap_or("")
+            .trim(),
+    )
+}
+
 fn versions(dir: &Path, op: &Path, machine: &str) -> usize {
     let out = cli(
         dir,
@@ -206,6 +226,35 @@ fn roles_can_do_exactly_what_the_router_allows() {
         versions(&d, &op, "m1"),
         1,
         "the app's put changed the history"
+    );
+    // The Python client reaches the router with the same files: an operator reads the
+    // history, an app is refused a calibration.
+    let py = python();
+    let script = r#"
+import sys, scancorr
+with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
+    try:
+        print(len(bus.history("m1")))
+    except scancorr.ScancorrError as e:
+        print("refused", type(e).__name__)
+"#;
+    let py_run = |cfg: &Path| {
+        let out = Command::new(&py)
+            .args(["-c", script, cfg.to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "python: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).trim().to_string()
+    };
+    assert_eq!(py_run(&op), "1", "the operator's history through Python");
+    assert_eq!(
+        py_run(&app),
+        "refused NoService",
+        "the app's query through Python"
     );
     // … nor read one (only operators).
     assert!(!cli(&d, &app, &["calib", "get", "--machine", "m1"])
