@@ -53,6 +53,7 @@ fn deployed(dir: &Path, name: &str, port: u16, certs: &Path) -> String {
             &format!("tls/127.0.0.1:{port}"),
         )
         .replace("/var/lib/scancorr", &dir.join("data").display().to_string())
+        .replace("127.0.0.1:9464", &format!("127.0.0.1:{}", free_port()))
         .replace(
             "/etc/scancorr/zenoh-client-tls.json5",
             &dir.join("zenoh-client-tls.json5").display().to_string(),

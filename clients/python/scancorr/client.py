@@ -254,7 +254,7 @@ class Client:
         return AlarmSubscription(self.session, self._key(machine, "alarms/estimator"), callback)
 
     # -- queries
-    def _ask(self, selector: str, payload: Optional[bytes] = None) -> str:
+    def _ask(self, selector: str, payload: Optional[bytes] = None, who: bool = False) -> str:
         """One query; the reply text, or `ServiceError` with the service's message. The
         route to the queryable may take a moment after connecting: retried for
         `query_timeout` seconds before `NoService`."""
@@ -263,6 +263,8 @@ class Client:
             kw: Dict[str, Any] = {"timeout": 3.0}
             if payload is not None:
                 kw["payload"] = payload
+            if who:
+                kw["attachment"] = _requester()
             for reply in self.session.get(selector, **kw):
                 if reply.ok is not None:
                     return reply.ok.payload.to_string()
@@ -275,8 +277,8 @@ class Client:
                 )
             time.sleep(0.25)
 
-    def _json(self, selector: str, payload: Optional[bytes] = None) -> Any:
-        text = self._ask(selector, payload)
+    def _json(self, selector: str, payload: Optional[bytes] = None, who: bool = False) -> Any:
+        text = self._ask(selector, payload, who)
         try:
             return json.loads(text)
         except json.JSONDecodeError as e:
@@ -310,7 +312,14 @@ class Client:
             raise ValueError("the calibration document must be a JSON object")
         if note is not None:
             doc = dict(doc, note=note)
-        return self._json(self._key(machine, "calibration"), json.dumps(doc).encode())
+        return self._json(self._key(machine, "calibration"), json.dumps(doc).encode(), who=True)
+
+    def rollback(self, machine: str, to: int) -> Dict[str, Any]:
+        """Makes version `to` of `machine`'s calibration current again, as a new version
+        (its parent the current one). Returns `{"machine", "version", "parent_version"}`."""
+        if not isinstance(to, int) or isinstance(to, bool) or to < 1:
+            raise ValueError(f"to {to!r}: must be a version number (>= 1)")
+        return self._json(f"{self._key(machine, 'calibration')}?rollback={to}", who=True)
 
     def history(self, machine: str) -> List[Dict[str, Any]]:
         """Every stored version of `machine`'s calibration, oldest first."""
@@ -348,6 +357,18 @@ class Client:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def _requester() -> str:
+    """`user@host`, for the service's audit trail."""
+    import getpass
+    import socket
+
+    try:
+        user = getpass.getuser()
+    except Exception:
+        user = "unknown"
+    return f"{user}@{socket.gethostname()}"
 
 
 def _looks_like_json(doc: Union[str, bytes]) -> bool:

@@ -88,8 +88,19 @@ def test_calibrations_round_trip(ring: Dict, service: Service) -> None:
         assert cur["effects"] == bus.get_calibration("m1", version=1)["effects"] == doc["effects"]
         h = bus.history("m1")
         assert [x["version"] for x in h] == [1, 2]
+        # The audit trail names who asked (as claimed) and the action.
+        assert [x["audit"]["action"] for x in h] == ["put", "put"]
+        assert all("(claimed)" in x["audit"]["by"] for x in h)
+        # A rollback makes version 1 current again as version 3.
+        r = bus.rollback("m1", 1)
+        assert r["version"] == 3 and r["parent_version"] == 2
+        assert bus.get_calibration("m1")["note"].startswith("rollback to v1")
+        assert bus.history("m1")[-1]["audit"]["action"] == "rollback to v1"
+        with pytest.raises(scancorr.ServiceError, match="already current"):
+            bus.rollback("m1", 3)
+        bus.put_calibration("m1", doc, note="from python")
         st = bus.status("m1")
-        assert st["calibration_version"] == 2
+        assert st["calibration_version"] == 4
         assert "m1" in bus.machines()
         # The service's refusals, as exceptions with its message.
         with pytest.raises(scancorr.ServiceError, match="no calibration version 9"):
@@ -97,7 +108,7 @@ def test_calibrations_round_trip(ring: Dict, service: Service) -> None:
         bad = dict(doc, machine_id="m2")
         with pytest.raises(scancorr.ServiceError, match="m2"):
             bus.put_calibration("m1", bad)
-        assert bus.get_calibration("m1")["version"] == 2  # nothing changed
+        assert bus.get_calibration("m1")["version"] == 4  # nothing changed
         with pytest.raises(scancorr.ServiceError, match="no calibration"):
             bus.get_calibration("m7")
         # A name from outside never reaches a key expression unchecked.

@@ -211,11 +211,34 @@ fn one_line(s: &str) -> String {
     }
 }
 
+/// Who is asking, for the service's audit trail: `$USER@host` (what the operator's session
+/// says; the router's access control has checked the certificate's role).
+pub fn requester() -> String {
+    let user = std::env::var("USER")
+        .or_else(|_| std::env::var("LOGNAME"))
+        .unwrap_or_else(|_| "unknown".into());
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_string())
+        .unwrap_or_else(|_| "localhost".into());
+    format!("{user}@{host}")
+}
+
+/// A query that changes the store (put, rollback), with the requester in its attachment.
+pub fn ask_as_user(bus: &Bus, selector: String, payload: Option<Vec<u8>>) -> Result<String> {
+    rt()?.block_on(async {
+        let s = open(bus).await?;
+        let r = ask(&s, selector, payload, Some(requester())).await;
+        s.close().await.ok();
+        r
+    })
+}
+
 /// One query to the calibration/status queryable; returns the reply text.
 async fn ask(
     session: &zenoh::Session,
     selector: String,
     payload: Option<Vec<u8>>,
+    who: Option<String>,
 ) -> Result<String> {
     // The route to the queryable may take a moment after connecting.
     let t0 = Instant::now();
@@ -225,6 +248,9 @@ async fn ask(
             .timeout(Duration::from_secs(3));
         if let Some(p) = &payload {
             g = g.payload(p.clone());
+        }
+        if let Some(w) = &who {
+            g = g.attachment(w.clone());
         }
         let replies = g.await.map_err(z)?;
         if let Ok(r) = replies.recv_async().await {
@@ -254,24 +280,18 @@ async fn ask(
 pub fn calib_put(bus: &Bus, machine: &str, file: &Path) -> Result<String> {
     crate::output::check_machine("--machine", machine)?;
     let text = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
-    rt()?.block_on(async {
-        let s = open(bus).await?;
-        let r = ask(
-            &s,
-            scancorr_proto::calibration_key(&bus.prefix, machine),
-            Some(text),
-        )
-        .await;
-        s.close().await.ok();
-        r
-    })
+    ask_as_user(
+        bus,
+        scancorr_proto::calibration_key(&bus.prefix, machine),
+        Some(text),
+    )
 }
 
 /// `calib get` / `calib history` / `status`.
 pub fn query(bus: &Bus, selector: String) -> Result<String> {
     rt()?.block_on(async {
         let s = open(bus).await?;
-        let r = ask(&s, selector, None).await;
+        let r = ask(&s, selector, None, None).await;
         s.close().await.ok();
         r
     })

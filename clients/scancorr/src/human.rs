@@ -95,6 +95,10 @@ pub fn history(v: &Value) -> String {
                 ""
             }
         );
+        if let Some(a) = r.get("audit") {
+            let f = |k: &str| a.get(k).map(scalar).unwrap_or_else(|| "—".into());
+            out += &format!("      {} at {} by {}\n", f("action"), f("at"), f("by"));
+        }
     }
     out
 }

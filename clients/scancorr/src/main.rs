@@ -419,6 +419,21 @@ enum CalibCmd {
         #[command(flatten)]
         bus: bus::Bus,
     },
+    /// Make an earlier version current again, as a new version (its parent the current one;
+    /// the audit trail records who asked and when).
+    Rollback {
+        /// Machine.
+        #[arg(long)]
+        machine: String,
+        /// The version to make current again.
+        #[arg(long)]
+        to: u64,
+        /// Print JSON (the service's reply) instead of text.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
     /// The versions scancorrd keeps for a machine.
     History {
         /// Machine.
@@ -569,6 +584,29 @@ fn run(cli: Cli) -> Result<()> {
                     o.commit()?;
                 }
                 None => outln!("{doc}")?,
+            }
+            Ok(())
+        }
+        Cmd::Calib(CalibCmd::Rollback {
+            machine,
+            to,
+            json,
+            bus,
+        }) => {
+            output::check_machine("--machine", &machine)?;
+            bus.check()?;
+            let key = scancorr_proto::calibration_key(&bus.prefix, &machine);
+            let reply = bus::ask_as_user(&bus, format!("{key}?rollback={to}"), None)?;
+            if json {
+                outln!("{reply}")?;
+            } else {
+                match serde_json::from_str::<serde_json::Value>(&reply) {
+                    Ok(v) => outln!(
+                        "{machine}: version {to} made current again\n{}",
+                        human::object(&v, 2).trim_end()
+                    )?,
+                    Err(_) => outln!("{reply}")?,
+                }
             }
             Ok(())
         }

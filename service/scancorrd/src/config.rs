@@ -48,6 +48,11 @@ pub struct Config {
     /// Off: an untagged batch is refused and counted (`untagged`), because nothing else tells
     /// a command batch published on the scale key from a scale batch.
     pub accept_untagged_batches: bool,
+    /// Where the Prometheus metrics endpoint listens (`HOST:PORT`, plain HTTP, `GET
+    /// /metrics`); none by default. Keep it on loopback or a management network.
+    pub metrics_listen: Option<String>,
+    /// Seconds between the log's throughput lines (0: none).
+    pub throughput_log_s: u64,
 }
 
 impl Default for Config {
@@ -68,6 +73,8 @@ impl Default for Config {
             max_message_bytes: 16 << 20,
             max_queued_bytes_per_machine: 8 << 20,
             accept_untagged_batches: false,
+            metrics_listen: None,
+            throughput_log_s: 60,
         }
     }
 }
@@ -146,6 +153,14 @@ impl Config {
         }
         if self.max_pending_samples == 0 {
             return Err("max_pending_samples: at least 1".into());
+        }
+        if let Some(m) = &self.metrics_listen {
+            m.parse::<std::net::SocketAddr>().map_err(|_| {
+                format!(
+                    "metrics_listen {}: HOST:PORT with a numeric address (e.g. 127.0.0.1:9464)",
+                    scancorr_proto::names::shown(m)
+                )
+            })?;
         }
         Ok(())
     }

@@ -20,6 +20,9 @@ struct Args {
     /// Override the data folder.
     #[arg(long)]
     data_dir: Option<PathBuf>,
+    /// Log lines as `text` (colour only on a terminal) or `json` (one object per line).
+    #[arg(long, default_value = "text", value_parser = ["text", "json"])]
+    log_format: String,
 }
 
 /// zenoh's runtimes unless `ZENOH_RUNTIME` says otherwise: four transmit workers. A link
@@ -28,26 +31,42 @@ struct Args {
 /// default) every other link would wait too.
 const ZENOH_RUNTIME_DEFAULT: &str = "(tx: (worker_threads: 4))";
 
-fn main() -> Result<()> {
+fn main() {
     // Read once by zenoh at its first use, so set before any thread or runtime exists.
     if std::env::var_os("ZENOH_RUNTIME").is_none() {
         std::env::set_var("ZENOH_RUNTIME", ZENOH_RUNTIME_DEFAULT);
     }
-    tokio::runtime::Builder::new_multi_thread()
+    let a = Args::parse();
+    init_logs(&a.log_format);
+    let r = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
-        .build()?
-        .block_on(serve())
+        .build()
+        .map_err(anyhow::Error::from)
+        .and_then(|rt| rt.block_on(serve(a)));
+    // An error (a configuration that cannot be used, a store that cannot be opened) is one
+    // line, with its causes, and no backtrace.
+    if let Err(e) = r {
+        eprintln!("scancorrd: error: {e:#}");
+        std::process::exit(2);
+    }
 }
 
-async fn serve() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| "info,zenoh=warn".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
-    let a = Args::parse();
+/// Logs on stderr: text (colour only when stderr is a terminal) or JSON lines.
+fn init_logs(format: &str) {
+    use std::io::IsTerminal;
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| "info,zenoh=warn".into());
+    let b = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    if format == "json" {
+        b.json().flatten_event(true).init();
+    } else {
+        b.with_ansi(std::io::stderr().is_terminal()).init();
+    }
+}
+
+async fn serve(a: Args) -> Result<()> {
     let mut cfg = match &a.config {
         Some(p) => scancorrd::Config::load(p)?,
         None => scancorrd::Config::default(),

@@ -11,6 +11,7 @@
 //! service's memory by inventing names), and logged at most once per [`LOG_EVERY`].
 
 use crate::config::Config;
+use crate::store::Audit;
 use crate::store::Store;
 use scancorr_core::wire;
 use scancorr_core::{Calibration, Corrector, Output};
@@ -261,6 +262,8 @@ struct Machine {
     stalled: [bool; 4],
     /// Controller time of the newest point produced, ns.
     last_point_t_ns: Option<i64>,
+    /// Calibrations put for this machine since the service started.
+    puts: u64,
 }
 
 struct State {
@@ -285,7 +288,25 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     let store = Store::open(&cfg.data_dir)?;
     let session = zenoh::open(cfg.zenoh()?).await.map_err(z)?;
     let prefix = cfg.prefix.clone();
-    info!(prefix = %prefix, listen = ?cfg.listen, connect = ?cfg.connect, data_dir = %cfg.data_dir.display(), "scancorrd started");
+    let metrics = match &cfg.metrics_listen {
+        Some(a) => Some(crate::metrics::serve(a).map_err(ServiceError::Refused)?),
+        None => None,
+    };
+    let mut notify = crate::notify::Notifier::from_env();
+    info!(
+        version = env!("CARGO_PKG_VERSION"),
+        mode = %cfg.mode,
+        prefix = %prefix,
+        listen = ?cfg.listen,
+        connect = ?cfg.connect,
+        machines = ?cfg.machines,
+        allow_any_machine = cfg.allow_any_machine,
+        data_dir = %cfg.data_dir.display(),
+        zenoh_config = ?cfg.zenoh_config,
+        metrics = ?cfg.metrics_listen,
+        systemd_notify = notify.enabled(),
+        "scancorrd started"
+    );
     let raw = session
         .declare_subscriber(format!("{prefix}/*/raw/**"))
         .await
@@ -316,6 +337,12 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             st.machine(&m).await?;
         }
     }
+    notify.send(&format!(
+        "READY=1\nSTATUS=serving {} machine(s)",
+        st.machines.len()
+    ));
+    let mut last_metrics = Instant::now() - Duration::from_secs(10);
+    let mut through = Throughput::new(st.totals());
     tokio::pin!(shutdown);
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     loop {
@@ -331,9 +358,34 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                 Ok(s) => st.on_raw(s).await,
                 Err(e) => { warn!(error = %e, "raw subscriber closed"); break }
             },
-            _ = tick.tick() => st.check_stalls(),
+            _ = tick.tick() => {
+                st.check_stalls();
+                notify.tick();
+                if let Some(m) = &metrics {
+                    if last_metrics.elapsed() >= Duration::from_secs(1) {
+                        let text = st.metrics();
+                        if let Ok(mut t) = m.lock() {
+                            *t = text;
+                        }
+                        last_metrics = Instant::now();
+                    }
+                }
+                if st.cfg.throughput_log_s > 0 && through.at.elapsed() >= Duration::from_secs(st.cfg.throughput_log_s) {
+                    let now = st.totals();
+                    let dt = through.at.elapsed().as_secs_f64();
+                    info!(
+                        machines = st.machines.len(),
+                        samples_per_s = ((now.0 - through.last.0) as f64 / dt).round(),
+                        points_per_s = ((now.1 - through.last.1) as f64 / dt).round(),
+                        dropped = now.2 - through.last.2,
+                        "throughput"
+                    );
+                    through = Throughput::new(now);
+                }
+            }
         }
     }
+    notify.send("STOPPING=1");
     info!("shutting down: flushing buffered samples");
     let names: Vec<String> = st.machines.keys().cloned().collect();
     for m in names {
@@ -357,7 +409,268 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     Ok(())
 }
 
+/// The throughput line's last totals: (samples in, points out, samples dropped).
+struct Throughput {
+    at: Instant,
+    last: (u64, u64, u64),
+}
+
+impl Throughput {
+    fn new(last: (u64, u64, u64)) -> Throughput {
+        Throughput {
+            at: Instant::now(),
+            last,
+        }
+    }
+}
+
 impl State {
+    /// Samples in, points out and samples dropped over every machine.
+    fn totals(&self) -> (u64, u64, u64) {
+        let mut t = (0, 0, 0);
+        for m in self.machines.values() {
+            if let Some(c) = &m.corrector {
+                let s = c.stats();
+                t.0 += s.samples();
+                t.1 += s.points_out;
+                t.2 += s.dropped_total();
+            }
+        }
+        t
+    }
+
+    /// The Prometheus text: per machine, samples in (per stream), points out and flagged,
+    /// drops by reason, samples missing in seq, alarms, the calibration version and puts,
+    /// queue depths (samples pending the join, bytes waiting to be published) and the
+    /// processing lag; refusals before a machine by reason.
+    fn metrics(&self) -> String {
+        use crate::metrics::Render;
+        let mut r = Render::default();
+        let streams = ["command", "scale", "probe", "temperature"];
+        type Samples = Option<Vec<(Vec<(&'static str, String)>, f64)>>;
+        let metric = |r: &mut Render,
+                      name: &str,
+                      kind: &str,
+                      help: &str,
+                      f: &dyn Fn(&Machine) -> Samples| {
+            r.metric(name, kind, help);
+            for (machine, m) in &self.machines {
+                for (labels, v) in f(m).unwrap_or_default() {
+                    let mut l: Vec<(&str, &str)> = vec![("machine", machine.as_str())];
+                    l.extend(labels.iter().map(|(k, v)| (*k, v.as_str())));
+                    r.sample(name, &l, v);
+                }
+            }
+        };
+        metric(
+            &mut r,
+            "scancorr_samples_in_total",
+            "counter",
+            "Raw samples taken in, per stream.",
+            &|m| {
+                m.corrector.as_ref().map(|c| {
+                    let s = c.stats();
+                    (0..4)
+                        .map(|k| {
+                            (
+                                vec![("stream", streams[k].to_string())],
+                                s.samples_in[k] as f64,
+                            )
+                        })
+                        .collect()
+                })
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_points_out_total",
+            "counter",
+            "Corrected points produced.",
+            &|m| {
+                m.corrector
+                    .as_ref()
+                    .map(|c| vec![(vec![], c.stats().points_out as f64)])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_points_flagged_total",
+            "counter",
+            "Points produced while an estimator alarm was raised.",
+            &|m| {
+                m.corrector
+                    .as_ref()
+                    .map(|c| vec![(vec![], c.stats().points_invalid as f64)])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_samples_dropped_total",
+            "counter",
+            "Samples dropped by the core, by reason.",
+            &|m| {
+                m.corrector.as_ref().map(|c| {
+                    c.stats()
+                        .dropped_by_name()
+                        .into_iter()
+                        .map(|(k, v)| (vec![("reason", k.to_string())], v as f64))
+                        .collect()
+                })
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_samples_missing_total",
+            "counter",
+            "Samples missing in a stream's seq (lost before the service), per stream.",
+            &|m| {
+                m.corrector.as_ref().map(|c| {
+                    let s = c.stats();
+                    (0..4)
+                        .map(|k| {
+                            (
+                                vec![("stream", streams[k].to_string())],
+                                s.seq_gaps[k] as f64,
+                            )
+                        })
+                        .collect()
+                })
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_messages_refused_total",
+            "counter",
+            "Raw messages refused for a machine, by reason.",
+            &|m| {
+                let e = &m.extra;
+                Some(vec![
+                    (vec![("reason", "malformed".into())], e.malformed as f64),
+                    (vec![("reason", "empty".into())], e.empty as f64),
+                    (
+                        vec![("reason", "wrong_stream".into())],
+                        e.wrong_stream as f64,
+                    ),
+                    (vec![("reason", "untagged".into())], e.untagged as f64),
+                    (
+                        vec![("reason", "wrong_machine".into())],
+                        e.wrong_machine as f64,
+                    ),
+                    (
+                        vec![("reason", "no_calibration".into())],
+                        e.no_calibration as f64,
+                    ),
+                ])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_points_dropped_backpressure_total",
+            "counter",
+            "Points not published because the machine's subscribers did not keep up.",
+            &|m| {
+                m.outbox.figures()["points_dropped_backpressure"]
+                    .as_f64()
+                    .map(|v| vec![(vec![], v)])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_alarms_raised_total",
+            "counter",
+            "Estimator-validity alarms raised.",
+            &|m| {
+                m.corrector
+                    .as_ref()
+                    .map(|c| vec![(vec![], c.stats().alarms_raised as f64)])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_calibration_version",
+            "gauge",
+            "The calibration version in use.",
+            &|m| {
+                m.corrector
+                    .as_ref()
+                    .map(|c| vec![(vec![], c.calibration().version as f64)])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_calibration_puts_total",
+            "counter",
+            "Calibrations put since the service started.",
+            &|m| Some(vec![(vec![], m.puts as f64)]),
+        );
+        metric(
+            &mut r,
+            "scancorr_pending_samples",
+            "gauge",
+            "Samples waiting in the join for the other streams, per stream.",
+            &|m| {
+                m.corrector.as_ref().map(|c| {
+                    let p = c.pending();
+                    (0..4)
+                        .map(|k| (vec![("stream", streams[k].to_string())], p[k] as f64))
+                        .collect()
+                })
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_publish_queue_bytes",
+            "gauge",
+            "Corrected output waiting to be published.",
+            &|m| {
+                m.outbox.figures()["queued_bytes"]
+                    .as_f64()
+                    .map(|v| vec![(vec![], v)])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_processing_lag_seconds",
+            "gauge",
+            "How far the newest point lags the newest sample taken in (controller clock).",
+            &|m| {
+                let wm = m.corrector.as_ref()?.watermarks();
+                let newest = wm.iter().flatten().max()?;
+                let point = m.last_point_t_ns?;
+                Some(vec![(vec![], (newest - point).max(0) as f64 * 1e-9)])
+            },
+        );
+        metric(
+            &mut r,
+            "scancorr_quarantined",
+            "gauge",
+            "1 when the machine's stored calibration cannot be used.",
+            &|m| {
+                Some(vec![(
+                    vec![],
+                    if m.quarantined.is_some() { 1.0 } else { 0.0 },
+                )])
+            },
+        );
+        r.metric(
+            "scancorr_refused_total",
+            "counter",
+            "Samples and requests refused before a machine, by reason.",
+        );
+        if let Ok(serde_json::Value::Object(o)) = serde_json::to_value(&self.refused) {
+            for (k, v) in o {
+                r.sample(
+                    "scancorr_refused_total",
+                    &[("reason", k.as_str())],
+                    v.as_f64().unwrap_or(0.0),
+                );
+            }
+        }
+        r.metric("scancorr_machines", "gauge", "Machines served.");
+        r.sample("scancorr_machines", &[], self.machines.len() as f64);
+        r.finish()
+    }
+
     /// A corrector under this service's limits.
     fn corrector(&self, model: Arc<scancorr_core::calib::Model>) -> Corrector {
         let mut c = Corrector::with_model(model);
@@ -454,6 +767,7 @@ impl State {
                     last_arrival: [None; 4],
                     stalled: [false; 4],
                     last_point_t_ns: None,
+                    puts: 0,
                 },
             );
         }
@@ -641,6 +955,9 @@ impl State {
                     "alarms_raised": stats.as_ref().map(|s| s.alarms_raised).unwrap_or(0),
                     "clock_resets": stats.as_ref().map(|s| s.clock_resets).unwrap_or(0),
                     "seq_resets": stats.as_ref().map(|s| s.seq_resets).unwrap_or(0),
+                    // Samples missing in the streams' seq (lost on the way: a router down, a
+                    // link dropped), per stream.
+                    "samples_missing": stats.as_ref().map(|s| json!({"command": s.seq_gaps[0], "scale": s.seq_gaps[1], "probe": s.seq_gaps[2], "temperature": s.seq_gaps[3]})),
                     "effect_points": m.ids.iter().cloned().zip(stats.as_ref().map(|s| s.effect_points.clone()).unwrap_or_default()).collect::<BTreeMap<_, _>>(),
                     "inactive_effects": m.corrector.as_ref().map(|c| c.inactive_effects()).unwrap_or_default(),
                     "messages": m.extra,
@@ -682,10 +999,17 @@ impl State {
         };
         let machine = machine.to_string();
         let reply = match q.payload() {
-            Some(p) => self.put_calibration(&machine, &p.to_bytes()).await,
+            Some(p) => {
+                let audit = audit_of(&q, "put".into());
+                self.put_calibration(&machine, &p.to_bytes(), audit).await
+            }
             None => {
                 let params = q.parameters();
-                if params.contains_key("history") {
+                if let Some(to) = params.get("rollback") {
+                    let to = to.to_string();
+                    self.rollback(&machine, &to, audit_of(&q, format!("rollback to v{to}")))
+                        .await
+                } else if params.contains_key("history") {
                     self.store
                         .history(&machine)
                         .map(|h| serde_json::to_string(&h).expect("serialisable"))
@@ -716,7 +1040,46 @@ impl State {
         };
     }
 
-    async fn put_calibration(&mut self, machine: &str, bytes: &[u8]) -> Result<String, String> {
+    /// Makes version `to` current again as a new version (its parent the current one).
+    async fn rollback(&mut self, machine: &str, to: &str, audit: Audit) -> Result<String, String> {
+        let v: u64 = to.parse().map_err(|_| {
+            format!(
+                "rollback `{}`: not a version number",
+                scancorr_proto::names::shown(to)
+            )
+        })?;
+        let mut cal = match self.store.get(machine, v) {
+            Ok(Some(c)) => c,
+            Ok(None) => {
+                return Err(format!(
+                    "machine `{machine}` has no calibration version {v}"
+                ))
+            }
+            Err(e) => return Err(e.to_string()),
+        };
+        let current = self
+            .store
+            .current(machine)
+            .ok()
+            .flatten()
+            .map(|c| c.version);
+        if current == Some(v) {
+            return Err(format!(
+                "version {v} of machine `{machine}` is already current"
+            ));
+        }
+        cal.parent_version = current;
+        cal.note = format!("rollback to v{v} ({})", cal.note);
+        let doc = cal.to_json();
+        self.put_calibration(machine, doc.as_bytes(), audit).await
+    }
+
+    async fn put_calibration(
+        &mut self,
+        machine: &str,
+        bytes: &[u8],
+        audit: Audit,
+    ) -> Result<String, String> {
         let max = self.cfg.max_message_bytes.min(crate::store::MAX_DOC_BYTES);
         if bytes.len() > max {
             return Err(format!(
@@ -739,7 +1102,10 @@ impl State {
                 self.cfg.max_machines
             ));
         }
-        let stored = self.store.put(cal).map_err(|e| e.to_string())?;
+        let stored = self
+            .store
+            .put_audited(cal, Some(&audit))
+            .map_err(|e| e.to_string())?;
         let model = Arc::new(stored.build().map_err(|e| e.to_string())?);
         self.machine(machine).await.map_err(|e| e.to_string())?;
         let fresh = self.corrector(model.clone());
@@ -756,9 +1122,55 @@ impl State {
             .as_ref()
             .map(|c| c.effect_ids())
             .unwrap_or_default();
+        m.puts += 1;
         info!(machine, version = stored.version, parent = ?stored.parent_version, "calibration applied");
         Ok(json!({"machine": machine, "version": stored.version, "parent_version": stored.parent_version}).to_string())
     }
+}
+
+/// The audit record of a request: now (the service's clock), the identity the requester
+/// gave in the query's attachment (`user@host`, at most 128 printable characters; `unknown`
+/// without), and the action.
+fn audit_of(q: &zenoh::query::Query, action: String) -> Audit {
+    let by = q
+        .attachment()
+        .and_then(|a| a.try_to_string().ok().map(|s| s.to_string()))
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            let s: String = s.chars().filter(|c| !c.is_control()).take(128).collect();
+            format!("{s} (claimed)")
+        })
+        .unwrap_or_else(|| "unknown".into());
+    Audit {
+        at: rfc3339_now(),
+        by,
+        action,
+    }
+}
+
+/// The wall clock as RFC 3339 UTC (seconds).
+fn rfc3339_now() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0) as i64;
+    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
 }
 
 /// Hands what the core completed to the machine's outbox (never waits on the bus).

@@ -138,6 +138,22 @@ pub struct VersionInfo {
     /// version cannot be fetched.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub damaged: Option<String>,
+    /// When this store took it in (the service's clock), who asked and how — the audit
+    /// trail; absent for versions stored before the trail existed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub audit: Option<Audit>,
+}
+
+/// Who put a version, when, and how.
+#[derive(Debug, Clone, Serialize, PartialEq, Default)]
+pub struct Audit {
+    /// When it was stored (RFC 3339, UTC, the service's clock).
+    pub at: String,
+    /// Who asked: the identity the requester gave (`user@host`), marked as claimed; the
+    /// router's access control has already checked the requester's certificate role.
+    pub by: String,
+    /// `put`, or `rollback to vN`.
+    pub action: String,
 }
 
 /// The store.
@@ -214,7 +230,9 @@ impl Store {
             "CREATE TABLE IF NOT EXISTS calibration (
                 machine TEXT NOT NULL, version INTEGER NOT NULL, parent INTEGER, note TEXT NOT NULL,
                 created TEXT NOT NULL, doc TEXT NOT NULL, PRIMARY KEY (machine, version));
-             CREATE TABLE IF NOT EXISTS current (machine TEXT PRIMARY KEY, version INTEGER NOT NULL);",
+             CREATE TABLE IF NOT EXISTS current (machine TEXT PRIMARY KEY, version INTEGER NOT NULL);
+             CREATE TABLE IF NOT EXISTS audit (machine TEXT NOT NULL, version INTEGER NOT NULL,
+                at TEXT NOT NULL, by TEXT NOT NULL, action TEXT NOT NULL);",
         )
         .map_err(db)?;
         for (table, needed) in SHAPE {
@@ -272,7 +290,17 @@ impl Store {
     /// intact version number, and replaces the damaged current. Refuses a document larger than
     /// [`MAX_DOC_BYTES`] ([`StoreError::TooLarge`]) and a machine id against the name grammar.
     /// Does not validate the document's values ([`Calibration::build`] is the caller's).
-    pub fn put(&mut self, mut cal: Calibration) -> Result<Calibration, StoreError> {
+    pub fn put(&mut self, cal: Calibration) -> Result<Calibration, StoreError> {
+        self.put_audited(cal, None)
+    }
+
+    /// [`Store::put`] with its audit record written in the same transaction (the version and
+    /// its record are stored together or not at all).
+    pub fn put_audited(
+        &mut self,
+        mut cal: Calibration,
+        audit: Option<&Audit>,
+    ) -> Result<Calibration, StoreError> {
         names::check_machine(&cal.machine_id)?;
         let machine = cal.machine_id.clone();
         let tx = self
@@ -319,6 +347,12 @@ impl Store {
             "INSERT INTO current (machine, version) VALUES (?1, ?2)",
             params![machine, next as i64],
         )?;
+        if let Some(a) = audit {
+            tx.execute(
+                "INSERT INTO audit (machine, version, at, by, action) VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![machine, next as i64, a.at, a.by, a.action],
+            )?;
+        }
         tx.commit()?;
         Ok(cal)
     }
@@ -484,6 +518,25 @@ impl Store {
                 ])
             })?
             .collect::<Result<_, _>>()?;
+        // The audit trail (a damaged record is left out: the version is still listed).
+        let mut trail: std::collections::BTreeMap<u64, Audit> = Default::default();
+        if let Ok(mut st) = self
+            .conn
+            .prepare("SELECT version, at, by, action FROM audit WHERE machine = ?1")
+        {
+            if let Ok(rows) = st.query_map(params![machine], |r| {
+                Ok((
+                    r.get::<_, i64>(0)?,
+                    r.get::<_, String>(1)?,
+                    r.get::<_, String>(2)?,
+                    r.get::<_, String>(3)?,
+                ))
+            }) {
+                for (v, at, by, action) in rows.flatten() {
+                    trail.insert(v as u64, Audit { at, by, action });
+                }
+            }
+        }
         let mut out = vec![];
         for [version, parent, note, created] in rows {
             let Ok(version) = version_of((&version).into()) else {
@@ -527,6 +580,7 @@ impl Store {
                 created,
                 current: Some(version) == current,
                 damaged: (!damage.is_empty()).then(|| damage.join("; ")),
+                audit: trail.remove(&version),
             });
         }
         out.sort_by_key(|v| v.version);

@@ -200,6 +200,12 @@ impl Service {
             .unwrap()
     }
 
+    /// SIGKILL: no flushing, no closing (a crash); waits for the exit.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
     /// SIGTERM: flush and close; waits for the exit.
     pub fn stop(mut self) {
         let _ = Command::new("kill")

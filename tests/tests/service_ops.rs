@@ -1,0 +1,488 @@
+//! What an operator sees and relies on, against real processes: the Prometheus endpoint, the
+//! systemd readiness and watchdog notifications, the logs (JSON lines on request, no colour
+//! off a terminal, a configuration error in one line), the calibration audit trail and
+//! rollback, and a service killed with SIGKILL mid-stream that comes back with its history
+//! intact and a database that passes `PRAGMA integrity_check`.
+
+mod common;
+use common::*;
+use serde_json::Value;
+use std::io::{Read, Write};
+use std::os::unix::net::UnixDatagram;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn http_get(port: u16, path: &str) -> String {
+    let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    c.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    write!(c, "GET {path} HTTP/1.1\r\nHost: localhost\r\n\r\n").unwrap();
+    let mut s = String::new();
+    let _ = c.read_to_string(&mut s);
+    s
+}
+
+/// The value of one sample line `name{labels} v` of the exposition text.
+fn sample(text: &str, series: &str) -> Option<f64> {
+    text.lines().find_map(|l| {
+        l.strip_prefix(series)?
+            .strip_prefix(' ')?
+            .trim()
+            .parse()
+            .ok()
+    })
+}
+
+fn status(d: &Path, bus: &str) -> Value {
+    serde_json::from_str(&ok(
+        d,
+        &["status", "--machine", "m1", "--connect", bus, "--json"],
+    ))
+    .unwrap()
+}
+
+#[test]
+fn metrics_audit_trail_and_rollback() {
+    let d = scratch("service-ops");
+    let (port, mport) = (free_port(), free_port());
+    let bus = format!("tcp/127.0.0.1:{port}");
+    let svc = Service::start_with(
+        &d,
+        port,
+        &format!("listen: ['tcp/127.0.0.1:{port}'], metrics_listen: '127.0.0.1:{mport}', throughput_log_s: 1,"),
+    );
+    sim_ring(&d, "v1.json");
+    for _ in 0..2 {
+        ok(
+            &d,
+            &[
+                "calib",
+                "put",
+                "--machine",
+                "m1",
+                "--file",
+                "v1.json",
+                "--connect",
+                &bus,
+            ],
+        );
+    }
+    ok(
+        &d,
+        &[
+            "replay",
+            "--bag",
+            "r.mcap",
+            "--speed",
+            "max",
+            "--connect",
+            &bus,
+        ],
+    );
+
+    // Rollback: version 1 current again, as version 3 with parent 2.
+    let r: Value = serde_json::from_str(&ok(
+        &d,
+        &[
+            "calib",
+            "rollback",
+            "--machine",
+            "m1",
+            "--to",
+            "1",
+            "--connect",
+            &bus,
+            "--json",
+        ],
+    ))
+    .unwrap();
+    assert_eq!(
+        (r["version"].as_u64(), r["parent_version"].as_u64()),
+        (Some(3), Some(2)),
+        "{r}"
+    );
+    fails(
+        &d,
+        &[
+            "calib",
+            "rollback",
+            "--machine",
+            "m1",
+            "--to",
+            "3",
+            "--connect",
+            &bus,
+        ],
+        &["already current"],
+    );
+    fails(
+        &d,
+        &[
+            "calib",
+            "rollback",
+            "--machine",
+            "m1",
+            "--to",
+            "9",
+            "--connect",
+            &bus,
+        ],
+        &["no calibration version 9"],
+    );
+    let h: Value = serde_json::from_str(&ok(
+        &d,
+        &[
+            "calib",
+            "history",
+            "--machine",
+            "m1",
+            "--connect",
+            &bus,
+            "--json",
+        ],
+    ))
+    .unwrap();
+    let h = h.as_array().unwrap();
+    assert_eq!(h.len(), 3, "{h:?}");
+    let actions: Vec<&str> = h
+        .iter()
+        .map(|v| v["audit"]["action"].as_str().unwrap())
+        .collect();
+    assert_eq!(actions, ["put", "put", "rollback to v1"]);
+    let user = std::env::var("USER").unwrap_or_else(|_| "unknown".into());
+    for v in h {
+        let a = &v["audit"];
+        assert!(
+            a["by"].as_str().unwrap().starts_with(&format!("{user}@")),
+            "{a}"
+        );
+        let at = a["at"].as_str().unwrap();
+        assert!(
+            at.len() == 20 && at.ends_with('Z') && at.starts_with("20"),
+            "{at}"
+        );
+    }
+    let text = ok(
+        &d,
+        &["calib", "history", "--machine", "m1", "--connect", &bus],
+    );
+    assert!(text.contains("rollback to v1 at "), "{text}");
+    let v1: Value = serde_json::from_str(&ok(
+        &d,
+        &[
+            "calib",
+            "get",
+            "--machine",
+            "m1",
+            "--version",
+            "1",
+            "--connect",
+            &bus,
+        ],
+    ))
+    .unwrap();
+    let v3: Value = serde_json::from_str(&ok(
+        &d,
+        &["calib", "get", "--machine", "m1", "--connect", &bus],
+    ))
+    .unwrap();
+    assert_eq!(v3["effects"], v1["effects"]);
+    assert_eq!(v3["version"], 3);
+
+    // The metrics endpoint: what the status says, in Prometheus' text format.
+    std::thread::sleep(Duration::from_millis(1500));
+    let st = status(&d, &bus);
+    let m = http_get(mport, "/metrics");
+    assert!(
+        m.starts_with("HTTP/1.1 200") && m.contains("text/plain; version=0.0.4"),
+        "{m}"
+    );
+    for s in ["command", "scale", "probe", "temperature"] {
+        let series = format!("scancorr_samples_in_total{{machine=\"m1\",stream=\"{s}\"}}");
+        assert!(
+            sample(&m, &series).is_some_and(|v| v > 0.0),
+            "{series}: {m}"
+        );
+    }
+    assert_eq!(
+        sample(&m, "scancorr_points_out_total{machine=\"m1\"}"),
+        st["points_out"].as_f64(),
+        "{m}"
+    );
+    assert_eq!(
+        sample(&m, "scancorr_calibration_version{machine=\"m1\"}"),
+        Some(3.0)
+    );
+    assert_eq!(
+        sample(&m, "scancorr_calibration_puts_total{machine=\"m1\"}"),
+        Some(3.0)
+    );
+    assert_eq!(sample(&m, "scancorr_machines"), Some(1.0));
+    assert!(m.contains("# TYPE scancorr_samples_dropped_total counter"));
+    assert!(
+        m.contains(
+            "scancorr_samples_dropped_total{machine=\"m1\",reason=\"temperature_missing\"} 200"
+        ),
+        "{m}"
+    );
+    assert!(
+        sample(
+            &m,
+            "scancorr_samples_missing_total{machine=\"m1\",stream=\"scale\"}"
+        ) == Some(0.0)
+    );
+    assert!(http_get(mport, "/").starts_with("HTTP/1.1 404"));
+    // The log: a startup line with the version; a throughput line; no colour off a terminal.
+    let log = svc.log();
+    assert!(
+        log.contains("scancorrd started") && log.contains(env!("CARGO_PKG_VERSION")),
+        "{log}"
+    );
+    assert!(
+        log.contains("throughput") && log.contains("samples_per_s"),
+        "{log}"
+    );
+    assert!(!log.contains('\x1b'), "colour codes in a log file");
+    svc.stop();
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn systemd_readiness_watchdog_and_json_logs() {
+    let d = scratch("service-notify");
+    let sock_path = d.join("notify.sock");
+    let sock = UnixDatagram::bind(&sock_path).unwrap();
+    sock.set_read_timeout(Some(Duration::from_secs(20)))
+        .unwrap();
+    let port = free_port();
+    let log = d.join("json.log");
+    let mut child = Command::new(scancorrd())
+        .args([
+            "--listen",
+            &format!("tcp/127.0.0.1:{port}"),
+            "--data-dir",
+            "data",
+            "--log-format",
+            "json",
+        ])
+        .env("NOTIFY_SOCKET", &sock_path)
+        .env("WATCHDOG_USEC", "600000")
+        .current_dir(&d)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut buf = [0u8; 512];
+    let mut seen = vec![];
+    let t0 = Instant::now();
+    while !(seen.iter().any(|m: &String| m.starts_with("READY=1"))
+        && seen.iter().any(|m| m == "WATCHDOG=1"))
+    {
+        let n = sock.recv(&mut buf).expect("a notification within 20 s");
+        seen.push(String::from_utf8_lossy(&buf[..n]).to_string());
+        assert!(t0.elapsed() < Duration::from_secs(30), "{seen:?}");
+    }
+    // The watchdog keeps coming at half the interval (0.3 s).
+    let t1 = Instant::now();
+    let n = sock.recv(&mut buf).unwrap();
+    assert_eq!(&buf[..n], b"WATCHDOG=1");
+    assert!(
+        t1.elapsed() < Duration::from_millis(900),
+        "{:?}",
+        t1.elapsed()
+    );
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let t2 = Instant::now();
+    loop {
+        let n = sock.recv(&mut buf).expect("STOPPING=1");
+        if &buf[..n] == b"STOPPING=1" {
+            break;
+        }
+        assert!(t2.elapsed() < Duration::from_secs(20));
+    }
+    assert!(child.wait().unwrap().success());
+    // JSON lines: every line an object; the startup line has the version and configuration.
+    let text = std::fs::read_to_string(&log).unwrap();
+    let lines: Vec<Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
+        .collect();
+    let start = lines
+        .iter()
+        .find(|v| v["message"] == "scancorrd started")
+        .unwrap_or_else(|| panic!("{text}"));
+    assert_eq!(start["version"], env!("CARGO_PKG_VERSION"));
+    assert_eq!(start["systemd_notify"], true);
+    assert!(start["listen"]
+        .as_str()
+        .unwrap()
+        .contains(&port.to_string()));
+
+    // A configuration error: one line on stderr, exit 2, no backtrace.
+    std::fs::write(d.join("bad.json5"), "{ metrics_listen: 'nowhere' }").unwrap();
+    let out = Command::new(scancorrd())
+        .args(["--config", "bad.json5"])
+        .env("RUST_BACKTRACE", "1")
+        .current_dir(&d)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(
+        err.contains("metrics_listen") && !err.contains("backtrace"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn sigkill_mid_stream_keeps_the_history_and_the_database_intact() {
+    let d = scratch("service-sigkill");
+    let port = free_port();
+    let bus = format!("tcp/127.0.0.1:{port}");
+    let mut svc = Service::start(&d, port);
+    sim_ring(&d, "v1.json");
+    ok(
+        &d,
+        &[
+            "calib",
+            "put",
+            "--machine",
+            "m1",
+            "--file",
+            "v1.json",
+            "--connect",
+            &bus,
+        ],
+    );
+    // The ring replayed in a loop while calibrations are put, and the service killed.
+    let mut replay = Command::new(scancorr())
+        .args([
+            "replay",
+            "--bag",
+            "r.mcap",
+            "--speed",
+            "max",
+            "--loop",
+            "--connect",
+            &bus,
+        ])
+        .current_dir(&d)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    let mut acknowledged = 1;
+    for _ in 0..5 {
+        let out = run(
+            &d,
+            &[
+                "calib",
+                "put",
+                "--machine",
+                "m1",
+                "--file",
+                "v1.json",
+                "--connect",
+                &bus,
+                "--json",
+            ],
+        );
+        if out.status.success() {
+            acknowledged += 1;
+        }
+    }
+    // SIGKILL while a put may be in flight.
+    let put = Command::new(scancorr())
+        .args([
+            "calib",
+            "put",
+            "--machine",
+            "m1",
+            "--file",
+            "v1.json",
+            "--connect",
+            &bus,
+        ])
+        .current_dir(&d)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(30));
+    svc.kill();
+    let _ = replay.kill();
+    let _ = replay.wait();
+    let mut put = put;
+    let _ = put.wait();
+    // The database: intact.
+    let db = rusqlite::Connection::open(d.join("data").join(scancorrd::store::FILE_NAME)).unwrap();
+    let check: String = db
+        .query_row("PRAGMA integrity_check", [], |r| r.get(0))
+        .unwrap();
+    assert_eq!(check, "ok");
+    drop(db);
+    // Restarted on the same data: the history has every acknowledged version, numbered
+    // without a gap, the current one the newest; processing resumes.
+    let svc = Service::start(&d, port);
+    let h: Value = serde_json::from_str(&ok(
+        &d,
+        &[
+            "calib",
+            "history",
+            "--machine",
+            "m1",
+            "--connect",
+            &bus,
+            "--json",
+        ],
+    ))
+    .unwrap();
+    let versions: Vec<u64> = h
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["version"].as_u64().unwrap())
+        .collect();
+    assert!(
+        versions.len() >= acknowledged,
+        "{versions:?} < {acknowledged} acknowledged"
+    );
+    assert_eq!(versions, (1..=versions.len() as u64).collect::<Vec<_>>());
+    let current: Vec<u64> = h
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|v| v["current"] == true)
+        .map(|v| v["version"].as_u64().unwrap())
+        .collect();
+    assert_eq!(current, vec![*versions.last().unwrap()]);
+    assert!(
+        h.as_array()
+            .unwrap()
+            .iter()
+            .all(|v| v.get("damaged").is_none()),
+        "{h}"
+    );
+    ok(
+        &d,
+        &[
+            "replay",
+            "--bag",
+            "r.mcap",
+            "--speed",
+            "max",
+            "--connect",
+            &bus,
+        ],
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    let st = status(&d, &bus);
+    assert_eq!(st["samples_in"], 51829, "{st}");
+    svc.stop();
+    std::fs::remove_dir_all(&d).ok();
+}
