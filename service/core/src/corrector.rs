@@ -133,6 +133,9 @@ pub struct Stats {
     pub effect_points: Vec<u64>,
     /// Seq jumps (missing samples) seen per stream.
     pub seq_gaps: [u64; 4],
+    /// Samples missing in those jumps (lost before the corrector: a router down, a link
+    /// dropped), per stream.
+    pub samples_missing: [u64; 4],
     /// Alarms raised.
     pub alarms_raised: u64,
 }
@@ -159,6 +162,7 @@ impl Stats {
         for i in 0..4 {
             self.samples_in[i] += o.samples_in[i];
             self.seq_gaps[i] += o.seq_gaps[i];
+            self.samples_missing[i] += o.samples_missing[i];
         }
         for i in 0..self.dropped.len() {
             self.dropped[i] += o.dropped[i];
@@ -613,8 +617,9 @@ impl Corrector {
             self.stats.dropped[DropReason::OutOfOrder as usize] += 1;
             return false;
         }
-        if st.last_seq.is_some_and(|l| seq > l + 1) {
+        if let Some(l) = st.last_seq.filter(|l| seq > l + 1) {
             self.stats.seq_gaps[k] += 1;
+            self.stats.samples_missing[k] += seq - l - 1;
         }
         st.last_seq = Some(seq);
         st.last_t = Some(t);

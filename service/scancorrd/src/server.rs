@@ -530,7 +530,7 @@ impl State {
                         .map(|k| {
                             (
                                 vec![("stream", streams[k].to_string())],
-                                s.seq_gaps[k] as f64,
+                                s.samples_missing[k] as f64,
                             )
                         })
                         .collect()
@@ -957,7 +957,8 @@ impl State {
                     "seq_resets": stats.as_ref().map(|s| s.seq_resets).unwrap_or(0),
                     // Samples missing in the streams' seq (lost on the way: a router down, a
                     // link dropped), per stream.
-                    "samples_missing": stats.as_ref().map(|s| json!({"command": s.seq_gaps[0], "scale": s.seq_gaps[1], "probe": s.seq_gaps[2], "temperature": s.seq_gaps[3]})),
+                    "samples_missing": stats.as_ref().map(|s| json!({"command": s.samples_missing[0], "scale": s.samples_missing[1], "probe": s.samples_missing[2], "temperature": s.samples_missing[3]})),
+                    "seq_gaps": stats.as_ref().map(|s| json!({"command": s.seq_gaps[0], "scale": s.seq_gaps[1], "probe": s.seq_gaps[2], "temperature": s.seq_gaps[3]})),
                     "effect_points": m.ids.iter().cloned().zip(stats.as_ref().map(|s| s.effect_points.clone()).unwrap_or_default()).collect::<BTreeMap<_, _>>(),
                     "inactive_effects": m.corrector.as_ref().map(|c| c.inactive_effects()).unwrap_or_default(),
                     "messages": m.extra,
