@@ -33,6 +33,46 @@ fn sample(text: &str, series: &str) -> Option<f64> {
     })
 }
 
+/// `calib put` of `v1.json` for m1.
+fn put_v1(d: &Path, bus: &str) {
+    ok(
+        d,
+        &[
+            "calib",
+            "put",
+            "--machine",
+            "m1",
+            "--file",
+            "v1.json",
+            "--connect",
+            bus,
+        ],
+    );
+}
+
+/// `replay --bag r.mcap` at `speed` (`max` or a factor), in the background.
+fn replay_in_background(d: &Path, bus: &str, speed: &str, looping: bool) -> std::process::Child {
+    let mut args = vec![
+        "replay",
+        "--bag",
+        "r.mcap",
+        "--speed",
+        speed,
+        "--connect",
+        bus,
+    ];
+    if looping {
+        args.push("--loop");
+    }
+    Command::new(scancorr())
+        .args(args)
+        .current_dir(d)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
 fn status(d: &Path, bus: &str) -> Value {
     serde_json::from_str(&ok(
         d,
@@ -345,36 +385,9 @@ fn sigkill_mid_stream_keeps_the_history_and_the_database_intact() {
     let bus = format!("tcp/127.0.0.1:{port}");
     let mut svc = Service::start(&d, port);
     sim_ring(&d, "v1.json");
-    ok(
-        &d,
-        &[
-            "calib",
-            "put",
-            "--machine",
-            "m1",
-            "--file",
-            "v1.json",
-            "--connect",
-            &bus,
-        ],
-    );
+    put_v1(&d, &bus);
     // The ring replayed in a loop while calibrations are put, and the service killed.
-    let mut replay = Command::new(scancorr())
-        .args([
-            "replay",
-            "--bag",
-            "r.mcap",
-            "--speed",
-            "max",
-            "--loop",
-            "--connect",
-            &bus,
-        ])
-        .current_dir(&d)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut replay = replay_in_background(&d, &bus, "max", true);
     std::thread::sleep(Duration::from_millis(1500));
     let mut acknowledged = 1;
     for _ in 0..5 {
@@ -533,35 +546,9 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
         .spawn()
         .unwrap();
     sim_ring(&d, "v1.json");
-    ok(
-        &d,
-        &[
-            "calib",
-            "put",
-            "--machine",
-            "m1",
-            "--file",
-            "v1.json",
-            "--connect",
-            &bus,
-        ],
-    );
+    put_v1(&d, &bus);
     // The ring in real time (17 s); the router killed after 5 s and back 2 s later.
-    let mut replay = Command::new(scancorr())
-        .args([
-            "replay",
-            "--bag",
-            "r.mcap",
-            "--speed",
-            "1",
-            "--connect",
-            &bus,
-        ])
-        .current_dir(&d)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut replay = replay_in_background(&d, &bus, "1", false);
     std::thread::sleep(Duration::from_secs(5));
     let before = status(&d, &bus);
     let _ = router.kill();
