@@ -164,6 +164,13 @@ pub fn calibration_key(prefix: &str, machine: &str) -> String {
     format!("{prefix}/{machine}/calibration")
 }
 
+/// The key of the services' health query, `<prefix>/@scancorrd/health`: every scancorrd on
+/// the bus answers it (version, uptime, machines served). The `@` chunk is verbatim in zenoh,
+/// so no machine's key (`<prefix>/*/…`) ever matches it.
+pub fn health_key(prefix: &str) -> String {
+    format!("{prefix}/@scancorrd/health")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

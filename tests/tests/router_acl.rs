@@ -272,6 +272,15 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         .success());
     let listed = String::from_utf8_lossy(&cli(&d, &app, &["status", "--json"]).stdout).to_string();
     assert!(listed.contains("m1") && listed.contains("m2"), "{listed}");
+    // … and ask the services' health.
+    let h = cli(&d, &app, &["health", "--json"]);
+    assert!(
+        h.status.success(),
+        "app health: {}",
+        String::from_utf8_lossy(&h.stderr)
+    );
+    let h: Value = serde_json::from_slice(&h.stdout).unwrap();
+    assert_eq!(h[0]["machines"], 2, "{h}");
 
     // Controller m1 publishes its own machine's raw streams: the service corrects them.
     let out = cli(

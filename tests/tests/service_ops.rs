@@ -229,6 +229,21 @@ fn metrics_audit_trail_and_rollback() {
     assert_eq!(v3["effects"], v1["effects"]);
     assert_eq!(v3["version"], 3);
 
+    // The health query: this service answers, ready, serving one machine.
+    let h: Value = serde_json::from_str(&ok(&d, &["health", "--connect", &bus, "--json"])).unwrap();
+    let h = h.as_array().unwrap();
+    assert_eq!(h.len(), 1, "{h:?}");
+    assert_eq!(
+        (h[0]["ready"].as_bool(), h[0]["machines"].as_u64()),
+        (Some(true), Some(1)),
+        "{h:?}"
+    );
+    assert_eq!(h[0]["version"], env!("CARGO_PKG_VERSION"));
+    let text = ok(&d, &["health", "--connect", &bus]);
+    assert!(
+        text.contains("ready") && text.contains("1 machine(s)"),
+        "{text}"
+    );
     // The metrics endpoint: what the status says, in Prometheus' text format.
     std::thread::sleep(Duration::from_millis(1500));
     let st = status(&d, &bus);
@@ -360,6 +375,12 @@ fn systemd_readiness_watchdog_and_json_logs() {
         .unwrap()
         .contains(&port.to_string()));
 
+    // Nothing answers the health query once it stopped: a clear error, non-zero.
+    let out = run(
+        &d,
+        &["health", "--connect", &format!("tcp/127.0.0.1:{port}")],
+    );
+    assert!(!out.status.success());
     // A configuration error: one line on stderr, exit 2, no backtrace.
     std::fs::write(d.join("bad.json5"), "{ metrics_listen: 'nowhere' }").unwrap();
     let out = Command::new(scancorrd())

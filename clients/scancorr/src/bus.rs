@@ -322,6 +322,41 @@ pub fn status(bus: &Bus, machine: &str) -> Result<String> {
     Ok(text)
 }
 
+/// `health`: every scancorrd's answer to the health query (an error when none answers).
+pub fn health(bus: &Bus) -> Result<Vec<serde_json::Value>> {
+    bus.check()?;
+    let key = scancorr_proto::health_key(&bus.prefix);
+    rt()?.block_on(async {
+        let s = open(bus).await?;
+        let t0 = Instant::now();
+        let mut out = vec![];
+        // The route to the queryables may take a moment after connecting.
+        while out.is_empty() && t0.elapsed() < Duration::from_secs(6) {
+            let replies = s
+                .get(key.as_str())
+                .consolidation(zenoh::query::ConsolidationMode::None)
+                .target(zenoh::query::QueryTarget::All)
+                .timeout(Duration::from_secs(2))
+                .await
+                .map_err(z)?;
+            while let Ok(r) = replies.recv_async().await {
+                if let Ok(sample) = r.result() {
+                    let text = sample.payload().try_to_string().map(|s| s.to_string()).unwrap_or_default();
+                    out.push(serde_json::from_str(&text).unwrap_or(serde_json::Value::String(text)));
+                }
+            }
+            if out.is_empty() {
+                tokio::time::sleep(Duration::from_millis(250)).await;
+            }
+        }
+        s.close().await.ok();
+        if out.is_empty() {
+            bail!("no scancorrd answered the health query `{key}` on {} (is one running, reachable and serving prefix `{}`?)", bus.endpoints(), bus.prefix);
+        }
+        Ok(out)
+    })
+}
+
 /// `status` without a machine: the machines served on the bus (each scancorrd declares a
 /// liveliness token `<prefix>/<machine>/scancorrd` per machine it serves); an error when none.
 pub fn machines(bus: &Bus) -> Result<Vec<String>> {

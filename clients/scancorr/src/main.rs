@@ -110,6 +110,15 @@ enum Cmd {
         #[command(flatten)]
         bus: bus::Bus,
     },
+    /// Every scancorrd on the bus: version, uptime, machines served, readiness (non-zero
+    /// exit when none answers).
+    Health {
+        /// Print JSON (one object per service) instead of text.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        bus: bus::Bus,
+    },
     /// Publish a bag's raw streams on the bus, paced by sample time.
     Replay {
         /// The bag.
@@ -617,6 +626,33 @@ fn run(cli: Cli) -> Result<()> {
             match serde_json::from_str::<serde_json::Value>(&reply) {
                 Ok(v) if !json => outln!("{}", human::history(&v).trim_end())?,
                 _ => outln!("{reply}")?,
+            }
+            Ok(())
+        }
+        Cmd::Health { json, bus } => {
+            let all = bus::health(&bus)?;
+            if json {
+                outln!("{}", serde_json::Value::Array(all))?;
+            } else {
+                for h in &all {
+                    outln!(
+                        "scancorrd {} (zid {}): ready, up {} s, {} machine(s){}",
+                        h["version"].as_str().unwrap_or("?"),
+                        h["zid"].as_str().unwrap_or("?"),
+                        h["uptime_s"],
+                        h["machines"],
+                        match h["quarantined"].as_array() {
+                            Some(q) if !q.is_empty() => format!(
+                                ", quarantined: {}",
+                                q.iter()
+                                    .filter_map(|v| v.as_str())
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
+                            ),
+                            _ => String::new(),
+                        }
+                    )?;
+                }
             }
             Ok(())
         }

@@ -319,6 +319,13 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         .declare_queryable(format!("{prefix}/*/status"))
         .await
         .map_err(z)?;
+    // Liveness and readiness on the bus: every instance answers (`@` keeps the key apart from
+    // any machine's).
+    let health = session
+        .declare_queryable(scancorr_proto::health_key(&prefix))
+        .await
+        .map_err(z)?;
+    let started = Instant::now();
     let mut st = State {
         cfg,
         session: session.clone(),
@@ -354,6 +361,19 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                 Err(e) => { warn!(error = %e, "calibration queryable closed"); break }
             },
             q = status.recv_async() => if let Ok(q) = q { st.on_status(q).await },
+            q = health.recv_async() => if let Ok(q) = q {
+                let quarantined: Vec<&String> = st.machines.iter().filter(|(_, m)| m.quarantined.is_some()).map(|(k, _)| k).collect();
+                let body = json!({
+                    "zid": st.session.zid().to_string(),
+                    "version": env!("CARGO_PKG_VERSION"),
+                    "ready": true,
+                    "uptime_s": started.elapsed().as_secs_f64().round(),
+                    "machines": st.machines.len(),
+                    "quarantined": quarantined,
+                    "samples_in": st.totals().0,
+                });
+                let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
+            },
             s = raw.recv_async() => match s {
                 Ok(s) => st.on_raw(s).await,
                 Err(e) => { warn!(error = %e, "raw subscriber closed"); break }
