@@ -610,3 +610,30 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     let _ = router.wait();
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// The short CI version of the load run: a fleet at 1 kHz per machine through a
+/// `scancorr-router` (scancorrd, the controllers and the consumer its clients) loses no
+/// point. The full run is `scancorr bench fleet --machines 200 --seconds 300 --router`.
+#[test]
+fn a_fleet_through_the_router_loses_no_point() {
+    let d = scratch("fleet-router");
+    let out = ok(
+        &d,
+        &[
+            "bench",
+            "fleet",
+            "--machines",
+            "20",
+            "--seconds",
+            "5",
+            "--router",
+            "--json",
+        ],
+    );
+    let v: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v["through_router"], true);
+    assert_eq!(v["received_points"], v["expected_points"], "{v}");
+    assert!(v["expected_points"].as_u64().unwrap() >= 90_000, "{v}");
+    assert_eq!(v["seq_gaps"], 0, "{v}");
+    std::fs::remove_dir_all(&d).ok();
+}

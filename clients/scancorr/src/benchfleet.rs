@@ -33,6 +33,9 @@ pub struct Params {
     /// four times later, so a machine too small to generate the full load can still measure
     /// the state of a full fleet: the samples, batches and per-machine state are the same).
     pub pace: f64,
+    /// Route everything through a `scancorr-router` (scancorrd as its client, the
+    /// controllers and the consumer too), as a shop floor deploys it.
+    pub router: bool,
     /// Print JSON.
     pub json: bool,
 }
@@ -113,22 +116,73 @@ impl Drop for Service {
 }
 
 fn start_service(dir: &Path, port: u16, p: &Params) -> Result<Service> {
-    start_scancorrd(
-        dir,
-        port,
-        &format!(
-            "max_machines: {}, max_pending_samples: {},",
-            p.machines + 16,
-            p.max_pending
-        ),
-    )
+    let extra = format!(
+        "max_machines: {}, max_pending_samples: {},",
+        p.machines + 16,
+        p.max_pending
+    );
+    if p.router {
+        start_scancorrd_with(
+            dir,
+            &format!("mode: \"client\", listen: [], connect: [\"tcp/127.0.0.1:{port}\"],"),
+            &extra,
+        )
+    } else {
+        start_scancorrd(dir, port, &extra)
+    }
+}
+
+/// Starts `scancorr-router` (plain TCP on loopback `port`, no access control) with its
+/// files in `dir`.
+fn start_router(dir: &Path, port: u16) -> Result<Service> {
+    std::fs::create_dir_all(dir)?;
+    std::fs::write(
+        dir.join("router.json5"),
+        format!("{{ mode: \"router\", listen: {{ endpoints: [\"tcp/127.0.0.1:{port}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"),
+    )?;
+    let bin = scancorrd_path()?
+        .with_file_name(format!("scancorr-router{}", std::env::consts::EXE_SUFFIX));
+    anyhow::ensure!(
+        bin.exists(),
+        "{} not found: build it with `cargo build --release -p scancorrd`",
+        bin.display()
+    );
+    let child = Command::new(bin)
+        .arg("-c")
+        .arg(dir.join("router.json5"))
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(dir.join("router.log"))?)
+        .spawn()
+        .context("starting scancorr-router")?;
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        anyhow::ensure!(
+            t0.elapsed() < Duration::from_secs(20),
+            "scancorr-router did not start"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    Ok(Service {
+        child,
+        dir: dir.to_path_buf(),
+    })
 }
 
 /// Starts scancorrd in peer mode on `port` with its data in `dir`; `extra` adds config fields.
 pub(crate) fn start_scancorrd(dir: &Path, port: u16, extra: &str) -> Result<Service> {
+    start_scancorrd_with(
+        dir,
+        &format!("mode: \"peer\", listen: [\"tcp/127.0.0.1:{port}\"],"),
+        extra,
+    )
+}
+
+/// Starts scancorrd with `head` (its mode and endpoints) and `extra` config fields, its data
+/// in `dir`.
+fn start_scancorrd_with(dir: &Path, head: &str, extra: &str) -> Result<Service> {
     std::fs::create_dir_all(dir)?;
     let cfg = format!(
-        "{{ mode: \"peer\", listen: [\"tcp/127.0.0.1:{port}\"], data_dir: \"{}\", allow_any_machine: true, {extra} }}",
+        "{{ {head} data_dir: \"{}\", allow_any_machine: true, {extra} }}",
         dir.join("data").display(),
     );
     std::fs::write(dir.join("scancorrd.json5"), cfg)?;
@@ -267,6 +321,11 @@ pub fn run(p: Params) -> Result<()> {
     rt.block_on(async {
         let dir = std::env::temp_dir().join(format!("scancorr-bench-fleet-{}", std::process::id()));
         let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+        let _router = if p.router {
+            Some(start_router(&dir.with_extension("router"), port)?)
+        } else {
+            None
+        };
         let mut svc = start_service(&dir, port, &p)?;
         let pid = svc.child.id();
         let cfg = scancorrd::config::zenoh_config("peer", &[], &[format!("tcp/127.0.0.1:{port}")], false)?;
@@ -443,6 +502,7 @@ pub fn run(p: Params) -> Result<()> {
         let out = serde_json::json!({
             "bench": "fleet",
             "machines": p.machines,
+            "through_router": p.router,
             "rate_hz_per_machine": 1000,
             "seconds": p.seconds,
             "batch_ms": p.batch_ms,
@@ -482,7 +542,7 @@ pub fn run(p: Params) -> Result<()> {
             outln!("{out}")?;
         } else {
             let kib = |b: f64| b / 1024.0;
-            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace)?;
+            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process{} (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.router { " behind a scancorr-router" } else { "" })?;
             outln!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
             outln!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, dropped {:?}", r.points, r.gaps, drops)?;
             outln!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;

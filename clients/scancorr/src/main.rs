@@ -354,6 +354,10 @@ enum BenchCmd {
         /// the whole fleet's load besides serving it).
         #[arg(long, default_value_t = 1.0)]
         pace: f64,
+        /// Through a `scancorr-router` (scancorrd, controllers and consumer its clients), as
+        /// a shop floor deploys it.
+        #[arg(long)]
+        router: bool,
     },
     /// The bare relay `bench live` compares against (run by it as a child process).
     #[command(hide = true)]
@@ -506,12 +510,14 @@ fn run(cli: Cli) -> Result<()> {
             batch_ms,
             max_pending,
             pace,
+            router,
         }) => benchfleet::run(benchfleet::Params {
             machines,
             seconds,
             batch_ms,
             max_pending,
             pace,
+            router,
             json,
         }),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
