@@ -186,6 +186,22 @@ fn polar_over(
     )
 }
 
+/// One polar scale for every trace of a report (µm per division) and the speeds that fix
+/// the traces' colours (0.1 mm/s, ascending).
+fn scale_and_speeds(all: &[&Trace]) -> (f64, Vec<i64>) {
+    let maxdev = all
+        .iter()
+        .flat_map(|t| t.deviation_um.iter())
+        .fold(0.0f64, |a, e| a.max(e.abs()));
+    let mut speeds: Vec<i64> = all
+        .iter()
+        .map(|t| (t.speed_mm_s * 10.0).round() as i64)
+        .collect();
+    speeds.sort_unstable();
+    speeds.dedup();
+    (um_per_div(maxdev), speeds)
+}
+
 fn fmt_scale(v: f64) -> String {
     if v >= 1.0 {
         format!("{v:.0}")
@@ -333,17 +349,7 @@ fn prediction_polars(ds: &Dataset, p: &scancorr_core::lab::analysis::Prediction)
         esc(&p.effect)
     );
     let all: Vec<&Trace> = p.measured.iter().chain(&p.predicted).collect();
-    let maxdev = all
-        .iter()
-        .flat_map(|t| t.deviation_um.iter())
-        .fold(0.0f64, |a, e| a.max(e.abs()));
-    let upd = um_per_div(maxdev);
-    let mut speeds: Vec<i64> = all
-        .iter()
-        .map(|t| (t.speed_mm_s * 10.0).round() as i64)
-        .collect();
-    speeds.sort_unstable();
-    speeds.dedup();
+    let (upd, speeds) = scale_and_speeds(&all);
     for (fi, (_, f)) in ds.features.iter().enumerate() {
         let pred: Vec<&Trace> = p.predicted.iter().filter(|t| t.feature == fi).collect();
         let meas: Vec<&Trace> = p.measured.iter().filter(|t| t.feature == fi).collect();
@@ -467,17 +473,7 @@ fn polars(ds: &Dataset, cmp: &Comparison, before: Option<(&Dataset, &Comparison)
         s += "<p class=\"muted\">No circle was scanned at a steady speed over a quarter turn or more: nothing to draw.</p>";
         return s;
     }
-    let maxdev = all
-        .iter()
-        .flat_map(|t| t.deviation_um.iter())
-        .fold(0.0f64, |a, e| a.max(e.abs()));
-    let upd = um_per_div(maxdev);
-    let mut speeds: Vec<i64> = all
-        .iter()
-        .map(|t| (t.speed_mm_s * 10.0).round() as i64)
-        .collect();
-    speeds.sort_unstable();
-    speeds.dedup();
+    let (upd, speeds) = scale_and_speeds(&all);
     for (fi, (_, f)) in ds.features.iter().enumerate() {
         fn of(c: &Comparison, fi: usize) -> Vec<&Trace> {
             c.traces.iter().filter(|t| t.feature == fi).collect()

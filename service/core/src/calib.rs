@@ -704,3 +704,37 @@ mod tests {
         assert!(err(v).contains("join.seq_reset_samples"));
     }
 }
+
+/// `unix_secs` (seconds since 1970-01-01 UTC) as RFC 3339 in UTC, to the second — the form of
+/// a calibration's `created` and of the service's audit records. The caller reads the clock
+/// (the core has none). Civil date by Howard Hinnant's days-from-civil inverse.
+pub fn rfc3339_utc(unix_secs: i64) -> String {
+    let (days, rem) = (unix_secs.div_euclid(86_400), unix_secs.rem_euclid(86_400));
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+#[cfg(test)]
+mod rfc3339_tests {
+    #[test]
+    fn unix_seconds_read_as_utc_dates() {
+        use super::rfc3339_utc;
+        assert_eq!(rfc3339_utc(0), "1970-01-01T00:00:00Z");
+        assert_eq!(rfc3339_utc(951_868_799), "2000-02-29T23:59:59Z");
+        assert_eq!(rfc3339_utc(1_795_629_723), "2026-11-25T18:02:03Z");
+        assert_eq!(rfc3339_utc(-1), "1969-12-31T23:59:59Z");
+    }
+}
