@@ -233,6 +233,22 @@ pub fn ask_as_user(bus: &Bus, selector: String, payload: Option<Vec<u8>>) -> Res
     })
 }
 
+/// No scancorrd answered a query (none is reachable, or none serves the machine asked about).
+#[derive(Debug)]
+struct NoAnswer(String);
+
+impl std::fmt::Display for NoAnswer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "no scancorrd answered on `{}` (is it running, reachable and serving this prefix?)",
+            self.0
+        )
+    }
+}
+
+impl std::error::Error for NoAnswer {}
+
 /// One query to the calibration/status queryable; returns the reply text.
 async fn ask(
     session: &zenoh::Session,
@@ -270,7 +286,7 @@ async fn ask(
             };
         }
         if t0.elapsed() > Duration::from_secs(6) {
-            bail!("no scancorrd answered on `{selector}` (is it running, reachable and serving this prefix?)")
+            return Err(NoAnswer(selector).into());
         }
         tokio::time::sleep(Duration::from_millis(250)).await;
     }
@@ -300,7 +316,18 @@ pub fn query(bus: &Bus, selector: String) -> Result<String> {
 /// `status`: the machine's status document; an error when the service does not serve it.
 pub fn status(bus: &Bus, machine: &str) -> Result<String> {
     crate::output::check_machine("--machine", machine)?;
-    let text = query(bus, format!("{}/{machine}/status", bus.prefix))?;
+    // Each instance answers only for the machines it serves (its assignment, less those another
+    // instance already serves): no answer means no instance serves this one.
+    let text = query(bus, format!("{}/{machine}/status", bus.prefix)).map_err(|e| {
+        if e.downcast_ref::<NoAnswer>().is_some() {
+            anyhow::anyhow!(
+                "machine `{machine}` is not served: no scancorrd on {} answers for it (none running, or none has it in its `machines` assignment); `scancorr status` lists the machines served",
+                bus.endpoints()
+            )
+        } else {
+            e
+        }
+    })?;
     let v: serde_json::Value = serde_json::from_str(&text)
         .with_context(|| format!("the status reply is not JSON: {}", one_line(&text)))?;
     if v.get("served").and_then(|s| s.as_bool()) == Some(false) {

@@ -15,9 +15,13 @@ pub struct Config {
     pub connect: Vec<String>,
     /// Key-expression prefix.
     pub prefix: String,
-    /// Machines served; empty means any machine that appears (when `allow_any_machine`).
+    /// This instance's assignment: machine ids, or patterns with `*` for any run of name
+    /// characters (`cell3-*`; `*` alone is every machine). With `allow_any_machine` off the
+    /// instance subscribes only to these machines' raw streams and answers only their queries,
+    /// so several instances on one router mesh never receive each other's traffic.
     pub machines: Vec<String>,
-    /// Serve machines not listed in `machines`.
+    /// Serve machines not listed in `machines` (one subscription to every machine's raw
+    /// streams: for a single instance).
     pub allow_any_machine: bool,
     /// Folder of the calibration store.
     pub data_dir: PathBuf,
@@ -140,7 +144,13 @@ impl Config {
         }
         scancorr_proto::names::check_prefix(&self.prefix).map_err(|e| format!("prefix: {e}"))?;
         for (i, m) in self.machines.iter().enumerate() {
-            scancorr_proto::names::check_machine(m).map_err(|e| format!("machines[{i}]: {e}"))?;
+            check_pattern(m).map_err(|e| format!("machines[{i}]: {e}"))?;
+        }
+        if self.machines.is_empty() && !self.allow_any_machine {
+            return Err(
+                "machines is empty and allow_any_machine is false: this instance would serve nothing"
+                    .into(),
+            );
         }
         if self.max_machines == 0 || self.max_machines > 1_000_000 {
             return Err("max_machines: 1 … 1 000 000".into());
@@ -208,10 +218,65 @@ impl Config {
         Ok(z)
     }
 
-    /// Whether `machine` may be served.
+    /// Whether `machine` may be served (it is in this instance's assignment).
     pub fn serves(&self, machine: &str) -> bool {
-        self.allow_any_machine || self.machines.iter().any(|m| m == machine)
+        self.allow_any_machine || self.machines.iter().any(|p| glob(p, machine))
     }
+
+    /// The machine chunks of the key expressions this instance subscribes and answers on:
+    /// `*` when it serves any machine, else one per entry of its assignment (a pattern's `*`
+    /// becomes zenoh's in-chunk wildcard `$*`).
+    pub fn machine_chunks(&self) -> Vec<String> {
+        if self.allow_any_machine || self.machines.iter().any(|m| m == "*") {
+            return vec!["*".into()];
+        }
+        let mut v: Vec<String> = self.machines.iter().map(|m| m.replace('*', "$*")).collect();
+        v.sort();
+        v.dedup();
+        v
+    }
+}
+
+/// Checks an entry of `machines`: a machine id, or a pattern of name characters and single
+/// `*`s (never two in a row: `**` means several chunks to zenoh).
+pub fn check_pattern(p: &str) -> Result<(), String> {
+    if p == "*" {
+        return Ok(());
+    }
+    if p.contains("**") {
+        return Err(format!(
+            "{}: `**` is not a machine pattern (use one `*`)",
+            scancorr_proto::names::shown(p)
+        ));
+    }
+    // Each `*` stands for at least one name character here (a name of one letter in place of
+    // each `*` must follow the grammar).
+    scancorr_proto::names::check_machine(&p.replace('*', "x")).map_err(|e| {
+        format!(
+            "{} is not a machine id or pattern: {}",
+            scancorr_proto::names::shown(p),
+            e.reason
+        )
+    })
+}
+
+/// Whether `name` matches `pattern`, where `*` stands for any run of characters.
+pub fn glob(pattern: &str, name: &str) -> bool {
+    let Some((head, rest)) = pattern.split_once('*') else {
+        return pattern == name;
+    };
+    let Some(mut tail) = name.strip_prefix(head) else {
+        return false;
+    };
+    let mut parts: Vec<&str> = rest.split('*').collect();
+    let last = parts.pop().unwrap_or("");
+    for part in parts {
+        match tail.find(part) {
+            Some(i) => tail = &tail[i + part.len()..],
+            None => return false,
+        }
+    }
+    tail.len() >= last.len() && tail.ends_with(last)
 }
 
 /// A zenoh configuration from mode and endpoints (shared with the CLI).
@@ -258,4 +323,38 @@ fn apply(
     )?;
     set(&mut z, "scouting/multicast/enabled", scouting.to_string())?;
     Ok(z)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn patterns_match_names_and_become_key_chunks() {
+        assert!(glob("m1", "m1") && !glob("m1", "m12"));
+        assert!(glob("cell3-*", "cell3-m7") && glob("cell3-*", "cell3-"));
+        assert!(!glob("cell3-*", "cell4-m7"));
+        assert!(glob("*-left", "m1-left") && !glob("*-left", "m1-right"));
+        assert!(glob("a*b*c", "a1b2c") && glob("a*b*c", "abc") && !glob("a*b*c", "ab2"));
+        assert!(glob("*", "anything"));
+        for bad in ["**", "m**", "", "m 1", "m/1", "$*", "*/x"] {
+            assert!(check_pattern(bad).is_err(), "{bad} accepted");
+        }
+        for good in ["m1", "cell3-*", "*", "*-x", "a*b*c"] {
+            assert!(check_pattern(good).is_ok(), "{good} refused");
+        }
+        let c = Config {
+            machines: vec!["m2".into(), "cell3-*".into(), "m1".into()],
+            allow_any_machine: false,
+            ..Config::default()
+        };
+        assert_eq!(c.machine_chunks(), ["cell3-$*", "m1", "m2"]);
+        assert!(c.serves("cell3-x") && c.serves("m1") && !c.serves("m3"));
+        assert_eq!(Config::default().machine_chunks(), ["*"]);
+        let none = Config {
+            allow_any_machine: false,
+            ..Config::default()
+        };
+        assert!(none.validate().unwrap_err().contains("serve nothing"));
+    }
 }

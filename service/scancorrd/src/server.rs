@@ -43,6 +43,9 @@ pub enum ServiceError {
     /// A name or a request refused (the message says which and why).
     #[error("{0}")]
     Refused(String),
+    /// Another instance serves the machine (its liveliness token is on the bus).
+    #[error("machine `{0}` is served by another scancorrd instance")]
+    ServedElsewhere(String),
 }
 
 fn z<E: std::fmt::Display>(e: E) -> ServiceError {
@@ -81,7 +84,14 @@ struct Refused {
     /// `raw/stage`, measurements for calibration procedures) of machines it does not serve
     /// yet (a served machine counts them on its status): skipped, not an error.
     not_corrected: u64,
+    /// Raw messages of a machine in this instance's assignment that another instance already
+    /// serves (its liveliness token is on the bus): refused, so no point is published twice.
+    served_elsewhere: u64,
 }
+
+/// How long a machine found served by another instance stays refused before the bus is asked
+/// again (when that instance has stopped, its token is gone and this one may take over).
+pub const RECHECK_ELSEWHERE: Duration = Duration::from_secs(5);
 
 /// Why a message or request was refused before it reached a machine.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -275,6 +285,9 @@ struct State {
     log: LogGate,
     /// Whether the log said that the measurement streams are not corrected (said once).
     told_not_corrected: bool,
+    /// Machines of this instance's assignment that another instance serves, with when the bus
+    /// was last asked.
+    elsewhere: BTreeMap<String, Instant>,
     /// What the core completed for the message in hand; published and cleared before the
     /// next message, so one buffer serves every machine.
     out: Output,
@@ -304,21 +317,42 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         data_dir = %cfg.data_dir.display(),
         zenoh_config = ?cfg.zenoh_config,
         metrics = ?cfg.metrics_listen,
+        subscribes = ?cfg.machine_chunks().iter().map(|m| format!("{prefix}/{m}/raw/**")).collect::<Vec<_>>(),
         systemd_notify = notify.enabled(),
         "scancorrd started"
     );
-    let raw = session
-        .declare_subscriber(format!("{prefix}/*/raw/**"))
-        .await
-        .map_err(z)?;
-    let calib = session
-        .declare_queryable(format!("{prefix}/*/calibration"))
-        .await
-        .map_err(z)?;
-    let status = session
-        .declare_queryable(format!("{prefix}/*/status"))
-        .await
-        .map_err(z)?;
+    // Only this instance's assignment: with several instances on one router mesh, none
+    // receives the others' raw traffic or answers for their machines. One queue for all the
+    // subscriptions (zenoh's channel, bounded as its default handler is).
+    let chunks = cfg.machine_chunks();
+    let (raw_tx, raw) = flume::bounded(256);
+    let (calib_tx, calib) = flume::bounded(64);
+    let (status_tx, status) = flume::bounded(64);
+    let mut declared = Declared::default();
+    for m in &chunks {
+        declared._subscribers.push(
+            session
+                .declare_subscriber(format!("{prefix}/{m}/raw/**"))
+                .with((raw_tx.clone(), raw.clone()))
+                .await
+                .map_err(z)?,
+        );
+        declared._queryables.push(
+            session
+                .declare_queryable(format!("{prefix}/{m}/calibration"))
+                .with((calib_tx.clone(), calib.clone()))
+                .await
+                .map_err(z)?,
+        );
+        declared._queryables.push(
+            session
+                .declare_queryable(format!("{prefix}/{m}/status"))
+                .with((status_tx.clone(), status.clone()))
+                .await
+                .map_err(z)?,
+        );
+    }
+    drop((raw_tx, calib_tx, status_tx));
     // Liveness and readiness on the bus: every instance answers (`@` keeps the key apart from
     // any machine's).
     let health = session
@@ -334,6 +368,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         refused: Refused::default(),
         log: LogGate::default(),
         told_not_corrected: false,
+        elsewhere: BTreeMap::new(),
         out: Output::default(),
     };
     // Machines with a stored calibration are served from the start; one whose stored
@@ -341,7 +376,10 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     // others start.
     for m in st.store.machines()? {
         if st.cfg.serves(&m) && st.machines.len() < st.cfg.max_machines {
-            st.machine(&m).await?;
+            match st.machine(&m).await {
+                Ok(_) | Err(ServiceError::ServedElsewhere(_)) => {}
+                Err(e) => return Err(e),
+            }
         }
     }
     notify.send(&format!(
@@ -371,6 +409,9 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                     "machines": st.machines.len(),
                     "quarantined": quarantined,
                     "samples_in": st.totals().0,
+                    "assignment": if st.cfg.allow_any_machine { vec!["*".to_string()] } else { st.cfg.machines.clone() },
+                    "served_elsewhere": st.elsewhere.keys().collect::<Vec<_>>(),
+                    "refused": st.refused,
                 });
                 let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
             },
@@ -698,12 +739,53 @@ impl State {
         c
     }
 
+    /// Whether another instance serves `name`: its liveliness token is on the bus. Asked at
+    /// most once per [`RECHECK_ELSEWHERE`] per machine; said loudly the first time.
+    async fn served_elsewhere(&mut self, name: &str) -> bool {
+        if let Some(t) = self.elsewhere.get(name) {
+            if t.elapsed() < RECHECK_ELSEWHERE {
+                return true;
+            }
+        }
+        let key = format!("{}/{name}/scancorrd", self.cfg.prefix);
+        let mut found = false;
+        if let Ok(replies) = self
+            .session
+            .liveliness()
+            .get(key.as_str())
+            .timeout(Duration::from_secs(2))
+            .await
+        {
+            while let Ok(r) = replies.recv_async().await {
+                found |= r.result().is_ok();
+            }
+        }
+        if found {
+            if self
+                .elsewhere
+                .insert(name.to_string(), Instant::now())
+                .is_none()
+            {
+                error!(machine = name, token = %key, "machine already served by another scancorrd instance (its liveliness token is on the bus): this instance refuses it, so no point is published twice; give each instance a disjoint `machines` assignment");
+            }
+        } else if self.elsewhere.remove(name).is_some() {
+            info!(
+                machine = name,
+                "the other instance no longer serves this machine: taking it over"
+            );
+        }
+        found
+    }
+
     async fn machine(&mut self, name: &str) -> Result<&mut Machine, ServiceError> {
         if !self.machines.contains_key(name) {
             // Every name that reaches here passed the grammar; checked again because it
             // becomes part of key expressions.
             scancorr_proto::names::check_machine(name)
                 .map_err(|e| ServiceError::Refused(e.to_string()))?;
+            if self.served_elsewhere(name).await {
+                return Err(ServiceError::ServedElsewhere(name.to_string()));
+            }
             let p = &self.cfg.prefix;
             let points = self
                 .session
@@ -794,6 +876,12 @@ impl State {
         Ok(self.machines.get_mut(name).expect("inserted"))
     }
 
+    /// Whether a query about `machine` is for another instance to answer (it serves the
+    /// machine): this one stays silent, so the asker gets that instance's answer alone.
+    fn answered_elsewhere(&self, machine: &str) -> bool {
+        !self.machines.contains_key(machine) && self.elsewhere.contains_key(machine)
+    }
+
     /// Counts a refusal and logs it at most once per [`LOG_EVERY`] per reason.
     fn refuse(&mut self, reason: Refusal, what: &str) {
         let r = &mut self.refused;
@@ -847,9 +935,16 @@ impl State {
             self.refuse(Refusal::OverCapacity, &machine);
             return;
         }
-        if let Err(e) = self.machine(&machine).await {
-            warn!(machine = %machine, error = %e, "cannot serve machine");
-            return;
+        match self.machine(&machine).await {
+            Ok(_) => {}
+            Err(ServiceError::ServedElsewhere(_)) => {
+                self.refused.served_elsewhere += 1;
+                return;
+            }
+            Err(e) => {
+                warn!(machine = %machine, error = %e, "cannot serve machine");
+                return;
+            }
         }
         let (m, out) = (
             self.machines.get_mut(&machine).expect("served"),
@@ -945,6 +1040,9 @@ impl State {
             return;
         };
         let machine = machine.to_string();
+        if self.answered_elsewhere(&machine) {
+            return;
+        }
         let body = match self.machines.get(&machine) {
             None => {
                 json!({"machine": machine, "served": false, "refused": self.refused})
@@ -1019,6 +1117,16 @@ impl State {
             return;
         };
         let machine = machine.to_string();
+        if self.answered_elsewhere(&machine) {
+            return;
+        }
+        if q.payload().is_some()
+            && !self.machines.contains_key(&machine)
+            && self.cfg.serves(&machine)
+            && self.served_elsewhere(&machine).await
+        {
+            return;
+        }
         let reply = match q.payload() {
             Some(p) => {
                 let audit = audit_of(&q, "put".into());
@@ -1176,6 +1284,13 @@ fn rfc3339_now() -> String {
         .map(|d| d.as_secs())
         .unwrap_or(0) as i64;
     scancorr_core::calib::rfc3339_utc(secs)
+}
+
+/// The declarations of an instance's assignment, held for its lifetime.
+#[derive(Default)]
+struct Declared {
+    _subscribers: Vec<zenoh::pubsub::Subscriber<flume::Receiver<zenoh::sample::Sample>>>,
+    _queryables: Vec<zenoh::query::Queryable<flume::Receiver<zenoh::query::Query>>>,
 }
 
 /// Hands what the core completed to the machine's outbox (never waits on the bus).
