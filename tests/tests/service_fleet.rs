@@ -14,6 +14,16 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+/// A child process killed when dropped (a failing assertion leaves nothing running).
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 fn wait_port(port: u16, what: &str) {
     let t0 = Instant::now();
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
@@ -112,13 +122,15 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
         format!("{{ mode: 'router', listen: {{ endpoints: ['{bus}'] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"),
     )
     .unwrap();
-    let mut router = Command::new(scancorrd().with_file_name("scancorr-router"))
-        .args(["-c", "router.json5"])
-        .current_dir(&d)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let _router = Killed(
+        Command::new(scancorrd().with_file_name("scancorr-router"))
+            .args(["-c", "router.json5"])
+            .current_dir(&d)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
     wait_port(port, "router");
     // Three machines, a ring each (different machines: different seeds).
     let mut samples = std::collections::BTreeMap::new();
@@ -150,11 +162,11 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
         samples.insert(m.to_string(), n);
     }
     // A serves m1 and m2; B serves m2 (overlap) and the pattern m3* (disjoint from A).
-    let mut a = instance(&d, &bus, "a", "['m1', 'm2']");
+    let mut a = Killed(instance(&d, &bus, "a", "['m1', 'm2']"));
     health(&d, &bus, 1);
     put(&d, &bus, "m1");
     put(&d, &bus, "m2");
-    let mut b = instance(&d, &bus, "b", "['m2', 'm3*']");
+    let _b = Killed(instance(&d, &bus, "b", "['m2', 'm3*']"));
     health(&d, &bus, 2);
     put(&d, &bus, "m3");
 
@@ -183,7 +195,7 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
         (s, subs)
     });
     std::thread::sleep(Duration::from_millis(500));
-    let replays: Vec<Child> = ["m1", "m2", "m3"]
+    let replays: Vec<Killed> = ["m1", "m2", "m3"]
         .iter()
         .map(|m| {
             Command::new(scancorr())
@@ -202,9 +214,10 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
                 .spawn()
                 .unwrap()
         })
+        .map(Killed)
         .collect();
     for mut r in replays {
-        assert!(r.wait().unwrap().success(), "a replay failed");
+        assert!(r.0.wait().unwrap().success(), "a replay failed");
     }
     // Every machine served once: its points on the bus are those its one instance published.
     let t0 = Instant::now();
@@ -271,9 +284,9 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
     // A stops: its tokens vanish; m1 is unserved (nothing else has it), m2 too until its
     // traffic comes again and B, whose assignment has it, takes it over.
     let _ = Command::new("kill")
-        .args(["-TERM", &a.id().to_string()])
+        .args(["-TERM", &a.0.id().to_string()])
         .status();
-    assert!(a.wait().unwrap().success());
+    assert!(a.0.wait().unwrap().success());
     let t0 = Instant::now();
     loop {
         let listed = listed(&d, &bus);
@@ -330,10 +343,6 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
     assert!(log_b.contains("taking it over"), "{log_b}");
 
     rt.block_on(async { session.close().await }).ok();
-    let _ = b.kill();
-    let _ = b.wait();
-    let _ = router.kill();
-    let _ = router.wait();
     std::fs::remove_dir_all(&d).ok();
 }
 

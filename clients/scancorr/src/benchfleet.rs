@@ -36,6 +36,8 @@ pub struct Params {
     /// Route everything through a `scancorr-router` (scancorrd as its client, the
     /// controllers and the consumer too), as a shop floor deploys it.
     pub router: bool,
+    /// The service's correcting worker shards (0: one per core).
+    pub workers: usize,
     /// Print JSON.
     pub json: bool,
 }
@@ -117,9 +119,10 @@ impl Drop for Service {
 
 fn start_service(dir: &Path, port: u16, p: &Params) -> Result<Service> {
     let extra = format!(
-        "max_machines: {}, max_pending_samples: {},",
+        "max_machines: {}, max_pending_samples: {}, workers: {},",
         p.machines + 16,
-        p.max_pending
+        p.max_pending,
+        p.workers
     );
     if p.router {
         start_scancorrd_with(
@@ -503,6 +506,7 @@ pub fn run(p: Params) -> Result<()> {
             "bench": "fleet",
             "machines": p.machines,
             "through_router": p.router,
+            "workers": p.workers,
             "rate_hz_per_machine": 1000,
             "seconds": p.seconds,
             "batch_ms": p.batch_ms,
@@ -542,7 +546,7 @@ pub fn run(p: Params) -> Result<()> {
             outln!("{out}")?;
         } else {
             let kib = |b: f64| b / 1024.0;
-            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process{} (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.router { " behind a scancorr-router" } else { "" })?;
+            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process with {} worker(s){} (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.workers == 0 { "one-per-core".to_string() } else { p.workers.to_string() }, if p.router { " behind a scancorr-router" } else { "" })?;
             outln!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
             outln!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, dropped {:?}", r.points, r.gaps, drops)?;
             outln!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;

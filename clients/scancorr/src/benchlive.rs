@@ -1,13 +1,16 @@
-//! `scancorr bench live`: a bare zenoh relay against scancorrd on loopback, same publisher and
-//! subscriber (this process), single-sample messages. The relay (`scancorr bench relay`) and
-//! the service each run as their own process, so each path has the same process hops; the
-//! cores of this machine are still shared by all three processes.
+//! `scancorr bench live`: scancorrd against a bare relay (`scancorr bench relay`) that does the
+//! same bus work without the correction — the same declarations, the same output traffic (one
+//! point message per instant) — on loopback, single-sample messages. Relay, service and the
+//! load generator (this process, one session per path) each run as their own process; the
+//! cores of this machine are still shared by all three.
 //!
-//! Throughput: every message sent as fast as the path takes it (congestion control Block),
-//! until every relayed message or every corrected point has arrived. Latency: at half of the
-//! slower path's maximum rate (the same load on both), from publishing an instant's probe sample (the last of its three)
-//! to the arrival of that instant's relayed probe sample or corrected point; the service's
-//! added latency is its percentile minus the relay's.
+//! After a warm-up, rounds alternate (relay first in even rounds, the service in odd ones), so
+//! neither path always runs on a cooler or hotter machine. Throughput: every message sent as
+//! fast as the path takes it (congestion control Block), until every point has arrived.
+//! Latency: paced on a high-resolution clock at half the relay's median throughput; the
+//! latency each path adds is measured inside it, from a message's arrival to the publication
+//! of the point it completed (`output.added_latency_us` on its status), not as a difference
+//! of two separate percentiles; the end-to-end latency is printed beside it.
 
 use crate::benchfleet::{pct, query, start_scancorrd, Service};
 use crate::synth;
@@ -20,6 +23,7 @@ use std::process::{Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use zenoh::qos::CongestionControl;
+use zenoh::Wait;
 
 fn z<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow::anyhow!("{e}")
@@ -38,8 +42,15 @@ async fn session(connect: &[u16], listen: Option<u16>) -> Result<zenoh::Session>
     zenoh::open(cfg).await.map_err(z)
 }
 
-/// `scancorr bench relay`: subscribes to `<prefix>/*/raw/*` and republishes every payload,
-/// untouched, on `<key>/out` (one declared publisher per key), until SIGTERM or SIGINT.
+/// `scancorr bench relay`: the floor the service is compared with — the same bus work without
+/// the correction. It declares what the service declares (a subscriber on
+/// `<prefix>/*/raw/**`, each machine's raw keys, a publisher on
+/// `<prefix>/<machine>/corrected/points` with congestion control Block), takes messages in the
+/// same way (a callback that queues them with their arrival instant), and makes the same
+/// output traffic: for each probe message (the stream that closes an instant) one message of
+/// one corrected point, of the size the service's has, stamped with the probe sample's time.
+/// It answers `<prefix>/<machine>/status` with the latency it adds, measured as the service
+/// measures its own (arrival → `put` returned). Runs until SIGTERM or SIGINT.
 pub fn relay(port: u16, prefix: &str) -> Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -47,33 +58,102 @@ pub fn relay(port: u16, prefix: &str) -> Result<()> {
         .build()?;
     rt.block_on(async {
         let s = session(&[], Some(port)).await?;
-        let sub = s
-            .declare_subscriber(format!("{prefix}/*/raw/*"))
+        let (tx, rx) = std::sync::mpsc::sync_channel::<(Instant, zenoh::sample::Sample)>(256);
+        let _sub = s
+            .declare_subscriber(format!("{prefix}/*/raw/**"))
+            .callback(move |m| {
+                let _ = tx.send((Instant::now(), m));
+            })
             .await
             .map_err(z)?;
-        let mut pubs: HashMap<String, zenoh::pubsub::Publisher<'static>> = HashMap::new();
-        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
-        let stop = async move {
-            tokio::select! { _ = term.recv() => {}, _ = tokio::signal::ctrl_c() => {} }
+        type Figures = HashMap<String, (u64, scancorrd::latency::Latency)>;
+        let figures: Arc<Mutex<Figures>> = Arc::default();
+        let _status = {
+            let figures = figures.clone();
+            let prefix = prefix.to_string();
+            s.declare_queryable(format!("{prefix}/*/status"))
+                .callback(move |q| {
+                    let m = scancorr_proto::machine_of(&prefix, q.key_expr().as_str(), "status")
+                        .unwrap_or_default()
+                        .to_string();
+                    let body = match figures.lock().expect("lock").get(&m) {
+                        Some((n, l)) => serde_json::json!({"machine": m, "served": true, "output": {"points_published": n, "added_latency_us": l.figures()}}),
+                        None => serde_json::json!({"machine": m, "served": false}),
+                    };
+                    let _ = q.reply(q.key_expr().clone(), body.to_string()).wait();
+                })
+                .await
+                .map_err(z)?
         };
-        tokio::pin!(stop);
-        loop {
-            tokio::select! {
-                biased;
-                m = sub.recv_async() => {
-                    let Ok(m) = m else { break };
-                    let key = m.key_expr().as_str();
-                    if !pubs.contains_key(key) {
-                        let ke = s.declare_keyexpr(format!("{key}/out")).await.map_err(z)?;
-                        let p = s.declare_publisher(ke).congestion_control(CongestionControl::Block).await.map_err(z)?;
-                        pubs.insert(key.to_string(), p);
-                    }
-                    pubs[key].put(m.payload().clone()).await.map_err(z)?;
-                }
-                _ = &mut stop => break,
+        let session = s.clone();
+        let prefix = prefix.to_string();
+        let worker = std::thread::spawn(move || -> Result<()> {
+            struct Out {
+                _raw: Vec<zenoh::key_expr::KeyExpr<'static>>,
+                points: zenoh::pubsub::Publisher<'static>,
+                seq: u64,
             }
-        }
+            let mut machines: HashMap<String, Out> = HashMap::new();
+            let effects = scancorr_core::Corrector::new(&synth::all_effects_calibration("x"))?.effect_ids();
+            while let Ok((arrived, m)) = rx.recv() {
+                let Some((machine, stream)) = scancorr_proto::Stream::parse_key(&prefix, m.key_expr().as_str()) else {
+                    continue;
+                };
+                if !machines.contains_key(machine) {
+                    let mut raw = vec![];
+                    for st in StreamId::ALL {
+                        raw.push(session.declare_keyexpr(format!("{prefix}/{machine}/raw/{}", st.name())).wait().map_err(z)?);
+                    }
+                    let ke = session.declare_keyexpr(scancorr_proto::Stream::Points.key(&prefix, machine)).wait().map_err(z)?;
+                    let points = session.declare_publisher(ke).congestion_control(CongestionControl::Block).wait().map_err(z)?;
+                    machines.insert(machine.to_string(), Out { _raw: raw, points, seq: 0 });
+                }
+                if stream != scancorr_proto::Stream::Probe {
+                    continue;
+                }
+                let Ok(batch) = scancorr_proto::v1::ProbeBatch::decode(&*m.payload().to_bytes()) else {
+                    continue;
+                };
+                let out = machines.get_mut(machine).expect("declared");
+                let v = |x: f64| Some(scancorr_proto::v1::Vec3 { x, y: x, z: x });
+                let points: Vec<_> = batch
+                    .samples
+                    .iter()
+                    .map(|p| {
+                        out.seq += 1;
+                        scancorr_proto::v1::CorrectedPoint {
+                            machine_id: machine.to_string(),
+                            seq: out.seq,
+                            t_ns: p.t_ns,
+                            sample_seq: p.seq,
+                            surface: v(100.123456),
+                            tip_center: v(101.123456),
+                            normal: v(0.577),
+                            corrections: effects.iter().map(|e| scancorr_proto::v1::Correction { effect: e.clone(), dx: 1e-4, dy: 1e-4, dz: 1e-4 }).collect(),
+                            calibration_version: 1,
+                            estimator_valid: true,
+                            segment_id: 1,
+                            tip_id: 1,
+                        }
+                    })
+                    .collect();
+                let n = points.len() as u64;
+                out.points
+                    .put(scancorr_proto::v1::CorrectedPointBatch { points }.encode_to_vec())
+                    .wait()
+                    .map_err(z)?;
+                let mut f = figures.lock().expect("lock");
+                let e = f.entry(machine.to_string()).or_default();
+                e.0 += n;
+                e.1.record(arrived.elapsed());
+            }
+            Ok(())
+        });
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+        tokio::select! { _ = term.recv() => {}, _ = tokio::signal::ctrl_c() => {} }
+        drop(_sub);
         s.close().await.map_err(z)?;
+        let _ = worker.join();
         Ok(())
     })
 }
@@ -120,23 +200,12 @@ fn messages(machine: &str, samples: &[Sample], batch: usize) -> Vec<(StreamId, V
 struct Run {
     samples: u64,
     seconds: f64,
+    /// Publication of an instant's probe message → arrival of its point here, µs.
     latencies_us: Vec<f64>,
 }
 
-/// What arrives on a path: how many items a message holds, and the time stamp that keys its
-/// latency (if it closes an instant).
-type Count = fn(&str, &[u8]) -> (u64, Option<i64>);
-
-fn count_relayed(key: &str, b: &[u8]) -> (u64, Option<i64>) {
-    let t = key
-        .ends_with("/probe/out")
-        .then(|| scancorr_proto::v1::ProbeBatch::decode(b).ok())
-        .flatten()
-        .and_then(|p| p.samples.last().map(|s| s.t_ns));
-    (1, t)
-}
-
-fn count_points(_: &str, b: &[u8]) -> (u64, Option<i64>) {
+/// Points in a point batch, and the time stamp of the last (which keys its latency).
+fn count_points(b: &[u8]) -> (u64, Option<i64>) {
     let batch = scancorr_proto::v1::CorrectedPointBatch::decode(b).unwrap_or_default();
     (
         batch.points.len() as u64,
@@ -144,27 +213,42 @@ fn count_points(_: &str, b: &[u8]) -> (u64, Option<i64>) {
     )
 }
 
-/// Publishes `msgs` on `prefix/machine/raw/*` and counts `expect` items arriving on `out_key`;
-/// `pace` spaces messages out (and turns latency recording on).
-#[allow(clippy::too_many_arguments)]
+/// Waits until `deadline` on this thread: sleeps while far, spins the last 200 µs (tokio's
+/// timer has 1 ms resolution: too coarse to pace tens of thousands of messages a second).
+fn pace_until(deadline: Instant) {
+    loop {
+        let now = Instant::now();
+        if now >= deadline {
+            return;
+        }
+        let left = deadline - now;
+        if left > Duration::from_micros(300) {
+            std::thread::sleep(left - Duration::from_micros(200));
+        } else {
+            std::hint::spin_loop();
+        }
+    }
+}
+
+/// Publishes `msgs` on `cmm/<machine>/raw/*` through `s` (connected to one path only) and
+/// waits for `expect` points on `cmm/<machine>/corrected/points`. `pace`: one message per
+/// interval, from a high-resolution pacer on its own thread (and latency recorded); none: as
+/// fast as the path takes them (congestion control Block).
 async fn drive(
     s: &zenoh::Session,
-    prefix: &str,
     machine: &str,
-    msgs: &[(StreamId, Vec<u8>, i64)],
-    out_key: &str,
+    msgs: Vec<(StreamId, Vec<u8>, i64)>,
     expect: u64,
-    count: Count,
     pace: Option<Duration>,
 ) -> Result<Run> {
     let sent_at = Arc::new(Mutex::new(HashMap::<i64, Instant>::new()));
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<(u64, Instant, Option<f64>)>();
     let sub = {
         let sent_at = sent_at.clone();
-        s.declare_subscriber(out_key)
+        s.declare_subscriber(scancorr_proto::Stream::Points.key("cmm", machine))
             .callback(move |m| {
                 let now = Instant::now();
-                let (n, t) = count(m.key_expr().as_str(), &m.payload().to_bytes());
+                let (n, t) = count_points(&m.payload().to_bytes());
                 let lat = t
                     .and_then(|t| sent_at.lock().expect("lock").remove(&t))
                     .map(|at| (now - at).as_secs_f64() * 1e6);
@@ -176,7 +260,7 @@ async fn drive(
     let mut publishers = Vec::new();
     for st in StreamId::ALL {
         let ke = s
-            .declare_keyexpr(format!("{prefix}/{machine}/raw/{}", st.name()))
+            .declare_keyexpr(format!("cmm/{machine}/raw/{}", st.name()))
             .await
             .map_err(z)?;
         publishers.push(
@@ -187,7 +271,7 @@ async fn drive(
         );
     }
     let t0 = Instant::now();
-    while !publishers[StreamId::Scale as usize]
+    while !publishers[StreamId::Probe as usize]
         .matching_status()
         .await
         .map(|m| m.matching())
@@ -195,50 +279,47 @@ async fn drive(
     {
         anyhow::ensure!(
             t0.elapsed() < Duration::from_secs(10),
-            "no subscriber matched {prefix}/{machine}/raw/scale"
+            "no subscriber matched cmm/{machine}/raw/probe"
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     tokio::time::sleep(Duration::from_millis(300)).await;
+    let n = msgs.len() as u64;
     let start = Instant::now();
-    let sender = async {
-        for (k, (st, bytes, t)) in msgs.iter().enumerate() {
-            if let Some(p) = pace {
-                let due = p * k as u32;
-                if let Some(w) = due.checked_sub(start.elapsed()) {
-                    tokio::time::sleep(w).await;
+    let sender = {
+        let sent_at = sent_at.clone();
+        tokio::task::spawn_blocking(move || -> Result<()> {
+            for (k, (st, bytes, t)) in msgs.into_iter().enumerate() {
+                if let Some(p) = pace {
+                    pace_until(start + p * k as u32);
+                    if st == StreamId::Probe {
+                        sent_at.lock().expect("lock").insert(t, Instant::now());
+                    }
                 }
-                if *st == StreamId::Probe {
-                    sent_at.lock().expect("lock").insert(*t, Instant::now());
-                }
+                publishers[st as usize].put(bytes).wait().map_err(z)?;
             }
-            publishers[*st as usize]
-                .put(bytes.clone())
-                .await
-                .map_err(z)?;
-        }
-        anyhow::Ok(())
+            Ok(())
+        })
     };
-    let receiver = async {
-        let (mut got, mut end, mut lat) = (0u64, start, vec![]);
-        while got < expect {
-            match tokio::time::timeout(Duration::from_secs(10), rx.recv()).await {
-                Ok(Some((n, at, l))) => {
-                    got += n;
-                    end = at;
-                    lat.extend(l);
-                }
-                _ => break,
+    let (mut got, mut end, mut latencies_us) = (0u64, start, vec![]);
+    while got < expect {
+        match tokio::time::timeout(Duration::from_secs(10), rx.recv()).await {
+            Ok(Some((n, at, l))) => {
+                got += n;
+                end = at;
+                latencies_us.extend(l);
             }
+            _ => break,
         }
-        (got, end, lat)
-    };
-    let (sent, (got, end, latencies_us)) = tokio::join!(sender, receiver);
-    sent?;
+    }
+    sender.await??;
     drop(sub);
-    anyhow::ensure!(got >= expect, "only {got} of {expect} arrived on {out_key}");
+    anyhow::ensure!(
+        got >= expect,
+        "only {got} of {expect} points arrived for {machine}"
+    );
     Ok(Run {
-        samples: msgs.len() as u64,
+        samples: n,
         seconds: (end - start).as_secs_f64(),
         latencies_us,
     })
@@ -261,8 +342,69 @@ fn expected_points(machine: &str, samples: &[Sample]) -> Result<u64> {
     Ok(o.points.len() as u64)
 }
 
-/// Runs the benchmark.
-pub fn run(points: usize, json: bool) -> Result<()> {
+/// The latency a path says it adds for `machine` (measured inside it), µs: (p50, p99).
+async fn added_latency(s: &zenoh::Session, machine: &str) -> Result<(f64, f64)> {
+    let v: serde_json::Value =
+        serde_json::from_str(&query(s, format!("cmm/{machine}/status"), None).await?)?;
+    let l = &v["output"]["added_latency_us"];
+    match (l["p50"].as_f64(), l["p99"].as_f64()) {
+        (Some(a), Some(b)) => Ok((a, b)),
+        _ => anyhow::bail!("{machine}: no added latency in the status: {v}"),
+    }
+}
+
+/// Min, median and max (JSON).
+fn spread(v: &[f64]) -> serde_json::Value {
+    let mut v = v.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    serde_json::json!({"min": v[0], "median": v[v.len() / 2], "max": v[v.len() - 1]})
+}
+
+fn med(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+/// The two paths under test, each reached through its own session.
+struct Paths {
+    relay: zenoh::Session,
+    service: zenoh::Session,
+}
+
+impl Paths {
+    /// Runs `machine`'s messages through the relay and the service, in the order `relay_first`
+    /// says (alternated between rounds): (relay, service).
+    #[allow(clippy::too_many_arguments)]
+    async fn round(
+        &self,
+        machine: &str,
+        samples: &[Sample],
+        expected: u64,
+        probes: u64,
+        relay_first: bool,
+        pace: Option<Duration>,
+    ) -> Result<(Run, Run)> {
+        let msgs = messages(machine, samples, 1);
+        let (a, b) = if relay_first {
+            let a = drive(&self.relay, machine, msgs.clone(), probes, pace).await?;
+            (
+                a,
+                drive(&self.service, machine, msgs, expected, pace).await?,
+            )
+        } else {
+            let b = drive(&self.service, machine, msgs.clone(), expected, pace).await?;
+            (drive(&self.relay, machine, msgs, probes, pace).await?, b)
+        };
+        Ok((a, b))
+    }
+}
+
+/// Runs the benchmark: a warm-up, then `rounds` alternating rounds of throughput (relay first
+/// in even rounds, the service first in odd ones), then `rounds` of latency at half the
+/// relay's median throughput.
+pub fn run(points: usize, rounds: usize, json: bool) -> Result<()> {
+    let rounds = rounds.max(1);
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -272,72 +414,91 @@ pub fn run(points: usize, json: bool) -> Result<()> {
         let (port, relay_port) = (free()?, free()?);
         let dir = std::env::temp_dir().join(format!("scancorr-bench-live-{}", std::process::id()));
         let _svc = start_scancorrd(&dir, port, "")?;
-        let _relay = start_relay(relay_port, "bench")?;
-        let s = session(&[port, relay_port], None).await?;
+        let _relay = start_relay(relay_port, "cmm")?;
+        let paths = Paths {
+            relay: session(&[relay_port], None).await?,
+            service: session(&[port], None).await?,
+        };
         let t0 = Instant::now();
-        while query(&s, "cmm/bench/status".into(), None).await.is_err() {
+        while query(&paths.service, "cmm/warm-up/status".into(), None).await.is_err() {
             anyhow::ensure!(t0.elapsed() < Duration::from_secs(20), "scancorrd did not answer");
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
-        for m in ["bench", "bench2", "bench3"] {
-            put_calibration(&s, m).await?;
+        let names = |k: &'static str| (0..rounds).map(move |r| format!("{k}{r}"));
+        let all: Vec<String> = std::iter::once("warm-up".to_string()).chain(names("t")).chain(names("l")).collect();
+        for m in &all {
+            put_calibration(&paths.service, m).await?;
         }
         // The calibration reads temperatures: they are part of the input (5 per 100 ms).
         let samples: Vec<Sample> = synth::ring_scan(points);
-        let single = messages("bench", &samples, 1);
-        let expected = expected_points("bench", &samples)?;
-        // (a) bare relay, single-sample messages.
-        let relay_run = drive(&s, "bench", "bench", &single, "bench/*/raw/*/out", single.len() as u64, count_relayed, None).await?;
-        // (b) the service, the same messages.
-        let svc_run = drive(&s, "cmm", "bench", &single, "cmm/bench/corrected/points", expected, count_points, None).await?;
-        // (c) the service with 100-sample batches (a fresh machine: a new corrector).
-        let batched = messages("bench2", &samples, 100);
-        let batch_run = drive(&s, "cmm", "bench2", &batched, "cmm/bench2/corrected/points", expected, count_points, None).await?;
-        // (d) latency at half the maximum load — half the slower path's maximum rate, so both
-        // paths carry the same load and neither is saturated — single-sample messages.
-        let lat_n = samples.len().min(60_000);
-        let svc_rate = svc_run.samples as f64 / svc_run.seconds;
-        let relay_rate = relay_run.samples as f64 / relay_run.seconds;
-        let load = 0.5 * svc_rate.min(relay_rate);
+        let expected = expected_points("x", &samples)?;
+        let probes = samples.iter().filter(|s| matches!(s, Sample::Probe(_))).count() as u64;
+        let messages_n = samples.len();
+        eprintln!("bench live: warm-up, {rounds} throughput rounds and {rounds} latency rounds of {messages_n} single-sample messages per path …");
+        // Warm-up: routes, allocators, the service's first machine.
+        let warm = &samples[..samples.len() / 4];
+        let (w_exp, w_probes) = (expected_points("x", warm)?, warm.iter().filter(|s| matches!(s, Sample::Probe(_))).count() as u64);
+        paths.round("warm-up", warm, w_exp, w_probes, true, None).await?;
+        let (mut relay_rate, mut svc_rate, mut ratio) = (vec![], vec![], vec![]);
+        for (r, m) in names("t").enumerate() {
+            let (a, b) = paths.round(&m, &samples, expected, probes, r % 2 == 0, None).await?;
+            let (ra, rb) = (a.samples as f64 / a.seconds, b.samples as f64 / b.seconds);
+            eprintln!("  round {r}: relay {ra:.0}, service {rb:.0} samples/s, ratio {:.2}", rb / ra);
+            relay_rate.push(ra);
+            svc_rate.push(rb);
+            ratio.push(rb / ra);
+        }
+        // Latency at half the relay's throughput (the same load on both paths).
+        let load = 0.5 * med(&relay_rate);
         let pace = Duration::from_secs_f64(1.0 / load);
-        let lat_msgs = messages("bench3", &samples[..lat_n], 1);
-        let mut relay_lat = drive(&s, "bench", "bench3", &lat_msgs, "bench/*/raw/*/out", lat_msgs.len() as u64, count_relayed, Some(pace)).await?;
-        let lat_expected = expected_points("bench3", &samples[..lat_n])?;
-        let mut lat = drive(&s, "cmm", "bench3", &lat_msgs, "cmm/bench3/corrected/points", lat_expected, count_points, Some(pace)).await?;
-        s.close().await.map_err(z)?;
-        let (p50, p99) = (pct(&mut lat.latencies_us, 0.5), pct(&mut lat.latencies_us, 0.99));
-        let (r50, r99) = (pct(&mut relay_lat.latencies_us, 0.5), pct(&mut relay_lat.latencies_us, 0.99));
-        let batch_rate = samples.len() as f64 / batch_run.seconds;
+        let (mut added, mut relay_added) = ((vec![], vec![]), (vec![], vec![]));
+        let (mut e2e, mut relay_e2e) = ((vec![], vec![]), (vec![], vec![]));
+        for (r, m) in names("l").enumerate() {
+            let (mut a, mut b) = paths.round(&m, &samples, expected, probes, r % 2 == 0, Some(pace)).await?;
+            let (s50, s99) = added_latency(&paths.service, &m).await?;
+            let (r50, r99) = added_latency(&paths.relay, &m).await?;
+            eprintln!("  latency round {r}: added p99 service {s99:.0} µs, relay {r99:.0} µs");
+            added.0.push(s50);
+            added.1.push(s99);
+            relay_added.0.push(r50);
+            relay_added.1.push(r99);
+            e2e.0.push(pct(&mut b.latencies_us, 0.5));
+            e2e.1.push(pct(&mut b.latencies_us, 0.99));
+            relay_e2e.0.push(pct(&mut a.latencies_us, 0.5));
+            relay_e2e.1.push(pct(&mut a.latencies_us, 0.99));
+        }
+        paths.relay.close().await.map_err(z)?;
+        paths.service.close().await.map_err(z)?;
         let batching = if std::env::var_os("SCANCORR_ZENOH_NO_BATCHING").is_some() { "off" } else { "on" };
         if json {
             outln!(
                 "{}",
                 serde_json::json!({
                     "bench": "live",
-                    "messages": single.len(),
+                    "rounds": rounds,
+                    "messages": messages_n,
                     "zenoh_batching": batching,
-                    "relay_samples_per_s": relay_rate,
-                    "service_samples_per_s": svc_rate,
-                    "ratio": svc_rate / relay_rate,
-                    "service_batched_samples_per_s": batch_rate,
+                    "relay_samples_per_s": spread(&relay_rate),
+                    "service_samples_per_s": spread(&svc_rate),
+                    "ratio": spread(&ratio),
                     "latency_load_samples_per_s": load,
-                    "latency_points": lat.latencies_us.len(),
-                    "p50_latency_us": p50,
-                    "p99_latency_us": p99,
-                    "relay_p50_latency_us": r50,
-                    "relay_p99_latency_us": r99,
-                    "p99_added_latency_us": p99 - r99,
-                    "targets": {"ratio": 0.7, "service_batched_samples_per_s": 1.0e6, "p99_added_latency_us": 1000.0},
+                    "service_added_latency_us": {"p50": spread(&added.0), "p99": spread(&added.1)},
+                    "relay_added_latency_us": {"p50": spread(&relay_added.0), "p99": spread(&relay_added.1)},
+                    "service_end_to_end_latency_us": {"p50": spread(&e2e.0), "p99": spread(&e2e.1)},
+                    "relay_end_to_end_latency_us": {"p50": spread(&relay_e2e.0), "p99": spread(&relay_e2e.1)},
+                    "targets": {"ratio": 0.9, "service_added_p99_us": 1000.0},
                 })
             )?;
         } else {
-            outln!("live (loopback; relay and scancorrd each in their own process, publisher and subscriber in this one; zenoh batching {batching}):")?;
-            outln!("  bare relay, single-sample messages   {relay_rate:>12.0} samples/s")?;
-            outln!("  scancorrd,  single-sample messages   {svc_rate:>12.0} samples/s   ratio {:.2} (target ≥ 0.70)", svc_rate / relay_rate)?;
-            outln!("  scancorrd,  100-sample batches       {batch_rate:>12.0} samples/s   (target ≥ 1e6)")?;
-            outln!("  latency at half load ({load:.0} samples/s, half the slower path's maximum):")?;
-            outln!("    relay      p50 {r50:>7.0} µs   p99 {r99:>7.0} µs")?;
-            outln!("    scancorrd  p50 {p50:>7.0} µs   p99 {p99:>7.0} µs   added p99 {:.0} µs (target ≤ 1000 µs)", p99 - r99)?;
+            let f = |v: &[f64], d: usize| { let s = spread(v); format!("{:.d$} ({:.d$}–{:.d$})", s["median"].as_f64().unwrap_or(0.0), s["min"].as_f64().unwrap_or(0.0), s["max"].as_f64().unwrap_or(0.0)) };
+            outln!("live, loopback: relay and scancorrd each in their own process, the same declarations and output traffic; {messages_n} single-sample messages per round; zenoh batching {batching}")?;
+            outln!("  median (min–max) of {rounds} alternating rounds after a warm-up:")?;
+            outln!("  relay      {} samples/s", f(&relay_rate, 0))?;
+            outln!("  scancorrd  {} samples/s", f(&svc_rate, 0))?;
+            outln!("  ratio      {}   (target ≥ 0.90)", f(&ratio, 2))?;
+            outln!("  at half the relay's throughput ({load:.0} samples/s, paced on a high-resolution clock):")?;
+            outln!("  added inside (arrival → points published): scancorrd p50 {} µs, p99 {} µs (target ≤ 1000); relay p50 {} µs, p99 {} µs", f(&added.0, 0), f(&added.1, 0), f(&relay_added.0, 0), f(&relay_added.1, 0))?;
+            outln!("  end to end (probe published → point here): scancorrd p50 {} µs, p99 {} µs; relay p50 {} µs, p99 {} µs", f(&e2e.0, 0), f(&e2e.1, 0), f(&relay_e2e.0, 0), f(&relay_e2e.1, 0))?;
         }
         Ok(())
     })

@@ -358,6 +358,9 @@ enum BenchCmd {
         /// a shop floor deploys it.
         #[arg(long)]
         router: bool,
+        /// The service's correcting worker shards (0: one per core).
+        #[arg(long, default_value_t = 0)]
+        workers: usize,
     },
     /// The bare relay `bench live` compares against (run by it as a child process).
     #[command(hide = true)]
@@ -371,12 +374,15 @@ enum BenchCmd {
     },
     /// A bare zenoh relay against scancorrd on loopback: throughput, ratio, latency.
     Live {
-        /// Print JSON (`relay_samples_per_s`, `service_samples_per_s`, `ratio`, `p50_latency_us`, `p99_latency_us`).
+        /// Print JSON (`relay_samples_per_s`, `service_samples_per_s`, `ratio`, `service_added_latency_us`, … each as min/median/max over the rounds).
         #[arg(long)]
         json: bool,
-        /// Scale instants to send (×3 streams plus temperatures).
+        /// Scale instants to send per round (×3 streams plus temperatures).
         #[arg(long, default_value_t = 30_000)]
         points: usize,
+        /// Alternating rounds of each measurement (throughput, latency).
+        #[arg(long, default_value_t = 5)]
+        rounds: usize,
     },
     /// `scancorr correct` end to end on a simulated campaign bag: read, decode, correct,
     /// encode, write.
@@ -498,7 +504,11 @@ fn run(cli: Cli) -> Result<()> {
             machine_seed,
             json,
         }) => benchproc::run(&procedure, machine_seed, runs, json),
-        Cmd::Bench(BenchCmd::Live { json, points }) => benchlive::run(points, json),
+        Cmd::Bench(BenchCmd::Live {
+            json,
+            points,
+            rounds,
+        }) => benchlive::run(points, rounds, json),
         Cmd::Bench(BenchCmd::Relay { port, prefix }) => {
             output::check_prefix(&prefix)?;
             benchlive::relay(port, &prefix)
@@ -511,6 +521,7 @@ fn run(cli: Cli) -> Result<()> {
             max_pending,
             pace,
             router,
+            workers,
         }) => benchfleet::run(benchfleet::Params {
             machines,
             seconds,
@@ -518,6 +529,7 @@ fn run(cli: Cli) -> Result<()> {
             max_pending,
             pace,
             router,
+            workers,
             json,
         }),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {

@@ -57,6 +57,9 @@ pub struct Config {
     pub metrics_listen: Option<String>,
     /// Seconds between the log's throughput lines (0: none).
     pub throughput_log_s: u64,
+    /// Correcting worker shards (threads), each owning its machines' correctors; 0: one per
+    /// core.
+    pub workers: usize,
 }
 
 impl Default for Config {
@@ -79,6 +82,7 @@ impl Default for Config {
             accept_untagged_batches: false,
             metrics_listen: None,
             throughput_log_s: 60,
+            workers: 0,
         }
     }
 }
@@ -161,6 +165,9 @@ impl Config {
         if self.max_queued_bytes_per_machine < 64 * 1024 {
             return Err("max_queued_bytes_per_machine: at least 64 KiB".into());
         }
+        if self.workers > 1024 {
+            return Err("workers: 0 (one per core) … 1024".into());
+        }
         if self.max_pending_samples == 0 {
             return Err("max_pending_samples: at least 1".into());
         }
@@ -216,6 +223,14 @@ impl Config {
         set("transport/link/tx/queue/size/data", "16".into())?;
         set("transport/link/tx/queue/size/data_low", "16".into())?;
         Ok(z)
+    }
+
+    /// The number of correcting worker shards: `workers`, or one per core when 0.
+    pub fn workers(&self) -> usize {
+        match self.workers {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        }
     }
 
     /// Whether `machine` may be served (it is in this instance's assignment).

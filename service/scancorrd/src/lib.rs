@@ -6,9 +6,11 @@
 #![forbid(unsafe_code)]
 
 pub mod config;
+pub mod latency;
 pub mod metrics;
 pub mod notify;
 pub mod server;
+mod shard;
 pub mod store;
 
 pub use config::Config;

@@ -20,6 +20,9 @@ struct Args {
     /// Override the data folder.
     #[arg(long)]
     data_dir: Option<PathBuf>,
+    /// Override the number of correcting worker shards (0: one per core).
+    #[arg(long)]
+    workers: Option<usize>,
     /// Log lines as `text` (colour only on a terminal) or `json` (one object per line).
     #[arg(long, default_value = "text", value_parser = ["text", "json"])]
     log_format: String,
@@ -76,6 +79,9 @@ async fn serve(a: Args) -> Result<()> {
     }
     if let Some(d) = a.data_dir {
         cfg.data_dir = d;
+    }
+    if let Some(w) = a.workers {
+        cfg.workers = w;
     }
     let shutdown = async {
         #[cfg(unix)]

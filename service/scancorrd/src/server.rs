@@ -11,19 +11,19 @@
 //! service's memory by inventing names), and logged at most once per [`LOG_EVERY`].
 
 use crate::config::Config;
+use crate::shard::{Core, Job, Limits, OutState, Outbox, Snap};
 use crate::store::Audit;
 use crate::store::Store;
 use scancorr_core::wire;
-use scancorr_core::{Calibration, Corrector, Output};
-use scancorr_proto::{Message, Stream};
+use scancorr_core::Calibration;
+use scancorr_proto::Stream;
 use serde_json::json;
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::BTreeMap;
 use std::future::Future;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tracing::{error, info, warn};
 use zenoh::qos::CongestionControl;
-use zenoh::Wait;
 
 /// Refusals of one reason are logged at most this often (with the count since the last line).
 pub const LOG_EVERY: Duration = Duration::from_secs(10);
@@ -50,23 +50,6 @@ pub enum ServiceError {
 
 fn z<E: std::fmt::Display>(e: E) -> ServiceError {
     ServiceError::Zenoh(e.to_string())
-}
-
-/// Counters the core does not see (message level).
-#[derive(Debug, Default, Clone, serde::Serialize)]
-struct Extra {
-    malformed: u64,
-    empty: u64,
-    /// Batches tagged with another stream than their key's (v1.1 tag).
-    wrong_stream: u64,
-    /// Batches without the v1.1 stream tag (refused unless `accept_untagged_batches`).
-    untagged: u64,
-    wrong_machine: u64,
-    no_calibration: u64,
-    messages: u64,
-    /// Messages on the machine's raw streams the service does not correct (v1.2
-    /// `raw/distance`, `raw/stage`): skipped, not an error, not in `messages`.
-    not_corrected: u64,
 }
 
 /// Messages and requests refused before they reached a machine, counted per reason.
@@ -141,123 +124,10 @@ impl LogGate {
     }
 }
 
-/// A machine's output on its way to the bus: a bounded queue drained by a blocking task, so
-/// that a zenoh `put` never holds up the correcting task.
-///
-/// Points and alarms are published with `CongestionControl::Block`, so a subscriber that is
-/// only busy loses nothing. A subscriber that stops reading holds up the drain of the machines
-/// it subscribes to (zenoh waits up to 5 s, then closes that link); their outboxes fill, and
-/// past `max_queued_bytes_per_machine` the newest batches are dropped and counted. Other
-/// machines are not affected: their outboxes drain on their own threads, and zenoh's transmit
-/// runtime has several workers (see `main.rs`: one worker would be held by the stalled
-/// link's queue lock and stall every link).
-struct Outbox {
-    points: zenoh::pubsub::Publisher<'static>,
-    alarms: zenoh::pubsub::Publisher<'static>,
-    machine: String,
-    max_bytes: usize,
-    state: Mutex<OutState>,
-}
-
-#[derive(Default)]
-struct OutState {
-    queue: VecDeque<Outgoing>,
-    bytes: usize,
-    draining: bool,
-    published_points: u64,
-    dropped_points: u64,
-    dropped_alarms: u64,
-    failed: u64,
-}
-
-enum Outgoing {
-    Points(Vec<u8>, u64),
-    Alarm(Vec<u8>),
-}
-
-impl Outgoing {
-    fn len(&self) -> usize {
-        match self {
-            Outgoing::Points(b, _) | Outgoing::Alarm(b) => b.len(),
-        }
-    }
-}
-
-impl Outbox {
-    fn lock(&self) -> std::sync::MutexGuard<'_, OutState> {
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    /// Queues `o`; drops it (newest first, counted) when the queue is over its bound.
-    fn send(self: &Arc<Self>, o: Outgoing) {
-        let mut st = self.lock();
-        if st.bytes + o.len() > self.max_bytes && !st.queue.is_empty() {
-            match o {
-                Outgoing::Points(_, n) => st.dropped_points += n,
-                Outgoing::Alarm(_) => st.dropped_alarms += 1,
-            }
-            return;
-        }
-        st.bytes += o.len();
-        st.queue.push_back(o);
-        if !st.draining {
-            st.draining = true;
-            let me = self.clone();
-            tokio::task::spawn_blocking(move || me.drain());
-        }
-    }
-
-    fn drain(&self) {
-        loop {
-            let o = {
-                let mut st = self.lock();
-                match st.queue.pop_front() {
-                    Some(o) => {
-                        st.bytes -= o.len();
-                        o
-                    }
-                    None => {
-                        st.draining = false;
-                        return;
-                    }
-                }
-            };
-            let (r, n) = match o {
-                Outgoing::Points(b, n) => (self.points.put(b).wait(), n),
-                Outgoing::Alarm(b) => (self.alarms.put(b).wait(), 0),
-            };
-            let mut st = self.lock();
-            match r {
-                Ok(()) => st.published_points += n,
-                Err(e) => {
-                    if st.failed == 0 {
-                        warn!(machine = %self.machine, error = %e, "publishing failed");
-                    }
-                    st.failed += 1;
-                }
-            }
-        }
-    }
-
-    fn idle(&self) -> bool {
-        let st = self.lock();
-        !st.draining && st.queue.is_empty()
-    }
-
-    fn figures(&self) -> serde_json::Value {
-        let st = self.lock();
-        json!({
-            "points_published": st.published_points,
-            "points_dropped_backpressure": st.dropped_points,
-            "alarms_dropped_backpressure": st.dropped_alarms,
-            "queued_bytes": st.bytes,
-            "publish_failures": st.failed,
-        })
-    }
-}
-
+/// A served machine as the control task sees it; its corrector lives on its shard.
 struct Machine {
-    corrector: Option<Corrector>,
+    /// The shard that corrects it.
+    shard: usize,
     /// Why the stored calibration cannot be used (damaged in the store, or no longer valid):
     /// the machine is not corrected until a new calibration is put; the others are served.
     quarantined: Option<String>,
@@ -266,12 +136,10 @@ struct Machine {
     /// The machine's raw key expressions, declared so that zenoh resolves an incoming
     /// message's route once, not by matching every key of every machine per message.
     _raw_keys: Vec<zenoh::key_expr::KeyExpr<'static>>,
-    ids: Vec<String>,
-    extra: Extra,
+    /// Messages on its measurement streams (`raw/distance`, `raw/stage`), skipped.
+    not_corrected: u64,
     last_arrival: [Option<Instant>; 4],
     stalled: [bool; 4],
-    /// Controller time of the newest point produced, ns.
-    last_point_t_ns: Option<i64>,
     /// Calibrations put for this machine since the service started.
     puts: u64,
 }
@@ -288,9 +156,10 @@ struct State {
     /// Machines of this instance's assignment that another instance serves, with when the bus
     /// was last asked.
     elsewhere: BTreeMap<String, Instant>,
-    /// What the core completed for the message in hand; published and cleared before the
-    /// next message, so one buffer serves every machine.
-    out: Output,
+    /// The correcting workers' job queues, and how many machines each corrects.
+    shards: Vec<flume::Sender<Job>>,
+    on_shard: Vec<usize>,
+    limits: Limits,
 }
 
 /// Runs the service until `shutdown` resolves; then flushes every machine and closes the
@@ -325,15 +194,20 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     // receives the others' raw traffic or answers for their machines. One queue for all the
     // subscriptions (zenoh's channel, bounded as its default handler is).
     let chunks = cfg.machine_chunks();
-    let (raw_tx, raw) = flume::bounded(256);
+    // Each message with the instant it arrived (zenoh's callback), where the latency the
+    // service adds starts.
+    let (raw_tx, raw) = flume::bounded::<(Instant, zenoh::sample::Sample)>(256);
     let (calib_tx, calib) = flume::bounded(64);
     let (status_tx, status) = flume::bounded(64);
     let mut declared = Declared::default();
     for m in &chunks {
+        let tx = raw_tx.clone();
         declared._subscribers.push(
             session
                 .declare_subscriber(format!("{prefix}/{m}/raw/**"))
-                .with((raw_tx.clone(), raw.clone()))
+                .callback(move |s| {
+                    let _ = tx.send((Instant::now(), s));
+                })
                 .await
                 .map_err(z)?,
         );
@@ -360,6 +234,14 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         .await
         .map_err(z)?;
     let started = Instant::now();
+    let workers = cfg.workers();
+    let cfg_max_pending = cfg.max_pending_samples;
+    let tags = if cfg.accept_untagged_batches {
+        wire::Tags::AllowUntagged
+    } else {
+        wire::Tags::Require
+    };
+    info!(workers, "correcting on {workers} worker shard(s)");
     let mut st = State {
         cfg,
         session: session.clone(),
@@ -369,8 +251,25 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         log: LogGate::default(),
         told_not_corrected: false,
         elsewhere: BTreeMap::new(),
-        out: Output::default(),
+        shards: vec![],
+        on_shard: vec![0; workers],
+        limits: Limits {
+            max_pending_samples: cfg_max_pending,
+            tags,
+        },
     };
+    let mut threads = vec![];
+    for k in 0..workers {
+        // Bounded: a shard that falls behind holds up the routing, and so zenoh's reception,
+        // instead of growing without bound.
+        let (tx, rx) = flume::bounded(1024);
+        threads.push(
+            crate::shard::spawn(k, st.limits.clone(), rx).map_err(|e| {
+                ServiceError::Refused(format!("starting correcting worker {k}: {e}"))
+            })?,
+        );
+        st.shards.push(tx);
+    }
     // Machines with a stored calibration are served from the start; one whose stored
     // calibration is damaged is quarantined (named in the log and on its status) while the
     // others start.
@@ -387,7 +286,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         st.machines.len()
     ));
     let mut last_metrics = Instant::now() - Duration::from_secs(10);
-    let mut through = Throughput::new(st.totals());
+    let mut through = Throughput::new(st.totals().await);
     tokio::pin!(shutdown);
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     loop {
@@ -408,7 +307,8 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                     "uptime_s": started.elapsed().as_secs_f64().round(),
                     "machines": st.machines.len(),
                     "quarantined": quarantined,
-                    "samples_in": st.totals().0,
+                    "samples_in": st.totals().await.0,
+                    "workers": st.shards.len(),
                     "assignment": if st.cfg.allow_any_machine { vec!["*".to_string()] } else { st.cfg.machines.clone() },
                     "served_elsewhere": st.elsewhere.keys().collect::<Vec<_>>(),
                     "refused": st.refused,
@@ -416,7 +316,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                 let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
             },
             s = raw.recv_async() => match s {
-                Ok(s) => st.on_raw(s).await,
+                Ok((at, s)) => st.on_raw(s, at).await,
                 Err(e) => { warn!(error = %e, "raw subscriber closed"); break }
             },
             _ = tick.tick() => {
@@ -424,7 +324,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                 notify.tick();
                 if let Some(m) = &metrics {
                     if last_metrics.elapsed() >= Duration::from_secs(1) {
-                        let text = st.metrics();
+                        let text = st.metrics().await;
                         if let Ok(mut t) = m.lock() {
                             *t = text;
                         }
@@ -432,7 +332,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                     }
                 }
                 if st.cfg.throughput_log_s > 0 && through.at.elapsed() >= Duration::from_secs(st.cfg.throughput_log_s) {
-                    let now = st.totals();
+                    let now = st.totals().await;
                     let dt = through.at.elapsed().as_secs_f64();
                     info!(
                         machines = st.machines.len(),
@@ -448,9 +348,11 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     }
     notify.send("STOPPING=1");
     info!("shutting down: flushing buffered samples");
-    let names: Vec<String> = st.machines.keys().cloned().collect();
-    for m in names {
-        st.flush(&m).await;
+    for tx in &st.shards {
+        let (done, wait) = tokio::sync::oneshot::channel();
+        if tx.send_async(Job::Flush(done)).await.is_ok() {
+            let _ = wait.await;
+        }
     }
     // What was corrected is published before the session closes (bounded: a subscriber that
     // does not read cannot keep the service from stopping).
@@ -459,6 +361,9 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     drop(st);
+    for t in threads {
+        let _ = t.join();
+    }
     // A peer that stopped reading cannot be told goodbye: closing is bounded, and a close
     // that times out is not a failure of the service.
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
@@ -487,24 +392,50 @@ impl Throughput {
 
 impl State {
     /// Samples in, points out and samples dropped over every machine.
-    fn totals(&self) -> (u64, u64, u64) {
+    async fn totals(&self) -> (u64, u64, u64) {
         let mut t = (0, 0, 0);
-        for m in self.machines.values() {
-            if let Some(c) = &m.corrector {
-                let s = c.stats();
-                t.0 += s.samples();
-                t.1 += s.points_out;
-                t.2 += s.dropped_total();
+        for s in self.snaps(None).await.values() {
+            if let Some(c) = &s.core {
+                t.0 += c.stats.samples();
+                t.1 += c.stats.points_out;
+                t.2 += c.stats.dropped_total();
             }
         }
         t
+    }
+
+    /// Snapshots of one machine, or of all, from their shards (taken between two messages).
+    async fn snaps(&self, machine: Option<&str>) -> BTreeMap<String, Snap> {
+        let targets: Vec<usize> = match machine {
+            Some(m) => self
+                .machines
+                .get(m)
+                .map(|m| vec![m.shard])
+                .unwrap_or_default(),
+            None => (0..self.shards.len()).collect(),
+        };
+        let mut out = BTreeMap::new();
+        for k in targets {
+            let (tx, rx) = tokio::sync::oneshot::channel();
+            if self.shards[k]
+                .send_async(Job::Snap(machine.map(str::to_string), tx))
+                .await
+                .is_ok()
+            {
+                if let Ok(v) = rx.await {
+                    out.extend(v);
+                }
+            }
+        }
+        out
     }
 
     /// The Prometheus text: per machine, samples in (per stream), points out and flagged,
     /// drops by reason, samples missing in seq, alarms, the calibration version and puts,
     /// queue depths (samples pending the join, bytes waiting to be published) and the
     /// processing lag; refusals before a machine by reason.
-    fn metrics(&self) -> String {
+    async fn metrics(&self) -> String {
+        let snaps = self.snaps(None).await;
         use crate::metrics::Render;
         let mut r = Render::default();
         let streams = ["command", "scale", "probe", "temperature"];
@@ -513,10 +444,13 @@ impl State {
                       name: &str,
                       kind: &str,
                       help: &str,
-                      f: &dyn Fn(&Machine) -> Samples| {
+                      f: &dyn Fn(&Machine, &Snap) -> Samples| {
             r.metric(name, kind, help);
             for (machine, m) in &self.machines {
-                for (labels, v) in f(m).unwrap_or_default() {
+                let Some(s) = snaps.get(machine) else {
+                    continue;
+                };
+                for (labels, v) in f(m, s).unwrap_or_default() {
                     let mut l: Vec<(&str, &str)> = vec![("machine", machine.as_str())];
                     l.extend(labels.iter().map(|(k, v)| (*k, v.as_str())));
                     r.sample(name, &l, v);
@@ -528,9 +462,9 @@ impl State {
             "scancorr_samples_in_total",
             "counter",
             "Raw samples taken in, per stream.",
-            &|m| {
-                m.corrector.as_ref().map(|c| {
-                    let s = c.stats();
+            &|_m, s| {
+                s.core.as_ref().map(|c| {
+                    let s = &c.stats;
                     (0..4)
                         .map(|k| {
                             (
@@ -547,10 +481,10 @@ impl State {
             "scancorr_points_out_total",
             "counter",
             "Corrected points produced.",
-            &|m| {
-                m.corrector
+            &|_m, s| {
+                s.core
                     .as_ref()
-                    .map(|c| vec![(vec![], c.stats().points_out as f64)])
+                    .map(|c| vec![(vec![], c.stats.points_out as f64)])
             },
         );
         metric(
@@ -558,10 +492,10 @@ impl State {
             "scancorr_points_flagged_total",
             "counter",
             "Points produced while an estimator alarm was raised.",
-            &|m| {
-                m.corrector
+            &|_m, s| {
+                s.core
                     .as_ref()
-                    .map(|c| vec![(vec![], c.stats().points_invalid as f64)])
+                    .map(|c| vec![(vec![], c.stats.points_invalid as f64)])
             },
         );
         metric(
@@ -569,9 +503,9 @@ impl State {
             "scancorr_samples_dropped_total",
             "counter",
             "Samples dropped by the core, by reason.",
-            &|m| {
-                m.corrector.as_ref().map(|c| {
-                    c.stats()
+            &|_m, s| {
+                s.core.as_ref().map(|c| {
+                    c.stats
                         .dropped_by_name()
                         .into_iter()
                         .map(|(k, v)| (vec![("reason", k.to_string())], v as f64))
@@ -584,9 +518,9 @@ impl State {
             "scancorr_samples_missing_total",
             "counter",
             "Samples missing in a stream's seq (lost before the service), per stream.",
-            &|m| {
-                m.corrector.as_ref().map(|c| {
-                    let s = c.stats();
+            &|_m, s| {
+                s.core.as_ref().map(|c| {
+                    let s = &c.stats;
                     (0..4)
                         .map(|k| {
                             (
@@ -603,8 +537,8 @@ impl State {
             "scancorr_messages_refused_total",
             "counter",
             "Raw messages refused for a machine, by reason.",
-            &|m| {
-                let e = &m.extra;
+            &|_m, s| {
+                let e = &s.extra;
                 Some(vec![
                     (vec![("reason", "malformed".into())], e.malformed as f64),
                     (vec![("reason", "empty".into())], e.empty as f64),
@@ -629,7 +563,7 @@ impl State {
             "scancorr_points_dropped_backpressure_total",
             "counter",
             "Points not published because the machine's subscribers did not keep up.",
-            &|m| {
+            &|m, _s| {
                 m.outbox.figures()["points_dropped_backpressure"]
                     .as_f64()
                     .map(|v| vec![(vec![], v)])
@@ -640,10 +574,10 @@ impl State {
             "scancorr_alarms_raised_total",
             "counter",
             "Estimator-validity alarms raised.",
-            &|m| {
-                m.corrector
+            &|_m, s| {
+                s.core
                     .as_ref()
-                    .map(|c| vec![(vec![], c.stats().alarms_raised as f64)])
+                    .map(|c| vec![(vec![], c.stats.alarms_raised as f64)])
             },
         );
         metric(
@@ -651,27 +585,23 @@ impl State {
             "scancorr_calibration_version",
             "gauge",
             "The calibration version in use.",
-            &|m| {
-                m.corrector
-                    .as_ref()
-                    .map(|c| vec![(vec![], c.calibration().version as f64)])
-            },
+            &|_m, s| s.core.as_ref().map(|c| vec![(vec![], c.version as f64)]),
         );
         metric(
             &mut r,
             "scancorr_calibration_puts_total",
             "counter",
             "Calibrations put since the service started.",
-            &|m| Some(vec![(vec![], m.puts as f64)]),
+            &|m, _s| Some(vec![(vec![], m.puts as f64)]),
         );
         metric(
             &mut r,
             "scancorr_pending_samples",
             "gauge",
             "Samples waiting in the join for the other streams, per stream.",
-            &|m| {
-                m.corrector.as_ref().map(|c| {
-                    let p = c.pending();
+            &|_m, s| {
+                s.core.as_ref().map(|c| {
+                    let p = c.pending;
                     (0..4)
                         .map(|k| (vec![("stream", streams[k].to_string())], p[k] as f64))
                         .collect()
@@ -683,7 +613,7 @@ impl State {
             "scancorr_publish_queue_bytes",
             "gauge",
             "Corrected output waiting to be published.",
-            &|m| {
+            &|m, _s| {
                 m.outbox.figures()["queued_bytes"]
                     .as_f64()
                     .map(|v| vec![(vec![], v)])
@@ -694,10 +624,10 @@ impl State {
             "scancorr_processing_lag_seconds",
             "gauge",
             "How far the newest point lags the newest sample taken in (controller clock).",
-            &|m| {
-                let wm = m.corrector.as_ref()?.watermarks();
+            &|_m, s| {
+                let wm = s.core.as_ref()?.watermarks;
                 let newest = wm.iter().flatten().max()?;
-                let point = m.last_point_t_ns?;
+                let point = s.last_point_t_ns?;
                 Some(vec![(vec![], (newest - point).max(0) as f64 * 1e-9)])
             },
         );
@@ -706,7 +636,7 @@ impl State {
             "scancorr_quarantined",
             "gauge",
             "1 when the machine's stored calibration cannot be used.",
-            &|m| {
+            &|m, _s| {
                 Some(vec![(
                     vec![],
                     if m.quarantined.is_some() { 1.0 } else { 0.0 },
@@ -730,13 +660,6 @@ impl State {
         r.metric("scancorr_machines", "gauge", "Machines served.");
         r.sample("scancorr_machines", &[], self.machines.len() as f64);
         r.finish()
-    }
-
-    /// A corrector under this service's limits.
-    fn corrector(&self, model: Arc<scancorr_core::calib::Model>) -> Corrector {
-        let mut c = Corrector::with_model(model);
-        c.limit_pending(Some(self.cfg.max_pending_samples));
-        c
     }
 
     /// Whether another instance serves `name`: its liveliness token is on the bus. Asked at
@@ -826,7 +749,10 @@ impl State {
             }
             let (corrector, quarantined) = match self.store.current(name) {
                 Ok(Some(c)) => match c.build() {
-                    Ok(m) => (Some(self.corrector(Arc::new(m))), None),
+                    Ok(m) => (
+                        Some(crate::shard::corrector(Arc::new(m), &self.limits)),
+                        None,
+                    ),
                     Err(e) => (
                         None,
                         Some(format!(
@@ -856,19 +782,35 @@ impl State {
                 max_bytes: self.cfg.max_queued_bytes_per_machine,
                 state: Mutex::new(OutState::default()),
             });
+            // The shard with the fewest machines corrects it.
+            let shard = (0..self.shards.len())
+                .min_by_key(|k| self.on_shard[*k])
+                .expect("at least one shard");
+            self.shards[shard]
+                .send_async(Job::Add(
+                    name.to_string(),
+                    Core {
+                        corrector,
+                        ids,
+                        extra: Default::default(),
+                        last_point_t_ns: None,
+                        outbox: outbox.clone(),
+                    },
+                ))
+                .await
+                .map_err(|_| ServiceError::Refused("the correcting workers have stopped".into()))?;
+            self.on_shard[shard] += 1;
             self.machines.insert(
                 name.to_string(),
                 Machine {
-                    corrector,
+                    shard,
                     quarantined,
                     outbox,
                     _token: token,
                     _raw_keys: raw_keys,
-                    ids,
-                    extra: Extra::default(),
+                    not_corrected: 0,
                     last_arrival: [None; 4],
                     stalled: [false; 4],
-                    last_point_t_ns: None,
                     puts: 0,
                 },
             );
@@ -902,7 +844,7 @@ impl State {
         }
     }
 
-    async fn on_raw(&mut self, s: zenoh::sample::Sample) {
+    async fn on_raw(&mut self, s: zenoh::sample::Sample, arrived: Instant) {
         let key = s.key_expr().as_str();
         // A wildcard or otherwise invalid machine id, or an unknown stream, is refused here.
         let parsed = Stream::parse_key(&self.cfg.prefix, key);
@@ -915,7 +857,7 @@ impl State {
                 info!("messages on raw/distance and raw/stage (measurements the service does not correct) are skipped and counted as `not_corrected` on the status");
             }
             match self.machines.get_mut(machine) {
-                Some(m) => m.extra.not_corrected += 1,
+                Some(m) => m.not_corrected += 1,
                 None => self.refused.not_corrected += 1,
             }
             return;
@@ -946,65 +888,20 @@ impl State {
                 return;
             }
         }
-        let (m, out) = (
-            self.machines.get_mut(&machine).expect("served"),
-            &mut self.out,
-        );
-        m.extra.messages += 1;
+        let m = self.machines.get_mut(&machine).expect("served");
         m.last_arrival[sid as usize] = Some(Instant::now());
         if m.stalled[sid as usize] {
             m.stalled[sid as usize] = false;
             info!(machine = %machine, stream = sid.name(), "stream resumed");
         }
-        let bytes = s.payload().to_bytes();
-        let mut samples = Vec::new();
-        let tags = if self.cfg.accept_untagged_batches {
-            wire::Tags::AllowUntagged
-        } else {
-            wire::Tags::Require
+        // Decoded, corrected and published on the machine's shard, in arrival order.
+        let job = Job::Raw {
+            machine,
+            stream: sid,
+            sample: s,
+            arrived,
         };
-        match wire::decode_machine_tagged(sid, &bytes, &machine, tags, &mut samples) {
-            Ok(f) => m.extra.wrong_machine += f,
-            Err(wire::WireError::Empty(_)) => m.extra.empty += 1,
-            Err(e) => {
-                let count = match e {
-                    wire::WireError::WrongStream { .. } => &mut m.extra.wrong_stream,
-                    wire::WireError::Untagged(_) => &mut m.extra.untagged,
-                    _ => &mut m.extra.malformed,
-                };
-                *count += 1;
-                if *count == 1 {
-                    warn!(machine = %machine, stream = sid.name(), error = %e, "message dropped (further ones are counted on the status)");
-                }
-            }
-        }
-        let Some(corr) = m.corrector.as_mut() else {
-            m.extra.no_calibration += samples.len() as u64;
-            return;
-        };
-        let (resets, seq_resets) = (corr.stats().clock_resets, corr.stats().seq_resets);
-        for x in samples {
-            corr.push(x, out);
-        }
-        if corr.stats().clock_resets > resets {
-            warn!(machine = %machine, "controller clock reset: the machine's join, estimator and judgement restarted in the new time base");
-        }
-        if corr.stats().seq_resets > seq_resets {
-            warn!(machine = %machine, stream = sid.name(), "sequence numbers restarted (a counter wrap or restart): the stream's sequence continues from the new numbers");
-        }
-        if let Some(p) = out.points.last() {
-            m.last_point_t_ns = Some(p.t_ns);
-        }
-        publish(m, out, &machine);
-    }
-
-    async fn flush(&mut self, machine: &str) {
-        if let Some(m) = self.machines.get_mut(machine) {
-            if let Some(c) = m.corrector.as_mut() {
-                c.flush(&mut self.out);
-                publish(m, &mut self.out, machine);
-            }
-        }
+        let _ = self.shards[m.shard].send_async(job).await;
     }
 
     fn check_stalls(&mut self) {
@@ -1043,20 +940,21 @@ impl State {
         if self.answered_elsewhere(&machine) {
             return;
         }
-        let body = match self.machines.get(&machine) {
-            None => {
-                json!({"machine": machine, "served": false, "refused": self.refused})
-            }
-            Some(m) => {
-                let (stats, version, pending, wm) = match &m.corrector {
+        let snap = self.snaps(Some(&machine)).await.remove(&machine);
+        let body = match (self.machines.get(&machine), snap) {
+            (Some(m), Some(snap)) => {
+                let c = snap.core.as_ref();
+                let (stats, version, pending, wm) = match c {
                     Some(c) => (
-                        Some(c.stats().clone()),
-                        Some(c.calibration().version),
-                        c.pending(),
-                        c.watermarks(),
+                        Some(c.stats.clone()),
+                        Some(c.version),
+                        c.pending,
+                        c.watermarks,
                     ),
                     None => (None, None, [0; 4], [None; 4]),
                 };
+                let mut extra = snap.extra.clone();
+                extra.not_corrected = m.not_corrected;
                 let stalled: Vec<&str> = (0..4)
                     .filter(|k| m.stalled[*k])
                     .map(|k| scancorr_core::sample::StreamId::ALL[k].name())
@@ -1077,9 +975,9 @@ impl State {
                     // link dropped), per stream.
                     "samples_missing": stats.as_ref().map(|s| json!({"command": s.samples_missing[0], "scale": s.samples_missing[1], "probe": s.samples_missing[2], "temperature": s.samples_missing[3]})),
                     "seq_gaps": stats.as_ref().map(|s| json!({"command": s.seq_gaps[0], "scale": s.seq_gaps[1], "probe": s.seq_gaps[2], "temperature": s.seq_gaps[3]})),
-                    "effect_points": m.ids.iter().cloned().zip(stats.as_ref().map(|s| s.effect_points.clone()).unwrap_or_default()).collect::<BTreeMap<_, _>>(),
-                    "inactive_effects": m.corrector.as_ref().map(|c| c.inactive_effects()).unwrap_or_default(),
-                    "messages": m.extra,
+                    "effect_points": snap.ids.iter().cloned().zip(stats.as_ref().map(|s| s.effect_points.clone()).unwrap_or_default()).collect::<BTreeMap<_, _>>(),
+                    "inactive_effects": c.map(|c| c.inactive.clone()).unwrap_or_default(),
+                    "messages": extra,
                     "output": m.outbox.figures(),
                     "pending": {"command": pending[0], "scale": pending[1], "probe": pending[2], "temperature": pending[3]},
                     "watermarks_ns": wm,
@@ -1087,16 +985,18 @@ impl State {
                     // In the controller's own clock (which need not be wall time): how far
                     // the newest point lags the newest sample taken in (samples waiting for
                     // the other streams to join them).
-                    "stream_lag_ms": match (wm.iter().flatten().max(), m.last_point_t_ns) {
+                    "stream_lag_ms": match (wm.iter().flatten().max(), snap.last_point_t_ns) {
                         (Some(newest), Some(point)) => Some((newest - point).max(0) as f64 * 1e-6),
                         _ => None,
                     },
                     // Wall time since the newest raw message arrived, ms.
                     "last_sample_age_ms": m.last_arrival.iter().flatten().map(|t| t.elapsed()).min().map(|d| d.as_secs_f64() * 1e3),
-                    "state_bytes": m.corrector.as_ref().map(|c| c.state_bytes()).unwrap_or(0),
-                    "max_pending": m.corrector.as_ref().map(|c| c.max_pending()),
+                    "state_bytes": c.map(|c| c.state_bytes).unwrap_or(0),
+                    "max_pending": c.map(|c| c.max_pending),
+                    "worker": m.shard,
                 })
             }
+            _ => json!({"machine": machine, "served": false, "refused": self.refused}),
         };
         let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
     }
@@ -1237,20 +1137,16 @@ impl State {
             .map_err(|e| e.to_string())?;
         let model = Arc::new(stored.build().map_err(|e| e.to_string())?);
         self.machine(machine).await.map_err(|e| e.to_string())?;
-        let fresh = self.corrector(model.clone());
         let m = self.machines.get_mut(machine).expect("served");
         if m.quarantined.take().is_some() {
             info!(machine, "quarantine lifted: a valid calibration was put");
         }
-        match m.corrector.as_mut() {
-            Some(c) => c.set_model(model),
-            None => m.corrector = Some(fresh),
-        }
-        m.ids = m
-            .corrector
-            .as_ref()
-            .map(|c| c.effect_ids())
-            .unwrap_or_default();
+        // Swapped on the machine's shard between two messages: every message routed before
+        // is corrected with the old model, every one after with the new.
+        self.shards[m.shard]
+            .send_async(Job::Model(machine.to_string(), model))
+            .await
+            .map_err(|_| "the correcting workers have stopped".to_string())?;
         m.puts += 1;
         info!(machine, version = stored.version, parent = ?stored.parent_version, "calibration applied");
         Ok(json!({"machine": machine, "version": stored.version, "parent_version": stored.parent_version}).to_string())
@@ -1289,33 +1185,6 @@ fn rfc3339_now() -> String {
 /// The declarations of an instance's assignment, held for its lifetime.
 #[derive(Default)]
 struct Declared {
-    _subscribers: Vec<zenoh::pubsub::Subscriber<flume::Receiver<zenoh::sample::Sample>>>,
+    _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
     _queryables: Vec<zenoh::query::Queryable<flume::Receiver<zenoh::query::Query>>>,
-}
-
-/// Hands what the core completed to the machine's outbox (never waits on the bus).
-fn publish(m: &mut Machine, out: &mut Output, machine: &str) {
-    if !out.points.is_empty() {
-        // Written straight to protobuf (the same bytes prost makes, without a message per point).
-        let mut bytes = Vec::with_capacity(out.points.len() * 320);
-        wire::encode_points(&out.points, machine, &m.ids, &mut bytes);
-        m.outbox
-            .send(Outgoing::Points(bytes, out.points.len() as u64));
-    }
-    for a in &out.alarms {
-        if a.raised {
-            warn!(
-                machine,
-                axis = a.axis.name(),
-                difference = a.difference,
-                threshold = a.threshold,
-                "estimator alarm raised"
-            );
-        } else {
-            info!(machine, axis = a.axis.name(), "estimator alarm cleared");
-        }
-        m.outbox
-            .send(Outgoing::Alarm(wire::alarm(a, machine).encode_to_vec()));
-    }
-    out.clear();
 }
