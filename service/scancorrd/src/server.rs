@@ -789,13 +789,13 @@ impl State {
             self.shards[shard]
                 .send_async(Job::Add(
                     name.to_string(),
-                    Core {
+                    Box::new(Core {
                         corrector,
                         ids,
                         extra: Default::default(),
                         last_point_t_ns: None,
                         outbox: outbox.clone(),
-                    },
+                    }),
                 ))
                 .await
                 .map_err(|_| ServiceError::Refused("the correcting workers have stopped".into()))?;

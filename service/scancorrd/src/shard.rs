@@ -196,7 +196,7 @@ pub(crate) struct Snap {
 /// What the control task sends a shard.
 pub(crate) enum Job {
     /// Serve a new machine.
-    Add(String, Core),
+    Add(String, Box<Core>),
     /// One raw message of a machine (its stream from the key), with its arrival.
     Raw {
         machine: String,
@@ -247,7 +247,7 @@ pub(crate) fn spawn(
             while let Ok(job) = jobs.recv() {
                 match job {
                     Job::Add(name, core) => {
-                        machines.insert(name, core);
+                        machines.insert(name, *core);
                     }
                     Job::Raw {
                         machine,
