@@ -248,8 +248,10 @@ pub struct Corrector {
     probe_type: String,
     /// The pose of the last point's tip and head angles (they rarely change).
     pose: Option<TipPose>,
-    e0: Option<Estimate>,
-    e1: Option<Estimate>,
+    /// The estimates at the last two commands (the bracket of the next scale time), written
+    /// in turn: `estimates[newest]` is the later one (e1), the other the earlier (e0).
+    estimates: [Option<Estimate>; 2],
+    newest: usize,
     judge: Judge,
     last_judged_t: Option<i64>,
     point_seq: u64,
@@ -296,8 +298,8 @@ impl Corrector {
             estimator: None,
             probe_type: String::new(),
             pose: None,
-            e0: None,
-            e1: None,
+            estimates: [None, None],
+            newest: 0,
             judge,
             last_judged_t: None,
             point_seq: 0,
@@ -512,8 +514,7 @@ impl Corrector {
         self.held_all.clear();
         self.estimator = None;
         self.probe_type.clear();
-        self.e0 = None;
-        self.e1 = None;
+        self.estimates = [None, None];
         self.judge.restart();
         self.last_judged_t = None;
         self.stats.clock_resets += 1;
@@ -678,14 +679,24 @@ impl Corrector {
         }
     }
 
+    /// The estimate at the latest command stepped (e1).
+    fn e1(&self) -> Option<&Estimate> {
+        self.estimates[self.newest].as_ref()
+    }
+
+    /// The estimate at the command before it (e0).
+    fn e0(&self) -> Option<&Estimate> {
+        self.estimates[1 - self.newest].as_ref()
+    }
+
     /// Steps the estimator through the commands up to the first at or after `t`.
     fn advance_estimator(&mut self, t: i64) {
-        while self.e1.is_none_or(|e| e.cmd.t_ns < t) {
+        while self.e1().is_none_or(|e| e.cmd.t_ns < t) {
             let Some(c) = self.cmd_q.pop_front() else {
                 break;
             };
             let gap = self
-                .e1
+                .e1()
                 .is_some_and(|e| c.t_ns - e.cmd.t_ns > self.model.max_gap_ns);
             let est = match self.estimator.as_mut() {
                 Some(est) if !gap => est.step(&c),
@@ -700,7 +711,9 @@ impl Corrector {
                     e
                 }
             };
-            self.e0 = self.e1.replace(est);
+            // The later estimate becomes the earlier one.
+            self.newest = 1 - self.newest;
+            self.estimates[self.newest] = Some(est);
         }
     }
 
@@ -719,20 +732,20 @@ impl Corrector {
         let gap = self.model.max_gap_ns;
         // Command bracket → estimate at t.
         self.advance_estimator(t);
-        let e1 = self.e1.ok_or(DropReason::NoCommand)?;
+        let e1 = self.e1().ok_or(DropReason::NoCommand)?;
         let est = if e1.cmd.t_ns == t {
-            e1
+            *e1
         } else if e1.cmd.t_ns < t {
             return Err(DropReason::NoCommand);
         } else {
             let e0 = self
-                .e0
+                .e0()
                 .filter(|e| e.cmd.t_ns <= t)
                 .ok_or(DropReason::NoCommand)?;
             if e1.cmd.t_ns - e0.cmd.t_ns > gap {
                 return Err(DropReason::CommandGap);
             }
-            lerp_estimate(&e0, &e1, t)
+            lerp_estimate(e0, e1, t)
         };
         // Probe bracket.
         while self.probe_q.len() >= 2 && self.probe_q[1].t_ns <= t {
@@ -772,6 +785,9 @@ impl Corrector {
         let tip = model.tips.get(&p0.tip_id).ok_or(DropReason::UnknownTip)?;
         if tip.probe != self.probe_type {
             if let Some(est) = self.estimator.as_mut() {
+                let e1 = self.estimates[self.newest]
+                    .as_ref()
+                    .expect("a point has an estimate");
                 est.switch_model(model.nominal[&tip.probe].clone(), &e1.cmd);
             }
             self.probe_type.clone_from(&tip.probe);
