@@ -33,7 +33,7 @@ use crate::effects::BuiltEffect;
 use crate::estimator::{rotation, Estimate, Estimator};
 use crate::judge::Judge;
 use crate::sample::*;
-use crate::stylus::machine_from_probe;
+use crate::stylus::TipPose;
 use std::collections::VecDeque;
 use std::sync::Arc;
 
@@ -190,14 +190,26 @@ pub struct Output {
     pub alarms: Vec<Alarm>,
     /// The context of each point, when [`Corrector::record_context`] is on (the lab's input).
     pub contexts: Vec<PointContext>,
+    /// The `corrections` lists of cleared points, reused by the next points (no allocation
+    /// per point once the output has been cleared).
+    spare: Vec<Vec<Vec3>>,
 }
 
 impl Output {
-    /// Empties all lists, keeping their capacity.
+    /// Empties all lists, keeping their capacity (and the points' lists of corrections, for
+    /// the next points).
     pub fn clear(&mut self) {
-        self.points.clear();
+        self.spare
+            .extend(self.points.drain(..).map(|p| p.corrections));
         self.alarms.clear();
         self.contexts.clear();
+    }
+
+    /// An empty list for a point's corrections: a cleared point's, or a new one.
+    fn corrections_list(&mut self) -> Vec<Vec3> {
+        let mut c = self.spare.pop().unwrap_or_default();
+        c.clear();
+        c
     }
 }
 
@@ -234,8 +246,12 @@ pub struct Corrector {
     held_all: std::collections::HashMap<String, (f64, i64)>,
     estimator: Option<Estimator>,
     probe_type: String,
-    e0: Option<Estimate>,
-    e1: Option<Estimate>,
+    /// The pose of the last point's tip and head angles (they rarely change).
+    pose: Option<TipPose>,
+    /// The estimates at the last two commands (the bracket of the next scale time), written
+    /// in turn: `estimates[newest]` is the later one (e1), the other the earlier (e0).
+    estimates: [Option<Estimate>; 2],
+    newest: usize,
     judge: Judge,
     last_judged_t: Option<i64>,
     point_seq: u64,
@@ -281,8 +297,9 @@ impl Corrector {
             held_all: Default::default(),
             estimator: None,
             probe_type: String::new(),
-            e0: None,
-            e1: None,
+            pose: None,
+            estimates: [None, None],
+            newest: 0,
             judge,
             last_judged_t: None,
             point_seq: 0,
@@ -395,6 +412,8 @@ impl Corrector {
             p.slot = model.sensors.find(&p.sensor);
         }
         self.stats.effect_points = vec![0; model.effects.len()];
+        // The tips' geometry may differ.
+        self.pose = None;
         self.model = model;
     }
 
@@ -495,8 +514,7 @@ impl Corrector {
         self.held_all.clear();
         self.estimator = None;
         self.probe_type.clear();
-        self.e0 = None;
-        self.e1 = None;
+        self.estimates = [None, None];
         self.judge.restart();
         self.last_judged_t = None;
         self.stats.clock_resets += 1;
@@ -661,14 +679,24 @@ impl Corrector {
         }
     }
 
+    /// The estimate at the latest command stepped (e1).
+    fn e1(&self) -> Option<&Estimate> {
+        self.estimates[self.newest].as_ref()
+    }
+
+    /// The estimate at the command before it (e0).
+    fn e0(&self) -> Option<&Estimate> {
+        self.estimates[1 - self.newest].as_ref()
+    }
+
     /// Steps the estimator through the commands up to the first at or after `t`.
     fn advance_estimator(&mut self, t: i64) {
-        while self.e1.is_none_or(|e| e.cmd.t_ns < t) {
+        while self.e1().is_none_or(|e| e.cmd.t_ns < t) {
             let Some(c) = self.cmd_q.pop_front() else {
                 break;
             };
             let gap = self
-                .e1
+                .e1()
                 .is_some_and(|e| c.t_ns - e.cmd.t_ns > self.model.max_gap_ns);
             let est = match self.estimator.as_mut() {
                 Some(est) if !gap => est.step(&c),
@@ -683,7 +711,9 @@ impl Corrector {
                     e
                 }
             };
-            self.e0 = self.e1.replace(est);
+            // The later estimate becomes the earlier one.
+            self.newest = 1 - self.newest;
+            self.estimates[self.newest] = Some(est);
         }
     }
 
@@ -702,20 +732,20 @@ impl Corrector {
         let gap = self.model.max_gap_ns;
         // Command bracket → estimate at t.
         self.advance_estimator(t);
-        let e1 = self.e1.ok_or(DropReason::NoCommand)?;
+        let e1 = self.e1().ok_or(DropReason::NoCommand)?;
         let est = if e1.cmd.t_ns == t {
-            e1
+            *e1
         } else if e1.cmd.t_ns < t {
             return Err(DropReason::NoCommand);
         } else {
             let e0 = self
-                .e0
+                .e0()
                 .filter(|e| e.cmd.t_ns <= t)
                 .ok_or(DropReason::NoCommand)?;
             if e1.cmd.t_ns - e0.cmd.t_ns > gap {
                 return Err(DropReason::CommandGap);
             }
-            lerp_estimate(&e0, &e1, t)
+            lerp_estimate(e0, e1, t)
         };
         // Probe bracket.
         while self.probe_q.len() >= 2 && self.probe_q[1].t_ns <= t {
@@ -751,17 +781,26 @@ impl Corrector {
             }
         }
         // Tip and probe model.
-        let model = self.model.clone();
+        let model: &Model = &self.model;
         let tip = model.tips.get(&p0.tip_id).ok_or(DropReason::UnknownTip)?;
         if tip.probe != self.probe_type {
             if let Some(est) = self.estimator.as_mut() {
+                let e1 = self.estimates[self.newest]
+                    .as_ref()
+                    .expect("a point has an estimate");
                 est.switch_model(model.nominal[&tip.probe].clone(), &e1.cmd);
             }
-            self.probe_type = tip.probe.clone();
+            self.probe_type.clone_from(&tip.probe);
         }
         let settled = self.estimator.as_ref().is_some_and(|e| e.settled());
 
-        let r = machine_from_probe(p0.head_a1_deg, p0.head_a2_deg);
+        let pose = match self.pose {
+            Some(pose) if pose.is_for(p0.tip_id, p0.head_a1_deg, p0.head_a2_deg) => pose,
+            _ => *self
+                .pose
+                .insert(TipPose::new(tip, p0.head_a1_deg, p0.head_a2_deg)),
+        };
+        let r = pose.machine_from_probe;
         let cmd = &est.cmd;
         let (f_hz, rot_axis) = rotation(
             &est.pos,
@@ -788,8 +827,8 @@ impl Corrector {
             deflection_probe: defl_probe,
             deflection: r * defl_probe,
             machine_from_probe: r,
-            tip_shank: r * tip.shank_probe(),
-            tip_bent: r * tip.bent_probe(),
+            tip_shank: pose.shank,
+            tip_bent: pose.bent,
             tip_radius: tip.radius_mm,
             tip_id: p0.tip_id,
             head_a1_deg: p0.head_a1_deg,
@@ -798,8 +837,8 @@ impl Corrector {
             temps: [0.0; MAX_SENSORS],
             temps_valid: 0,
         };
-        for slot in 0..n_sensors {
-            ctx.temps[slot] = self.held[slot].0;
+        for (v, (celsius, _)) in ctx.temps.iter_mut().zip(&self.held).take(n_sensors) {
+            *v = *celsius;
         }
         ctx.temps_valid = self.held_valid;
 
@@ -833,16 +872,19 @@ impl Corrector {
         let alarm = self.judge.any_raised();
         let suspend = alarm && action == AlarmAction::Suspend;
 
-        let point = synthesize(
+        let mut corrections = out.corrections_list();
+        let point = synthesize_into(
             &ctx,
             &model.effects,
             suspend,
             model.doc.geometry.min_contact_deflection_mm,
+            &mut corrections,
         );
-        if !inside(&point, &model) {
+        if !inside(&point, &corrections, model) {
+            out.spare.push(corrections);
             return Err(DropReason::ImplausibleOutput);
         }
-        for (n, c) in self.stats.effect_points.iter_mut().zip(&point.corrections) {
+        for (n, c) in self.stats.effect_points.iter_mut().zip(&corrections) {
             *n += u64::from(*c != Vec3::zeros());
         }
         let valid = settled && !alarm;
@@ -853,7 +895,7 @@ impl Corrector {
             surface: point.surface,
             tip_center: point.tip_center,
             normal: point.normal,
-            corrections: point.corrections,
+            corrections,
             calibration_version: version,
             estimator_valid: valid,
             segment_id: cmd.segment_id,
@@ -904,14 +946,14 @@ fn plausible(s: &Sample, m: &Model) -> Result<(), DropReason> {
 
 /// Whether a corrected point is finite, inside the machine's volume and every correction
 /// within `limits.max_correction_mm`.
-fn inside(p: &Synthesis, m: &Model) -> bool {
+fn inside(p: &Geometry, corrections: &[Vec3], m: &Model) -> bool {
     let vol = &m.volume_mm;
     let within = |v: &Vec3| (0..3).all(|i| v[i] >= vol[i][0] && v[i] <= vol[i][1]);
     let max_c = m.doc.limits.max_correction_mm;
     within(&p.surface)
         && within(&p.tip_center)
         && p.normal.iter().all(|v| v.is_finite())
-        && p.corrections
+        && corrections
             .iter()
             .all(|c| c.iter().all(|v| v.abs() <= max_c))
 }
@@ -929,6 +971,14 @@ pub struct Synthesis {
     pub corrections: Vec<Vec3>,
 }
 
+/// A point's geometry without its corrections (those go to a list of the caller's).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Geometry {
+    surface: Vec3,
+    tip_center: Vec3,
+    normal: Vec3,
+}
+
 /// Surface point = scales + Σ corrections + R·deflection + tip offset − radius·normal.
 pub fn synthesize(
     ctx: &PointContext,
@@ -936,19 +986,34 @@ pub fn synthesize(
     suspend_dynamic: bool,
     min_contact: f64,
 ) -> Synthesis {
+    let mut corrections = Vec::with_capacity(effects.len());
+    let g = synthesize_into(ctx, effects, suspend_dynamic, min_contact, &mut corrections);
+    Synthesis {
+        surface: g.surface,
+        tip_center: g.tip_center,
+        normal: g.normal,
+        corrections,
+    }
+}
+
+/// [`synthesize`], appending the per-effect corrections to `corrections` (empty).
+fn synthesize_into(
+    ctx: &PointContext,
+    effects: &[BuiltEffect],
+    suspend_dynamic: bool,
+    min_contact: f64,
+    corrections: &mut Vec<Vec3>,
+) -> Geometry {
     let mut total = Vec3::zeros();
-    let corrections: Vec<Vec3> = effects
-        .iter()
-        .map(|e| {
-            let c = if suspend_dynamic && e.dynamic {
-                Vec3::zeros()
-            } else {
-                e.model.correction(ctx)
-            };
-            total += c;
-            c
-        })
-        .collect();
+    corrections.extend(effects.iter().map(|e| {
+        let c = if suspend_dynamic && e.dynamic {
+            Vec3::zeros()
+        } else {
+            e.model.correction(ctx)
+        };
+        total += c;
+        c
+    }));
     let tip_center = ctx.scale + total + ctx.deflection + ctx.tip_offset();
     let d = ctx.deflection.norm();
     let normal = if d >= min_contact && d > 0.0 {
@@ -956,11 +1021,10 @@ pub fn synthesize(
     } else {
         Vec3::zeros()
     };
-    Synthesis {
+    Geometry {
         surface: tip_center - normal * ctx.tip_radius,
         tip_center,
         normal,
-        corrections,
     }
 }
 

@@ -3,7 +3,9 @@
 //! Grammar: numbers, variables, `+ - * / ^` (with `^` right-associative), unary minus,
 //! parentheses and the functions `sin cos tan asin acos atan atan2 sqrt abs sign exp ln log10
 //! min max pow floor ceil`. Constants `pi` and `e`. Expressions are compiled once into a
-//! postfix program over variable slots and evaluated on the hot path without allocation.
+//! postfix program over variable slots ([`Expr`]); the hot path runs a [`Program`]: the
+//! expressions of an effect compiled together, constants folded, common sub-expressions
+//! computed once, the sine and cosine of one argument taken together, without allocation.
 //!
 //! Expressions arrive in calibration documents from the network, so the parser bounds what it
 //! takes: at most [`MAX_LEN`] bytes of source and at most [`MAX_DEPTH`] levels of nesting.
@@ -12,6 +14,7 @@
 //! levels deep, `--x` two, `sin((x))` three). With the nesting bounded, so is the evaluation
 //! stack of the compiled program ([`MAX_STACK`]); sums and products of any length are flat.
 
+use std::collections::HashMap;
 use std::fmt;
 
 /// Longest expression source accepted, bytes.
@@ -46,8 +49,96 @@ enum Op {
     Mul,
     Div,
     Pow,
-    F1(fn(f64) -> f64),
-    F2(fn(f64, f64) -> f64),
+    F1(Func1),
+    F2(Func2),
+}
+
+/// A one-argument function of the language (and negation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Func1 {
+    Neg,
+    Sin,
+    Cos,
+    Tan,
+    Asin,
+    Acos,
+    Atan,
+    Sqrt,
+    Abs,
+    Sign,
+    Exp,
+    Ln,
+    Log10,
+    Floor,
+    Ceil,
+}
+
+impl Func1 {
+    #[inline]
+    fn apply(self, x: f64) -> f64 {
+        match self {
+            Func1::Neg => -x,
+            Func1::Sin => x.sin(),
+            Func1::Cos => x.cos(),
+            Func1::Tan => x.tan(),
+            Func1::Asin => x.asin(),
+            Func1::Acos => x.acos(),
+            Func1::Atan => x.atan(),
+            Func1::Sqrt => x.sqrt(),
+            Func1::Abs => x.abs(),
+            Func1::Sign => sign(x),
+            Func1::Exp => x.exp(),
+            Func1::Ln => x.ln(),
+            Func1::Log10 => x.log10(),
+            Func1::Floor => x.floor(),
+            Func1::Ceil => x.ceil(),
+        }
+    }
+}
+
+/// A two-argument operator or function of the language.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Func2 {
+    Add,
+    Sub,
+    Mul,
+    Div,
+    /// `^` and `pow`.
+    Pow,
+    Atan2,
+    Min,
+    Max,
+}
+
+impl Func2 {
+    #[inline]
+    fn apply(self, a: f64, b: f64) -> f64 {
+        match self {
+            Func2::Add => a + b,
+            Func2::Sub => a - b,
+            Func2::Mul => a * b,
+            Func2::Div => a / b,
+            Func2::Pow => a.powf(b),
+            Func2::Atan2 => a.atan2(b),
+            Func2::Min => a.min(b),
+            Func2::Max => a.max(b),
+        }
+    }
+}
+
+impl Op {
+    /// The operation of a two-operand op.
+    fn binary(self) -> Option<Func2> {
+        Some(match self {
+            Op::Add => Func2::Add,
+            Op::Sub => Func2::Sub,
+            Op::Mul => Func2::Mul,
+            Op::Div => Func2::Div,
+            Op::Pow => Func2::Pow,
+            Op::F2(f) => f,
+            Op::Num(_) | Op::Var(_) | Op::Neg | Op::F1(_) => return None,
+        })
+    }
 }
 
 /// A parse error with its byte position.
@@ -75,32 +166,32 @@ fn sign(x: f64) -> f64 {
     }
 }
 
-fn func1(name: &str) -> Option<fn(f64) -> f64> {
+fn func1(name: &str) -> Option<Func1> {
     Some(match name {
-        "sin" => f64::sin,
-        "cos" => f64::cos,
-        "tan" => f64::tan,
-        "asin" => f64::asin,
-        "acos" => f64::acos,
-        "atan" => f64::atan,
-        "sqrt" => f64::sqrt,
-        "abs" => f64::abs,
-        "sign" => sign,
-        "exp" => f64::exp,
-        "ln" => f64::ln,
-        "log10" => f64::log10,
-        "floor" => f64::floor,
-        "ceil" => f64::ceil,
+        "sin" => Func1::Sin,
+        "cos" => Func1::Cos,
+        "tan" => Func1::Tan,
+        "asin" => Func1::Asin,
+        "acos" => Func1::Acos,
+        "atan" => Func1::Atan,
+        "sqrt" => Func1::Sqrt,
+        "abs" => Func1::Abs,
+        "sign" => Func1::Sign,
+        "exp" => Func1::Exp,
+        "ln" => Func1::Ln,
+        "log10" => Func1::Log10,
+        "floor" => Func1::Floor,
+        "ceil" => Func1::Ceil,
         _ => return None,
     })
 }
 
-fn func2(name: &str) -> Option<fn(f64, f64) -> f64> {
+fn func2(name: &str) -> Option<Func2> {
     Some(match name {
-        "atan2" => f64::atan2,
-        "min" => f64::min,
-        "max" => f64::max,
-        "pow" => f64::powf,
+        "atan2" => Func2::Atan2,
+        "min" => Func2::Min,
+        "max" => Func2::Max,
+        "pow" => Func2::Pow,
         _ => return None,
     })
 }
@@ -396,23 +487,247 @@ impl Expr {
                     n += 1;
                 }
                 Op::Neg => st[n - 1] = -st[n - 1],
-                Op::F1(f) => st[n - 1] = f(st[n - 1]),
+                Op::F1(f) => st[n - 1] = f.apply(st[n - 1]),
                 op => {
                     let (a, b) = (st[n - 2], st[n - 1]);
                     n -= 1;
-                    st[n - 1] = match op {
-                        Op::Add => a + b,
-                        Op::Sub => a - b,
-                        Op::Mul => a * b,
-                        Op::Div => a / b,
-                        Op::Pow => a.powf(b),
-                        Op::F2(f) => f(a, b),
-                        _ => unreachable!("unary and leaf ops handled above"),
-                    };
+                    st[n - 1] = op
+                        .binary()
+                        .expect("unary and leaf ops handled above")
+                        .apply(a, b);
                 }
             }
         }
         st[0]
+    }
+}
+
+/// Several expressions compiled together into one straight-line program over registers, for
+/// the hot path: constant sub-expressions are folded (`2*pi` is one number), each distinct
+/// sub-expression is computed once for all the expressions (`sin(2*pi*x/4)` and
+/// `cos(2*pi*x/4)` share `2*pi*x/4`), and the sine and cosine of one argument come from one
+/// `sin_cos`. The values are those of [`Expr::eval`], bit for bit: the same operations on the
+/// same operands, a folded constant computed as evaluation would compute it.
+#[derive(Debug, Clone)]
+pub struct Program {
+    /// Registers: the inputs, then the constants, then one per step's result.
+    n_inputs: usize,
+    consts: Vec<f64>,
+    steps: Vec<Step>,
+    n_regs: usize,
+    /// The register holding each expression's value.
+    outputs: Vec<usize>,
+}
+
+/// One instruction: operand and destination registers.
+#[derive(Debug, Clone, Copy)]
+enum Step {
+    Unary {
+        f: Func1,
+        x: usize,
+        dst: usize,
+    },
+    Binary {
+        f: Func2,
+        a: usize,
+        b: usize,
+        dst: usize,
+    },
+    SinCos {
+        x: usize,
+        sin: usize,
+        cos: usize,
+    },
+}
+
+/// A node of the expressions' shared graph (operands are earlier nodes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Node {
+    /// The constant's bits.
+    Const(u64),
+    Input(usize),
+    Unary(Func1, usize),
+    Binary(Func2, usize, usize),
+}
+
+/// Registers a program evaluates in without allocating.
+const STACK_REGISTERS: usize = 64;
+
+impl Program {
+    /// Compiles `exprs` into one program over `n_inputs` inputs; each expression comes with
+    /// the input index of each of its variable slots (`inputs[i]` for `expr.vars[i]`).
+    pub fn compile(exprs: &[(&Expr, &[usize])], n_inputs: usize) -> Program {
+        let mut nodes: Vec<Node> = vec![];
+        let mut ids: HashMap<Node, usize> = HashMap::new();
+        let mut intern = |n: Node, nodes: &mut Vec<Node>| {
+            *ids.entry(n).or_insert_with(|| {
+                nodes.push(n);
+                nodes.len() - 1
+            })
+        };
+        let constant = |nodes: &[Node], id: usize| match nodes[id] {
+            Node::Const(bits) => Some(f64::from_bits(bits)),
+            _ => None,
+        };
+        let mut outputs = vec![];
+        for (e, inputs) in exprs {
+            // The parser checked that every operator finds its operands.
+            let mut st: Vec<usize> = vec![];
+            for op in &e.ops {
+                let node = match *op {
+                    Op::Num(v) => Node::Const(v.to_bits()),
+                    Op::Var(i) => Node::Input(inputs[i]),
+                    Op::Neg | Op::F1(_) => {
+                        let f = match *op {
+                            Op::F1(f) => f,
+                            _ => Func1::Neg,
+                        };
+                        let x = st.pop().expect("a checked program");
+                        match constant(&nodes, x) {
+                            Some(v) => Node::Const(f.apply(v).to_bits()),
+                            None => Node::Unary(f, x),
+                        }
+                    }
+                    op => {
+                        let f = op.binary().expect("leaf and unary ops handled above");
+                        let b = st.pop().expect("a checked program");
+                        let a = st.pop().expect("a checked program");
+                        match (constant(&nodes, a), constant(&nodes, b)) {
+                            (Some(a), Some(b)) => Node::Const(f.apply(a, b).to_bits()),
+                            _ => Node::Binary(f, a, b),
+                        }
+                    }
+                };
+                st.push(intern(node, &mut nodes));
+            }
+            outputs.push(st.pop().expect("a checked program"));
+        }
+        // Only what an expression's value needs (folding leaves the folded operands behind).
+        let mut live = vec![false; nodes.len()];
+        for &o in &outputs {
+            live[o] = true;
+        }
+        for id in (0..nodes.len()).rev() {
+            if live[id] {
+                match nodes[id] {
+                    Node::Unary(_, x) => live[x] = true,
+                    Node::Binary(_, a, b) => {
+                        live[a] = true;
+                        live[b] = true;
+                    }
+                    Node::Const(_) | Node::Input(_) => {}
+                }
+            }
+        }
+        let mut reg = vec![usize::MAX; nodes.len()];
+        let mut consts = vec![];
+        for (id, n) in nodes.iter().enumerate().filter(|(id, _)| live[*id]) {
+            match *n {
+                Node::Input(i) => reg[id] = i,
+                Node::Const(bits) => {
+                    reg[id] = n_inputs + consts.len();
+                    consts.push(f64::from_bits(bits));
+                }
+                _ => {}
+            }
+        }
+        let mut n_regs = n_inputs + consts.len();
+        for id in 0..nodes.len() {
+            if live[id] && matches!(nodes[id], Node::Unary(..) | Node::Binary(..)) {
+                reg[id] = n_regs;
+                n_regs += 1;
+            }
+        }
+        let mut steps = vec![];
+        let mut emitted = vec![false; nodes.len()];
+        for id in (0..nodes.len()).filter(|id| live[*id]) {
+            if emitted[id] {
+                continue;
+            }
+            emitted[id] = true;
+            match nodes[id] {
+                Node::Unary(f @ (Func1::Sin | Func1::Cos), x) => {
+                    let other = if f == Func1::Sin {
+                        Func1::Cos
+                    } else {
+                        Func1::Sin
+                    };
+                    match ids.get(&Node::Unary(other, x)).filter(|o| live[**o]) {
+                        Some(&o) => {
+                            // Both at the first one's place: their argument is earlier.
+                            emitted[o] = true;
+                            let (sin, cos) = if f == Func1::Sin { (id, o) } else { (o, id) };
+                            steps.push(Step::SinCos {
+                                x: reg[x],
+                                sin: reg[sin],
+                                cos: reg[cos],
+                            });
+                        }
+                        None => steps.push(Step::Unary {
+                            f,
+                            x: reg[x],
+                            dst: reg[id],
+                        }),
+                    }
+                }
+                Node::Unary(f, x) => steps.push(Step::Unary {
+                    f,
+                    x: reg[x],
+                    dst: reg[id],
+                }),
+                Node::Binary(f, a, b) => steps.push(Step::Binary {
+                    f,
+                    a: reg[a],
+                    b: reg[b],
+                    dst: reg[id],
+                }),
+                Node::Const(_) | Node::Input(_) => {}
+            }
+        }
+        Program {
+            n_inputs,
+            consts,
+            steps,
+            n_regs,
+            outputs: outputs.iter().map(|o| reg[*o]).collect(),
+        }
+    }
+
+    /// Number of expressions.
+    pub fn len(&self) -> usize {
+        self.outputs.len()
+    }
+
+    /// Whether the program has no expression.
+    pub fn is_empty(&self) -> bool {
+        self.outputs.is_empty()
+    }
+
+    /// Evaluates every expression with `inputs` (at least the program's inputs) and hands
+    /// each value, in expression order, to `out(index, value)`. Allocates only for programs
+    /// of more than 64 registers.
+    pub fn eval(&self, inputs: &[f64], mut out: impl FnMut(usize, f64)) {
+        let mut small = [0.0f64; STACK_REGISTERS];
+        let mut big;
+        let r: &mut [f64] = if self.n_regs <= STACK_REGISTERS {
+            &mut small
+        } else {
+            big = vec![0.0f64; self.n_regs];
+            &mut big
+        };
+        let n_in = self.n_inputs;
+        r[..n_in].copy_from_slice(&inputs[..n_in]);
+        r[n_in..n_in + self.consts.len()].copy_from_slice(&self.consts);
+        for step in &self.steps {
+            match *step {
+                Step::Unary { f, x, dst } => r[dst] = f.apply(r[x]),
+                Step::Binary { f, a, b, dst } => r[dst] = f.apply(r[a], r[b]),
+                Step::SinCos { x, sin, cos } => (r[sin], r[cos]) = r[x].sin_cos(),
+            }
+        }
+        for (i, &o) in self.outputs.iter().enumerate() {
+            out(i, r[o]);
+        }
     }
 }
 
@@ -442,6 +757,63 @@ mod tests {
         assert_eq!(ev("sign(vx) * max(1, 2)", &[("vx", -3.0)]), -2.0);
         assert_eq!(ev("atan2(0, -1)", &[]), std::f64::consts::PI);
         assert_eq!(ev("x*x - y", &[("x", 3.0), ("y", 1.0)]), 8.0);
+    }
+
+    #[test]
+    fn a_program_gives_the_interpreters_bits_and_shares_work() {
+        let srcs = [
+            "sin(2*pi*x/4)",
+            "cos(2*pi*x/4)",
+            "sign(vx) * (T - 20)",
+            "-x^2 + 3*2 - pow(x, 2) + atan2(vx, x) * min(x, 1) / max(2, vx)",
+            "sqrt(abs(x)) + exp(-x) + ln(2 + x*x) + log10(10) + floor(x) + ceil(vx)",
+            "tan(x) + asin(0.5) + acos(0.25) + atan(vx) + 2^-1 + e",
+            "sin(x) + cos(vx)",
+            "1/0 + x",
+        ];
+        let exprs: Vec<Expr> = srcs.iter().map(|s| Expr::parse(s).unwrap()).collect();
+        let names = ["x", "vx", "T"];
+        let slots: Vec<Vec<usize>> = exprs
+            .iter()
+            .map(|e| {
+                e.vars
+                    .iter()
+                    .map(|v| names.iter().position(|n| n == v).unwrap())
+                    .collect()
+            })
+            .collect();
+        let list: Vec<(&Expr, &[usize])> = exprs
+            .iter()
+            .zip(&slots)
+            .map(|(e, s)| (e, s.as_slice()))
+            .collect();
+        let p = Program::compile(&list, names.len());
+        assert_eq!(p.len(), srcs.len());
+        // 2*pi is folded, 2*pi*x/4 computed once, its sine and cosine by one sin_cos.
+        let sincos = |p: &Program| {
+            p.steps
+                .iter()
+                .filter(|s| matches!(s, Step::SinCos { .. }))
+                .count()
+        };
+        assert_eq!(sincos(&p), 1);
+        let two = Program::compile(&list[..2], names.len());
+        assert_eq!(two.steps.len(), 3, "{:?}", two.steps); // ·x, /4, sin_cos
+        for inputs in [[0.7, -3.0, 22.5], [-1.3, 0.0, 19.0], [1e3, 5.0, f64::NAN]] {
+            let mut got = vec![];
+            p.eval(&inputs, |i, v| got.push((i, v)));
+            for (i, (e, s)) in list.iter().enumerate() {
+                let vars: Vec<f64> = s.iter().map(|k| inputs[*k]).collect();
+                let want = e.eval(&vars);
+                assert_eq!(got[i].0, i);
+                assert_eq!(
+                    got[i].1.to_bits(),
+                    want.to_bits(),
+                    "{}: {inputs:?}",
+                    srcs[i]
+                );
+            }
+        }
     }
 
     #[test]

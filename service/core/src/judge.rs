@@ -28,8 +28,6 @@ pub struct Transition {
 
 #[derive(Debug, Clone, Default)]
 struct AxisState {
-    est: Vec<State>,
-    meas: Vec<State>,
     raised: bool,
     above: u32,
     below: u32,
@@ -48,6 +46,9 @@ pub struct Judge {
     a_est: [Vec3; 3],
     n_hist: usize,
     axes: [AxisState; 3],
+    /// Filter states per section of the six channels: estimated x, y, z, measured x, y, z.
+    /// The channels are independent, so each section runs on all six at once.
+    states: Vec<[State; 6]>,
     primed: bool,
 }
 
@@ -55,6 +56,7 @@ impl Judge {
     /// Bytes of heap this judge holds (its filter sections).
     pub fn heap_bytes(&self) -> usize {
         self.sections.capacity() * std::mem::size_of::<Coefficients>()
+            + self.states.capacity() * std::mem::size_of::<[State; 6]>()
     }
 
     /// A judge with validated filter sections and limits.
@@ -75,6 +77,7 @@ impl Judge {
             a_est: [Vec3::zeros(); 3],
             n_hist: 0,
             axes: Default::default(),
+            states: Vec::new(),
             primed: false,
         }
     }
@@ -135,21 +138,24 @@ impl Judge {
         let a_meas = ((s2 - s1) / h2 - (s1 - s0) / h1) * (2.0 / (h1 + h2));
         let a_mid = self.a_est[1];
         if !self.primed {
-            for ax in self.axes.iter_mut().zip(0..3) {
-                let (st, i) = ax;
-                st.est = self.sections.iter().map(|c| c.steady(a_mid[i])).collect();
-                st.meas = self.sections.iter().map(|c| c.steady(a_mid[i])).collect();
-            }
+            // Both filters of an axis start at rest at the estimate.
+            self.states.clear();
+            self.states.extend(
+                self.sections
+                    .iter()
+                    .map(|c| [0, 1, 2, 0, 1, 2].map(|i| c.steady(a_mid[i]))),
+            );
             self.primed = true;
+        }
+        let mut y = [a_mid.x, a_mid.y, a_mid.z, a_meas.x, a_meas.y, a_meas.z];
+        for (c, st) in self.sections.iter().zip(self.states.iter_mut()) {
+            for (y, st) in y.iter_mut().zip(st.iter_mut()) {
+                *y = c.run(st, *y);
+            }
         }
         let mut broken = false;
         for (i, st) in self.axes.iter_mut().enumerate() {
-            let mut e = a_mid[i];
-            let mut m = a_meas[i];
-            for (k, c) in self.sections.iter().enumerate() {
-                e = c.run(&mut st.est[k], e);
-                m = c.run(&mut st.meas[k], m);
-            }
+            let (e, m) = (y[i], y[i + 3]);
             let d = (e - m).abs();
             // A difference that is not a number (an overflow in the estimate or the filters)
             // means the estimate cannot be judged: it counts as exceeding, even while settling.

@@ -84,6 +84,49 @@ pub fn machine_from_probe(a1_deg: f64, a2_deg: f64) -> Matrix3<f64> {
     rz * rx
 }
 
+/// One tip at one pair of head angles: the head's rotation and the tip's offset in machine
+/// axes. They change only when the tip or the head does, so the corrector keeps the last one
+/// and computes a new one only then (not per point).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TipPose {
+    /// Tip id.
+    pub tip_id: u32,
+    /// Head angle A1, degrees.
+    pub a1_deg: f64,
+    /// Head angle A2, degrees.
+    pub a2_deg: f64,
+    /// [`machine_from_probe`] at these angles.
+    pub machine_from_probe: Matrix3<f64>,
+    /// Shank part of the tip offset, machine axes, mm.
+    pub shank: Vec3,
+    /// Bent part of the tip offset, machine axes, mm.
+    pub bent: Vec3,
+}
+
+impl TipPose {
+    /// The pose of `tip` at head angles A1, A2 (degrees).
+    pub fn new(tip: &TipGeometry, a1_deg: f64, a2_deg: f64) -> TipPose {
+        let r = machine_from_probe(a1_deg, a2_deg);
+        TipPose {
+            tip_id: tip.id,
+            a1_deg,
+            a2_deg,
+            machine_from_probe: r,
+            shank: r * tip.shank_probe(),
+            bent: r * tip.bent_probe(),
+        }
+    }
+
+    /// Whether this is the pose of tip `tip_id` at these head angles (the same bits: −0 is
+    /// not +0 here, so a cached pose equals the one computed afresh).
+    #[inline]
+    pub fn is_for(&self, tip_id: u32, a1_deg: f64, a2_deg: f64) -> bool {
+        self.tip_id == tip_id
+            && self.a1_deg.to_bits() == a1_deg.to_bits()
+            && self.a2_deg.to_bits() == a2_deg.to_bits()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -10,8 +10,8 @@
 //! `sin(2*pi*x/4)`, backlash at reversal `sign(vx)`).
 
 use super::{temp, Effect, SensorTable};
-use crate::expr::Expr;
-use crate::sample::{Axis, PointContext, Vec3};
+use crate::expr::{Expr, Program};
+use crate::sample::{Axis, PointContext, Vec3, MAX_SENSORS};
 use serde::{Deserialize, Serialize};
 
 /// Signals an expression may use; temperatures are `T_<sensor>` (e.g. `T_air`).
@@ -75,16 +75,23 @@ pub struct Config {
     pub coefficients: Vec<f64>,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 enum Sig {
     Builtin(usize),
     Temp(usize),
 }
 
-/// Hot-path form.
+/// Most distinct signals a custom effect can read (every built-in and every sensor slot).
+const MAX_SIGNALS: usize = SIGNALS.len() + MAX_SENSORS;
+
+/// Hot-path form: the terms' expressions compiled together into one [`Program`] over the
+/// distinct signals they read (each read once per point).
 #[derive(Debug, Clone)]
 pub struct Model {
-    terms: Vec<(usize, Expr, Vec<Sig>)>,
+    signals: Vec<Sig>,
+    program: Program,
+    /// Axis index of each term.
+    axes: Vec<usize>,
     coef: Vec<f64>,
 }
 
@@ -105,10 +112,11 @@ impl Config {
             ));
         }
         super::check_finite("coefficients", &self.coefficients)?;
+        let mut signals: Vec<Sig> = vec![];
         let mut terms = vec![];
         for (i, t) in self.terms.iter().enumerate() {
             let e = Expr::parse(&t.expr).map_err(|e| format!("terms[{i}].expr: {e}"))?;
-            let mut sigs = vec![];
+            let mut inputs = vec![];
             for v in &e.vars {
                 let s = if let Some(k) = SIGNALS.iter().position(|(n, _)| n == v) {
                     Sig::Builtin(k)
@@ -125,12 +133,19 @@ impl Config {
                         known.join(", ")
                     ));
                 };
-                sigs.push(s);
+                let k = signals.iter().position(|x| *x == s).unwrap_or_else(|| {
+                    signals.push(s);
+                    signals.len() - 1
+                });
+                inputs.push(k);
             }
-            terms.push((t.axis.index(), e, sigs));
+            terms.push((e, inputs));
         }
+        let exprs: Vec<(&Expr, &[usize])> = terms.iter().map(|(e, i)| (e, i.as_slice())).collect();
         Ok(Model {
-            terms,
+            program: Program::compile(&exprs, signals.len()),
+            signals,
+            axes: self.terms.iter().map(|t| t.axis.index()).collect(),
             coef: self.coefficients.clone(),
         })
     }
@@ -161,47 +176,35 @@ fn builtin(ctx: &PointContext, k: usize) -> f64 {
 }
 
 impl Model {
+    /// Hands each term's value (0 where it is not a finite number) to `out(term, value)`.
     #[inline]
-    fn term_value(&self, ctx: &PointContext, t: usize) -> f64 {
-        let (_, e, sigs) = &self.terms[t];
-        let mut vals = [0.0; 16];
-        let mut heap;
-        let v: &mut [f64] = if sigs.len() <= 16 {
-            &mut vals
-        } else {
-            heap = vec![0.0; sigs.len()];
-            &mut heap
-        };
-        for (i, s) in sigs.iter().enumerate() {
-            v[i] = match *s {
+    fn term_values(&self, ctx: &PointContext, mut out: impl FnMut(usize, f64)) {
+        let mut inputs = [0.0; MAX_SIGNALS];
+        for (v, s) in inputs.iter_mut().zip(&self.signals) {
+            *v = match *s {
                 Sig::Builtin(k) => builtin(ctx, k),
                 Sig::Temp(slot) => temp(ctx, slot, 20.0),
             };
         }
-        let x = e.eval(v);
-        if x.is_finite() {
-            x
-        } else {
-            0.0
-        }
+        self.program.eval(&inputs, |t, x| {
+            out(t, if x.is_finite() { x } else { 0.0 });
+        });
     }
 }
 
 impl Effect for Model {
     fn n_params(&self) -> usize {
-        self.terms.len()
+        self.axes.len()
     }
     fn regressors(&self, ctx: &PointContext, out: &mut [Vec3]) {
-        for t in 0..self.terms.len() {
+        self.term_values(ctx, |t, x| {
             out[t] = Vec3::zeros();
-            out[t][self.terms[t].0] = self.term_value(ctx, t);
-        }
+            out[t][self.axes[t]] = x;
+        });
     }
     fn correction(&self, ctx: &PointContext) -> Vec3 {
         let mut d = Vec3::zeros();
-        for t in 0..self.terms.len() {
-            d[self.terms[t].0] += self.coef[t] * self.term_value(ctx, t);
-        }
+        self.term_values(ctx, |t, x| d[self.axes[t]] += self.coef[t] * x);
         d
     }
 }
