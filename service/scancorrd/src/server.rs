@@ -262,7 +262,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     for k in 0..workers {
         // Bounded: a shard that falls behind holds up the routing, and so zenoh's reception,
         // instead of growing without bound.
-        let (tx, rx) = flume::bounded(1024);
+        let (tx, rx) = flume::bounded(256);
         threads.push(
             crate::shard::spawn(k, st.limits.clone(), rx).map_err(|e| {
                 ServiceError::Refused(format!("starting correcting worker {k}: {e}"))
@@ -898,7 +898,7 @@ impl State {
         let job = Job::Raw {
             machine,
             stream: sid,
-            sample: s,
+            bytes: s.payload().to_bytes().into_owned(),
             arrived,
         };
         let _ = self.shards[m.shard].send_async(job).await;

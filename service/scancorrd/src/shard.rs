@@ -201,7 +201,9 @@ pub(crate) enum Job {
     Raw {
         machine: String,
         stream: StreamId,
-        sample: zenoh::sample::Sample,
+        /// The payload, copied out of zenoh's receive buffer (a queued `Sample` would hold
+        /// the whole buffer it arrived in).
+        bytes: Vec<u8>,
         arrived: Instant,
     },
     /// A new calibration (the first, or a swap between two messages).
@@ -252,7 +254,7 @@ pub(crate) fn spawn(
                     Job::Raw {
                         machine,
                         stream,
-                        sample,
+                        bytes,
                         arrived,
                     } => {
                         if let Some(m) = machines.get_mut(&machine) {
@@ -260,7 +262,7 @@ pub(crate) fn spawn(
                                 m,
                                 &machine,
                                 stream,
-                                &sample,
+                                &bytes,
                                 arrived,
                                 &limits,
                                 &mut samples,
@@ -331,16 +333,15 @@ fn on_raw(
     m: &mut Core,
     machine: &str,
     sid: StreamId,
-    s: &zenoh::sample::Sample,
+    bytes: &[u8],
     arrived: Instant,
     limits: &Limits,
     samples: &mut Vec<scancorr_core::sample::Sample>,
     out: &mut Output,
 ) {
     m.extra.messages += 1;
-    let bytes = s.payload().to_bytes();
     samples.clear();
-    match wire::decode_machine_tagged(sid, &bytes, machine, limits.tags, samples) {
+    match wire::decode_machine_tagged(sid, bytes, machine, limits.tags, samples) {
         Ok(f) => m.extra.wrong_machine += f,
         Err(wire::WireError::Empty(_)) => m.extra.empty += 1,
         Err(e) => {
