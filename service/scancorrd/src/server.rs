@@ -781,6 +781,7 @@ impl State {
                 machine: name.to_string(),
                 max_bytes: self.cfg.max_queued_bytes_per_machine,
                 state: Mutex::new(OutState::default()),
+                ready: Default::default(),
             });
             // The shard with the fewest machines corrects it.
             let shard = (0..self.shards.len())

@@ -52,13 +52,21 @@ pub(crate) struct Outbox {
     pub(crate) machine: String,
     pub(crate) max_bytes: usize,
     pub(crate) state: Mutex<OutState>,
+    /// Wakes a draining task that lingers for more output.
+    pub(crate) ready: std::sync::Condvar,
 }
+
+/// How long a drain task waits for more output before it ends: under steady output the next
+/// batch comes sooner, and a waiting thread is cheaper to wake than a new task to start.
+const LINGER: std::time::Duration = std::time::Duration::from_micros(500);
 
 #[derive(Default)]
 pub(crate) struct OutState {
     queue: VecDeque<Outgoing>,
     bytes: usize,
     draining: bool,
+    /// The drain task waits for more (see [`LINGER`]).
+    lingering: bool,
     published_points: u64,
     dropped_points: u64,
     dropped_alarms: u64,
@@ -98,7 +106,9 @@ impl Outbox {
         }
         st.bytes += o.len();
         st.queue.push_back(o);
-        if !st.draining {
+        if st.lingering {
+            self.ready.notify_one();
+        } else if !st.draining {
             st.draining = true;
             let me = self.clone();
             tokio::task::spawn_blocking(move || me.drain());
@@ -106,25 +116,29 @@ impl Outbox {
     }
 
     fn drain(&self) {
+        let mut st = self.lock();
         loop {
-            let o = {
-                let mut st = self.lock();
-                match st.queue.pop_front() {
-                    Some(o) => {
-                        st.bytes -= o.len();
-                        o
-                    }
-                    None => {
-                        st.draining = false;
-                        return;
-                    }
+            let Some(o) = st.queue.pop_front() else {
+                st.lingering = true;
+                st = self
+                    .ready
+                    .wait_timeout(st, LINGER)
+                    .unwrap_or_else(|e| e.into_inner())
+                    .0;
+                st.lingering = false;
+                if st.queue.is_empty() {
+                    st.draining = false;
+                    return;
                 }
+                continue;
             };
+            st.bytes -= o.len();
+            drop(st);
             let (r, n, arrived) = match o {
                 Outgoing::Points(b, n, at) => (self.points.put(b).wait(), n, at),
                 Outgoing::Alarm(b) => (self.alarms.put(b).wait(), 0, None),
             };
-            let mut st = self.lock();
+            st = self.lock();
             match r {
                 Ok(()) => {
                     st.published_points += n;
