@@ -128,11 +128,11 @@ struct Run {
 type Count = fn(&str, &[u8]) -> (u64, Option<i64>);
 
 fn count_relayed(key: &str, b: &[u8]) -> (u64, Option<i64>) {
-    let t = key
-        .ends_with("/probe/out")
-        .then(|| scancorr_proto::v1::ProbeBatch::decode(b).ok())
-        .flatten()
-        .and_then(|p| p.samples.last().map(|s| s.t_ns));
+    let mut t = None;
+    if key.ends_with("/probe/out") {
+        // Packed (v1.3) or per-sample: the time of the batch's last sample.
+        let _ = scancorr_core::wire::decode_with(StreamId::Probe, b, |_, s| t = Some(s.t_ns()));
+    }
     (1, t)
 }
 
