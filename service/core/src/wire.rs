@@ -542,7 +542,9 @@ pub fn encode_points(
     buf: &mut Vec<u8>,
 ) {
     for p in ps {
-        ld_key(1, point_len(p, machine, effect_ids), buf);
+        // A point with its corrections is usually 128 B to 16 KiB: its length's two bytes
+        // are kept and filled in once it is written.
+        let point = open_ld(1, 2, buf);
         put_str(1, machine, buf);
         put_u64(2, p.seq, buf);
         put_u64(3, p.t_ns as u64, buf);
@@ -551,17 +553,57 @@ pub fn encode_points(
         put_vec3(6, &p.tip_center, buf);
         put_vec3(7, &p.normal, buf);
         for (c, id) in p.corrections.iter().zip(effect_ids) {
-            ld_key(8, correction_len(c, id), buf);
+            let correction = open_ld(8, 1, buf);
             put_str(1, id, buf);
             put_f64(2, c.x, buf);
             put_f64(3, c.y, buf);
             put_f64(4, c.z, buf);
+            close_ld(correction, buf);
         }
         put_u64(9, p.calibration_version, buf);
         put_u64(10, p.estimator_valid as u64, buf);
         put_u64(11, p.segment_id as u64, buf);
         put_u64(12, p.tip_id as u64, buf);
+        close_ld(point, buf);
     }
+}
+
+/// A length-delimited field being written: where its length goes, and how many bytes were
+/// kept for it.
+struct OpenLd {
+    at: usize,
+    kept: usize,
+}
+
+/// Starts a length-delimited field whose length is not known yet, keeping `kept` bytes for
+/// it (the length it will most likely need).
+fn open_ld(tag: u8, kept: usize, buf: &mut Vec<u8>) -> OpenLd {
+    buf.push(tag << 3 | 2);
+    let at = buf.len();
+    buf.resize(at + kept, 0);
+    OpenLd { at, kept }
+}
+
+/// Writes the length of a field started by [`open_ld`] as the shortest varint, moving the
+/// field's body when that needs other than the bytes kept (the bytes prost writes).
+fn close_ld(f: OpenLd, buf: &mut Vec<u8>) {
+    let body = f.at + f.kept;
+    let len = buf.len() - body;
+    let n = encoded_len_varint(len as u64);
+    if n != f.kept {
+        let end = buf.len();
+        if n > f.kept {
+            buf.resize(end + n - f.kept, 0);
+        }
+        buf.copy_within(body..end, f.at + n);
+        buf.truncate(f.at + n + len);
+    }
+    let mut v = len as u64;
+    for b in &mut buf[f.at..f.at + n] {
+        *b = v as u8 | 0x80;
+        v >>= 7;
+    }
+    buf[f.at + n - 1] &= 0x7f;
 }
 
 // Protobuf field encoders for `encode_points`, skipping default values as proto3 does. Every
@@ -596,20 +638,6 @@ fn put_vec3(tag: u8, v: &Vec3, buf: &mut Vec<u8>) {
     put_f64(2, v.y, buf);
     put_f64(3, v.z, buf);
 }
-fn str_len(s: &str) -> usize {
-    if s.is_empty() {
-        0
-    } else {
-        1 + encoded_len_varint(s.len() as u64) + s.len()
-    }
-}
-fn u64_len(v: u64) -> usize {
-    if v == 0 {
-        0
-    } else {
-        1 + encoded_len_varint(v)
-    }
-}
 fn f64_len(v: f64) -> usize {
     if v != 0.0 {
         9
@@ -617,32 +645,8 @@ fn f64_len(v: f64) -> usize {
         0
     }
 }
-fn ld_len(len: usize) -> usize {
-    1 + encoded_len_varint(len as u64) + len
-}
 fn vec3_len(v: &Vec3) -> usize {
     f64_len(v.x) + f64_len(v.y) + f64_len(v.z)
-}
-fn correction_len(c: &Vec3, id: &str) -> usize {
-    str_len(id) + vec3_len(c)
-}
-fn point_len(p: &CorrectedPoint, machine: &str, effect_ids: &[String]) -> usize {
-    str_len(machine)
-        + u64_len(p.seq)
-        + u64_len(p.t_ns as u64)
-        + u64_len(p.sample_seq)
-        + ld_len(vec3_len(&p.surface))
-        + ld_len(vec3_len(&p.tip_center))
-        + ld_len(vec3_len(&p.normal))
-        + p.corrections
-            .iter()
-            .zip(effect_ids)
-            .map(|(c, id)| ld_len(correction_len(c, id)))
-            .sum::<usize>()
-        + u64_len(p.calibration_version)
-        + u64_len(p.estimator_valid as u64)
-        + u64_len(p.segment_id as u64)
-        + u64_len(p.tip_id as u64)
 }
 
 /// Wire form of an alarm.
@@ -1397,18 +1401,23 @@ mod tests {
                 tip_id: (k * 300) as u32,
             });
         }
-        for machine in [
-            "m1",
-            "",
-            "a-machine-with-a-long-name-to-make-lengths-two-bytes",
-        ] {
-            let want = v1::CorrectedPointBatch {
-                points: ps.iter().map(|p| point(p, machine, &ids)).collect(),
+        // Lengths of one, two and three bytes: a correction and a point longer than 127
+        // bytes, a point longer than 16 KiB.
+        let long_ids = ["x".repeat(200), "y".repeat(17_000), String::new()].to_vec();
+        for ids in [&ids, &long_ids] {
+            for machine in [
+                "m1",
+                "",
+                "a-machine-with-a-long-name-to-make-lengths-two-bytes",
+            ] {
+                let want = v1::CorrectedPointBatch {
+                    points: ps.iter().map(|p| point(p, machine, ids)).collect(),
+                }
+                .encode_to_vec();
+                let mut got = vec![0xAA];
+                encode_points(&ps, machine, ids, &mut got);
+                assert_eq!(&got[1..], &want[..], "machine `{machine}`");
             }
-            .encode_to_vec();
-            let mut got = vec![0xAA];
-            encode_points(&ps, machine, &ids, &mut got);
-            assert_eq!(&got[1..], &want[..], "machine `{machine}`");
         }
     }
 }
