@@ -229,6 +229,7 @@ mod tests {
                 z: 3.25,
             }],
             stream: v1::StreamKind::Scale as i32,
+            columns: None,
         };
         let bytes = b.encode_to_vec();
         assert_eq!(v1::ScaleBatch::decode(bytes.as_slice()).unwrap(), b);

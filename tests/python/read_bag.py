@@ -34,6 +34,7 @@ record when the bag has one. Any problem: the problems go to stderr and the exit
 
 import json
 import sys
+from types import SimpleNamespace
 
 try:
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -81,6 +82,22 @@ def build_pool(fds_bytes):
     for name in files:
         add(name)
     return pool, sorted(files)
+
+
+def column_samples(columns, where, problems):
+    """The samples of a packed batch (scancorr.v1.3): its columns message numbers its fields as
+    the sample does, each a column of one value per sample, except `machine_id`, once."""
+    names = [f.name for f in columns.DESCRIPTOR.fields if f.name != "machine_id"]
+    cols = {name: list(getattr(columns, name)) for name in names}
+    n = len(cols["seq"])
+    for name, col in cols.items():
+        if len(col) != n:
+            problems.add(f"{where}: column {name} holds {len(col)} values for {n} samples")
+            return []
+    return [
+        SimpleNamespace(machine_id=columns.machine_id, **{k: v[i] for k, v in cols.items()})
+        for i in range(n)
+    ]
 
 
 def machine_of(topic):
@@ -164,6 +181,10 @@ def read(path, problems):
                 continue
             field = next((n for n in BATCH_FIELDS if n in cls.DESCRIPTOR.fields_by_name), None)
             samples = list(getattr(msg, field)) if field else [msg]
+            if "columns" in cls.DESCRIPTOR.fields_by_name and msg.HasField("columns"):
+                if samples:
+                    problems.add(f"{topic}: message #{t['messages']} has both samples and columns")
+                samples = column_samples(msg.columns, f"{topic}: message #{t['messages']}", problems)
             if field and not samples:
                 problems.add(f"{topic}: message #{t['messages']} is an empty batch")
             st = streams.setdefault(topic, {"seq": None})

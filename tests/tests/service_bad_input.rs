@@ -115,6 +115,7 @@ async fn bad_input_is_counted_and_never_stops_the_service() {
             scancorr_proto::v1::ScaleBatch {
                 samples: vec![],
                 stream: scancorr_proto::v1::StreamKind::Scale as i32,
+                columns: None,
             }
             .encode_to_vec(),
         )

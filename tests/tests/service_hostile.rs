@@ -421,6 +421,7 @@ async fn wrapped_or_jumping_sequences_absurd_values_and_wrong_types_are_survived
             z: 0.0,
         }],
         stream: 0,
+        columns: None,
     };
     s.put("cmm/m1/raw/scale", untagged.encode_to_vec())
         .await

@@ -6,8 +6,8 @@
 mod common;
 use common::*;
 use nalgebra::{DMatrix, DVector, Matrix4, Rotation3, Vector3, Vector4};
+use scancorr_core::sample::{Sample, StreamId};
 use scancorr_proto::v1::CorrectedPoint;
-use scancorr_proto::Message;
 use serde_json::Value;
 use std::collections::HashMap;
 use std::path::Path;
@@ -68,12 +68,12 @@ fn scales(bag: &Path) -> Vec<(i64, V3)> {
     for m in r.messages().unwrap() {
         let m = m.unwrap();
         if m.stream == scancorr_bag::Stream::Scale {
-            for s in scancorr_proto::v1::ScaleBatch::decode(&*m.data)
-                .unwrap()
-                .samples
-            {
-                v.push((s.t_ns, V3::new(s.x, s.y, s.z)));
-            }
+            scancorr_core::wire::decode_with(StreamId::Scale, &m.data, |_, s| {
+                if let Sample::Scale(s) = s {
+                    v.push((s.t_ns, V3::new(s.pos.x, s.pos.y, s.pos.z)));
+                }
+            })
+            .unwrap();
         }
     }
     v.sort_by_key(|s| s.0);

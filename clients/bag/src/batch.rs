@@ -174,14 +174,38 @@ pub trait BatchMessage: Message + Sized {
 }
 
 macro_rules! batch_message {
+    // A batch of the corrected streams: its samples are messages or packed columns (v1.3).
+    ($ty:ty, $stream:expr, $variant:ident, packed) => {
+        batch_message!(
+            $ty,
+            $stream,
+            $variant,
+            |b: &$ty| b.samples.len() + b.columns.as_ref().map_or(0, |c| c.seq.len()),
+            |b: &$ty| b.samples.first().map(|s| s.t_ns).or_else(|| b
+                .columns
+                .as_ref()?
+                .t_ns
+                .first()
+                .copied())
+        );
+    };
     ($ty:ty, $stream:expr, $field:ident, $variant:ident) => {
+        batch_message!(
+            $ty,
+            $stream,
+            $variant,
+            |b: &$ty| b.$field.len(),
+            |b: &$ty| b.$field.first().map(|s| s.t_ns)
+        );
+    };
+    ($ty:ty, $stream:expr, $variant:ident, $count:expr, $first:expr) => {
         impl BatchMessage for $ty {
             const STREAM: Stream = $stream;
             fn sample_count(&self) -> usize {
-                self.$field.len()
+                $count(self)
             }
             fn first_t_ns(&self) -> Option<i64> {
-                self.$field.first().map(|s| s.t_ns)
+                $first(self)
             }
             fn into_raw(self) -> RawBatch {
                 RawBatch::$variant(self)
@@ -195,10 +219,10 @@ macro_rules! batch_message {
     };
 }
 
-batch_message!(CommandBatch, Stream::Command, samples, Command);
-batch_message!(ScaleBatch, Stream::Scale, samples, Scale);
-batch_message!(ProbeBatch, Stream::Probe, samples, Probe);
-batch_message!(TemperatureBatch, Stream::Temperature, samples, Temperature);
+batch_message!(CommandBatch, Stream::Command, Command, packed);
+batch_message!(ScaleBatch, Stream::Scale, Scale, packed);
+batch_message!(ProbeBatch, Stream::Probe, Probe, packed);
+batch_message!(TemperatureBatch, Stream::Temperature, Temperature, packed);
 batch_message!(DistanceBatch, Stream::Distance, samples, Distance);
 batch_message!(StageBatch, Stream::Stage, samples, Stage);
 batch_message!(CorrectedPointBatch, Stream::Points, points, Points);
@@ -239,8 +263,10 @@ pub struct BatchPeek {
 /// are not well-formed protobuf.
 pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
     // Field numbers: the repeated samples/points field is 1 in every batch; `t_ns` is 3 in
-    // every sample, point and alarm.
+    // every sample, point and alarm. A packed batch (v1.3) holds its samples in field 3 as
+    // columns (`seq` 2, `t_ns` 3).
     const REPEATED: u32 = 1;
+    const COLUMNS: u32 = 3;
     const T_NS: u32 = 3;
     if stream == Stream::Alarms {
         return Some(BatchPeek {
@@ -248,22 +274,60 @@ pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
             first_t_ns: Some(varint_field(payload, T_NS)?),
         });
     }
+    let packed = Stream::CORRECTED.contains(&stream);
     let mut samples = 0u64;
     let mut first = None;
     let mut rest = payload;
     while !rest.is_empty() {
-        let (field, value) = next_field(&mut rest)?;
-        if let (REPEATED, Value::Bytes(sample)) = (field, value) {
-            if samples == 0 {
-                first = Some(varint_field(sample, T_NS)?);
+        match next_field(&mut rest)? {
+            (REPEATED, Value::Bytes(sample)) => {
+                if samples == 0 {
+                    first = Some(varint_field(sample, T_NS)?);
+                }
+                samples += 1;
             }
-            samples += 1;
+            (COLUMNS, Value::Bytes(columns)) if packed => {
+                let (n, t) = peek_columns(columns)?;
+                if samples == 0 {
+                    first = t;
+                }
+                samples += n;
+            }
+            _ => {}
         }
     }
     Some(BatchPeek {
         samples,
         first_t_ns: first,
     })
+}
+
+/// The length of the `seq` column and the first `t_ns` of a packed batch's columns (v1.3),
+/// whether the columns are packed or, as protobuf allows, written one value per field.
+fn peek_columns(mut columns: &[u8]) -> Option<(u64, Option<i64>)> {
+    const SEQ: u32 = 2;
+    const T_NS: u32 = 3;
+    let (mut n, mut first) = (0u64, None);
+    while !columns.is_empty() {
+        match next_field(&mut columns)? {
+            (SEQ, Value::Varint(_)) => n += 1,
+            (SEQ, Value::Bytes(mut packed)) => {
+                while !packed.is_empty() {
+                    varint(&mut packed)?;
+                    n += 1;
+                }
+            }
+            (T_NS, Value::Varint(t)) => {
+                first.get_or_insert(t as i64);
+            }
+            (T_NS, Value::Bytes(mut packed)) if !packed.is_empty() => {
+                let t = varint(&mut packed)?;
+                first.get_or_insert(t as i64);
+            }
+            _ => {}
+        }
+    }
+    Some((n, first))
 }
 
 /// The stream tag (field 2, v1.1) of an encoded raw batch, 0 when absent, found by walking the
@@ -348,7 +412,7 @@ fn varint(b: &mut &[u8]) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use scancorr_proto::v1::{CorrectedPoint, ScaleSample};
+    use scancorr_proto::v1::{CorrectedPoint, ScaleColumns, ScaleSample};
 
     #[test]
     fn peek_matches_decoding() {
@@ -424,5 +488,41 @@ mod tests {
             RawBatch::decode(Stream::Scale, &[0x0a, 0x05]),
             Err(BagError::Decode { .. })
         ));
+    }
+
+    #[test]
+    fn peek_reads_packed_batches() {
+        let b = ScaleBatch {
+            stream: StreamKind::Scale as i32,
+            columns: Some(ScaleColumns {
+                machine_id: "m1".into(),
+                seq: vec![300, 301, 302],
+                t_ns: vec![-5, 1 << 40, 7],
+                x: vec![1.0; 3],
+                y: vec![0.0; 3],
+                z: vec![2.0; 3],
+            }),
+            ..Default::default()
+        };
+        let want = BatchPeek {
+            samples: 3,
+            first_t_ns: Some(-5),
+        };
+        assert_eq!(peek(Stream::Scale, &b.encode_to_vec()), Some(want));
+        assert_eq!((b.sample_count(), b.first_t_ns()), (3, Some(-5)));
+        // Columns written one value per field (protobuf readers must take that too): seq 5,
+        // seq 6, t_ns 7.
+        let unpacked = [0x1a, 6, 0x10, 5, 0x10, 6, 0x18, 7];
+        assert_eq!(
+            peek(Stream::Command, &unpacked),
+            Some(BatchPeek {
+                samples: 2,
+                first_t_ns: Some(7)
+            })
+        );
+        // A packed seq column cut inside a varint is not well-formed.
+        assert_eq!(peek(Stream::Scale, &[0x1a, 3, 0x12, 1, 0x80]), None);
+        // Field 3 of a measurement batch is not columns.
+        assert_eq!(peek(Stream::Distance, &unpacked).unwrap().samples, 0);
     }
 }

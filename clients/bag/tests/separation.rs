@@ -264,6 +264,7 @@ fn the_separation_reader_counts_what_it_skips_and_names_what_is_missing() {
             ..Default::default()
         }],
         stream: StreamKind::Scale as i32,
+        columns: None,
     };
     w.write_msg("m1", "cmm", 1, &scale).unwrap();
     // Written out of time order: the reader sorts by t_ns.
@@ -418,6 +419,7 @@ fn a_distance_batch_on_the_stage_key_is_the_wrong_stream() {
     let scale = ScaleBatch {
         samples: vec![ScaleSample::default()],
         stream: StreamKind::Scale as i32,
+        columns: None,
     };
     let e = RawBatch::decode_checked(Stream::Distance, &scale.encode_to_vec(), "").unwrap_err();
     assert!(

@@ -62,6 +62,9 @@ class Bag:
     channels: Dict[str, Channel] = field(default_factory=dict)
     metadata: Dict[str, Dict[str, str]] = field(default_factory=dict)
     skipped: Dict[str, int] = field(default_factory=dict)
+    # Messages per topic that decode but are no valid batch (packed columns of unequal
+    # lengths, or both forms in one batch): counted, not read.
+    malformed: Dict[str, int] = field(default_factory=dict)
 
     def __getitem__(self, topic: str) -> np.ndarray:
         return self.channels[topic].data
@@ -125,23 +128,45 @@ def _sample_dtype(desc: Any) -> tuple:
 
 def _samples(batch: Any, cache: Dict[str, tuple]) -> np.ndarray:
     """The `samples` of a raw batch (CommandBatch, ScaleBatch, …) as a structured array of
-    their scalar fields (without the machine id)."""
+    their scalar fields (without the machine id), from either form of the batch: one message
+    per sample, or packed columns (scancorr.v1.3). Raises ValueError for a batch with both
+    forms or with columns of unequal lengths."""
     desc = batch.DESCRIPTOR.fields_by_name["samples"].message_type
     got = cache.get(desc.full_name)
     if got is None:
         names, dt = _sample_dtype(desc)
         got = cache[desc.full_name] = (attrgetter(*names), dt, len(names))
     get, dt, n = got
+    if "columns" in batch.DESCRIPTOR.fields_by_name and batch.HasField("columns"):
+        if len(batch.samples):
+            raise ValueError(f"{batch.DESCRIPTOR.name} with both `samples` and `columns`")
+        return _columns(batch.columns, dt)
     rows = list(map(get, batch.samples))
     if n == 1:
         rows = [(r,) for r in rows]
     return np.array(rows, dtype=dt)
 
 
+def _columns(columns: Any, dt: np.dtype) -> np.ndarray:
+    """A packed batch's columns (scancorr.v1.3: the sample's fields, one value per sample
+    each) as the structured array `_samples` makes of per-sample messages."""
+    n = len(columns.seq)
+    a = np.empty(n, dtype=dt)
+    for name in dt.names:
+        col = getattr(columns, name)
+        if len(col) != n:
+            raise ValueError(
+                f"{columns.DESCRIPTOR.name}: column `{name}` holds {len(col)} values for {n} samples"
+            )
+        a[name] = list(col) if dt[name] == object else np.asarray(col, dtype=dt[name])
+    return a
+
+
 def read_bag(path: Union[str, "PathLike[str]"]) -> Bag:
     """Every channel of a scancorr bag as numpy arrays: raw samples per stream, corrected
     points (`arrays.POINT_DTYPE`), alarms (`arrays.ALARM_DTYPE`); the bag's metadata records
-    as dicts. Channels of other schemas are counted in `skipped`, not read."""
+    as dicts. Channels of other schemas are counted in `skipped`, batches that are not valid
+(packed columns of unequal lengths) in `malformed`; neither is read."""
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
@@ -161,7 +186,11 @@ def read_bag(path: Union[str, "PathLike[str]"]) -> Bag:
             elif name == "scancorr.v1.EstimatorAlarm":
                 a = arrays.alarm_from_message(msg)
             elif "samples" in msg.DESCRIPTOR.fields_by_name:
-                a = _samples(msg, cache)
+                try:
+                    a = _samples(msg, cache)
+                except ValueError:
+                    bag.malformed[channel.topic] = bag.malformed.get(channel.topic, 0) + 1
+                    continue
             else:
                 bag.skipped[channel.topic] = bag.skipped.get(channel.topic, 0) + 1
                 continue

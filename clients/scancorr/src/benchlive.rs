@@ -112,21 +112,22 @@ pub fn relay(port: u16, prefix: &str) -> Result<()> {
                 if stream != scancorr_proto::Stream::Probe {
                     continue;
                 }
-                let Ok(batch) = scancorr_proto::v1::ProbeBatch::decode(&*m.payload().to_bytes()) else {
+                // Packed (v1.3) or per-sample: each probe sample's seq and time.
+                let mut probes = vec![];
+                if scancorr_core::wire::decode_with(StreamId::Probe, &m.payload().to_bytes(), |_, s| probes.push((s.seq(), s.t_ns()))).is_err() {
                     continue;
-                };
+                }
                 let out = machines.get_mut(machine).expect("declared");
                 let v = |x: f64| Some(scancorr_proto::v1::Vec3 { x, y: x, z: x });
-                let points: Vec<_> = batch
-                    .samples
+                let points: Vec<_> = probes
                     .iter()
-                    .map(|p| {
+                    .map(|&(seq, t_ns)| {
                         out.seq += 1;
                         scancorr_proto::v1::CorrectedPoint {
                             machine_id: machine.to_string(),
                             seq: out.seq,
-                            t_ns: p.t_ns,
-                            sample_seq: p.seq,
+                            t_ns,
+                            sample_seq: seq,
                             surface: v(100.123456),
                             tip_center: v(101.123456),
                             normal: v(0.577),

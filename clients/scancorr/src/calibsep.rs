@@ -7,12 +7,13 @@ use crate::labcmd::{now_rfc3339, outputs};
 use crate::offline;
 use anyhow::{Context, Result};
 use scancorr_bag::measure::read_separation;
-use scancorr_bag::{BagReader, RawBatch, Stream};
+use scancorr_bag::{BagReader, Stream};
 use scancorr_core::calibrate::separation::{
     self, CarriageSample, DistanceSample, Method, Raw, Request, StageSample,
 };
 use scancorr_core::lab::version;
-use scancorr_core::sample::Axis;
+use scancorr_core::sample::{Axis, Sample, StreamId};
+use scancorr_core::wire;
 use std::path::{Path, PathBuf};
 
 /// Arguments of `calibrate straightness`.
@@ -71,20 +72,18 @@ fn read(path: &Path, machine: &str) -> Result<(Raw, f64, Vec<String>)> {
         if &*msg.machine != machine || msg.stream != Stream::Scale {
             continue;
         }
-        match msg.decode_checked() {
-            Ok(RawBatch::Scale(b)) => {
-                for s in b.samples {
-                    if s.machine_id == machine && [s.x, s.y, s.z].iter().all(|v| v.is_finite()) {
-                        raw.carriage.push(CarriageSample {
-                            t_ns: s.t_ns,
-                            pos: [s.x, s.y, s.z],
-                        });
-                    } else {
-                        bad += 1;
-                    }
-                }
+        // Per-sample and packed (v1.3) batches; one tagged as another stream is refused.
+        let decoded = wire::decode_with(StreamId::Scale, &msg.data, |m, s| match s {
+            Sample::Scale(s) if m == machine && s.pos.iter().all(|v| v.is_finite()) => {
+                raw.carriage.push(CarriageSample {
+                    t_ns: s.t_ns,
+                    pos: [s.pos.x, s.pos.y, s.pos.z],
+                })
             }
             _ => bad += 1,
+        });
+        if decoded.is_err() {
+            bad += 1;
         }
     }
     if bad > 0 {

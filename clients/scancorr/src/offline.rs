@@ -312,20 +312,20 @@ pub fn correct(
     let writer_thread = writer.map(|mut w| {
         let (machine, prefix, ids) = (machine.clone(), prefix.clone(), ids.clone());
         std::thread::spawn(move || -> Result<BagWriter> {
+            let mut bytes = vec![];
             for msg in rx {
                 let ToWriter::Output {
                     points,
                     alarms,
                     log_time,
                 } = msg;
-                if !points.is_empty() {
-                    let batch = scancorr_proto::v1::CorrectedPointBatch {
-                        points: points
-                            .iter()
-                            .map(|p| wire::point(p, &machine, &ids))
-                            .collect(),
-                    };
-                    w.write_msg(&machine, &prefix, log_time, &batch)?;
+                if let Some(first) = points.first() {
+                    // The service's encoder: a `CorrectedPointBatch`'s bytes without building
+                    // a message per point.
+                    bytes.clear();
+                    wire::encode_points(&points, &machine, &ids, &mut bytes);
+                    let publish = first.t_ns.max(0) as u64;
+                    w.write(Stream::Points, &machine, &prefix, log_time, publish, &bytes)?;
                 }
                 for a in &alarms {
                     w.write_msg(&machine, &prefix, log_time, &wire::alarm(a, &machine))?;

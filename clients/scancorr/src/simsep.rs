@@ -66,6 +66,7 @@ pub fn run(a: SepArgs) -> Result<()> {
     let mut scale = ScaleBatch {
         samples: vec![],
         stream: StreamKind::Scale as i32,
+        columns: None,
     };
     let mut dist = DistanceBatch {
         samples: vec![],

@@ -257,7 +257,8 @@ pub fn decode_with(
 }
 
 /// [`decode_with`] with a choice about batches without the v1.1 stream tag. Nothing is handed
-/// to `f` unless the whole batch decodes and its tag fits.
+/// to `f` unless the whole batch decodes and its tag fits. Reads both forms of a batch: one
+/// message per sample (v1.0–v1.2) and packed columns (v1.3), which name the machine once.
 pub fn decode_with_tags(
     stream: StreamId,
     bytes: &[u8],
@@ -268,35 +269,216 @@ pub fn decode_with_tags(
         |message, e: scancorr_proto::prost::DecodeError| undecodable(stream, bytes, message, e);
     let (n, name) = match stream {
         StreamId::Command => {
-            let b = v1::CommandBatch::decode(bytes).map_err(|e| malformed("CommandBatch", e))?;
-            check_tag(stream, b.stream, tags, "CommandBatch")?;
-            b.samples.iter().for_each(|s| f(&s.machine_id, command(s)));
-            (b.samples.len(), "CommandBatch")
+            const NAME: &str = "CommandBatch";
+            let b = v1::CommandBatch::decode(bytes).map_err(|e| malformed(NAME, e))?;
+            check_tag(stream, b.stream, tags, NAME)?;
+            let n = match packed(NAME, b.samples.len(), &b.columns)? {
+                Some(c) => command_columns(c, &mut f)?,
+                None => {
+                    b.samples.iter().for_each(|s| f(&s.machine_id, command(s)));
+                    b.samples.len()
+                }
+            };
+            (n, NAME)
         }
         StreamId::Scale => {
-            let b = v1::ScaleBatch::decode(bytes).map_err(|e| malformed("ScaleBatch", e))?;
-            check_tag(stream, b.stream, tags, "ScaleBatch")?;
-            b.samples.iter().for_each(|s| f(&s.machine_id, scale(s)));
-            (b.samples.len(), "ScaleBatch")
+            const NAME: &str = "ScaleBatch";
+            let b = v1::ScaleBatch::decode(bytes).map_err(|e| malformed(NAME, e))?;
+            check_tag(stream, b.stream, tags, NAME)?;
+            let n = match packed(NAME, b.samples.len(), &b.columns)? {
+                Some(c) => scale_columns(c, &mut f)?,
+                None => {
+                    b.samples.iter().for_each(|s| f(&s.machine_id, scale(s)));
+                    b.samples.len()
+                }
+            };
+            (n, NAME)
         }
         StreamId::Probe => {
-            let b = v1::ProbeBatch::decode(bytes).map_err(|e| malformed("ProbeBatch", e))?;
-            check_tag(stream, b.stream, tags, "ProbeBatch")?;
-            b.samples.iter().for_each(|s| f(&s.machine_id, probe(s)));
-            (b.samples.len(), "ProbeBatch")
+            const NAME: &str = "ProbeBatch";
+            let b = v1::ProbeBatch::decode(bytes).map_err(|e| malformed(NAME, e))?;
+            check_tag(stream, b.stream, tags, NAME)?;
+            let n = match packed(NAME, b.samples.len(), &b.columns)? {
+                Some(c) => probe_columns(c, &mut f)?,
+                None => {
+                    b.samples.iter().for_each(|s| f(&s.machine_id, probe(s)));
+                    b.samples.len()
+                }
+            };
+            (n, NAME)
         }
         StreamId::Temperature => {
-            let b = v1::TemperatureBatch::decode(bytes)
-                .map_err(|e| malformed("TemperatureBatch", e))?;
-            check_tag(stream, b.stream, tags, "TemperatureBatch")?;
-            b.samples
-                .iter()
-                .for_each(|s| f(&s.machine_id, temperature(s)));
-            (b.samples.len(), "TemperatureBatch")
+            const NAME: &str = "TemperatureBatch";
+            let b = v1::TemperatureBatch::decode(bytes).map_err(|e| malformed(NAME, e))?;
+            check_tag(stream, b.stream, tags, NAME)?;
+            let n = match packed(NAME, b.samples.len(), &b.columns)? {
+                Some(c) => temperature_columns(c, &mut f)?,
+                None => {
+                    b.samples
+                        .iter()
+                        .for_each(|s| f(&s.machine_id, temperature(s)));
+                    b.samples.len()
+                }
+            };
+            (n, NAME)
         }
     };
     if n == 0 {
         return Err(WireError::Empty(name));
+    }
+    Ok(n)
+}
+
+/// The columns of a packed batch (v1.3), `None` for a batch of one message per sample; a batch
+/// with both is malformed.
+fn packed<'a, C>(
+    message: &'static str,
+    samples: usize,
+    columns: &'a Option<C>,
+) -> Result<Option<&'a C>, WireError> {
+    match columns {
+        Some(_) if samples > 0 => Err(WireError::Malformed {
+            message,
+            reason: "both per-sample messages (`samples`) and packed columns (`columns`)".into(),
+        }),
+        c => Ok(c.as_ref()),
+    }
+}
+
+/// The number of samples of a packed batch, `seq`'s length, after checking that every other
+/// column holds as many values.
+fn column_len(
+    message: &'static str,
+    seq: usize,
+    columns: &[(&str, usize)],
+) -> Result<usize, WireError> {
+    match columns.iter().find(|(_, len)| *len != seq) {
+        Some((name, len)) => Err(WireError::Malformed {
+            message,
+            reason: format!("column `{name}` holds {len} values for {seq} samples (`seq`)"),
+        }),
+        None => Ok(seq),
+    }
+}
+
+fn command_columns(
+    c: &v1::CommandColumns,
+    f: &mut impl FnMut(&str, Sample),
+) -> Result<usize, WireError> {
+    let n = column_len(
+        "CommandBatch",
+        c.seq.len(),
+        &[
+            ("t_ns", c.t_ns.len()),
+            ("x", c.x.len()),
+            ("y", c.y.len()),
+            ("z", c.z.len()),
+            ("arc_cx", c.arc_cx.len()),
+            ("arc_cy", c.arc_cy.len()),
+            ("arc_cz", c.arc_cz.len()),
+            ("arc_radius", c.arc_radius.len()),
+            ("segment_id", c.segment_id.len()),
+        ],
+    )?;
+    for i in 0..n {
+        f(
+            &c.machine_id,
+            Sample::Command(CommandSample {
+                seq: c.seq[i],
+                t_ns: c.t_ns[i],
+                pos: v(c.x[i], c.y[i], c.z[i]),
+                arc_center: v(c.arc_cx[i], c.arc_cy[i], c.arc_cz[i]),
+                arc_radius: c.arc_radius[i],
+                segment_id: c.segment_id[i],
+            }),
+        );
+    }
+    Ok(n)
+}
+
+fn scale_columns(
+    c: &v1::ScaleColumns,
+    f: &mut impl FnMut(&str, Sample),
+) -> Result<usize, WireError> {
+    let n = column_len(
+        "ScaleBatch",
+        c.seq.len(),
+        &[
+            ("t_ns", c.t_ns.len()),
+            ("x", c.x.len()),
+            ("y", c.y.len()),
+            ("z", c.z.len()),
+        ],
+    )?;
+    for i in 0..n {
+        f(
+            &c.machine_id,
+            Sample::Scale(ScaleSample {
+                seq: c.seq[i],
+                t_ns: c.t_ns[i],
+                pos: v(c.x[i], c.y[i], c.z[i]),
+            }),
+        );
+    }
+    Ok(n)
+}
+
+fn probe_columns(
+    c: &v1::ProbeColumns,
+    f: &mut impl FnMut(&str, Sample),
+) -> Result<usize, WireError> {
+    let n = column_len(
+        "ProbeBatch",
+        c.seq.len(),
+        &[
+            ("t_ns", c.t_ns.len()),
+            ("u", c.u.len()),
+            ("v", c.v.len()),
+            ("w", c.w.len()),
+            ("tip_id", c.tip_id.len()),
+            ("head_a1_deg", c.head_a1_deg.len()),
+            ("head_a2_deg", c.head_a2_deg.len()),
+        ],
+    )?;
+    for i in 0..n {
+        f(
+            &c.machine_id,
+            Sample::Probe(ProbeSample {
+                seq: c.seq[i],
+                t_ns: c.t_ns[i],
+                deflection: v(c.u[i], c.v[i], c.w[i]),
+                tip_id: c.tip_id[i],
+                head_a1_deg: c.head_a1_deg[i],
+                head_a2_deg: c.head_a2_deg[i],
+            }),
+        );
+    }
+    Ok(n)
+}
+
+fn temperature_columns(
+    c: &v1::TemperatureColumns,
+    f: &mut impl FnMut(&str, Sample),
+) -> Result<usize, WireError> {
+    let n = column_len(
+        "TemperatureBatch",
+        c.seq.len(),
+        &[
+            ("t_ns", c.t_ns.len()),
+            ("sensor", c.sensor.len()),
+            ("celsius", c.celsius.len()),
+        ],
+    )?;
+    for i in 0..n {
+        f(
+            &c.machine_id,
+            Sample::Temperature(TemperatureSample {
+                seq: c.seq[i],
+                t_ns: c.t_ns[i],
+                sensor: c.sensor[i].clone(),
+                celsius: c.celsius[i],
+            }),
+        );
     }
     Ok(n)
 }
@@ -360,7 +542,9 @@ pub fn encode_points(
     buf: &mut Vec<u8>,
 ) {
     for p in ps {
-        ld_key(1, point_len(p, machine, effect_ids), buf);
+        // A point with its corrections is usually 128 B to 16 KiB: its length's two bytes
+        // are kept and filled in once it is written.
+        let point = open_ld(1, 2, buf);
         put_str(1, machine, buf);
         put_u64(2, p.seq, buf);
         put_u64(3, p.t_ns as u64, buf);
@@ -369,17 +553,57 @@ pub fn encode_points(
         put_vec3(6, &p.tip_center, buf);
         put_vec3(7, &p.normal, buf);
         for (c, id) in p.corrections.iter().zip(effect_ids) {
-            ld_key(8, correction_len(c, id), buf);
+            let correction = open_ld(8, 1, buf);
             put_str(1, id, buf);
             put_f64(2, c.x, buf);
             put_f64(3, c.y, buf);
             put_f64(4, c.z, buf);
+            close_ld(correction, buf);
         }
         put_u64(9, p.calibration_version, buf);
         put_u64(10, p.estimator_valid as u64, buf);
         put_u64(11, p.segment_id as u64, buf);
         put_u64(12, p.tip_id as u64, buf);
+        close_ld(point, buf);
     }
+}
+
+/// A length-delimited field being written: where its length goes, and how many bytes were
+/// kept for it.
+struct OpenLd {
+    at: usize,
+    kept: usize,
+}
+
+/// Starts a length-delimited field whose length is not known yet, keeping `kept` bytes for
+/// it (the length it will most likely need).
+fn open_ld(tag: u8, kept: usize, buf: &mut Vec<u8>) -> OpenLd {
+    buf.push(tag << 3 | 2);
+    let at = buf.len();
+    buf.resize(at + kept, 0);
+    OpenLd { at, kept }
+}
+
+/// Writes the length of a field started by [`open_ld`] as the shortest varint, moving the
+/// field's body when that needs other than the bytes kept (the bytes prost writes).
+fn close_ld(f: OpenLd, buf: &mut Vec<u8>) {
+    let body = f.at + f.kept;
+    let len = buf.len() - body;
+    let n = encoded_len_varint(len as u64);
+    if n != f.kept {
+        let end = buf.len();
+        if n > f.kept {
+            buf.resize(end + n - f.kept, 0);
+        }
+        buf.copy_within(body..end, f.at + n);
+        buf.truncate(f.at + n + len);
+    }
+    let mut v = len as u64;
+    for b in &mut buf[f.at..f.at + n] {
+        *b = v as u8 | 0x80;
+        v >>= 7;
+    }
+    buf[f.at + n - 1] &= 0x7f;
 }
 
 // Protobuf field encoders for `encode_points`, skipping default values as proto3 does. Every
@@ -414,20 +638,6 @@ fn put_vec3(tag: u8, v: &Vec3, buf: &mut Vec<u8>) {
     put_f64(2, v.y, buf);
     put_f64(3, v.z, buf);
 }
-fn str_len(s: &str) -> usize {
-    if s.is_empty() {
-        0
-    } else {
-        1 + encoded_len_varint(s.len() as u64) + s.len()
-    }
-}
-fn u64_len(v: u64) -> usize {
-    if v == 0 {
-        0
-    } else {
-        1 + encoded_len_varint(v)
-    }
-}
 fn f64_len(v: f64) -> usize {
     if v != 0.0 {
         9
@@ -435,32 +645,8 @@ fn f64_len(v: f64) -> usize {
         0
     }
 }
-fn ld_len(len: usize) -> usize {
-    1 + encoded_len_varint(len as u64) + len
-}
 fn vec3_len(v: &Vec3) -> usize {
     f64_len(v.x) + f64_len(v.y) + f64_len(v.z)
-}
-fn correction_len(c: &Vec3, id: &str) -> usize {
-    str_len(id) + vec3_len(c)
-}
-fn point_len(p: &CorrectedPoint, machine: &str, effect_ids: &[String]) -> usize {
-    str_len(machine)
-        + u64_len(p.seq)
-        + u64_len(p.t_ns as u64)
-        + u64_len(p.sample_seq)
-        + ld_len(vec3_len(&p.surface))
-        + ld_len(vec3_len(&p.tip_center))
-        + ld_len(vec3_len(&p.normal))
-        + p.corrections
-            .iter()
-            .zip(effect_ids)
-            .map(|(c, id)| ld_len(correction_len(c, id)))
-            .sum::<usize>()
-        + u64_len(p.calibration_version)
-        + u64_len(p.estimator_valid as u64)
-        + u64_len(p.segment_id as u64)
-        + u64_len(p.tip_id as u64)
 }
 
 /// Wire form of an alarm.
@@ -495,138 +681,246 @@ pub fn points(ps: &[CorrectedPoint], machine: &str, corr: &Corrector) -> v1::Cor
     }
 }
 
-/// Accumulates core samples of one machine into wire batches of up to `size` samples.
+/// How a [`Batcher`] lays out the samples of a batch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Layout {
+    /// Packed columns (v1.3): the machine id once per batch, each sample field a column.
+    #[default]
+    Packed,
+    /// One message per sample, each naming the machine (v1.0–v1.2): what producers older
+    /// than v1.3 write; for tests that old input is still read.
+    PerSample,
+}
+
+/// Accumulates core samples of one machine into wire batches of up to `size` samples, as
+/// packed columns (v1.3) unless told otherwise ([`Batcher::with_layout`]).
 #[derive(Debug)]
 pub struct Batcher {
-    machine: String,
     size: usize,
-    /// Pending commands.
-    pub command: v1::CommandBatch,
-    /// Pending scale readings.
-    pub scale: v1::ScaleBatch,
-    /// Pending probe readings.
-    pub probe: v1::ProbeBatch,
-    /// Pending temperatures.
-    pub temperature: v1::TemperatureBatch,
+    layout: Layout,
+    command: v1::CommandColumns,
+    scale: v1::ScaleColumns,
+    probe: v1::ProbeColumns,
+    temperature: v1::TemperatureColumns,
 }
 
 impl Batcher {
-    /// A batcher for `machine`.
+    /// A batcher for `machine` writing packed batches.
     pub fn new(machine: &str, size: usize) -> Batcher {
+        let machine_id = machine.to_string();
         Batcher {
-            machine: machine.to_string(),
             size: size.max(1),
-            command: Default::default(),
-            scale: Default::default(),
-            probe: Default::default(),
-            temperature: Default::default(),
+            layout: Layout::Packed,
+            command: v1::CommandColumns {
+                machine_id: machine_id.clone(),
+                ..Default::default()
+            },
+            scale: v1::ScaleColumns {
+                machine_id: machine_id.clone(),
+                ..Default::default()
+            },
+            probe: v1::ProbeColumns {
+                machine_id: machine_id.clone(),
+                ..Default::default()
+            },
+            temperature: v1::TemperatureColumns {
+                machine_id,
+                ..Default::default()
+            },
         }
+    }
+
+    /// The same batcher writing batches laid out as `layout`.
+    pub fn with_layout(self, layout: Layout) -> Batcher {
+        Batcher { layout, ..self }
     }
 
     /// Adds a sample; returns the stream whose batch just became full.
     pub fn push(&mut self, s: &Sample) -> Option<StreamId> {
-        let m = self.machine.clone();
-        match s {
-            Sample::Command(c) => {
-                self.command.samples.push(v1::CommandSample {
-                    machine_id: m,
-                    seq: c.seq,
-                    t_ns: c.t_ns,
-                    x: c.pos.x,
-                    y: c.pos.y,
-                    z: c.pos.z,
-                    arc_cx: c.arc_center.x,
-                    arc_cy: c.arc_center.y,
-                    arc_cz: c.arc_center.z,
-                    arc_radius: c.arc_radius,
-                    segment_id: c.segment_id,
-                });
-                (self.command.samples.len() >= self.size).then_some(StreamId::Command)
+        let (stream, len) = match s {
+            Sample::Command(s) => {
+                let c = &mut self.command;
+                c.seq.push(s.seq);
+                c.t_ns.push(s.t_ns);
+                c.x.push(s.pos.x);
+                c.y.push(s.pos.y);
+                c.z.push(s.pos.z);
+                c.arc_cx.push(s.arc_center.x);
+                c.arc_cy.push(s.arc_center.y);
+                c.arc_cz.push(s.arc_center.z);
+                c.arc_radius.push(s.arc_radius);
+                c.segment_id.push(s.segment_id);
+                (StreamId::Command, c.seq.len())
             }
-            Sample::Scale(c) => {
-                self.scale.samples.push(v1::ScaleSample {
-                    machine_id: m,
-                    seq: c.seq,
-                    t_ns: c.t_ns,
-                    x: c.pos.x,
-                    y: c.pos.y,
-                    z: c.pos.z,
-                });
-                (self.scale.samples.len() >= self.size).then_some(StreamId::Scale)
+            Sample::Scale(s) => {
+                let c = &mut self.scale;
+                c.seq.push(s.seq);
+                c.t_ns.push(s.t_ns);
+                c.x.push(s.pos.x);
+                c.y.push(s.pos.y);
+                c.z.push(s.pos.z);
+                (StreamId::Scale, c.seq.len())
             }
-            Sample::Probe(c) => {
-                self.probe.samples.push(v1::ProbeSample {
-                    machine_id: m,
-                    seq: c.seq,
-                    t_ns: c.t_ns,
-                    u: c.deflection.x,
-                    v: c.deflection.y,
-                    w: c.deflection.z,
-                    tip_id: c.tip_id,
-                    head_a1_deg: c.head_a1_deg,
-                    head_a2_deg: c.head_a2_deg,
-                });
-                (self.probe.samples.len() >= self.size).then_some(StreamId::Probe)
+            Sample::Probe(s) => {
+                let c = &mut self.probe;
+                c.seq.push(s.seq);
+                c.t_ns.push(s.t_ns);
+                c.u.push(s.deflection.x);
+                c.v.push(s.deflection.y);
+                c.w.push(s.deflection.z);
+                c.tip_id.push(s.tip_id);
+                c.head_a1_deg.push(s.head_a1_deg);
+                c.head_a2_deg.push(s.head_a2_deg);
+                (StreamId::Probe, c.seq.len())
             }
-            Sample::Temperature(c) => {
-                self.temperature.samples.push(v1::TemperatureSample {
-                    machine_id: m,
-                    seq: c.seq,
-                    t_ns: c.t_ns,
-                    sensor: c.sensor.clone(),
-                    celsius: c.celsius,
-                });
-                (self.temperature.samples.len() >= self.size).then_some(StreamId::Temperature)
+            Sample::Temperature(s) => {
+                let c = &mut self.temperature;
+                c.seq.push(s.seq);
+                c.t_ns.push(s.t_ns);
+                c.sensor.push(s.sensor.clone());
+                c.celsius.push(s.celsius);
+                (StreamId::Temperature, c.seq.len())
             }
-        }
+        };
+        (len >= self.size).then_some(stream)
     }
 
-    /// Takes the pending batch of `stream` encoded (None when empty).
+    /// Takes the pending batch of `stream` encoded, with the times of its first and last
+    /// sample (None when empty).
     pub fn take(&mut self, stream: StreamId) -> Option<(Vec<u8>, i64, i64)> {
-        fn t<M: Message + Default>(
-            b: &mut M,
-            first_last: (i64, i64),
-            empty: bool,
-        ) -> Option<(Vec<u8>, i64, i64)> {
-            if empty {
-                return None;
-            }
-            let bytes = b.encode_to_vec();
-            *b = M::default();
-            Some((bytes, first_last.0, first_last.1))
+        let tag = stream_kind(stream) as i32;
+        let layout = self.layout;
+        // Each arm encodes the pending columns, then empties them keeping their capacity.
+        macro_rules! take {
+            ($c:expr, $batch:ident, $per_sample:ident, [$($column:ident),*]) => {{
+                let c = &mut $c;
+                if c.seq.is_empty() {
+                    return None;
+                }
+                let bytes = encode_batch(layout, tag, c, |c| v1::$batch {
+                    stream: tag,
+                    samples: $per_sample(c),
+                    columns: None,
+                });
+                let (first, last) = ends(&c.t_ns);
+                $(c.$column.clear();)*
+                (bytes, first, last)
+            }};
         }
-        match stream {
-            StreamId::Command => {
-                self.command.stream = v1::StreamKind::Command as i32;
-                let fl = ends(self.command.samples.iter().map(|s| s.t_ns));
-                let empty = self.command.samples.is_empty();
-                t(&mut self.command, fl, empty)
-            }
-            StreamId::Scale => {
-                self.scale.stream = v1::StreamKind::Scale as i32;
-                let fl = ends(self.scale.samples.iter().map(|s| s.t_ns));
-                let empty = self.scale.samples.is_empty();
-                t(&mut self.scale, fl, empty)
-            }
-            StreamId::Probe => {
-                self.probe.stream = v1::StreamKind::Probe as i32;
-                let fl = ends(self.probe.samples.iter().map(|s| s.t_ns));
-                let empty = self.probe.samples.is_empty();
-                t(&mut self.probe, fl, empty)
-            }
-            StreamId::Temperature => {
-                self.temperature.stream = v1::StreamKind::Temperature as i32;
-                let fl = ends(self.temperature.samples.iter().map(|s| s.t_ns));
-                let empty = self.temperature.samples.is_empty();
-                t(&mut self.temperature, fl, empty)
-            }
-        }
+        Some(match stream {
+            StreamId::Command => take!(
+                self.command,
+                CommandBatch,
+                command_samples,
+                [seq, t_ns, x, y, z, arc_cx, arc_cy, arc_cz, arc_radius, segment_id]
+            ),
+            StreamId::Scale => take!(self.scale, ScaleBatch, scale_samples, [seq, t_ns, x, y, z]),
+            StreamId::Probe => take!(
+                self.probe,
+                ProbeBatch,
+                probe_samples,
+                [seq, t_ns, u, v, w, tip_id, head_a1_deg, head_a2_deg]
+            ),
+            StreamId::Temperature => take!(
+                self.temperature,
+                TemperatureBatch,
+                temperature_samples,
+                [seq, t_ns, sensor, celsius]
+            ),
+        })
     }
 }
 
-fn ends(mut it: impl Iterator<Item = i64>) -> (i64, i64) {
-    let first = it.next().unwrap_or(0);
-    (first, it.last().unwrap_or(first))
+/// A batch of `columns` laid out as `layout`, encoded. Packed: the bytes prost writes for
+/// `XxxBatch { stream, columns }` (the tag, field 2, then the columns, field 3; a test checks
+/// them), without moving the columns into a message; per sample: `per_sample(columns)`'s.
+fn encode_batch<C: Message, B: Message>(
+    layout: Layout,
+    stream_tag: i32,
+    columns: &C,
+    per_sample: impl FnOnce(&C) -> B,
+) -> Vec<u8> {
+    match layout {
+        Layout::Packed => {
+            let mut buf = Vec::with_capacity(columns.encoded_len() + 16);
+            put_u64(2, stream_tag as u64, &mut buf);
+            buf.push(3 << 3 | 2);
+            // Encoding into a Vec cannot fail (it grows as needed).
+            let _ = columns.encode_length_delimited(&mut buf);
+            buf
+        }
+        Layout::PerSample => per_sample(columns).encode_to_vec(),
+    }
+}
+
+/// The first and last of a batch's times (0, 0 when empty).
+fn ends(t_ns: &[i64]) -> (i64, i64) {
+    match (t_ns.first(), t_ns.last()) {
+        (Some(&first), Some(&last)) => (first, last),
+        _ => (0, 0),
+    }
+}
+
+// Columns (v1.3) as one message per sample (v1.0–v1.2), for `Layout::PerSample`. The columns
+// come from a `Batcher`, so they have equal lengths.
+
+fn command_samples(c: &v1::CommandColumns) -> Vec<v1::CommandSample> {
+    (0..c.seq.len())
+        .map(|i| v1::CommandSample {
+            machine_id: c.machine_id.clone(),
+            seq: c.seq[i],
+            t_ns: c.t_ns[i],
+            x: c.x[i],
+            y: c.y[i],
+            z: c.z[i],
+            arc_cx: c.arc_cx[i],
+            arc_cy: c.arc_cy[i],
+            arc_cz: c.arc_cz[i],
+            arc_radius: c.arc_radius[i],
+            segment_id: c.segment_id[i],
+        })
+        .collect()
+}
+
+fn scale_samples(c: &v1::ScaleColumns) -> Vec<v1::ScaleSample> {
+    (0..c.seq.len())
+        .map(|i| v1::ScaleSample {
+            machine_id: c.machine_id.clone(),
+            seq: c.seq[i],
+            t_ns: c.t_ns[i],
+            x: c.x[i],
+            y: c.y[i],
+            z: c.z[i],
+        })
+        .collect()
+}
+
+fn probe_samples(c: &v1::ProbeColumns) -> Vec<v1::ProbeSample> {
+    (0..c.seq.len())
+        .map(|i| v1::ProbeSample {
+            machine_id: c.machine_id.clone(),
+            seq: c.seq[i],
+            t_ns: c.t_ns[i],
+            u: c.u[i],
+            v: c.v[i],
+            w: c.w[i],
+            tip_id: c.tip_id[i],
+            head_a1_deg: c.head_a1_deg[i],
+            head_a2_deg: c.head_a2_deg[i],
+        })
+        .collect()
+}
+
+fn temperature_samples(c: &v1::TemperatureColumns) -> Vec<v1::TemperatureSample> {
+    (0..c.seq.len())
+        .map(|i| v1::TemperatureSample {
+            machine_id: c.machine_id.clone(),
+            seq: c.seq[i],
+            t_ns: c.t_ns[i],
+            sensor: c.sensor[i].clone(),
+            celsius: c.celsius[i],
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -692,13 +986,14 @@ mod tests {
             arc_radius: 0.0,
             segment_id: 0,
         });
-        let mut b = Batcher::new("m1", 10);
+        let mut b = Batcher::new("m1", 10).with_layout(Layout::PerSample);
         b.push(&cmd);
         let (bytes, _, _) = b.take(StreamId::Command).unwrap();
         // Without its tag a command batch decodes as a valid scale batch (fields 1–6 agree).
         let untagged = v1::CommandBatch {
             samples: v1::CommandBatch::decode(&bytes[..]).unwrap().samples,
             stream: 0,
+            columns: None,
         }
         .encode_to_vec();
         assert_eq!(decode(StreamId::Scale, &untagged).unwrap().samples.len(), 1);
@@ -729,6 +1024,23 @@ mod tests {
         })
         .unwrap();
         assert_eq!(n, 1);
+        // Packed (v1.3), the same: the columns of fields 1–6 agree too, the tag tells.
+        let mut b = Batcher::new("m1", 10);
+        b.push(&cmd);
+        let (packed, _, _) = b.take(StreamId::Command).unwrap();
+        for tags in [Tags::Require, Tags::AllowUntagged] {
+            assert_eq!(
+                decode_with_tags(StreamId::Scale, &packed, tags, |_, _| panic!("decoded")),
+                Err(WireError::WrongStream {
+                    expected: "scale",
+                    found: "command".into()
+                })
+            );
+        }
+        assert_eq!(
+            decode(StreamId::Command, &packed).unwrap().samples,
+            vec![("m1".to_string(), cmd)]
+        );
     }
 
     #[test]
@@ -796,6 +1108,270 @@ mod tests {
         ));
     }
 
+    /// Samples of every stream with every field set, some to values varints and zigzag care
+    /// about (0, negative, large).
+    fn every_stream(n: u64) -> Vec<Sample> {
+        let mut v = vec![];
+        for k in 0..n {
+            let f = k as f64;
+            let t_ns = if k % 7 == 3 {
+                -(k as i64)
+            } else {
+                k as i64 * 1_000_003
+            };
+            v.push(Sample::Command(CommandSample {
+                seq: k,
+                t_ns,
+                pos: Vec3::new(f, -f * 0.5, 1e300),
+                arc_center: Vec3::new(0.0, f * 1e-9, -0.0),
+                arc_radius: if k % 2 == 0 { 0.0 } else { 12.5 },
+                segment_id: (k * 1000) as u32,
+            }));
+            v.push(Sample::Scale(ScaleSample {
+                seq: u64::MAX - k,
+                t_ns: i64::MIN + k as i64,
+                pos: Vec3::new(f, 2.0, -3.5),
+            }));
+            v.push(Sample::Probe(ProbeSample {
+                seq: k << 40,
+                t_ns,
+                deflection: Vec3::new(0.1 * f, 0.0, -0.2),
+                tip_id: k as u32 % 3,
+                head_a1_deg: 90.0,
+                head_a2_deg: -f,
+            }));
+            v.push(Sample::Temperature(TemperatureSample {
+                seq: k,
+                t_ns: i64::MAX - k as i64,
+                sensor: ["air", "", "scale_x"][k as usize % 3].into(),
+                celsius: 20.0 + f,
+            }));
+        }
+        v
+    }
+
+    /// The encoded batches of `samples`, one per stream, in `layout`.
+    fn batches(samples: &[Sample], machine: &str, layout: Layout) -> Vec<(StreamId, Vec<u8>)> {
+        let mut b = Batcher::new(machine, usize::MAX).with_layout(layout);
+        samples.iter().for_each(|s| {
+            b.push(s);
+        });
+        StreamId::ALL
+            .into_iter()
+            .filter_map(|s| Some((s, b.take(s)?.0)))
+            .collect()
+    }
+
+    /// The bytes prost writes for the batch message `bytes` decode to.
+    fn prosts_bytes(stream: StreamId, bytes: &[u8]) -> Vec<u8> {
+        match stream {
+            StreamId::Command => v1::CommandBatch::decode(bytes).unwrap().encode_to_vec(),
+            StreamId::Scale => v1::ScaleBatch::decode(bytes).unwrap().encode_to_vec(),
+            StreamId::Probe => v1::ProbeBatch::decode(bytes).unwrap().encode_to_vec(),
+            StreamId::Temperature => v1::TemperatureBatch::decode(bytes).unwrap().encode_to_vec(),
+        }
+    }
+
+    #[test]
+    fn old_and_packed_batches_decode_to_the_same_samples() {
+        let samples = every_stream(50);
+        for machine in ["m1", "", "a-much-longer-machine-name"] {
+            let old = batches(&samples, machine, Layout::PerSample);
+            let packed = batches(&samples, machine, Layout::Packed);
+            assert_eq!(old.len(), 4);
+            for ((stream, old), (_, packed)) in old.iter().zip(&packed) {
+                let want: Vec<(String, Sample)> = samples
+                    .iter()
+                    .filter(|s| s.stream() == *stream)
+                    .map(|s| (machine.to_string(), s.clone()))
+                    .collect();
+                assert_eq!(
+                    decode(*stream, old).unwrap().samples,
+                    want,
+                    "{stream:?} old"
+                );
+                assert_eq!(decode(*stream, packed).unwrap().samples, want, "{stream:?}");
+                let mut out = vec![];
+                let foreign =
+                    decode_machine_tagged(*stream, packed, "m1", Tags::Require, &mut out).unwrap();
+                let ours = if machine == "m1" { want.len() } else { 0 };
+                assert_eq!((out.len(), foreign as usize), (ours, want.len() - ours));
+                assert_eq!(&prosts_bytes(*stream, packed), packed, "{stream:?}");
+                // The v1.1 tag is set: nothing to add for a service that requires it.
+                assert_eq!(&*tagged(*stream, packed).unwrap(), &packed[..]);
+            }
+        }
+        let mut b = Batcher::new("m1", 3);
+        let full: Vec<_> = samples.iter().take(12).map(|s| b.push(s)).collect();
+        assert_eq!(full[..8].iter().flatten().count(), 0);
+        assert_eq!(full[8], Some(StreamId::Command));
+        let (_, t0, t1) = b.take(StreamId::Command).unwrap();
+        assert_eq!((t0, t1), (0, 2_000_006));
+        assert!(b.take(StreamId::Command).is_none(), "taken");
+        // Batch after batch (the columns emptied and refilled), every sample once, in order.
+        let mut b = Batcher::new("m1", 3);
+        let mut decoded = vec![];
+        for s in &samples[12..] {
+            if let Some(stream) = b.push(s) {
+                let (bytes, _, _) = b.take(stream).unwrap();
+                decode_machine(stream, &bytes, "m1", &mut decoded).unwrap();
+            }
+        }
+        for stream in StreamId::ALL {
+            if let Some((bytes, _, _)) = b.take(stream) {
+                decode_machine(stream, &bytes, "m1", &mut decoded).unwrap();
+            }
+        }
+        for stream in StreamId::ALL {
+            let got: Vec<_> = decoded.iter().filter(|s| s.stream() == stream).collect();
+            let want: Vec<_> = samples[12..]
+                .iter()
+                .filter(|s| s.stream() == stream)
+                .collect();
+            assert_eq!(got, want, "{stream:?}");
+        }
+    }
+
+    #[test]
+    fn packed_columns_must_agree_in_length() {
+        let scale = |columns: v1::ScaleColumns| {
+            v1::ScaleBatch {
+                stream: v1::StreamKind::Scale as i32,
+                columns: Some(columns),
+                ..Default::default()
+            }
+            .encode_to_vec()
+        };
+        let good = v1::ScaleColumns {
+            machine_id: "m1".into(),
+            seq: vec![1, 2],
+            t_ns: vec![10, 20],
+            x: vec![1.0, 2.0],
+            y: vec![0.0, 0.0],
+            z: vec![3.0, 4.0],
+        };
+        assert_eq!(
+            decode(StreamId::Scale, &scale(good.clone()))
+                .unwrap()
+                .samples
+                .len(),
+            2
+        );
+        let short_y = v1::ScaleColumns {
+            y: vec![0.0],
+            ..good.clone()
+        };
+        let e = decode_with(StreamId::Scale, &scale(short_y), |_, _| panic!("decoded"));
+        assert_eq!(
+            e.unwrap_err().to_string(),
+            "malformed ScaleBatch: column `y` holds 1 values for 2 samples (`seq`)"
+        );
+        let no_seq = v1::ScaleColumns {
+            seq: vec![],
+            ..good.clone()
+        };
+        assert!(matches!(
+            decode(StreamId::Scale, &scale(no_seq)),
+            Err(WireError::Malformed { .. })
+        ));
+        let temps = v1::TemperatureBatch {
+            stream: v1::StreamKind::Temperature as i32,
+            columns: Some(v1::TemperatureColumns {
+                machine_id: "m1".into(),
+                seq: vec![1, 2],
+                t_ns: vec![1, 2],
+                sensor: vec!["air".into()],
+                celsius: vec![20.0, 20.0],
+            }),
+            ..Default::default()
+        };
+        assert!(matches!(
+            decode(StreamId::Temperature, &temps.encode_to_vec()),
+            Err(WireError::Malformed { reason, .. }) if reason.contains("`sensor`")
+        ));
+        // Columns without samples: an empty batch, as one without messages.
+        assert_eq!(
+            decode(StreamId::Scale, &scale(v1::ScaleColumns::default())).unwrap_err(),
+            WireError::Empty("ScaleBatch")
+        );
+        // Both forms in one batch.
+        let both = v1::ScaleBatch {
+            samples: vec![v1::ScaleSample::default()],
+            stream: v1::StreamKind::Scale as i32,
+            columns: Some(good),
+        };
+        assert!(matches!(
+            decode(StreamId::Scale, &both.encode_to_vec()),
+            Err(WireError::Malformed { reason, .. }) if reason.contains("both")
+        ));
+    }
+
+    mod garbled {
+        use super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+            /// Every strict prefix of a packed batch is refused, and no byte changed anywhere
+            /// makes the decoder panic or hand out samples of a batch it then refuses.
+            #[test]
+            fn cut_or_changed_packed_batches_are_errors(
+                n in 1u64..12,
+                which in 0usize..4,
+                at in any::<prop::sample::Index>(),
+                byte in any::<u8>(),
+            ) {
+                let (stream, bytes) = batches(&every_stream(n), "m1", Layout::Packed)
+                    .swap_remove(which);
+                for cut in 0..bytes.len() {
+                    let r = decode_with_tags(stream, &bytes[..cut], Tags::Require, |_, _| {});
+                    prop_assert!(r.is_err(), "prefix of {cut} of {} bytes decoded", bytes.len());
+                }
+                let mut changed = bytes.clone();
+                changed[at.index(bytes.len())] = byte;
+                let mut handed = 0;
+                match decode_with_tags(stream, &changed, Tags::AllowUntagged, |_, _| handed += 1) {
+                    Ok(k) => prop_assert_eq!(k, handed),
+                    Err(_) => prop_assert_eq!(handed, 0),
+                }
+            }
+
+            /// Columns of any lengths: decoded when they agree, else malformed (or empty).
+            #[test]
+            fn columns_of_any_lengths(lens in prop::collection::vec(0usize..4, 10)) {
+                let col = |k: usize| vec![1.5; lens[k]];
+                let c = v1::CommandColumns {
+                    machine_id: "m1".into(),
+                    seq: vec![7; lens[0]],
+                    t_ns: vec![-1; lens[1]],
+                    x: col(2),
+                    y: col(3),
+                    z: col(4),
+                    arc_cx: col(5),
+                    arc_cy: col(6),
+                    arc_cz: col(7),
+                    arc_radius: col(8),
+                    segment_id: vec![3; lens[9]],
+                };
+                let bytes = v1::CommandBatch {
+                    stream: v1::StreamKind::Command as i32,
+                    columns: Some(c),
+                    ..Default::default()
+                }
+                .encode_to_vec();
+                let r = decode(StreamId::Command, &bytes);
+                let agree = lens.iter().all(|&l| l == lens[0]);
+                match r {
+                    Ok(d) => prop_assert!(agree && d.samples.len() == lens[0]),
+                    Err(WireError::Empty(_)) => prop_assert!(agree && lens[0] == 0),
+                    Err(WireError::Malformed { .. }) => prop_assert!(!agree),
+                    Err(e) => prop_assert!(false, "{e}"),
+                }
+            }
+        }
+    }
+
     #[test]
     fn encode_points_writes_prosts_bytes() {
         let ids: Vec<String> = ["accel_deflection", "", "x_cyclic"]
@@ -825,18 +1401,23 @@ mod tests {
                 tip_id: (k * 300) as u32,
             });
         }
-        for machine in [
-            "m1",
-            "",
-            "a-machine-with-a-long-name-to-make-lengths-two-bytes",
-        ] {
-            let want = v1::CorrectedPointBatch {
-                points: ps.iter().map(|p| point(p, machine, &ids)).collect(),
+        // Lengths of one, two and three bytes: a correction and a point longer than 127
+        // bytes, a point longer than 16 KiB.
+        let long_ids = ["x".repeat(200), "y".repeat(17_000), String::new()].to_vec();
+        for ids in [&ids, &long_ids] {
+            for machine in [
+                "m1",
+                "",
+                "a-machine-with-a-long-name-to-make-lengths-two-bytes",
+            ] {
+                let want = v1::CorrectedPointBatch {
+                    points: ps.iter().map(|p| point(p, machine, ids)).collect(),
+                }
+                .encode_to_vec();
+                let mut got = vec![0xAA];
+                encode_points(&ps, machine, ids, &mut got);
+                assert_eq!(&got[1..], &want[..], "machine `{machine}`");
             }
-            .encode_to_vec();
-            let mut got = vec![0xAA];
-            encode_points(&ps, machine, &ids, &mut got);
-            assert_eq!(&got[1..], &want[..], "machine `{machine}`");
         }
     }
 }

@@ -80,13 +80,41 @@ class CommandSample(_message.Message):
     segment_id: int
     def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[int] = ..., t_ns: _Optional[int] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ..., arc_cx: _Optional[float] = ..., arc_cy: _Optional[float] = ..., arc_cz: _Optional[float] = ..., arc_radius: _Optional[float] = ..., segment_id: _Optional[int] = ...) -> None: ...
 
+class CommandColumns(_message.Message):
+    __slots__ = ("machine_id", "seq", "t_ns", "x", "y", "z", "arc_cx", "arc_cy", "arc_cz", "arc_radius", "segment_id")
+    MACHINE_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    Z_FIELD_NUMBER: _ClassVar[int]
+    ARC_CX_FIELD_NUMBER: _ClassVar[int]
+    ARC_CY_FIELD_NUMBER: _ClassVar[int]
+    ARC_CZ_FIELD_NUMBER: _ClassVar[int]
+    ARC_RADIUS_FIELD_NUMBER: _ClassVar[int]
+    SEGMENT_ID_FIELD_NUMBER: _ClassVar[int]
+    machine_id: str
+    seq: _containers.RepeatedScalarFieldContainer[int]
+    t_ns: _containers.RepeatedScalarFieldContainer[int]
+    x: _containers.RepeatedScalarFieldContainer[float]
+    y: _containers.RepeatedScalarFieldContainer[float]
+    z: _containers.RepeatedScalarFieldContainer[float]
+    arc_cx: _containers.RepeatedScalarFieldContainer[float]
+    arc_cy: _containers.RepeatedScalarFieldContainer[float]
+    arc_cz: _containers.RepeatedScalarFieldContainer[float]
+    arc_radius: _containers.RepeatedScalarFieldContainer[float]
+    segment_id: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[_Iterable[int]] = ..., t_ns: _Optional[_Iterable[int]] = ..., x: _Optional[_Iterable[float]] = ..., y: _Optional[_Iterable[float]] = ..., z: _Optional[_Iterable[float]] = ..., arc_cx: _Optional[_Iterable[float]] = ..., arc_cy: _Optional[_Iterable[float]] = ..., arc_cz: _Optional[_Iterable[float]] = ..., arc_radius: _Optional[_Iterable[float]] = ..., segment_id: _Optional[_Iterable[int]] = ...) -> None: ...
+
 class CommandBatch(_message.Message):
-    __slots__ = ("samples", "stream")
+    __slots__ = ("samples", "stream", "columns")
     SAMPLES_FIELD_NUMBER: _ClassVar[int]
     STREAM_FIELD_NUMBER: _ClassVar[int]
+    COLUMNS_FIELD_NUMBER: _ClassVar[int]
     samples: _containers.RepeatedCompositeFieldContainer[CommandSample]
     stream: StreamKind
-    def __init__(self, samples: _Optional[_Iterable[_Union[CommandSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ...) -> None: ...
+    columns: CommandColumns
+    def __init__(self, samples: _Optional[_Iterable[_Union[CommandSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ..., columns: _Optional[_Union[CommandColumns, _Mapping]] = ...) -> None: ...
 
 class ScaleSample(_message.Message):
     __slots__ = ("machine_id", "seq", "t_ns", "x", "y", "z")
@@ -104,13 +132,31 @@ class ScaleSample(_message.Message):
     z: float
     def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[int] = ..., t_ns: _Optional[int] = ..., x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ...) -> None: ...
 
+class ScaleColumns(_message.Message):
+    __slots__ = ("machine_id", "seq", "t_ns", "x", "y", "z")
+    MACHINE_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    Z_FIELD_NUMBER: _ClassVar[int]
+    machine_id: str
+    seq: _containers.RepeatedScalarFieldContainer[int]
+    t_ns: _containers.RepeatedScalarFieldContainer[int]
+    x: _containers.RepeatedScalarFieldContainer[float]
+    y: _containers.RepeatedScalarFieldContainer[float]
+    z: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[_Iterable[int]] = ..., t_ns: _Optional[_Iterable[int]] = ..., x: _Optional[_Iterable[float]] = ..., y: _Optional[_Iterable[float]] = ..., z: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class ScaleBatch(_message.Message):
-    __slots__ = ("samples", "stream")
+    __slots__ = ("samples", "stream", "columns")
     SAMPLES_FIELD_NUMBER: _ClassVar[int]
     STREAM_FIELD_NUMBER: _ClassVar[int]
+    COLUMNS_FIELD_NUMBER: _ClassVar[int]
     samples: _containers.RepeatedCompositeFieldContainer[ScaleSample]
     stream: StreamKind
-    def __init__(self, samples: _Optional[_Iterable[_Union[ScaleSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ...) -> None: ...
+    columns: ScaleColumns
+    def __init__(self, samples: _Optional[_Iterable[_Union[ScaleSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ..., columns: _Optional[_Union[ScaleColumns, _Mapping]] = ...) -> None: ...
 
 class ProbeSample(_message.Message):
     __slots__ = ("machine_id", "seq", "t_ns", "u", "v", "w", "tip_id", "head_a1_deg", "head_a2_deg")
@@ -134,13 +180,37 @@ class ProbeSample(_message.Message):
     head_a2_deg: float
     def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[int] = ..., t_ns: _Optional[int] = ..., u: _Optional[float] = ..., v: _Optional[float] = ..., w: _Optional[float] = ..., tip_id: _Optional[int] = ..., head_a1_deg: _Optional[float] = ..., head_a2_deg: _Optional[float] = ...) -> None: ...
 
+class ProbeColumns(_message.Message):
+    __slots__ = ("machine_id", "seq", "t_ns", "u", "v", "w", "tip_id", "head_a1_deg", "head_a2_deg")
+    MACHINE_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    U_FIELD_NUMBER: _ClassVar[int]
+    V_FIELD_NUMBER: _ClassVar[int]
+    W_FIELD_NUMBER: _ClassVar[int]
+    TIP_ID_FIELD_NUMBER: _ClassVar[int]
+    HEAD_A1_DEG_FIELD_NUMBER: _ClassVar[int]
+    HEAD_A2_DEG_FIELD_NUMBER: _ClassVar[int]
+    machine_id: str
+    seq: _containers.RepeatedScalarFieldContainer[int]
+    t_ns: _containers.RepeatedScalarFieldContainer[int]
+    u: _containers.RepeatedScalarFieldContainer[float]
+    v: _containers.RepeatedScalarFieldContainer[float]
+    w: _containers.RepeatedScalarFieldContainer[float]
+    tip_id: _containers.RepeatedScalarFieldContainer[int]
+    head_a1_deg: _containers.RepeatedScalarFieldContainer[float]
+    head_a2_deg: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[_Iterable[int]] = ..., t_ns: _Optional[_Iterable[int]] = ..., u: _Optional[_Iterable[float]] = ..., v: _Optional[_Iterable[float]] = ..., w: _Optional[_Iterable[float]] = ..., tip_id: _Optional[_Iterable[int]] = ..., head_a1_deg: _Optional[_Iterable[float]] = ..., head_a2_deg: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class ProbeBatch(_message.Message):
-    __slots__ = ("samples", "stream")
+    __slots__ = ("samples", "stream", "columns")
     SAMPLES_FIELD_NUMBER: _ClassVar[int]
     STREAM_FIELD_NUMBER: _ClassVar[int]
+    COLUMNS_FIELD_NUMBER: _ClassVar[int]
     samples: _containers.RepeatedCompositeFieldContainer[ProbeSample]
     stream: StreamKind
-    def __init__(self, samples: _Optional[_Iterable[_Union[ProbeSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ...) -> None: ...
+    columns: ProbeColumns
+    def __init__(self, samples: _Optional[_Iterable[_Union[ProbeSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ..., columns: _Optional[_Union[ProbeColumns, _Mapping]] = ...) -> None: ...
 
 class TemperatureSample(_message.Message):
     __slots__ = ("machine_id", "seq", "t_ns", "sensor", "celsius")
@@ -156,13 +226,29 @@ class TemperatureSample(_message.Message):
     celsius: float
     def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[int] = ..., t_ns: _Optional[int] = ..., sensor: _Optional[str] = ..., celsius: _Optional[float] = ...) -> None: ...
 
+class TemperatureColumns(_message.Message):
+    __slots__ = ("machine_id", "seq", "t_ns", "sensor", "celsius")
+    MACHINE_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    SENSOR_FIELD_NUMBER: _ClassVar[int]
+    CELSIUS_FIELD_NUMBER: _ClassVar[int]
+    machine_id: str
+    seq: _containers.RepeatedScalarFieldContainer[int]
+    t_ns: _containers.RepeatedScalarFieldContainer[int]
+    sensor: _containers.RepeatedScalarFieldContainer[str]
+    celsius: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[_Iterable[int]] = ..., t_ns: _Optional[_Iterable[int]] = ..., sensor: _Optional[_Iterable[str]] = ..., celsius: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class TemperatureBatch(_message.Message):
-    __slots__ = ("samples", "stream")
+    __slots__ = ("samples", "stream", "columns")
     SAMPLES_FIELD_NUMBER: _ClassVar[int]
     STREAM_FIELD_NUMBER: _ClassVar[int]
+    COLUMNS_FIELD_NUMBER: _ClassVar[int]
     samples: _containers.RepeatedCompositeFieldContainer[TemperatureSample]
     stream: StreamKind
-    def __init__(self, samples: _Optional[_Iterable[_Union[TemperatureSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ...) -> None: ...
+    columns: TemperatureColumns
+    def __init__(self, samples: _Optional[_Iterable[_Union[TemperatureSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ..., columns: _Optional[_Union[TemperatureColumns, _Mapping]] = ...) -> None: ...
 
 class DistanceSample(_message.Message):
     __slots__ = ("machine_id", "seq", "t_ns", "probe_id", "distance_mm", "spacing_mm")
