@@ -24,17 +24,6 @@ impl Drop for Killed {
     }
 }
 
-fn wait_port(port: u16, what: &str) {
-    let t0 = Instant::now();
-    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(
-            t0.elapsed() < Duration::from_secs(20),
-            "{what} did not start"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
 /// A scancorrd that is a client of the router, with its own store and assignment.
 fn instance(d: &Path, bus: &str, name: &str, machines: &str) -> Child {
     std::fs::write(
@@ -117,21 +106,8 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
     let d = scratch("two-instances");
     let port = free_port();
     let bus = format!("tcp/127.0.0.1:{port}");
-    std::fs::write(
-        d.join("router.json5"),
-        format!("{{ mode: 'router', listen: {{ endpoints: ['{bus}'] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"),
-    )
-    .unwrap();
-    let _router = Killed(
-        Command::new(scancorrd().with_file_name("scancorr-router"))
-            .args(["-c", "router.json5"])
-            .current_dir(&d)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
-    wait_port(port, "router");
+    let _router = Killed(start_router(&d, port));
+
     // Three machines, a ring each (different machines: different seeds).
     let mut samples = std::collections::BTreeMap::new();
     for (i, m) in ["m1", "m2", "m3"].iter().enumerate() {

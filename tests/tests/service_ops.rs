@@ -530,35 +530,11 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     let port = free_port();
     let bus = format!("tcp/127.0.0.1:{port}");
     std::fs::write(
-        d.join("router.json5"),
-        format!("{{ mode: 'router', listen: {{ endpoints: ['{bus}'] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"),
-    )
-    .unwrap();
-    std::fs::write(
         d.join("svc.json5"),
         format!("{{ mode: 'client', listen: [], connect: ['{bus}'], data_dir: 'data' }}"),
     )
     .unwrap();
-    let router_bin = scancorrd().with_file_name("scancorr-router");
-    let start_router = || {
-        let c = Command::new(&router_bin)
-            .args(["-c", "router.json5"])
-            .current_dir(&d)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        let t0 = Instant::now();
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            assert!(
-                t0.elapsed() < Duration::from_secs(20),
-                "router did not start"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        c
-    };
-    let mut router = start_router();
+    let mut router = start_router(&d, port);
     let mut svc = Command::new(scancorrd())
         .args(["--config", "svc.json5"])
         .current_dir(&d)
@@ -575,7 +551,7 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     let _ = router.kill();
     let _ = router.wait();
     std::thread::sleep(Duration::from_secs(2));
-    let mut router = start_router();
+    let mut router = start_router(&d, port);
     let out = replay.wait().unwrap();
     assert!(
         out.success(),

@@ -123,6 +123,32 @@ pub fn scancorrd() -> PathBuf {
     bin
 }
 
+/// Writes `router.json5` in `dir` (plain TCP on loopback `port`, no access control) and
+/// starts `scancorr-router` from it; returns once it listens.
+pub fn start_router(dir: &Path, port: u16) -> Child {
+    std::fs::write(
+        dir.join("router.json5"),
+        format!("{{ mode: 'router', listen: {{ endpoints: ['tcp/127.0.0.1:{port}'] }}, scouting: {{ multicast: {{ enabled: false }} }} }}"),
+    )
+    .unwrap();
+    let child = Command::new(scancorrd().with_file_name("scancorr-router"))
+        .args(["-c", "router.json5"])
+        .current_dir(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(20),
+            "router did not start"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    child
+}
+
 /// A free TCP port on loopback.
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
