@@ -71,16 +71,11 @@ fn main() {
         );
     }
 
-    let ids: Vec<String> = [
-        "accel_deflection",
-        "servo_phase",
-        "servo_gain",
-        "stylus_thermal",
-        "scale_thermal",
-        "probe_force",
-    ]
-    .map(String::from)
-    .to_vec();
+    // Six corrections per point: the library's first six effect kinds.
+    let ids: Vec<String> = scancorr_core::effects::KINDS[..6]
+        .iter()
+        .map(|k| k.to_string())
+        .collect();
     let points: Vec<CorrectedPoint> = (0..BATCH as u64)
         .map(|k| {
             let f = k as f64 * 0.37;

@@ -138,15 +138,17 @@ pub fn start_router(dir: &Path, port: u16) -> Child {
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
+    wait_listening(port, || "router did not start".into());
+    child
+}
+
+/// Waits (at most 20 s) until something listens on loopback `port`; else fails with `why()`.
+pub fn wait_listening(port: u16, why: impl Fn() -> String) {
     let t0 = Instant::now();
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(
-            t0.elapsed() < Duration::from_secs(20),
-            "router did not start"
-        );
+        assert!(t0.elapsed() < Duration::from_secs(20), "{}", why());
         std::thread::sleep(Duration::from_millis(50));
     }
-    child
 }
 
 /// A free TCP port on loopback.
@@ -200,15 +202,12 @@ impl Service {
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()
             .unwrap();
-        let t0 = Instant::now();
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            assert!(
-                t0.elapsed() < Duration::from_secs(20),
+        wait_listening(port, || {
+            format!(
                 "scancorrd did not start; its log:\n{}",
                 std::fs::read_to_string(&log).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
+            )
+        });
         Service { child, log }
     }
 
