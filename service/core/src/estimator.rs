@@ -66,6 +66,8 @@ pub struct Estimator {
     /// `settle_samples` of them.
     steps: u64,
     started: bool,
+    /// Steps after which the estimate is settled: the slowest axis model's.
+    settle_samples: u64,
 }
 
 impl Estimator {
@@ -77,6 +79,7 @@ impl Estimator {
             model[2].steady(0.0),
         ];
         Estimator {
+            settle_samples: settle_samples(&model),
             model,
             state,
             steps: 0,
@@ -106,6 +109,7 @@ impl Estimator {
 
     /// Swaps the models and restarts at `c`.
     pub fn switch_model(&mut self, model: Arc<[Discrete; 3]>, c: &CommandSample) -> Estimate {
+        self.settle_samples = settle_samples(&model);
         self.model = model;
         self.restart(c)
     }
@@ -139,15 +143,15 @@ impl Estimator {
     }
 
     /// True once a restart's transient has decayed.
+    #[inline]
     pub fn settled(&self) -> bool {
-        let need = self
-            .model
-            .iter()
-            .map(|m| m.settle_samples)
-            .max()
-            .unwrap_or(0);
-        self.steps >= need
+        self.steps >= self.settle_samples
     }
+}
+
+/// Samples for the slowest of the axis models to settle.
+fn settle_samples(model: &[Discrete; 3]) -> u64 {
+    model.iter().map(|m| m.settle_samples).max().unwrap_or(0)
 }
 
 /// Rotation on an arc: (f in Hz, unit angular-velocity axis), both zero off arcs or at rest.

@@ -10,7 +10,7 @@
 //! measurement, low-passed to the band where the measurement is trustworthy, with hysteresis
 //! against chattering.
 
-use crate::biquad::{Coefficients, State};
+use crate::biquad::{Channels, Coefficients};
 use crate::sample::{Axis, Vec3};
 
 /// A change of alarm state on one axis.
@@ -48,7 +48,7 @@ pub struct Judge {
     axes: [AxisState; 3],
     /// Filter states per section of the six channels: estimated x, y, z, measured x, y, z.
     /// The channels are independent, so each section runs on all six at once.
-    states: Vec<[State; 6]>,
+    states: Vec<Channels<6>>,
     primed: bool,
 }
 
@@ -56,7 +56,7 @@ impl Judge {
     /// Bytes of heap this judge holds (its filter sections).
     pub fn heap_bytes(&self) -> usize {
         self.sections.capacity() * std::mem::size_of::<Coefficients>()
-            + self.states.capacity() * std::mem::size_of::<[State; 6]>()
+            + self.states.capacity() * std::mem::size_of::<Channels<6>>()
     }
 
     /// A judge with validated filter sections and limits.
@@ -143,15 +143,13 @@ impl Judge {
             self.states.extend(
                 self.sections
                     .iter()
-                    .map(|c| [0, 1, 2, 0, 1, 2].map(|i| c.steady(a_mid[i]))),
+                    .map(|c| c.steady_each([0, 1, 2, 0, 1, 2].map(|i| a_mid[i]))),
             );
             self.primed = true;
         }
         let mut y = [a_mid.x, a_mid.y, a_mid.z, a_meas.x, a_meas.y, a_meas.z];
         for (c, st) in self.sections.iter().zip(self.states.iter_mut()) {
-            for (y, st) in y.iter_mut().zip(st.iter_mut()) {
-                *y = c.run(st, *y);
-            }
+            c.run_each(st, &mut y);
         }
         let mut broken = false;
         for (i, st) in self.axes.iter_mut().enumerate() {
