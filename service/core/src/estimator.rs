@@ -117,21 +117,29 @@ impl Estimator {
     /// Advances one sample period to the command `c`.
     #[inline]
     pub fn step(&mut self, c: &CommandSample) -> Estimate {
-        if !self.started {
-            return self.restart(c);
-        }
         let mut e = Estimate {
             cmd: *c,
             pos: Vec3::zeros(),
             vel: Vec3::zeros(),
             acc: Vec3::zeros(),
         };
-        for i in 0..3 {
-            let d = self.model[i].step(&mut self.state[i], c.pos[i]);
-            e.pos[i] = d.y;
-            e.vel[i] = d.dy;
-            e.acc[i] = d.ddy;
+        self.step_into(c, &mut e);
+        e
+    }
+
+    /// [`Self::step`], writing the estimate into `e` (where the caller keeps it, rather than
+    /// copying it there).
+    #[inline]
+    pub fn step_into(&mut self, c: &CommandSample, e: &mut Estimate) {
+        if !self.started {
+            *e = self.restart(c);
+            return;
         }
+        let [x, y, z] = [0, 1, 2].map(|i| self.model[i].step(&mut self.state[i], c.pos[i]));
+        e.cmd = *c;
+        e.pos = Vec3::new(x.y, y.y, z.y);
+        e.vel = Vec3::new(x.dy, y.dy, z.dy);
+        e.acc = Vec3::new(x.ddy, y.ddy, z.ddy);
         self.steps += 1;
         if c.arc_radius <= 0.0 {
             if let Some((center, radius)) = osculating_arc(&e.pos, &e.vel, &e.acc) {
@@ -139,7 +147,6 @@ impl Estimator {
                 e.cmd.arc_radius = radius;
             }
         }
-        e
     }
 
     /// True once a restart's transient has decayed.

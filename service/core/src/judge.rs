@@ -123,20 +123,22 @@ impl Judge {
         judge: bool,
         out: &mut impl FnMut(Transition),
     ) {
-        self.hist = [self.hist[1], self.hist[2], (t_ns, scale)];
-        self.a_est = [self.a_est[1], self.a_est[2], a_est];
+        // Shifted in registers and stored once (not read back from memory just written).
+        let [(t0, s0), (t1, s1)] = [self.hist[1], self.hist[2]];
+        let (t2, s2) = (t_ns, scale);
+        self.hist = [(t0, s0), (t1, s1), (t2, s2)];
+        let a_mid = self.a_est[2];
+        self.a_est = [self.a_est[1], a_mid, a_est];
         self.n_hist = (self.n_hist + 1).min(3);
         if self.n_hist < 3 {
             return;
         }
-        let [(t0, s0), (t1, s1), (t2, s2)] = self.hist;
         let (h1, h2) = ((t1 - t0) as f64 * 1e-9, (t2 - t1) as f64 * 1e-9);
         if h1 <= 0.0 || h2 <= 0.0 {
             self.restart();
             return;
         }
         let a_meas = ((s2 - s1) / h2 - (s1 - s0) / h1) * (2.0 / (h1 + h2));
-        let a_mid = self.a_est[1];
         if !self.primed {
             // Both filters of an axis start at rest at the estimate.
             self.states.clear();
