@@ -21,6 +21,14 @@ pub struct State {
     s2: f64,
 }
 
+/// States of one section on `C` independent channels, each value in its own array (so the
+/// channels run side by side, in SIMD lanes where the machine has them).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Channels<const C: usize> {
+    s1: [f64; C],
+    s2: [f64; C],
+}
+
 impl Coefficients {
     /// A low-pass section with cutoff `fc` and quality `q` at sampling rate `fs`.
     /// `None` unless 0 < fc < fs/2 and q > 0.
@@ -77,6 +85,26 @@ impl Coefficients {
         st.s1 = self.b1 * x - self.a1 * y + st.s2;
         st.s2 = self.b2 * x - self.a2 * y;
         y
+    }
+
+    /// [`Self::steady`] of each channel.
+    pub fn steady_each<const C: usize>(&self, x: [f64; C]) -> Channels<C> {
+        let s = x.map(|x| self.steady(x));
+        Channels {
+            s1: s.map(|s| s.s1),
+            s2: s.map(|s| s.s2),
+        }
+    }
+
+    /// [`Self::run`] on each channel: `x` in, the filtered values out.
+    #[inline]
+    pub fn run_each<const C: usize>(&self, st: &mut Channels<C>, x: &mut [f64; C]) {
+        for ((x, s1), s2) in x.iter_mut().zip(&mut st.s1).zip(&mut st.s2) {
+            let y = self.b0 * *x + *s1;
+            *s1 = self.b1 * *x - self.a1 * y + *s2;
+            *s2 = self.b2 * *x - self.a2 * y;
+            *x = y;
+        }
     }
 }
 

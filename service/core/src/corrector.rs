@@ -698,6 +698,16 @@ impl Corrector {
             let gap = self
                 .e1()
                 .is_some_and(|e| c.t_ns - e.cmd.t_ns > self.model.max_gap_ns);
+            // The later estimate becomes the earlier one: the new one goes to the other slot,
+            // in place when it holds one (not copied there from a temporary).
+            let slot = 1 - self.newest;
+            if let (false, Some(est), Some(e)) =
+                (gap, self.estimator.as_mut(), self.estimates[slot].as_mut())
+            {
+                est.step_into(&c, e);
+                self.newest = slot;
+                continue;
+            }
             let est = match self.estimator.as_mut() {
                 Some(est) if !gap => est.step(&c),
                 Some(est) => est.restart(&c),
@@ -711,9 +721,8 @@ impl Corrector {
                     e
                 }
             };
-            // The later estimate becomes the earlier one.
-            self.newest = 1 - self.newest;
-            self.estimates[self.newest] = Some(est);
+            self.newest = slot;
+            self.estimates[slot] = Some(est);
         }
     }
 

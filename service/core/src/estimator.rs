@@ -66,6 +66,8 @@ pub struct Estimator {
     /// `settle_samples` of them.
     steps: u64,
     started: bool,
+    /// Steps after which the estimate is settled: the slowest axis model's.
+    settle_samples: u64,
 }
 
 impl Estimator {
@@ -77,6 +79,7 @@ impl Estimator {
             model[2].steady(0.0),
         ];
         Estimator {
+            settle_samples: settle_samples(&model),
             model,
             state,
             steps: 0,
@@ -106,6 +109,7 @@ impl Estimator {
 
     /// Swaps the models and restarts at `c`.
     pub fn switch_model(&mut self, model: Arc<[Discrete; 3]>, c: &CommandSample) -> Estimate {
+        self.settle_samples = settle_samples(&model);
         self.model = model;
         self.restart(c)
     }
@@ -113,21 +117,29 @@ impl Estimator {
     /// Advances one sample period to the command `c`.
     #[inline]
     pub fn step(&mut self, c: &CommandSample) -> Estimate {
-        if !self.started {
-            return self.restart(c);
-        }
         let mut e = Estimate {
             cmd: *c,
             pos: Vec3::zeros(),
             vel: Vec3::zeros(),
             acc: Vec3::zeros(),
         };
-        for i in 0..3 {
-            let d = self.model[i].step(&mut self.state[i], c.pos[i]);
-            e.pos[i] = d.y;
-            e.vel[i] = d.dy;
-            e.acc[i] = d.ddy;
+        self.step_into(c, &mut e);
+        e
+    }
+
+    /// [`Self::step`], writing the estimate into `e` (where the caller keeps it, rather than
+    /// copying it there).
+    #[inline]
+    pub fn step_into(&mut self, c: &CommandSample, e: &mut Estimate) {
+        if !self.started {
+            *e = self.restart(c);
+            return;
         }
+        let [x, y, z] = [0, 1, 2].map(|i| self.model[i].step(&mut self.state[i], c.pos[i]));
+        e.cmd = *c;
+        e.pos = Vec3::new(x.y, y.y, z.y);
+        e.vel = Vec3::new(x.dy, y.dy, z.dy);
+        e.acc = Vec3::new(x.ddy, y.ddy, z.ddy);
         self.steps += 1;
         if c.arc_radius <= 0.0 {
             if let Some((center, radius)) = osculating_arc(&e.pos, &e.vel, &e.acc) {
@@ -135,19 +147,18 @@ impl Estimator {
                 e.cmd.arc_radius = radius;
             }
         }
-        e
     }
 
     /// True once a restart's transient has decayed.
+    #[inline]
     pub fn settled(&self) -> bool {
-        let need = self
-            .model
-            .iter()
-            .map(|m| m.settle_samples)
-            .max()
-            .unwrap_or(0);
-        self.steps >= need
+        self.steps >= self.settle_samples
     }
+}
+
+/// Samples for the slowest of the axis models to settle.
+fn settle_samples(model: &[Discrete; 3]) -> u64 {
+    model.iter().map(|m| m.settle_samples).max().unwrap_or(0)
 }
 
 /// Rotation on an arc: (f in Hz, unit angular-velocity axis), both zero off arcs or at rest.

@@ -553,6 +553,9 @@ enum Node {
 /// Registers a program evaluates in without allocating.
 const STACK_REGISTERS: usize = 64;
 
+/// Registers of the smaller register file, for programs of a few terms.
+const SMALL_REGISTERS: usize = 16;
+
 impl Program {
     /// Compiles `exprs` into one program over `n_inputs` inputs; each expression comes with
     /// the input index of each of its variable slots (`inputs[i]` for `expr.vars[i]`).
@@ -706,17 +709,32 @@ impl Program {
     /// Evaluates every expression with `inputs` (at least the program's inputs) and hands
     /// each value, in expression order, to `out(index, value)`. Allocates only for programs
     /// of more than 64 registers.
-    pub fn eval(&self, inputs: &[f64], mut out: impl FnMut(usize, f64)) {
-        let mut small = [0.0f64; STACK_REGISTERS];
-        let mut big;
-        let r: &mut [f64] = if self.n_regs <= STACK_REGISTERS {
-            &mut small
+    pub fn eval(&self, inputs: &[f64], out: impl FnMut(usize, f64)) {
+        self.eval_with(|i| inputs[i], out);
+    }
+
+    /// [`Self::eval`] with input `i` given by `input(i)`, read into its register as the
+    /// evaluation starts (the caller fills no array of inputs first).
+    #[inline]
+    pub fn eval_with(&self, input: impl Fn(usize) -> f64, out: impl FnMut(usize, f64)) {
+        // The register file is zeroed on every evaluation: on the stack and no larger than
+        // the program needs, for the usual few-term programs.
+        if self.n_regs <= SMALL_REGISTERS {
+            self.run(&mut [0.0; SMALL_REGISTERS], input, out);
+        } else if self.n_regs <= STACK_REGISTERS {
+            self.run(&mut [0.0; STACK_REGISTERS], input, out);
         } else {
-            big = vec![0.0f64; self.n_regs];
-            &mut big
-        };
+            self.run(&mut vec![0.0; self.n_regs], input, out);
+        }
+    }
+
+    /// Runs the steps on the register file `r` (at least `n_regs` long).
+    #[inline]
+    fn run(&self, r: &mut [f64], input: impl Fn(usize) -> f64, mut out: impl FnMut(usize, f64)) {
         let n_in = self.n_inputs;
-        r[..n_in].copy_from_slice(&inputs[..n_in]);
+        for (i, v) in r[..n_in].iter_mut().enumerate() {
+            *v = input(i);
+        }
         r[n_in..n_in + self.consts.len()].copy_from_slice(&self.consts);
         for step in &self.steps {
             match *step {
@@ -799,9 +817,27 @@ mod tests {
         assert_eq!(sincos(&p), 1);
         let two = Program::compile(&list[..2], names.len());
         assert_eq!(two.steps.len(), 3, "{:?}", two.steps); // ·x, /4, sin_cos
-        for inputs in [[0.7, -3.0, 22.5], [-1.3, 0.0, 19.0], [1e3, 5.0, f64::NAN]] {
+                                                           // A long Horner chain: more registers than the register file on the stack holds.
+        let horner = (1..=40).fold("x".to_string(), |acc, k| format!("({acc} + {k}) * vx"));
+        let long = Expr::parse(&horner).unwrap();
+        let long_slots: Vec<usize> = long
+            .vars
+            .iter()
+            .map(|v| names.iter().position(|n| n == v).unwrap())
+            .collect();
+        let long_list = [(&long, long_slots.as_slice())];
+        let big = Program::compile(&long_list, names.len());
+        assert!(big.n_regs > STACK_REGISTERS && two.n_regs <= SMALL_REGISTERS);
+        assert!((SMALL_REGISTERS..=STACK_REGISTERS).contains(&p.n_regs));
+        for ((p, list), inputs) in [(&p, &list[..]), (&two, &list[..2]), (&big, &long_list[..])]
+            .into_iter()
+            .flat_map(|p| {
+                [[0.7, -3.0, 22.5], [-1.3, 0.0, 19.0], [1e3, 5.0, f64::NAN]].map(|i| (p, i))
+            })
+        {
             let mut got = vec![];
             p.eval(&inputs, |i, v| got.push((i, v)));
+            assert_eq!(got.len(), list.len());
             for (i, (e, s)) in list.iter().enumerate() {
                 let vars: Vec<f64> = s.iter().map(|k| inputs[*k]).collect();
                 let want = e.eval(&vars);
@@ -809,8 +845,8 @@ mod tests {
                 assert_eq!(
                     got[i].1.to_bits(),
                     want.to_bits(),
-                    "{}: {inputs:?}",
-                    srcs[i]
+                    "expression {i} of {}: {inputs:?}",
+                    list.len()
                 );
             }
         }

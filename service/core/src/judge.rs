@@ -10,7 +10,7 @@
 //! measurement, low-passed to the band where the measurement is trustworthy, with hysteresis
 //! against chattering.
 
-use crate::biquad::{Coefficients, State};
+use crate::biquad::{Channels, Coefficients};
 use crate::sample::{Axis, Vec3};
 
 /// A change of alarm state on one axis.
@@ -48,7 +48,7 @@ pub struct Judge {
     axes: [AxisState; 3],
     /// Filter states per section of the six channels: estimated x, y, z, measured x, y, z.
     /// The channels are independent, so each section runs on all six at once.
-    states: Vec<[State; 6]>,
+    states: Vec<Channels<6>>,
     primed: bool,
 }
 
@@ -56,7 +56,7 @@ impl Judge {
     /// Bytes of heap this judge holds (its filter sections).
     pub fn heap_bytes(&self) -> usize {
         self.sections.capacity() * std::mem::size_of::<Coefficients>()
-            + self.states.capacity() * std::mem::size_of::<[State; 6]>()
+            + self.states.capacity() * std::mem::size_of::<Channels<6>>()
     }
 
     /// A judge with validated filter sections and limits.
@@ -123,35 +123,35 @@ impl Judge {
         judge: bool,
         out: &mut impl FnMut(Transition),
     ) {
-        self.hist = [self.hist[1], self.hist[2], (t_ns, scale)];
-        self.a_est = [self.a_est[1], self.a_est[2], a_est];
+        // Shifted in registers and stored once (not read back from memory just written).
+        let [(t0, s0), (t1, s1)] = [self.hist[1], self.hist[2]];
+        let (t2, s2) = (t_ns, scale);
+        self.hist = [(t0, s0), (t1, s1), (t2, s2)];
+        let a_mid = self.a_est[2];
+        self.a_est = [self.a_est[1], a_mid, a_est];
         self.n_hist = (self.n_hist + 1).min(3);
         if self.n_hist < 3 {
             return;
         }
-        let [(t0, s0), (t1, s1), (t2, s2)] = self.hist;
         let (h1, h2) = ((t1 - t0) as f64 * 1e-9, (t2 - t1) as f64 * 1e-9);
         if h1 <= 0.0 || h2 <= 0.0 {
             self.restart();
             return;
         }
         let a_meas = ((s2 - s1) / h2 - (s1 - s0) / h1) * (2.0 / (h1 + h2));
-        let a_mid = self.a_est[1];
         if !self.primed {
             // Both filters of an axis start at rest at the estimate.
             self.states.clear();
             self.states.extend(
                 self.sections
                     .iter()
-                    .map(|c| [0, 1, 2, 0, 1, 2].map(|i| c.steady(a_mid[i]))),
+                    .map(|c| c.steady_each([0, 1, 2, 0, 1, 2].map(|i| a_mid[i]))),
             );
             self.primed = true;
         }
         let mut y = [a_mid.x, a_mid.y, a_mid.z, a_meas.x, a_meas.y, a_meas.z];
         for (c, st) in self.sections.iter().zip(self.states.iter_mut()) {
-            for (y, st) in y.iter_mut().zip(st.iter_mut()) {
-                *y = c.run(st, *y);
-            }
+            c.run_each(st, &mut y);
         }
         let mut broken = false;
         for (i, st) in self.axes.iter_mut().enumerate() {

@@ -316,12 +316,30 @@ impl Discrete {
     /// derivatives at the new instant.
     #[inline]
     pub fn step(&self, s: &mut DiscreteState, u_next: f64) -> Derivs {
-        let n = self.n;
+        // One instance per order: with the order a constant the loops unroll and the bounds
+        // checks vanish (the same operations in the same order as for any order).
+        match self.n {
+            0 => self.step_n::<0>(s, u_next),
+            1 => self.step_n::<1>(s, u_next),
+            2 => self.step_n::<2>(s, u_next),
+            3 => self.step_n::<3>(s, u_next),
+            4 => self.step_n::<4>(s, u_next),
+            5 => self.step_n::<5>(s, u_next),
+            6 => self.step_n::<6>(s, u_next),
+            7 => self.step_n::<7>(s, u_next),
+            _ => self.step_n::<MAX_ORDER>(s, u_next),
+        }
+    }
+
+    /// [`Self::step`] for a model of order `N` (= `self.n`).
+    #[inline]
+    fn step_n<const N: usize>(&self, s: &mut DiscreteState, u_next: f64) -> Derivs {
+        debug_assert_eq!(self.n, N);
         let du = u_next - s.u;
         let mut x = [0.0; MAX_ORDER];
-        for (i, xi) in x.iter_mut().enumerate().take(n) {
+        for (i, xi) in x.iter_mut().enumerate().take(N) {
             let mut acc = self.g1[i] * s.u + self.g2[i] * du;
-            for j in 0..n {
+            for j in 0..N {
                 acc += self.phi[i][j] * s.x[j];
             }
             *xi = acc;
@@ -331,15 +349,31 @@ impl Discrete {
         let curv = (u_next - 2.0 * s.u + s.u_prev) / (self.period_s * self.period_s);
         s.u_prev = s.u;
         s.u = u_next;
-        self.output(s, slope, curv)
+        self.output_n::<N>(s, slope, curv)
     }
 
     /// Output and derivatives of the current state for input slope and curvature.
     #[inline]
     pub fn output(&self, s: &DiscreteState, slope: f64, curv: f64) -> Derivs {
+        match self.n {
+            0 => self.output_n::<0>(s, slope, curv),
+            1 => self.output_n::<1>(s, slope, curv),
+            2 => self.output_n::<2>(s, slope, curv),
+            3 => self.output_n::<3>(s, slope, curv),
+            4 => self.output_n::<4>(s, slope, curv),
+            5 => self.output_n::<5>(s, slope, curv),
+            6 => self.output_n::<6>(s, slope, curv),
+            7 => self.output_n::<7>(s, slope, curv),
+            _ => self.output_n::<MAX_ORDER>(s, slope, curv),
+        }
+    }
+
+    /// [`Self::output`] for a model of order `N` (= `self.n`).
+    #[inline]
+    fn output_n<const N: usize>(&self, s: &DiscreteState, slope: f64, curv: f64) -> Derivs {
         let (mut y, mut dy, mut ddy) = (self.d * s.u, self.cb * s.u + self.d * slope, 0.0);
         ddy += self.cab * s.u + self.cb * slope + self.d * curv;
-        for i in 0..self.n {
+        for i in 0..N {
             y += self.c[i] * s.x[i];
             dy += self.ca[i] * s.x[i];
             ddy += self.ca2[i] * s.x[i];

@@ -11,7 +11,7 @@
 
 use super::{temp, Effect, SensorTable};
 use crate::expr::{Expr, Program};
-use crate::sample::{Axis, PointContext, Vec3, MAX_SENSORS};
+use crate::sample::{Axis, PointContext, Vec3};
 use serde::{Deserialize, Serialize};
 
 /// Signals an expression may use; temperatures are `T_<sensor>` (e.g. `T_air`).
@@ -80,9 +80,6 @@ enum Sig {
     Builtin(usize),
     Temp(usize),
 }
-
-/// Most distinct signals a custom effect can read (every built-in and every sensor slot).
-const MAX_SIGNALS: usize = SIGNALS.len() + MAX_SENSORS;
 
 /// Hot-path form: the terms' expressions compiled together into one [`Program`] over the
 /// distinct signals they read (each read once per point).
@@ -179,14 +176,11 @@ impl Model {
     /// Hands each term's value (0 where it is not a finite number) to `out(term, value)`.
     #[inline]
     fn term_values(&self, ctx: &PointContext, mut out: impl FnMut(usize, f64)) {
-        let mut inputs = [0.0; MAX_SIGNALS];
-        for (v, s) in inputs.iter_mut().zip(&self.signals) {
-            *v = match *s {
-                Sig::Builtin(k) => builtin(ctx, k),
-                Sig::Temp(slot) => temp(ctx, slot, 20.0),
-            };
-        }
-        self.program.eval(&inputs, |t, x| {
+        let input = |i: usize| match self.signals[i] {
+            Sig::Builtin(k) => builtin(ctx, k),
+            Sig::Temp(slot) => temp(ctx, slot, 20.0),
+        };
+        self.program.eval_with(input, |t, x| {
             out(t, if x.is_finite() { x } else { 0.0 });
         });
     }

@@ -52,7 +52,13 @@ pub struct Config {
 pub struct Model {
     axis: usize,
     knots: Vec<f64>,
+    /// Knots per mm over the table, (n − 1)/(last − first): where evenly spaced knots put a
+    /// position, without a search.
+    knots_per_mm: f64,
     straight: Vec<(usize, Vec<f64>)>,
+    /// The straightness deviations at each knot as one vector (zero along the axis itself and
+    /// towards the axes without a table).
+    straight_at: Vec<Vec3>,
     pitch: Option<(Vec3, Vec<f64>)>,
 }
 
@@ -150,10 +156,21 @@ impl Config {
                 "straightness: give straightness towards a perpendicular axis or pitch_rad".into(),
             );
         }
+        let straight_at = (0..n)
+            .map(|j| {
+                let mut s = Vec3::zeros();
+                for (b, v) in &straight {
+                    s[*b] = v[j];
+                }
+                s
+            })
+            .collect();
         Ok(Model {
             axis: self.axis.index(),
             knots: self.knots_mm.clone(),
+            knots_per_mm: (n - 1) as f64 / (self.knots_mm[n - 1] - self.knots_mm[0]),
             straight,
+            straight_at,
             pitch,
         })
     }
@@ -225,7 +242,14 @@ impl Model {
         if s >= k[last] {
             return (last - 1, 0.0);
         }
-        let j = k.partition_point(|x| *x <= s) - 1;
+        // The interval evenly spaced knots put s in (the usual table); searched for when it
+        // is not that one (uneven knots, or rounding just across a knot).
+        let guess = (((s - k[0]) * self.knots_per_mm) as usize).min(last - 1);
+        let j = if k[guess] <= s && s < k[guess + 1] {
+            guess
+        } else {
+            k.partition_point(|x| *x <= s) - 1
+        };
         (j, (k[j + 1] - s) / (k[j + 1] - k[j]))
     }
 }
@@ -253,10 +277,9 @@ impl Effect for Model {
     #[inline]
     fn correction(&self, ctx: &PointContext) -> Vec3 {
         let (j, w) = self.hat(ctx.scale[self.axis]);
-        let mut d = Vec3::zeros();
-        for (b, v) in &self.straight {
-            d[*b] += w * v[j] + (1.0 - w) * v[j + 1];
-        }
+        let s = &self.straight_at;
+        // Σ_b e_b·(w·S_b,j + (1 − w)·S_b,j+1), all perpendicular axes at once.
+        let mut d = Vec3::zeros() + (s[j] * w + s[j + 1] * (1.0 - w));
         if let Some((r, v)) = &self.pitch {
             d += r.cross(&ctx.tip_offset()) * (w * v[j] + (1.0 - w) * v[j + 1]);
         }
@@ -292,5 +315,34 @@ mod tests {
             ..Config::zeros(Axis::Y, 0.0, 1.0, 2, false)
         };
         assert!(bad.build().unwrap_err().contains("increasing"));
+    }
+
+    #[test]
+    fn interpolates_between_the_right_knots_even_or_uneven() {
+        // Straightness towards z equal to the knot position (mm → µm): linear interpolation
+        // then gives back s·1e-3 anywhere inside the table, whichever interval holds s.
+        for knots in [
+            vec![0.0, 100.0, 200.0, 300.0, 400.0],
+            vec![-50.0, 0.0, 10.0, 300.0, 310.0, 900.0],
+        ] {
+            let n = knots.len();
+            let mut c = Config::zeros(Axis::Y, 0.0, 1.0, n, false);
+            c.knots_mm = knots.clone();
+            c.straightness.remove(&Axis::X);
+            c.straightness
+                .insert(Axis::Z, knots.iter().map(|k| k * 1e-3).collect());
+            let m = c.build().unwrap();
+            let (lo, hi) = (knots[0], knots[n - 1]);
+            let mut at: Vec<f64> = knots.clone();
+            at.extend((0..=97).map(|i| lo + (hi - lo) * i as f64 / 97.0));
+            for s in at {
+                let ctx = PointContext::at_rest(Vec3::new(0.0, s, 0.0));
+                let d = m.correction(&ctx);
+                assert!((d.z - s * 1e-3).abs() < 1e-15, "s = {s}: {d:?}");
+                assert_eq!((d.x, d.y), (0.0, 0.0));
+                let (j, w) = m.hat(s);
+                assert!(knots[j] <= s && s <= knots[j + 1] && (0.0..=1.0).contains(&w));
+            }
+        }
     }
 }

@@ -42,7 +42,8 @@ fn default_powers() -> Vec<u32> {
 pub struct Model {
     basis: PositionBasis,
     powers: Vec<i32>,
-    alpha: [Vec<f64>; 3],
+    /// α of the three axes side by side (one vector per monomial and power, monomial-major).
+    alpha: Vec<Vec3>,
 }
 
 impl Config {
@@ -81,7 +82,9 @@ impl Config {
         Ok(Model {
             basis: self.position,
             powers: self.powers.iter().map(|p| *p as i32).collect(),
-            alpha: [self.x.clone(), self.y.clone(), self.z.clone()],
+            alpha: (0..n)
+                .map(|k| Vec3::new(self.x[k], self.y[k], self.z[k]))
+                .collect(),
         })
     }
     /// Flat parameters x, y, z.
@@ -132,7 +135,7 @@ fn superscript(n: u32) -> String {
 
 impl Effect for Model {
     fn n_params(&self) -> usize {
-        3 * self.alpha[0].len()
+        3 * self.alpha.len()
     }
     fn regressors(&self, ctx: &PointContext, out: &mut [Vec3]) {
         out.iter_mut().for_each(|r| *r = Vec3::zeros());
@@ -163,21 +166,16 @@ impl Effect for Model {
             fp[k] = ctx.f_hz.powi(*p);
         }
         let np = self.powers.len();
-        let r = ctx.scale - ctx.arc_center;
+        // g_i = Σ_m ξ_m Σ_k α_{i,m,k} f^k, the three axes at once.
         let mut g = Vec3::zeros();
-        for i in 0..3 {
-            let a = &self.alpha[i];
-            let mut s = 0.0;
-            for m in 0..n {
-                let mut t = 0.0;
-                for k in 0..np {
-                    t += a[m * np + k] * fp[k];
-                }
-                s += mono[m] * t;
+        for (xi, a) in mono.iter().take(n).zip(self.alpha.chunks_exact(np)) {
+            let mut t = Vec3::zeros();
+            for (a, fp) in a.iter().zip(&fp) {
+                t += a * *fp;
             }
-            g[i] = s * r[i];
+            g += t * *xi;
         }
-        g
+        g.component_mul(&(ctx.scale - ctx.arc_center))
     }
 }
 

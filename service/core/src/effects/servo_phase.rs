@@ -259,6 +259,16 @@ fn static_lever(ctx: &PointContext) -> Option<Vec3> {
     }
 }
 
+/// Σ_m ξ_m·(b_m0 + f·(b_m1 + f·b_m2)) over the monomials `mono`.
+#[inline]
+fn poly_in_f(mono: &[f64], a: &[[f64; 3]], f: f64) -> f64 {
+    let mut p = 0.0;
+    for (xi, b) in mono.iter().zip(a) {
+        p += xi * (b[0] + f * (b[1] + f * b[2]));
+    }
+    p
+}
+
 impl Effect for Model {
     fn n_params(&self) -> usize {
         3 * (self.y.len() + self.z.len() + self.sy.len() + self.sz.len())
@@ -299,14 +309,8 @@ impl Effect for Model {
         let mut mono = [0.0; 10];
         let n = self.basis.eval(&ctx.scale, &mut mono);
         let f = ctx.f_hz;
-        let poly = |a: &[[f64; 3]]| {
-            let mut p = 0.0;
-            for m in 0..n {
-                let b = a[m];
-                p += mono[m] * (b[0] + f * (b[1] + f * b[2]));
-            }
-            p
-        };
+        let mono = &mono[..n];
+        let poly = |a: &[[f64; 3]]| poly_in_f(mono, a, f);
         // The direction-dependent part, computed exactly as before the static part existed.
         let dir = if self.y.is_empty() {
             None
