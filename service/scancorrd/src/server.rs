@@ -11,7 +11,7 @@
 //! service's memory by inventing names), and logged at most once per [`LOG_EVERY`].
 
 use crate::config::Config;
-use crate::shard::{Core, Job, Limits, OutState, Outbox, Snap};
+use crate::shard::{Core, Job, Limits, Outbox, Snap};
 use crate::store::Audit;
 use crate::store::Store;
 use scancorr_core::wire;
@@ -20,7 +20,7 @@ use scancorr_proto::Stream;
 use serde_json::json;
 use std::collections::BTreeMap;
 use std::future::Future;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tracing::{error, info, warn};
 use zenoh::qos::CongestionControl;
@@ -775,14 +775,12 @@ impl State {
                 .map(|c| c.effect_ids())
                 .unwrap_or_default();
             info!(machine = name, version = ?corrector.as_ref().map(|c| c.calibration().version), "serving machine");
-            let outbox = Arc::new(Outbox {
+            let outbox = Arc::new(Outbox::new(
                 points,
                 alarms,
-                machine: name.to_string(),
-                max_bytes: self.cfg.max_queued_bytes_per_machine,
-                state: Mutex::new(OutState::default()),
-                ready: Default::default(),
-            });
+                name.to_string(),
+                self.cfg.max_queued_bytes_per_machine,
+            ));
             // The shard with the fewest machines corrects it.
             let shard = (0..self.shards.len())
                 .min_by_key(|k| self.on_shard[*k])
@@ -796,6 +794,7 @@ impl State {
                         extra: Default::default(),
                         last_point_t_ns: None,
                         outbox: outbox.clone(),
+                        pending: Default::default(),
                     }),
                 ))
                 .await
