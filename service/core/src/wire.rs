@@ -514,7 +514,8 @@ fn varints(mut b: &[u8]) -> Option<usize> {
 
 /// How many doubles a packed column holds; `None` when its length is not a multiple of 8.
 fn doubles(b: &[u8]) -> Option<usize> {
-    (b.len() % 8 == 0).then_some(b.len() / 8)
+    let values = b.chunks_exact(8);
+    values.remainder().is_empty().then_some(values.len())
 }
 
 /// The values of a packed varint column (checked by [`varints`]).

@@ -1,7 +1,8 @@
-//! The async shell: zenoh in, the pure core, zenoh out. One task owns every machine's state;
-//! each raw message is decoded, pushed through that machine's [`Corrector`] and whatever it
-//! completes is handed to that machine's [`Outbox`], which publishes it off the correcting
-//! task: a subscriber that stops reading can delay or cost only the points of the machines it
+//! The async shell: zenoh in, the pure core, zenoh out. Each machine's state lives on one
+//! correcting shard; zenoh's callback sends a served machine's raw messages straight there
+//! ([`Routes`]), where each is decoded, pushed through that machine's [`Corrector`] and whatever
+//! it completes is handed to that machine's [`Outbox`], which publishes it off the correcting
+//! thread; this control task serves the rest (new machines, refusals, queries, the store): a subscriber that stops reading can delay or cost only the points of the machines it
 //! subscribes to (dropped newest-first past `max_queued_bytes_per_machine`, counted), never
 //! another machine's correction.
 //!
@@ -924,8 +925,8 @@ impl State {
         let arrivals = self.routes.last_arrivals();
         for (name, m) in self.machines.iter_mut() {
             let last_arrival = arrivals.get(name).copied().unwrap_or_default();
-            for k in 0..4 {
-                if m.stalled[k] && last_arrival[k].is_some_and(|t| t.elapsed() <= limit) {
+            for (k, at) in last_arrival.iter().enumerate() {
+                if m.stalled[k] && at.is_some_and(|t| t.elapsed() <= limit) {
                     m.stalled[k] = false;
                     info!(machine = %name, stream = scancorr_core::sample::StreamId::ALL[k].name(), "stream resumed");
                 }
