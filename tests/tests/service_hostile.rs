@@ -504,7 +504,9 @@ async fn a_subscriber_that_stops_reading_costs_only_its_machines_points() {
     let _timing = alone();
     let d = scratch("hostile-slow");
     let port = free_port();
-    let svc = Service::start_with(&d, port, "");
+    // One correcting worker: both machines on one shard, whose publishing m1's stalled
+    // consumer holds up (m2's output must go out beside it).
+    let svc = Service::start_with(&d, port, "workers: 1,");
     let (bag1, cal1) = ring(&d, "m1", "ring-speeds");
     let (bag2, cal2) = ring(&d, "m2", "ring-speeds");
     let want2 = offline_points(&d, &bag2, &cal2).len();

@@ -9,6 +9,7 @@ pub mod config;
 pub mod latency;
 pub mod metrics;
 pub mod notify;
+mod routes;
 pub mod server;
 mod shard;
 pub mod store;

@@ -1,7 +1,8 @@
-//! The async shell: zenoh in, the pure core, zenoh out. One task owns every machine's state;
-//! each raw message is decoded, pushed through that machine's [`Corrector`] and whatever it
-//! completes is handed to that machine's [`Outbox`], which publishes it off the correcting
-//! task: a subscriber that stops reading can delay or cost only the points of the machines it
+//! The async shell: zenoh in, the pure core, zenoh out. Each machine's state lives on one
+//! correcting shard; zenoh's callback sends a served machine's raw messages straight there
+//! ([`Routes`]), where each is decoded, pushed through that machine's [`Corrector`] and whatever
+//! it completes is handed to that machine's [`Outbox`], which publishes it off the correcting
+//! thread; this control task serves the rest (new machines, refusals, queries, the store): a subscriber that stops reading can delay or cost only the points of the machines it
 //! subscribes to (dropped newest-first past `max_queued_bytes_per_machine`, counted), never
 //! another machine's correction.
 //!
@@ -11,7 +12,8 @@
 //! service's memory by inventing names), and logged at most once per [`LOG_EVERY`].
 
 use crate::config::Config;
-use crate::shard::{Core, Job, Limits, OutState, Outbox, Snap};
+use crate::routes::Routes;
+use crate::shard::{Core, Job, Limits, Outbox, Snap};
 use crate::store::Audit;
 use crate::store::Store;
 use scancorr_core::wire;
@@ -20,7 +22,7 @@ use scancorr_proto::Stream;
 use serde_json::json;
 use std::collections::BTreeMap;
 use std::future::Future;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tracing::{error, info, warn};
 use zenoh::qos::CongestionControl;
@@ -138,7 +140,6 @@ struct Machine {
     _raw_keys: Vec<zenoh::key_expr::KeyExpr<'static>>,
     /// Messages on its measurement streams (`raw/distance`, `raw/stage`), skipped.
     not_corrected: u64,
-    last_arrival: [Option<Instant>; 4],
     stalled: [bool; 4],
     /// Calibrations put for this machine since the service started.
     puts: u64,
@@ -160,6 +161,7 @@ struct State {
     shards: Vec<flume::Sender<Job>>,
     on_shard: Vec<usize>,
     limits: Limits,
+    routes: Arc<Routes>,
 }
 
 /// Runs the service until `shutdown` resolves; then flushes every machine and closes the
@@ -200,13 +202,18 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     let (calib_tx, calib) = flume::bounded(64);
     let (status_tx, status) = flume::bounded(64);
     let mut declared = Declared::default();
+    let routes = Arc::new(Routes::new(&prefix));
     for m in &chunks {
         let tx = raw_tx.clone();
+        let routes = routes.clone();
         declared._subscribers.push(
             session
                 .declare_subscriber(format!("{prefix}/{m}/raw/**"))
                 .callback(move |s| {
-                    let _ = tx.send((Instant::now(), s));
+                    let arrived = Instant::now();
+                    if let Some(s) = routes.route(s, arrived) {
+                        let _ = tx.send((arrived, s));
+                    }
                 })
                 .await
                 .map_err(z)?,
@@ -253,6 +260,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         elsewhere: BTreeMap::new(),
         shards: vec![],
         on_shard: vec![0; workers],
+        routes: routes.clone(),
         limits: Limits {
             max_pending_samples: cfg_max_pending,
             tags,
@@ -347,6 +355,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         }
     }
     notify.send("STOPPING=1");
+    st.routes.close();
     info!("shutting down: flushing buffered samples");
     for tx in &st.shards {
         let (done, wait) = tokio::sync::oneshot::channel();
@@ -775,14 +784,12 @@ impl State {
                 .map(|c| c.effect_ids())
                 .unwrap_or_default();
             info!(machine = name, version = ?corrector.as_ref().map(|c| c.calibration().version), "serving machine");
-            let outbox = Arc::new(Outbox {
+            let outbox = Arc::new(Outbox::new(
                 points,
                 alarms,
-                machine: name.to_string(),
-                max_bytes: self.cfg.max_queued_bytes_per_machine,
-                state: Mutex::new(OutState::default()),
-                ready: Default::default(),
-            });
+                name.to_string(),
+                self.cfg.max_queued_bytes_per_machine,
+            ));
             // The shard with the fewest machines corrects it.
             let shard = (0..self.shards.len())
                 .min_by_key(|k| self.on_shard[*k])
@@ -796,11 +803,14 @@ impl State {
                         extra: Default::default(),
                         last_point_t_ns: None,
                         outbox: outbox.clone(),
+                        pending: Default::default(),
                     }),
                 ))
                 .await
                 .map_err(|_| ServiceError::Refused("the correcting workers have stopped".into()))?;
             self.on_shard[shard] += 1;
+            // From now on its raw messages go straight to its shard (after the `Add`).
+            self.routes.add(name, self.shards[shard].clone());
             self.machines.insert(
                 name.to_string(),
                 Machine {
@@ -810,7 +820,6 @@ impl State {
                     _token: token,
                     _raw_keys: raw_keys,
                     not_corrected: 0,
-                    last_arrival: [None; 4],
                     stalled: [false; 4],
                     puts: 0,
                 },
@@ -845,7 +854,17 @@ impl State {
         }
     }
 
+    /// A raw message the routes gave the control task (see [`Routes`]).
     async fn on_raw(&mut self, s: zenoh::sample::Sample, arrived: Instant) {
+        let machine =
+            Stream::parse_key(&self.cfg.prefix, s.key_expr().as_str()).map(|(m, _)| m.to_string());
+        self.route_raw(s, arrived).await;
+        if let Some(m) = machine {
+            self.routes.done(&m);
+        }
+    }
+
+    async fn route_raw(&mut self, s: zenoh::sample::Sample, arrived: Instant) {
         let key = s.key_expr().as_str();
         // A wildcard or otherwise invalid machine id, or an unknown stream, is refused here.
         let parsed = Stream::parse_key(&self.cfg.prefix, key);
@@ -890,11 +909,7 @@ impl State {
             }
         }
         let m = self.machines.get_mut(&machine).expect("served");
-        m.last_arrival[sid as usize] = Some(Instant::now());
-        if m.stalled[sid as usize] {
-            m.stalled[sid as usize] = false;
-            info!(machine = %machine, stream = sid.name(), "stream resumed");
-        }
+        self.routes.arrived(&machine, sid, arrived);
         // Decoded, corrected and published on the machine's shard, in arrival order.
         let job = Job::Raw {
             machine,
@@ -907,15 +922,23 @@ impl State {
 
     fn check_stalls(&mut self) {
         let limit = Duration::from_millis(self.cfg.stall_after_ms);
+        let arrivals = self.routes.last_arrivals();
         for (name, m) in self.machines.iter_mut() {
-            let Some(scale) = m.last_arrival[1] else {
+            let last_arrival = arrivals.get(name).copied().unwrap_or_default();
+            for (k, at) in last_arrival.iter().enumerate() {
+                if m.stalled[k] && at.is_some_and(|t| t.elapsed() <= limit) {
+                    m.stalled[k] = false;
+                    info!(machine = %name, stream = scancorr_core::sample::StreamId::ALL[k].name(), "stream resumed");
+                }
+            }
+            let Some(scale) = last_arrival[1] else {
                 continue;
             };
             if scale.elapsed() > limit {
                 continue; // nothing is coming at all: the machine is idle, not stalled
             }
             for k in [0usize, 2, 3] {
-                let silent = m.last_arrival[k].is_none_or(|t| t.elapsed() > limit);
+                let silent = last_arrival[k].is_none_or(|t| t.elapsed() > limit);
                 if silent && !m.stalled[k] {
                     m.stalled[k] = true;
                     warn!(machine = %name, stream = scancorr_core::sample::StreamId::ALL[k].name(), "stream stalled: no samples while the scales keep coming; no points are produced past it");
@@ -991,7 +1014,7 @@ impl State {
                         _ => None,
                     },
                     // Wall time since the newest raw message arrived, ms.
-                    "last_sample_age_ms": m.last_arrival.iter().flatten().map(|t| t.elapsed()).min().map(|d| d.as_secs_f64() * 1e3),
+                    "last_sample_age_ms": self.routes.last_arrival(&machine).iter().flatten().map(|t| t.elapsed()).min().map(|d| d.as_secs_f64() * 1e3),
                     "state_bytes": c.map(|c| c.state_bytes).unwrap_or(0),
                     "max_pending": c.map(|c| c.max_pending),
                     "worker": m.shard,

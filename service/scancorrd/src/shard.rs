@@ -14,8 +14,9 @@ use scancorr_core::{Corrector, Output, Stats};
 use scancorr_proto::Message;
 use serde_json::json;
 use std::collections::{HashMap, VecDeque};
-use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
 use tracing::{info, warn};
 use zenoh::Wait;
 
@@ -36,37 +37,35 @@ pub(crate) struct Extra {
     pub(crate) not_corrected: u64,
 }
 
-/// A machine's output on its way to the bus: a bounded queue drained by a blocking task, so
-/// that a zenoh `put` never holds up the correcting task.
+/// A machine's output on its way to the bus: a bounded queue that its shard's publishing
+/// [`Lanes`] drain, so that a zenoh `put` never holds up the correcting thread.
 ///
 /// Points and alarms are published with `CongestionControl::Block`, so a subscriber that is
 /// only busy loses nothing. A subscriber that stops reading holds up the drain of the machines
 /// it subscribes to (zenoh waits up to 5 s, then closes that link); their outboxes fill, and
 /// past `max_queued_bytes_per_machine` the newest batches are dropped and counted. Other
-/// machines are not affected: their outboxes drain on their own threads, and zenoh's transmit
-/// runtime has several workers (see `main.rs`: one worker would be held by the stalled
-/// link's queue lock and stall every link).
+/// machines are not affected: a lane held up in a `put` for [`STUCK`] while other output
+/// waits gets another lane beside it, and zenoh's transmit runtime has several workers (see
+/// `main.rs`: one worker would be held by the stalled link's queue lock and stall every link).
 pub(crate) struct Outbox {
-    pub(crate) points: zenoh::pubsub::Publisher<'static>,
-    pub(crate) alarms: zenoh::pubsub::Publisher<'static>,
-    pub(crate) machine: String,
-    pub(crate) max_bytes: usize,
-    pub(crate) state: Mutex<OutState>,
-    /// Wakes a draining task that lingers for more output.
-    pub(crate) ready: std::sync::Condvar,
+    points: zenoh::pubsub::Publisher<'static>,
+    alarms: zenoh::pubsub::Publisher<'static>,
+    machine: String,
+    max_bytes: usize,
+    state: Mutex<OutState>,
 }
 
-/// How long a drain task waits for more output before it ends: under steady output the next
-/// batch comes sooner, and a waiting thread is cheaper to wake than a new task to start.
-const LINGER: std::time::Duration = std::time::Duration::from_micros(500);
+/// Point batches queued for one machine are joined into one publication up to this size (the
+/// bytes of two `CorrectedPointBatch`es one after the other are the batch of both): a lane
+/// that fell behind catches up with fewer, larger messages.
+const JOIN_UP_TO: usize = 48 * 1024;
 
 #[derive(Default)]
-pub(crate) struct OutState {
+struct OutState {
     queue: VecDeque<Outgoing>,
     bytes: usize,
-    draining: bool,
-    /// The drain task waits for more (see [`LINGER`]).
-    lingering: bool,
+    /// Handed to a lane (waiting for one, or being drained).
+    queued: bool,
     published_points: u64,
     dropped_points: u64,
     dropped_alarms: u64,
@@ -76,7 +75,7 @@ pub(crate) struct OutState {
 }
 
 pub(crate) enum Outgoing {
-    /// Encoded points, how many, when the message that completed them arrived.
+    /// Encoded points, how many, when the earliest message that completed them arrived.
     Points(Vec<u8>, u64, Option<Instant>),
     Alarm(Vec<u8>),
 }
@@ -90,54 +89,61 @@ impl Outgoing {
 }
 
 impl Outbox {
+    pub(crate) fn new(
+        points: zenoh::pubsub::Publisher<'static>,
+        alarms: zenoh::pubsub::Publisher<'static>,
+        machine: String,
+        max_bytes: usize,
+    ) -> Outbox {
+        Outbox {
+            points,
+            alarms,
+            machine,
+            max_bytes,
+            state: Mutex::default(),
+        }
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, OutState> {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Queues `o`; drops it (newest first, counted) when the queue is over its bound.
-    pub(crate) fn send(self: &Arc<Self>, o: Outgoing) {
+    /// Queues `o`; drops it (newest first, counted) when the queue is over its bound. True
+    /// when the outbox must be handed to a lane (it was not waiting for one or being drained).
+    fn send(&self, o: Outgoing) -> bool {
         let mut st = self.lock();
         if st.bytes + o.len() > self.max_bytes && !st.queue.is_empty() {
             match o {
                 Outgoing::Points(_, n, _) => st.dropped_points += n,
                 Outgoing::Alarm(_) => st.dropped_alarms += 1,
             }
-            return;
+            return false;
         }
         st.bytes += o.len();
-        st.queue.push_back(o);
-        if st.lingering {
-            self.ready.notify_one();
-        } else if !st.draining {
-            st.draining = true;
-            let me = self.clone();
-            tokio::task::spawn_blocking(move || me.drain());
+        match (st.queue.back_mut(), o) {
+            (Some(Outgoing::Points(b, n, at)), Outgoing::Points(more, m, later))
+                if b.len() + more.len() <= JOIN_UP_TO =>
+            {
+                b.extend_from_slice(&more);
+                *n += m;
+                *at = at.or(later);
+            }
+            (_, o) => st.queue.push_back(o),
         }
+        !std::mem::replace(&mut st.queued, true)
     }
 
-    fn drain(&self) {
+    /// Publishes what is queued, until the queue is empty; `progress` counts each step.
+    fn drain(&self, progress: &AtomicU64) {
         let mut st = self.lock();
-        loop {
-            let Some(o) = st.queue.pop_front() else {
-                st.lingering = true;
-                st = self
-                    .ready
-                    .wait_timeout(st, LINGER)
-                    .unwrap_or_else(|e| e.into_inner())
-                    .0;
-                st.lingering = false;
-                if st.queue.is_empty() {
-                    st.draining = false;
-                    return;
-                }
-                continue;
-            };
+        while let Some(o) = st.queue.pop_front() {
             st.bytes -= o.len();
             drop(st);
             let (r, n, arrived) = match o {
                 Outgoing::Points(b, n, at) => (self.points.put(b).wait(), n, at),
                 Outgoing::Alarm(b) => (self.alarms.put(b).wait(), 0, None),
             };
+            progress.fetch_add(1, Ordering::Relaxed);
             st = self.lock();
             match r {
                 Ok(()) => {
@@ -154,11 +160,12 @@ impl Outbox {
                 }
             }
         }
+        st.queued = false;
     }
 
     pub(crate) fn idle(&self) -> bool {
         let st = self.lock();
-        !st.draining && st.queue.is_empty()
+        !st.queued && st.queue.is_empty()
     }
 
     pub(crate) fn figures(&self) -> serde_json::Value {
@@ -175,6 +182,143 @@ impl Outbox {
     }
 }
 
+/// How long the lanes of a shard may go without a step (an outbox taken, a `put` returned)
+/// while output waits and none is free, before another lane is started: a lane held up by a
+/// subscriber that stopped reading delays the shard's other machines by at most about this.
+const STUCK: Duration = Duration::from_millis(50);
+
+/// A lane idle this long ends, unless it is its shard's last.
+const LANE_IDLE_END: Duration = Duration::from_secs(2);
+
+/// At most this many lanes per shard (as many subscribers stalled at once, each holding one).
+const MAX_LANES: usize = 64;
+
+/// The publishing threads of one shard: they take outboxes with output, in the order they
+/// were handed over, and drain them. One lane publishes for many machines, woken at most once
+/// per batch of jobs of its shard (not once per message); a lane that a stalled subscriber
+/// holds up in a `put` gets a new lane beside it (see [`STUCK`]).
+pub(crate) struct Lanes {
+    shard: usize,
+    state: Mutex<LaneState>,
+    work: Condvar,
+    /// Steps taken by the lanes (an outbox taken, a `put` returned).
+    progress: AtomicU64,
+}
+
+struct LaneState {
+    ready: VecDeque<Arc<Outbox>>,
+    lanes: usize,
+    idle: usize,
+    /// The progress last seen, and since when.
+    seen: (u64, Instant),
+    /// The shard has stopped: the lanes end once nothing is left.
+    closed: bool,
+}
+
+impl Lanes {
+    pub(crate) fn new(shard: usize) -> Arc<Lanes> {
+        Arc::new(Lanes {
+            shard,
+            state: Mutex::new(LaneState {
+                ready: VecDeque::new(),
+                lanes: 0,
+                idle: 0,
+                seen: (0, Instant::now()),
+                closed: false,
+            }),
+            work: Condvar::new(),
+            progress: AtomicU64::new(0),
+        })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, LaneState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Hands outboxes with output to the lanes.
+    fn hand(self: &Arc<Self>, ready: impl IntoIterator<Item = Arc<Outbox>>) {
+        let mut st = self.lock();
+        st.ready.extend(ready);
+        self.check_locked(&mut st);
+    }
+
+    /// Wakes a lane for waiting output, or starts one when there is none, or when every lane
+    /// has been held up for [`STUCK`].
+    fn check(self: &Arc<Self>) {
+        let mut st = self.lock();
+        self.check_locked(&mut st);
+    }
+
+    fn check_locked(self: &Arc<Self>, st: &mut LaneState) {
+        if st.ready.is_empty() {
+            return;
+        }
+        if st.idle > 0 {
+            // As many lanes as there is output for (a lane woken for one outbox can be held
+            // up by it while the next waits).
+            if st.ready.len() > 1 {
+                self.work.notify_all();
+            } else {
+                self.work.notify_one();
+            }
+            return;
+        }
+        let now = Instant::now();
+        let p = self.progress.load(Ordering::Relaxed);
+        if p != st.seen.0 {
+            st.seen = (p, now);
+        }
+        let stuck = now.duration_since(st.seen.1) >= STUCK;
+        if st.lanes == 0 || (stuck && st.lanes < MAX_LANES) {
+            if st.lanes > 0 {
+                warn!(shard = self.shard, lanes = st.lanes + 1, "publishing held up (a subscriber that does not read?): another publishing lane started");
+            }
+            st.seen = (p, now);
+            let me = self.clone();
+            match std::thread::Builder::new()
+                .name(format!("publish-{}", self.shard))
+                .spawn(move || me.run())
+            {
+                Ok(_) => st.lanes += 1,
+                Err(e) => warn!(shard = self.shard, error = %e, "cannot start a publishing lane"),
+            }
+        }
+    }
+
+    /// Ends the lanes once they have published what was handed to them.
+    fn close(&self) {
+        self.lock().closed = true;
+        self.work.notify_all();
+    }
+
+    fn run(&self) {
+        let mut st = self.lock();
+        loop {
+            if let Some(o) = st.ready.pop_front() {
+                drop(st);
+                self.progress.fetch_add(1, Ordering::Relaxed);
+                o.drain(&self.progress);
+                st = self.lock();
+                continue;
+            }
+            if st.closed {
+                return;
+            }
+            st.idle += 1;
+            let (guard, wait) = self
+                .work
+                .wait_timeout(st, LANE_IDLE_END)
+                .unwrap_or_else(|e| e.into_inner());
+            st = guard;
+            st.idle -= 1;
+            if wait.timed_out() && st.ready.is_empty() && st.lanes > 1 {
+                st.lanes -= 1;
+                return;
+            }
+        }
+    }
+}
+
 /// A machine's state on its shard.
 pub(crate) struct Core {
     pub(crate) corrector: Option<Corrector>,
@@ -183,6 +327,17 @@ pub(crate) struct Core {
     /// Controller time of the newest point produced, ns.
     pub(crate) last_point_t_ns: Option<i64>,
     pub(crate) outbox: Arc<Outbox>,
+    /// Points encoded during the current batch of jobs, not yet handed to the outbox.
+    pub(crate) pending: Pending,
+}
+
+/// A machine's points of one batch of jobs: published as one message.
+#[derive(Default)]
+pub(crate) struct Pending {
+    bytes: Vec<u8>,
+    points: u64,
+    /// When the earliest raw message that completed them arrived.
+    arrived: Option<Instant>,
 }
 
 /// What the corrector says about itself, for status and metrics.
@@ -245,83 +400,154 @@ pub(crate) fn corrector(model: Arc<Model>, limits: &Limits) -> Corrector {
     c
 }
 
+/// At most this many jobs are run before the points they completed are handed to the
+/// outboxes (sooner when the queue runs empty): under load a machine's messages of one burst
+/// become one publication, and one wake-up of a lane serves many machines.
+const BATCH_JOBS: usize = 64;
+
 /// Starts shard `k`: a thread that runs jobs until every sender is gone.
 pub(crate) fn spawn(
     k: usize,
     limits: Limits,
     jobs: flume::Receiver<Job>,
 ) -> std::io::Result<std::thread::JoinHandle<()>> {
-    // The outboxes' publishing tasks run on the service's runtime.
-    let runtime = tokio::runtime::Handle::current();
     std::thread::Builder::new()
         .name(format!("shard-{k}"))
         .spawn(move || {
-            let _runtime = runtime.enter();
-            let mut machines: HashMap<String, Core> = HashMap::new();
-            let mut out = Output::default();
-            let mut samples = Vec::new();
-            while let Ok(job) = jobs.recv() {
-                match job {
-                    Job::Add(name, core) => {
-                        machines.insert(name, *core);
+            let mut shard = Shard {
+                machines: Vec::new(),
+                index: HashMap::new(),
+                touched: Vec::new(),
+                ready: Vec::new(),
+                lanes: Lanes::new(k),
+                out: Output::default(),
+                samples: Vec::new(),
+                limits,
+            };
+            loop {
+                let job = match jobs.recv_timeout(STUCK) {
+                    Ok(job) => job,
+                    Err(flume::RecvTimeoutError::Timeout) => {
+                        shard.lanes.check();
+                        continue;
                     }
-                    Job::Raw {
-                        machine,
-                        stream,
-                        bytes,
-                        arrived,
-                    } => {
-                        if let Some(m) = machines.get_mut(&machine) {
-                            on_raw(
-                                m,
-                                &machine,
-                                stream,
-                                &bytes,
-                                arrived,
-                                &limits,
-                                &mut samples,
-                                &mut out,
-                            );
-                        }
-                    }
-                    Job::Model(name, model) => {
-                        if let Some(m) = machines.get_mut(&name) {
-                            match m.corrector.as_mut() {
-                                Some(c) => c.set_model(model),
-                                None => m.corrector = Some(corrector(model, &limits)),
-                            }
-                            m.ids = m
-                                .corrector
-                                .as_ref()
-                                .map(|c| c.effect_ids())
-                                .unwrap_or_default();
-                        }
-                    }
-                    Job::Snap(which, reply) => {
-                        let v = match which {
-                            Some(n) => machines
-                                .get(&n)
-                                .map(|m| vec![(n, snap(m))])
-                                .unwrap_or_default(),
-                            None => machines.iter().map(|(n, m)| (n.clone(), snap(m))).collect(),
-                        };
-                        let _ = reply.send(v);
-                    }
-                    Job::Flush(done) => {
-                        for (name, m) in machines.iter_mut() {
-                            if let Some(c) = m.corrector.as_mut() {
-                                c.flush(&mut out);
-                                if let Some(p) = out.points.last() {
-                                    m.last_point_t_ns = Some(p.t_ns);
-                                }
-                                publish(m, &mut out, name, None);
-                            }
-                        }
-                        let _ = done.send(());
-                    }
+                    Err(flume::RecvTimeoutError::Disconnected) => break,
+                };
+                shard.run(job);
+                for job in jobs.try_iter().take(BATCH_JOBS) {
+                    shard.run(job);
+                }
+                shard.hand_over();
+            }
+            shard.lanes.close();
+        })
+}
+
+/// A shard's machines, what it has for its lanes, and scratch space.
+struct Shard {
+    machines: Vec<(String, Core)>,
+    index: HashMap<String, usize>,
+    /// Machines with pending points.
+    touched: Vec<usize>,
+    /// Outboxes to hand to the lanes.
+    ready: Vec<Arc<Outbox>>,
+    lanes: Arc<Lanes>,
+    out: Output,
+    samples: Vec<scancorr_core::sample::Sample>,
+    limits: Limits,
+}
+
+impl Shard {
+    fn get(&mut self, name: &str) -> Option<&mut Core> {
+        let k = *self.index.get(name)?;
+        Some(&mut self.machines[k].1)
+    }
+
+    fn run(&mut self, job: Job) {
+        match job {
+            Job::Add(name, core) => {
+                self.index.insert(name.clone(), self.machines.len());
+                self.machines.push((name, *core));
+            }
+            Job::Raw {
+                machine,
+                stream,
+                bytes,
+                arrived,
+            } => {
+                let Some(&k) = self.index.get(&machine) else {
+                    return;
+                };
+                let m = &mut self.machines[k].1;
+                on_raw(
+                    m,
+                    &machine,
+                    stream,
+                    &bytes,
+                    arrived,
+                    &self.limits,
+                    &mut self.samples,
+                    &mut self.out,
+                    &mut self.ready,
+                );
+                if m.pending.points > 0 && !self.touched.contains(&k) {
+                    self.touched.push(k);
                 }
             }
-        })
+            Job::Model(name, model) => {
+                let limits = self.limits.clone();
+                if let Some(m) = self.get(&name) {
+                    match m.corrector.as_mut() {
+                        Some(c) => c.set_model(model),
+                        None => m.corrector = Some(corrector(model, &limits)),
+                    }
+                    m.ids = m
+                        .corrector
+                        .as_ref()
+                        .map(|c| c.effect_ids())
+                        .unwrap_or_default();
+                }
+            }
+            Job::Snap(which, reply) => {
+                let v = match which {
+                    Some(n) => self.get(&n).map(|m| vec![(n, snap(m))]).unwrap_or_default(),
+                    None => self
+                        .machines
+                        .iter()
+                        .map(|(n, m)| (n.clone(), snap(m)))
+                        .collect(),
+                };
+                let _ = reply.send(v);
+            }
+            Job::Flush(done) => {
+                for (k, (name, m)) in self.machines.iter_mut().enumerate() {
+                    if let Some(c) = m.corrector.as_mut() {
+                        c.flush(&mut self.out);
+                        if let Some(p) = self.out.points.last() {
+                            m.last_point_t_ns = Some(p.t_ns);
+                        }
+                        publish(m, &mut self.out, name, None, &mut self.ready);
+                        if m.pending.points > 0 && !self.touched.contains(&k) {
+                            self.touched.push(k);
+                        }
+                    }
+                }
+                // Handed over before the control task is told, so that it waits for them.
+                self.hand_over();
+                let _ = done.send(());
+            }
+        }
+    }
+
+    /// Hands every machine's pending points to its outbox, and the outboxes to the lanes.
+    fn hand_over(&mut self) {
+        for k in self.touched.drain(..) {
+            let m = &mut self.machines[k].1;
+            to_outbox(m, &mut self.ready);
+        }
+        // Even with nothing new: what waits is looked at again (a lane may be held up).
+        self.lanes.hand(self.ready.drain(..));
+    }
 }
 
 fn snap(m: &Core) -> Snap {
@@ -341,7 +567,8 @@ fn snap(m: &Core) -> Snap {
     }
 }
 
-/// One raw message: decoded (counted by what is wrong with it), corrected, published.
+/// One raw message: decoded (counted by what is wrong with it), corrected, its points
+/// pending for the outbox.
 #[allow(clippy::too_many_arguments)]
 fn on_raw(
     m: &mut Core,
@@ -352,6 +579,7 @@ fn on_raw(
     limits: &Limits,
     samples: &mut Vec<scancorr_core::sample::Sample>,
     out: &mut Output,
+    ready: &mut Vec<Arc<Outbox>>,
 ) {
     m.extra.messages += 1;
     samples.clear();
@@ -387,18 +615,30 @@ fn on_raw(
     if let Some(p) = out.points.last() {
         m.last_point_t_ns = Some(p.t_ns);
     }
-    publish(m, out, machine, Some(arrived));
+    publish(m, out, machine, Some(arrived), ready);
 }
 
-/// Hands what the core completed to the machine's outbox (never waits on the bus).
-/// `arrived`: when the raw message that completed these points arrived (none for a flush).
-fn publish(m: &mut Core, out: &mut Output, machine: &str, arrived: Option<Instant>) {
+/// Encodes what the core completed into the machine's pending points (alarms go to the
+/// outbox at once, after the points before them); never waits on the bus. `arrived`: when
+/// the raw message that completed these points arrived (none for a flush). Outboxes that need
+/// a lane are added to `ready`.
+fn publish(
+    m: &mut Core,
+    out: &mut Output,
+    machine: &str,
+    arrived: Option<Instant>,
+    ready: &mut Vec<Arc<Outbox>>,
+) {
     if !out.points.is_empty() {
         // Written straight to protobuf (the same bytes prost makes, without a message per point).
-        let mut bytes = Vec::with_capacity(out.points.len() * 320);
-        wire::encode_points(&out.points, machine, &m.ids, &mut bytes);
-        m.outbox
-            .send(Outgoing::Points(bytes, out.points.len() as u64, arrived));
+        let p = &mut m.pending;
+        if p.bytes.capacity() == 0 {
+            // A point with its corrections is about 300 bytes.
+            p.bytes.reserve(out.points.len() * 320);
+        }
+        wire::encode_points(&out.points, machine, &m.ids, &mut p.bytes);
+        p.points += out.points.len() as u64;
+        p.arrived = p.arrived.or(arrived);
     }
     for a in &out.alarms {
         if a.raised {
@@ -412,8 +652,25 @@ fn publish(m: &mut Core, out: &mut Output, machine: &str, arrived: Option<Instan
         } else {
             info!(machine, axis = a.axis.name(), "estimator alarm cleared");
         }
-        m.outbox
-            .send(Outgoing::Alarm(wire::alarm(a, machine).encode_to_vec()));
+        to_outbox(m, ready);
+        if m.outbox
+            .send(Outgoing::Alarm(wire::alarm(a, machine).encode_to_vec()))
+        {
+            ready.push(m.outbox.clone());
+        }
     }
     out.clear();
+}
+
+/// Moves a machine's pending points to its outbox.
+fn to_outbox(m: &mut Core, ready: &mut Vec<Arc<Outbox>>) {
+    if m.pending.points == 0 {
+        return;
+    }
+    let p = std::mem::take(&mut m.pending);
+    if m.outbox
+        .send(Outgoing::Points(p.bytes, p.points, p.arrived))
+    {
+        ready.push(m.outbox.clone());
+    }
 }
