@@ -33,6 +33,8 @@ struct Table {
 
 struct Route {
     shard: flume::Sender<Job>,
+    /// The machine's slot on its shard.
+    slot: usize,
     /// When the newest message of each stream arrived.
     last_arrival: [Option<Instant>; 4],
 }
@@ -63,10 +65,10 @@ impl Routes {
         if !t.closed && !t.at_control.contains_key(machine) {
             if let (Some(sid), Some(r)) = (wire::stream_id(stream), t.routes.get_mut(machine)) {
                 r.last_arrival[sid as usize] = Some(arrived);
-                let shard = r.shard.clone();
+                let (shard, slot) = (r.shard.clone(), r.slot);
                 drop(t);
                 let job = Job::Raw {
-                    machine: machine.to_string(),
+                    slot,
                     stream: sid,
                     bytes: s.payload().to_bytes().into_owned(),
                     arrived,
@@ -92,12 +94,13 @@ impl Routes {
         }
     }
 
-    /// Routes `machine`'s messages to `shard` from now on (its state is on the shard).
-    pub(crate) fn add(&self, machine: &str, shard: flume::Sender<Job>) {
+    /// Routes `machine`'s messages to `shard` from now on (its state is in `slot` there).
+    pub(crate) fn add(&self, machine: &str, shard: flume::Sender<Job>, slot: usize) {
         self.lock().routes.insert(
             machine.to_string(),
             Route {
                 shard,
+                slot,
                 last_arrival: [None; 4],
             },
         );

@@ -130,6 +130,8 @@ impl LogGate {
 struct Machine {
     /// The shard that corrects it.
     shard: usize,
+    /// Its slot on that shard.
+    slot: usize,
     /// Why the stored calibration cannot be used (damaged in the store, or no longer valid):
     /// the machine is not corrected until a new calibration is put; the others are served.
     quarantined: Option<String>,
@@ -794,10 +796,12 @@ impl State {
             let shard = (0..self.shards.len())
                 .min_by_key(|k| self.on_shard[*k])
                 .expect("at least one shard");
+            let slot = self.on_shard[shard];
             self.shards[shard]
-                .send_async(Job::Add(
-                    name.to_string(),
-                    Box::new(Core {
+                .send_async(Job::Add {
+                    slot,
+                    name: name.to_string(),
+                    core: Box::new(Core {
                         corrector,
                         ids,
                         extra: Default::default(),
@@ -805,16 +809,17 @@ impl State {
                         outbox: outbox.clone(),
                         pending: Default::default(),
                     }),
-                ))
+                })
                 .await
                 .map_err(|_| ServiceError::Refused("the correcting workers have stopped".into()))?;
             self.on_shard[shard] += 1;
             // From now on its raw messages go straight to its shard (after the `Add`).
-            self.routes.add(name, self.shards[shard].clone());
+            self.routes.add(name, self.shards[shard].clone(), slot);
             self.machines.insert(
                 name.to_string(),
                 Machine {
                     shard,
+                    slot,
                     quarantined,
                     outbox,
                     _token: token,
@@ -912,7 +917,7 @@ impl State {
         self.routes.arrived(&machine, sid, arrived);
         // Decoded, corrected and published on the machine's shard, in arrival order.
         let job = Job::Raw {
-            machine,
+            slot: m.slot,
             stream: sid,
             bytes: s.payload().to_bytes().into_owned(),
             arrived,

@@ -364,11 +364,17 @@ pub(crate) struct Snap {
 
 /// What the control task sends a shard.
 pub(crate) enum Job {
-    /// Serve a new machine.
-    Add(String, Box<Core>),
-    /// One raw message of a machine (its stream from the key), with its arrival.
+    /// Serve a new machine, in slot `slot` of the shard: machines are added in order and
+    /// never removed, so the control task, which counts each shard's machines, names the
+    /// slot the shard gives it.
+    Add {
+        slot: usize,
+        name: String,
+        core: Box<Core>,
+    },
+    /// One raw message of the machine in `slot` (its stream from the key), with its arrival.
     Raw {
-        machine: String,
+        slot: usize,
         stream: StreamId,
         /// The payload, copied out of zenoh's receive buffer (a queued `Sample` would hold
         /// the whole buffer it arrived in).
@@ -465,23 +471,23 @@ impl Shard {
 
     fn run(&mut self, job: Job) {
         match job {
-            Job::Add(name, core) => {
+            Job::Add { slot, name, core } => {
+                debug_assert_eq!(slot, self.machines.len(), "slots are given in order");
                 self.index.insert(name.clone(), self.machines.len());
                 self.machines.push((name, *core));
             }
             Job::Raw {
-                machine,
+                slot: k,
                 stream,
                 bytes,
                 arrived,
             } => {
-                let Some(&k) = self.index.get(&machine) else {
+                let Some((machine, m)) = self.machines.get_mut(k) else {
                     return;
                 };
-                let m = &mut self.machines[k].1;
                 on_raw(
                     m,
-                    &machine,
+                    machine,
                     stream,
                     &bytes,
                     arrived,
