@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
+use std::sync::{mpsc, Arc, Mutex};
 
 /// Default uncompressed chunk size: a crash loses at most about this much data.
 pub const DEFAULT_CHUNK_SIZE: u64 = 1024 * 1024;
@@ -71,6 +72,79 @@ pub struct BagWriter {
     slots: Vec<Slot>,
     last: usize,
     scratch: Vec<u8>,
+    writeback: Option<Writeback>,
+}
+
+/// Payload bytes between two early syncs of a bag's file.
+const WRITEBACK_BYTES: u64 = 8 * 1024 * 1024;
+
+/// Has the OS write a large bag out while the rest is still being written: a thread syncs the
+/// file's data every [`WRITEBACK_BYTES`] of payload, so the sync of [`BagWriter::finish`] waits
+/// for the last part only. An error of these syncs is kept for `finish` to return (the OS
+/// reports a write-back error once per open file: the final sync may not see it again).
+struct Writeback {
+    file: File,
+    pending: u64,
+    kick: Option<mpsc::SyncSender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    error: Arc<Mutex<Option<std::io::Error>>>,
+}
+
+impl Writeback {
+    fn new(file: &File) -> Option<Writeback> {
+        Some(Writeback {
+            file: file.try_clone().ok()?,
+            pending: 0,
+            kick: None,
+            thread: None,
+            error: Arc::default(),
+        })
+    }
+
+    /// Counts `n` bytes written; asks for a sync every [`WRITEBACK_BYTES`] (none while one
+    /// is still running: the next one covers its bytes too).
+    fn wrote(&mut self, n: usize) {
+        self.pending += n as u64;
+        if self.pending < WRITEBACK_BYTES {
+            return;
+        }
+        self.pending = 0;
+        if self.kick.is_none() {
+            let (tx, rx) = mpsc::sync_channel::<()>(1);
+            let (Ok(file), error) = (self.file.try_clone(), self.error.clone()) else {
+                return;
+            };
+            let thread = std::thread::Builder::new()
+                .name("bag-writeback".into())
+                .spawn(move || {
+                    for () in rx {
+                        if let Err(e) = file.sync_data() {
+                            if let Ok(mut slot) = error.lock() {
+                                slot.get_or_insert(e);
+                            }
+                            return;
+                        }
+                    }
+                });
+            let Ok(thread) = thread else {
+                return;
+            };
+            self.kick = Some(tx);
+            self.thread = Some(thread);
+        }
+        if let Some(k) = &self.kick {
+            let _ = k.try_send(());
+        }
+    }
+
+    /// Stops the thread; the first error of its syncs, if any.
+    fn stop(&mut self) -> Option<std::io::Error> {
+        drop(self.kick.take());
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+        self.error.lock().ok()?.take()
+    }
 }
 
 /// The stream's index in [`Stream::ALL`] (a match, so a new stream cannot be forgotten).
@@ -113,6 +187,7 @@ impl BagWriter {
             // Compress on the calling thread: zstd worker threads do not pay off for 1 MiB
             // chunks and would compete with the pipeline for the cores.
             .compression_threads(0);
+        let writeback = Writeback::new(&file);
         let mcap = options
             .create(BufWriter::with_capacity(256 * 1024, file))
             .map_err(|error| BagError::Mcap {
@@ -127,6 +202,7 @@ impl BagWriter {
             slots: Vec::new(),
             last: 0,
             scratch: Vec::new(),
+            writeback,
         })
     }
 
@@ -247,7 +323,11 @@ impl BagWriter {
             publish_time: publish_time_ns,
         };
         let r = self.writer()?.write_to_known_channel(&header, payload);
-        r.map_err(|e| self.mcap_err(e))
+        r.map_err(|e| self.mcap_err(e))?;
+        if let Some(wb) = &mut self.writeback {
+            wb.wrote(payload.len());
+        }
+        Ok(())
     }
 
     /// Encodes and records a typed batch on its stream; the publish time is the `t_ns` of its
@@ -323,11 +403,19 @@ impl BagWriter {
         let Some(mut w) = self.mcap.take() else {
             return Ok(());
         };
-        w.finish().map_err(|e| self.mcap_err(e))?;
+        let finished = w.finish().map_err(|e| self.mcap_err(e));
+        let early = self.writeback.take().and_then(|mut wb| wb.stop());
+        finished?;
         let file = w.into_inner().into_inner().map_err(|e| BagError::Io {
             path: self.path.clone(),
             error: e.into_error(),
         })?;
+        if let Some(error) = early {
+            return Err(BagError::Io {
+                path: self.path.clone(),
+                error,
+            });
+        }
         file.sync_all().map_err(|error| BagError::Io {
             path: self.path.clone(),
             error,

@@ -239,13 +239,116 @@ pub fn load_calibration(path: &Path) -> Result<Calibration> {
     Ok(cal)
 }
 
-/// What the corrector thread hands the writer thread.
-enum ToWriter {
-    Output {
-        points: Vec<scancorr_core::CorrectedPoint>,
-        alarms: Vec<scancorr_core::Alarm>,
-        log_time: u64,
-    },
+/// One `CorrectedPointBatch` message of the output (when it has points) and the alarms raised
+/// with it, as the corrector produced them.
+#[derive(Default)]
+struct Batch {
+    points: Vec<scancorr_core::CorrectedPoint>,
+    alarms: Vec<scancorr_core::Alarm>,
+    log_time: u64,
+}
+
+/// Points (and alarms) handed over per wake-up of the writer thread: batches go over in
+/// bundles, so the corrector does not pay a thread wake-up per 100-point message.
+const BUNDLE_POINTS: usize = 2048;
+
+/// Bundles queued for the writer before the corrector waits for it.
+const BUNDLES_QUEUED: usize = 8;
+
+/// The corrector's side of the writer thread: batches are queued in order, handed over in
+/// bundles, written by `write` on the writer thread in the same order, and come back with their
+/// points so the next batches reuse their lists (no allocation per point, no freeing on the
+/// other thread).
+struct Pipe<W> {
+    tx: Option<std::sync::mpsc::SyncSender<Vec<Batch>>>,
+    back: std::sync::mpsc::Receiver<Vec<Batch>>,
+    bundle: Vec<Batch>,
+    bundle_points: usize,
+    spare: Vec<Batch>,
+    thread: std::thread::JoinHandle<Result<W>>,
+}
+
+impl<W: Send + 'static> Pipe<W> {
+    /// Starts the writer thread: it calls `write` for each batch, in order, and stops at its
+    /// first error (returned by [`Pipe::finish`]).
+    fn spawn(
+        mut sink: W,
+        mut write: impl FnMut(&mut W, &Batch) -> Result<()> + Send + 'static,
+    ) -> Result<Pipe<W>> {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Batch>>(BUNDLES_QUEUED);
+        let (back_tx, back) = std::sync::mpsc::channel::<Vec<Batch>>();
+        let thread = std::thread::Builder::new()
+            .name("correct-writer".into())
+            .spawn(move || -> Result<W> {
+                for bundle in rx {
+                    for b in &bundle {
+                        write(&mut sink, b)?;
+                    }
+                    // The corrector may be gone already (it failed): nothing to hand back then.
+                    let _ = back_tx.send(bundle);
+                }
+                Ok(sink)
+            })
+            .context("starting the writer thread")?;
+        Ok(Pipe {
+            tx: Some(tx),
+            back,
+            bundle: Vec::new(),
+            bundle_points: 0,
+            spare: Vec::new(),
+            thread,
+        })
+    }
+
+    /// Queues `output`'s points and alarms as one batch and clears `output`. False when the
+    /// writer thread has stopped (on an error, which [`Pipe::finish`] returns): stop feeding it.
+    fn push(&mut self, output: &mut Output, log_time: u64) -> bool {
+        if output.points.is_empty() && output.alarms.is_empty() {
+            output.clear();
+            return true;
+        }
+        if self.spare.is_empty() {
+            while let Ok(mut bundle) = self.back.try_recv() {
+                self.spare.append(&mut bundle);
+            }
+        }
+        let mut b = self.spare.pop().unwrap_or_default();
+        std::mem::swap(&mut b.points, &mut output.points);
+        std::mem::swap(&mut b.alarms, &mut output.alarms);
+        b.log_time = log_time;
+        // `output` now holds the written batch's points: clearing keeps their lists of
+        // corrections for the next points.
+        output.clear();
+        self.bundle_points += b.points.len() + b.alarms.len();
+        self.bundle.push(b);
+        if self.bundle_points >= BUNDLE_POINTS {
+            self.send()
+        } else {
+            true
+        }
+    }
+
+    fn send(&mut self) -> bool {
+        self.bundle_points = 0;
+        if self.bundle.is_empty() {
+            return true;
+        }
+        let bundle = std::mem::take(&mut self.bundle);
+        match &self.tx {
+            Some(tx) => tx.send(bundle).is_ok(),
+            None => false,
+        }
+    }
+
+    /// Hands over what is queued, waits for the writer thread and returns its sink, or its
+    /// first error.
+    fn finish(mut self) -> Result<W> {
+        self.send();
+        drop(self.tx.take());
+        self.thread
+            .join()
+            .map_err(|_| anyhow::anyhow!("the writer thread panicked"))?
+    }
 }
 
 /// `scancorr correct`: streams a bag through the core and writes points and alarms to `out`
@@ -308,47 +411,48 @@ pub fn correct(
         ),
         None => None,
     };
-    let (tx, rx) = std::sync::mpsc::sync_channel::<ToWriter>(256);
-    let writer_thread = writer.map(|mut w| {
-        let (machine, prefix, ids) = (machine.clone(), prefix.clone(), ids.clone());
-        std::thread::spawn(move || -> Result<BagWriter> {
+    let mut pipe = match writer {
+        Some(w) => {
+            let (machine, prefix, ids) = (machine.clone(), prefix.clone(), ids.clone());
             let mut bytes = vec![];
-            for msg in rx {
-                let ToWriter::Output {
-                    points,
-                    alarms,
-                    log_time,
-                } = msg;
-                if let Some(first) = points.first() {
+            Some(Pipe::spawn(w, move |w: &mut BagWriter, b: &Batch| {
+                if let Some(first) = b.points.first() {
                     // The service's encoder: a `CorrectedPointBatch`'s bytes without building
                     // a message per point.
                     bytes.clear();
-                    wire::encode_points(&points, &machine, &ids, &mut bytes);
+                    wire::encode_points(&b.points, &machine, &ids, &mut bytes);
                     let publish = first.t_ns.max(0) as u64;
-                    w.write(Stream::Points, &machine, &prefix, log_time, publish, &bytes)?;
+                    w.write(
+                        Stream::Points,
+                        &machine,
+                        &prefix,
+                        b.log_time,
+                        publish,
+                        &bytes,
+                    )?;
                 }
-                for a in &alarms {
-                    w.write_msg(&machine, &prefix, log_time, &wire::alarm(a, &machine))?;
+                for a in &b.alarms {
+                    w.write_msg(&machine, &prefix, b.log_time, &wire::alarm(a, &machine))?;
                 }
-            }
-            Ok(w)
-        })
-    });
+                Ok(())
+            })?)
+        }
+        None => None,
+    };
     let mut output = Output::default();
     let (mut bad, mut foreign) = (0u64, 0u64);
     let mut samples = Vec::with_capacity(128);
-    let send = |output: &mut Output, log_time: u64| {
-        if writer_thread.is_some() && (!output.points.is_empty() || !output.alarms.is_empty()) {
-            // A closed channel means the writer failed; its error is reported at the join.
-            let _ = tx.send(ToWriter::Output {
-                points: std::mem::take(&mut output.points),
-                alarms: std::mem::take(&mut output.alarms),
-                log_time,
-            });
+    // False once the writer thread has stopped on an error: reading on would be wasted, and
+    // its error is returned at the join.
+    let mut send = |output: &mut Output, log_time: u64| match &mut pipe {
+        Some(p) => p.push(output, log_time),
+        None => {
+            output.clear();
+            true
         }
-        output.clear();
     };
     let mut last_log = 0;
+    let mut writer_failed = false;
     let total = reader.message_count().max(1);
     let mut progress = crate::output::Progress::new();
     for (k, msg) in reader.messages()?.enumerate() {
@@ -376,19 +480,23 @@ pub fn correct(
         for s in samples.drain(..) {
             corr.push(s, &mut output);
         }
-        if output.points.len() >= 100 || !output.alarms.is_empty() {
-            send(&mut output, msg.log_time);
+        if (output.points.len() >= 100 || !output.alarms.is_empty())
+            && !send(&mut output, msg.log_time)
+        {
+            writer_failed = true;
+            break;
         }
     }
-    corr.flush(&mut output);
-    send(&mut output, last_log);
+    if !writer_failed {
+        corr.flush(&mut output);
+        send(&mut output, last_log);
+    }
     progress.finish();
 
-    drop(tx);
-    if let Some(h) = writer_thread {
-        let mut w = h
-            .join()
-            .map_err(|_| anyhow::anyhow!("the writer thread panicked"))??;
+    if let Some(p) = pipe {
+        let mut w = p.finish()?;
+        // The writer thread stops only on an error, which `finish` returns.
+        anyhow::ensure!(!writer_failed, "the writer thread stopped early");
         for m in reader.metadata() {
             if m.name == scancorr_bag::ARTIFACT_METADATA {
                 if let Ok(a) = scancorr_bag::Artifact::from_metadata(&m.entries) {
@@ -413,4 +521,132 @@ pub fn correct(
     }
     let secs = t0.elapsed().as_secs_f64();
     Ok((summary(&machine, cal, &corr, bad, foreign, secs), warnings))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use scancorr_core::{CorrectedPoint, Vec3};
+
+    /// What the test writer saw: each batch's log time and its points' (seq, correction).
+    type Seen = Vec<(u64, Vec<(u64, f64)>)>;
+
+    fn point(seq: u64) -> CorrectedPoint {
+        CorrectedPoint {
+            seq,
+            t_ns: seq as i64,
+            sample_seq: seq,
+            surface: Vec3::new(seq as f64, 0.0, 0.0),
+            tip_center: Vec3::zeros(),
+            normal: Vec3::zeros(),
+            corrections: vec![Vec3::new(0.0, seq as f64, 0.0)],
+            calibration_version: 1,
+            estimator_valid: true,
+            segment_id: 0,
+            tip_id: 0,
+        }
+    }
+
+    /// Feeds `batches` batches of `size(k)` points through a pipe whose writer records
+    /// (log time, seqs and corrections of each batch); stops feeding when the pipe says so.
+    fn feed(pipe: &mut Pipe<Seen>, batches: u64, size: impl Fn(u64) -> u64) -> u64 {
+        let mut output = Output::default();
+        let mut seq = 0;
+        for k in 0..batches {
+            for _ in 0..size(k) {
+                output.points.push(point(seq));
+                seq += 1;
+            }
+            if !pipe.push(&mut output, k) {
+                return k;
+            }
+            assert!(output.points.is_empty());
+        }
+        batches
+    }
+
+    fn recorder() -> impl FnMut(&mut Seen, &Batch) -> Result<()> + Send + 'static {
+        |seen, b| {
+            let points = b.points.iter().map(|p| (p.seq, p.corrections[0].y));
+            seen.push((b.log_time, points.collect()));
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn the_writer_gets_every_batch_in_order_with_its_points() {
+        let mut pipe = Pipe::spawn(vec![], recorder()).unwrap();
+        // Sizes around the bundle size, empty batches (skipped) among them.
+        let size = |k: u64| (k * 37) % 250;
+        let n = 2000;
+        assert_eq!(feed(&mut pipe, n, size), n);
+        let seen = pipe.finish().unwrap();
+        let want: Vec<u64> = (0..n).filter(|&k| size(k) > 0).collect();
+        assert_eq!(seen.iter().map(|b| b.0).collect::<Vec<_>>(), want);
+        let mut seq = 0;
+        for (k, points) in &seen {
+            assert_eq!(points.len() as u64, size(*k), "batch {k}");
+            for &(s, c) in points {
+                // Reused lists of corrections carry this point's value, not a stale one.
+                assert_eq!((s, c), (seq, seq as f64));
+                seq += 1;
+            }
+        }
+    }
+
+    #[test]
+    fn alarms_alone_make_a_batch() {
+        let mut pipe = Pipe::spawn(vec![], |seen: &mut Vec<(u64, usize)>, b: &Batch| {
+            seen.push((b.log_time, b.alarms.len()));
+            Ok(())
+        })
+        .unwrap();
+        let mut output = Output::default();
+        output.alarms.push(scancorr_core::Alarm {
+            seq: 0,
+            t_ns: 5,
+            raised: true,
+            axis: scancorr_core::Axis::X,
+            estimated_accel: 1.0,
+            measured_accel: 0.0,
+            difference: 1.0,
+            threshold: 0.5,
+            action: scancorr_core::AlarmAction::Flag,
+            calibration_version: 1,
+        });
+        assert!(pipe.push(&mut output, 7));
+        assert!(output.alarms.is_empty());
+        assert_eq!(pipe.finish().unwrap(), vec![(7, 1)]);
+    }
+
+    #[test]
+    fn a_writer_error_stops_the_feed_and_is_returned() {
+        let mut pipe = Pipe::spawn(vec![], |seen: &mut Vec<u64>, b: &Batch| {
+            if b.log_time == 300 {
+                anyhow::bail!("disk full at batch {}", b.log_time);
+            }
+            seen.push(b.log_time);
+            Ok(())
+        })
+        .unwrap();
+        let n = 100_000;
+        let stopped = {
+            let mut output = Output::default();
+            let mut k = 0;
+            while k < n {
+                for s in 0..100 {
+                    output.points.push(point(k * 100 + s));
+                }
+                if !pipe.push(&mut output, k) {
+                    break;
+                }
+                k += 1;
+            }
+            k
+        };
+        // The feed stops soon after the failure (the queue is bounded).
+        assert!(stopped < 300 + 100 * BUNDLES_QUEUED as u64, "{stopped}");
+        let e = pipe.finish().unwrap_err();
+        assert!(format!("{e:#}").contains("disk full at batch 300"), "{e:#}");
+    }
 }
