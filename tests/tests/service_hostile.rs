@@ -426,10 +426,19 @@ async fn wrapped_or_jumping_sequences_absurd_values_and_wrong_types_are_survived
     s.put("cmm/m1/raw/scale", untagged.encode_to_vec())
         .await
         .unwrap();
+    // Every message handled, and every point made published: the publishing lanes send a
+    // shard's output after it handled the message, so "handled" alone is not "published".
     let st = until(&s, "m1", |st| {
-        st["messages"]["untagged"] == 1 && st["messages"]["wrong_stream"] == 1
+        st["messages"]["untagged"] == 1
+            && st["messages"]["wrong_stream"] == 1
+            && st["output"]["points_published"] == st["points_out"]
     })
     .await;
+    let published = st["output"]["points_published"].as_u64().unwrap() as usize;
+    let t0 = Instant::now();
+    while got.lock().unwrap().len() < published && t0.elapsed() < Duration::from_secs(20) {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
     s.close().await.unwrap();
     svc.stop(); // flushes
     drop(sub);
