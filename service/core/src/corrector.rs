@@ -430,6 +430,25 @@ impl Corrector {
         self.pending_limit.map_or(m, |l| l.min(m))
     }
 
+    /// Gives back the room of join buffers that hold far less than they have room for (a
+    /// batch of one stream waits in its buffer for the others, and the room it took would
+    /// otherwise stay with the machine until the next batch). A service serving many
+    /// machines calls this between messages, so only the machines whose samples are waiting
+    /// hold room. Changes capacities only, never what is corrected.
+    pub fn trim(&mut self) {
+        fn trim<T>(q: &mut VecDeque<T>) {
+            // Room for a few samples stays: a batch grows from there in a few doublings.
+            const KEEP: usize = 8;
+            if q.capacity() > KEEP && q.capacity() >= 4 * q.len() {
+                q.shrink_to(KEEP.max(q.len()));
+            }
+        }
+        trim(&mut self.cmd_q);
+        trim(&mut self.scale_q);
+        trim(&mut self.probe_q);
+        trim(&mut self.temp_q);
+    }
+
     /// Bytes held by this corrector's own state: the struct and the capacity of its buffers
     /// (not the calibration model, which is shared and counted once by its owner).
     pub fn state_bytes(&self) -> usize {

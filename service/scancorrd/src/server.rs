@@ -164,6 +164,8 @@ struct State {
     on_shard: Vec<usize>,
     limits: Limits,
     routes: Arc<Routes>,
+    /// The point buffers the shards encode into and zenoh gives back.
+    pool: Arc<crate::shard::Pool>,
 }
 
 /// Runs the service until `shutdown` resolves; then flushes every machine and closes the
@@ -263,6 +265,8 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         shards: vec![],
         on_shard: vec![0; workers],
         routes: routes.clone(),
+        // Enough buffers for what a shard's lanes have in flight at once.
+        pool: crate::shard::Pool::new(16 * workers),
         limits: Limits {
             max_pending_samples: cfg_max_pending,
             tags,
@@ -732,17 +736,10 @@ impl State {
                 .congestion_control(CongestionControl::Block)
                 .await
                 .map_err(z)?;
-            let alarms = self
-                .session
-                .declare_publisher(
-                    self.session
-                        .declare_keyexpr(Stream::Alarms.key(p, name))
-                        .await
-                        .map_err(z)?,
-                )
-                .congestion_control(CongestionControl::Block)
-                .await
-                .map_err(z)?;
+            let alarms = crate::shard::Alarms {
+                session: self.session.clone(),
+                key: zenoh::key_expr::KeyExpr::try_from(Stream::Alarms.key(p, name)).map_err(z)?,
+            };
             let token = self
                 .session
                 .liveliness()
@@ -791,6 +788,7 @@ impl State {
                 alarms,
                 name.to_string(),
                 self.cfg.max_queued_bytes_per_machine,
+                self.pool.clone(),
             ));
             // The shard with the fewest machines corrects it.
             let shard = (0..self.shards.len())

@@ -18,6 +18,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tracing::{info, warn};
+use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 /// Counters the core does not see (message level).
@@ -49,10 +50,81 @@ pub(crate) struct Extra {
 /// `main.rs`: one worker would be held by the stalled link's queue lock and stall every link).
 pub(crate) struct Outbox {
     points: zenoh::pubsub::Publisher<'static>,
-    alarms: zenoh::pubsub::Publisher<'static>,
+    /// Alarms are rare: put on the session under their key (as a publisher would, with
+    /// `Block`), not through a publisher and key declaration kept per machine.
+    alarms: Alarms,
     machine: String,
     max_bytes: usize,
     state: Mutex<OutState>,
+    /// Where the buffers of its published points go back to.
+    pool: Arc<Pool>,
+}
+
+/// Where a machine's alarms are put.
+pub(crate) struct Alarms {
+    pub(crate) session: zenoh::Session,
+    pub(crate) key: zenoh::key_expr::KeyExpr<'static>,
+}
+
+/// Point buffers, reused: a publication's buffer comes back here once zenoh has copied it
+/// into its transmit batch (or dropped it), and the next batch of points of any machine is
+/// encoded into it. No allocation, growth or fresh pages per batch, and the room of the
+/// output in flight is shared by the machines instead of each keeping its own.
+pub(crate) struct Pool {
+    free: Mutex<Vec<Vec<u8>>>,
+    keep: usize,
+}
+
+/// Buffers with more room than this are not kept (a batch is at most [`JOIN_UP_TO`] plus
+/// one message's points).
+const POOL_MAX_ROOM: usize = 2 * JOIN_UP_TO;
+
+impl Pool {
+    /// A pool keeping at most `keep` buffers.
+    pub(crate) fn new(keep: usize) -> Arc<Pool> {
+        Arc::new(Pool {
+            free: Mutex::new(Vec::with_capacity(keep)),
+            keep,
+        })
+    }
+
+    /// An empty buffer with room for at least `room` bytes.
+    fn get(&self, room: usize) -> Vec<u8> {
+        let b = self.free.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        let mut b = b.unwrap_or_default();
+        b.reserve(room);
+        b
+    }
+
+    /// Takes a buffer back (kept when there is place for it and it is not too large).
+    fn put(&self, mut b: Vec<u8>) {
+        if b.capacity() == 0 || b.capacity() > POOL_MAX_ROOM {
+            return;
+        }
+        b.clear();
+        let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+        if free.len() < self.keep {
+            free.push(b);
+        }
+    }
+}
+
+/// A buffer of points on its way through zenoh, back to its pool when zenoh lets go of it.
+struct Pooled {
+    buf: Vec<u8>,
+    pool: Arc<Pool>,
+}
+
+impl AsRef<[u8]> for Pooled {
+    fn as_ref(&self) -> &[u8] {
+        &self.buf
+    }
+}
+
+impl Drop for Pooled {
+    fn drop(&mut self) {
+        self.pool.put(std::mem::take(&mut self.buf));
+    }
 }
 
 /// Point batches queued for one machine are joined into one publication up to this size (the
@@ -91,9 +163,10 @@ impl Outgoing {
 impl Outbox {
     pub(crate) fn new(
         points: zenoh::pubsub::Publisher<'static>,
-        alarms: zenoh::pubsub::Publisher<'static>,
+        alarms: Alarms,
         machine: String,
         max_bytes: usize,
+        pool: Arc<Pool>,
     ) -> Outbox {
         Outbox {
             points,
@@ -101,6 +174,7 @@ impl Outbox {
             machine,
             max_bytes,
             state: Mutex::default(),
+            pool,
         }
     }
 
@@ -114,7 +188,11 @@ impl Outbox {
         let mut st = self.lock();
         if st.bytes + o.len() > self.max_bytes && !st.queue.is_empty() {
             match o {
-                Outgoing::Points(_, n, _) => st.dropped_points += n,
+                Outgoing::Points(b, n, _) => {
+                    st.dropped_points += n;
+                    drop(st);
+                    self.pool.put(b);
+                }
                 Outgoing::Alarm(_) => st.dropped_alarms += 1,
             }
             return false;
@@ -127,6 +205,10 @@ impl Outbox {
                 b.extend_from_slice(&more);
                 *n += m;
                 *at = at.or(later);
+                let queued = !std::mem::replace(&mut st.queued, true);
+                drop(st);
+                self.pool.put(more);
+                return queued;
             }
             (_, o) => st.queue.push_back(o),
         }
@@ -140,8 +222,24 @@ impl Outbox {
             st.bytes -= o.len();
             drop(st);
             let (r, n, arrived) = match o {
-                Outgoing::Points(b, n, at) => (self.points.put(b).wait(), n, at),
-                Outgoing::Alarm(b) => (self.alarms.put(b).wait(), 0, None),
+                Outgoing::Points(b, n, at) => {
+                    // Zero-copy: zenoh reads the buffer, and hands it back to the pool when
+                    // it is done with it.
+                    let b = bytes::Bytes::from_owner(Pooled {
+                        buf: b,
+                        pool: self.pool.clone(),
+                    });
+                    (self.points.put(b).wait(), n, at)
+                }
+                Outgoing::Alarm(b) => (
+                    self.alarms
+                        .session
+                        .put(&self.alarms.key, b)
+                        .congestion_control(CongestionControl::Block)
+                        .wait(),
+                    0,
+                    None,
+                ),
             };
             progress.fetch_add(1, Ordering::Relaxed);
             st = self.lock();
@@ -338,6 +436,8 @@ pub(crate) struct Pending {
     points: u64,
     /// When the earliest raw message that completed them arrived.
     arrived: Option<Instant>,
+    /// The size of the machine's last batch: the room the next one is given at once.
+    last_len: usize,
 }
 
 /// What the corrector says about itself, for status and metrics.
@@ -612,6 +712,9 @@ fn on_raw(
     for x in samples.drain(..) {
         corr.push(x, out);
     }
+    // What waits for the other streams keeps its room; the room of a batch gone through is
+    // given back, not kept per machine until its next batch.
+    corr.trim();
     if corr.stats().clock_resets > resets {
         warn!(machine, "controller clock reset: the machine's join, estimator and judgement restarted in the new time base");
     }
@@ -637,11 +740,14 @@ fn publish(
 ) {
     if !out.points.is_empty() {
         // Written straight to protobuf (the same bytes prost makes, without a message per point).
-        let p = &mut m.pending;
-        if p.bytes.capacity() == 0 {
-            // A point with its corrections is about 300 bytes.
-            p.bytes.reserve(out.points.len() * 320);
+        if m.pending.bytes.capacity() == 0 {
+            // As much room as the machine's last batch took (a machine's batches are alike),
+            // at least about 300 bytes per point with its corrections.
+            let last = m.pending.last_len;
+            let room = (out.points.len() * 320).max(last + last / 8);
+            m.pending.bytes = m.outbox.pool.get(room);
         }
+        let p = &mut m.pending;
         wire::encode_points(&out.points, machine, &m.ids, &mut p.bytes);
         p.points += out.points.len() as u64;
         p.arrived = p.arrived.or(arrived);
@@ -673,7 +779,14 @@ fn to_outbox(m: &mut Core, ready: &mut Vec<Arc<Outbox>>) {
     if m.pending.points == 0 {
         return;
     }
-    let p = std::mem::take(&mut m.pending);
+    let last_len = m.pending.bytes.len();
+    let p = std::mem::replace(
+        &mut m.pending,
+        Pending {
+            last_len,
+            ..Default::default()
+        },
+    );
     if m.outbox
         .send(Outgoing::Points(p.bytes, p.points, p.arrived))
     {

@@ -226,6 +226,10 @@ impl Store {
             .map_err(db)?;
         conn.pragma_update(None, "synchronous", "FULL")
             .map_err(db)?;
+        // A small page cache (SQLite's default is 2 MiB): the store is read when a machine
+        // starts being served and on queries, never per sample, and each calibration read
+        // would otherwise stay cached — memory that grew with the number of machines.
+        conn.pragma_update(None, "cache_size", -256).map_err(db)?;
         conn.execute_batch(
             "CREATE TABLE IF NOT EXISTS calibration (
                 machine TEXT NOT NULL, version INTEGER NOT NULL, parent INTEGER, note TEXT NOT NULL,
