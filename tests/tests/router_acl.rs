@@ -282,43 +282,34 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     let h: Value = serde_json::from_slice(&h.stdout).unwrap();
     assert_eq!(h[0]["machines"], 2, "{h}");
 
+    // A ring scan that controller m1 publishes at full speed on `machine`'s raw keys.
+    let scan = |machine: &str, seed: &str| {
+        cli(
+            &d,
+            &c1,
+            &[
+                "sim",
+                "--program",
+                "ring",
+                "--live",
+                "--live-rate",
+                "max",
+                "--machine",
+                machine,
+                "--seed",
+                seed,
+            ],
+        )
+    };
     // Controller m1 publishes its own machine's raw streams: the service corrects them.
-    let out = cli(
-        &d,
-        &c1,
-        &[
-            "sim",
-            "--program",
-            "ring",
-            "--live",
-            "--live-rate",
-            "max",
-            "--machine",
-            "m1",
-        ],
-    );
+    let out = scan("m1", "1");
     assert!(
         out.status.success(),
         "controller-m1 → m1: {}",
         String::from_utf8_lossy(&out.stderr)
     );
     // … and m2's: refused by the router; the service sees nothing of it.
-    let _ = cli(
-        &d,
-        &c1,
-        &[
-            "sim",
-            "--program",
-            "ring",
-            "--live",
-            "--live-rate",
-            "max",
-            "--machine",
-            "m2",
-            "--seed",
-            "2",
-        ],
-    );
+    let _ = scan("m2", "2");
     let s1 = settled(&d, &op, "m1");
     let s2 = status(&d, &op, "m2");
     assert_eq!(s1["samples_in"], 51829, "m1: {s1}");
@@ -354,22 +345,7 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     let mut misses = vec![];
     for seed in ["3", "4"] {
         let before = status(&d, &op, "m1");
-        let out = cli(
-            &d,
-            &c1,
-            &[
-                "sim",
-                "--program",
-                "ring",
-                "--live",
-                "--live-rate",
-                "max",
-                "--machine",
-                "m1",
-                "--seed",
-                seed,
-            ],
-        );
+        let out = scan("m1", seed);
         assert!(
             out.status.success(),
             "{}",

@@ -366,13 +366,20 @@ fn varint_field(mut msg: &[u8], number: u32) -> Option<i64> {
     Some(t)
 }
 
-enum Value<'a> {
+/// A protobuf field's value, as [`next_field`] reads it.
+pub enum Value<'a> {
+    /// Wire type 0.
     Varint(u64),
+    /// Wire type 2: the bytes of a string, bytes, packed column or nested message.
     Bytes(&'a [u8]),
+    /// Wire types 1 and 5 (fixed 64 and 32 bits), skipped.
     Fixed,
 }
 
-fn next_field<'a>(b: &mut &'a [u8]) -> Option<(u32, Value<'a>)> {
+/// Reads one field of a protobuf message in place (its number and value) and advances `b`
+/// past it; `None` when the bytes are not well-formed or the field number is 0. For readers
+/// that need a field or two of a large message without decoding it.
+pub fn next_field<'a>(b: &mut &'a [u8]) -> Option<(u32, Value<'a>)> {
     let key = varint(b)?;
     let field = u32::try_from(key >> 3).ok()?;
     let value = match key & 7 {

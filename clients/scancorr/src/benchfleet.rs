@@ -48,53 +48,21 @@ pub struct Params {
 /// one would load the bench process, which shares the machine with the service it measures.
 /// `None` when the bytes are not a well-formed batch.
 fn each_point(mut b: &[u8], mut f: impl FnMut(u64, i64)) -> Option<()> {
+    use scancorr_bag::{next_field, Value};
     while !b.is_empty() {
-        let key = varint(&mut b)?;
-        if key == (1 << 3) | 2 {
-            let n = usize::try_from(varint(&mut b)?).ok()?;
-            let mut p = b.get(..n)?;
-            b = &b[n..];
+        if let (1, Value::Bytes(mut p)) = next_field(&mut b)? {
             let (mut seq, mut t_ns) = (0u64, 0i64);
             while !p.is_empty() {
-                match varint(&mut p)? {
-                    k if k == 2 << 3 => seq = varint(&mut p)?,
+                match next_field(&mut p)? {
+                    (2, Value::Varint(v)) => seq = v,
                     // int64: two's complement in ten bytes when negative.
-                    k if k == 3 << 3 => t_ns = varint(&mut p)? as i64,
-                    k => skip(&mut p, k & 7)?,
+                    (3, Value::Varint(v)) => t_ns = v as i64,
+                    _ => {}
                 }
             }
             f(seq, t_ns);
-        } else {
-            skip(&mut b, key & 7)?;
         }
     }
-    Some(())
-}
-
-/// A protobuf varint.
-fn varint(b: &mut &[u8]) -> Option<u64> {
-    let mut v = 0u64;
-    for i in 0..10 {
-        let (&byte, rest) = b.split_first()?;
-        *b = rest;
-        v |= u64::from(byte & 0x7f) << (7 * i);
-        if byte < 0x80 {
-            return Some(v);
-        }
-    }
-    None
-}
-
-/// Skips a field's value of wire type `wt`.
-fn skip(b: &mut &[u8], wt: u64) -> Option<()> {
-    let n = match wt {
-        0 => return varint(b).map(|_| ()),
-        1 => 8,
-        2 => usize::try_from(varint(b)?).ok()?,
-        5 => 4,
-        _ => return None,
-    };
-    *b = b.get(n..)?;
     Some(())
 }
 
