@@ -304,3 +304,88 @@ fn simulator_publishes_live_and_the_service_corrects() {
     svc.stop();
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// A machine whose probe collides mid-scan: the estimator alarms the service publishes live
+/// are the offline corrector's, in order and to the bit (the alarms' keys are declared on a
+/// machine's first alarm — see scancorrd's `Alarms` — so the first and later alarms take
+/// different paths through zenoh; both must arrive).
+#[test]
+fn live_alarms_equal_offline_alarms() {
+    let d = scratch("service-alarms");
+    let port = free_port();
+    let ep = format!("tcp/127.0.0.1:{port}");
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--fault",
+            "collision",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "v1.json",
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "correct", "--bag", "r.mcap", "--calib", "v1.json", "--out", "off.mcap",
+        ],
+    );
+    let off = alarms(&d.join("off.mcap"));
+    assert!(
+        off.len() >= 2,
+        "the collision should raise and clear an alarm offline: {off:?}"
+    );
+    let svc = Service::start(&d, port);
+    ok(
+        &d,
+        &[
+            "calib",
+            "put",
+            "--machine",
+            "m1",
+            "--file",
+            "v1.json",
+            "--connect",
+            &ep,
+        ],
+    );
+    let mut rec = Command::new(scancorr())
+        .args([
+            "record",
+            "--keys",
+            "cmm/m1/alarms/**",
+            "--out",
+            "live.mcap",
+            "--count",
+            &off.len().to_string(),
+            "--seconds",
+            "60",
+            "--connect",
+            &ep,
+        ])
+        .current_dir(&d)
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(800));
+    ok(
+        &d,
+        &[
+            "replay",
+            "--bag",
+            "r.mcap",
+            "--speed",
+            "max",
+            "--connect",
+            &ep,
+        ],
+    );
+    assert!(rec.wait().unwrap().success());
+    svc.stop();
+    let live = alarms(&d.join("live.mcap"));
+    assert_eq!(live, off, "live alarms differ from offline alarms");
+}

@@ -203,7 +203,11 @@ fn start_scancorrd_with(dir: &Path, head: &str, extra: &str) -> Result<Service> 
     let child = Command::new(scancorrd_path()?)
         .arg("--config")
         .arg(dir.join("scancorrd.json5"))
-        .env("RUST_LOG", "warn,zenoh=error")
+        // `SCANCORRD_LOG` (a `RUST_LOG` filter) to look inside a run; quiet by default.
+        .env(
+            "RUST_LOG",
+            std::env::var("SCANCORRD_LOG").unwrap_or_else(|_| "warn,zenoh=error".into()),
+        )
         .stdout(Stdio::null())
         .stderr(log)
         .spawn()
@@ -473,6 +477,8 @@ pub fn run(p: Params) -> Result<()> {
         *start_cell.lock().expect("lock") = Some(start);
         let mut late_periods = 0u64;
         let mut worst_publish_lag_ms = 0f64;
+        // How long each period's puts took (all machines, one after the other), ms.
+        let mut put_spans_ms = Vec::with_capacity(fleet.len());
         let mut rss_steady = 0u64;
         let n_periods = fleet.len();
         for (k, period) in fleet.iter().enumerate() {
@@ -484,12 +490,14 @@ pub fn run(p: Params) -> Result<()> {
                 late_periods += 1;
                 worst_publish_lag_ms = worst_publish_lag_ms.max((now - due).as_secs_f64() * 1e3);
             }
+            let t_put = Instant::now();
             for (m, msgs) in period.iter().enumerate() {
                 for (st, bytes) in msgs {
                     // A `ZBytes` clone shares the bytes.
                     publishers[m][*st].put(bytes.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
                 }
             }
+            put_spans_ms.push(t_put.elapsed().as_secs_f64() * 1e3);
             if k == n_periods * 4 / 5 {
                 rss_steady = memory(pid).map(|m| m.0).unwrap_or(0);
             }
@@ -514,6 +522,12 @@ pub fn run(p: Params) -> Result<()> {
         let keys: Vec<(String, Option<String>)> = (0..p.machines).map(|m| (format!("cmm/{}/status", machine_name(m)), None)).collect();
         let statuses: Vec<serde_json::Value> = in_parallel(&session, keys, 50, "status read", quiet, |s| serde_json::from_str(&s).unwrap_or_default()).await?;
         let state: Vec<f64> = statuses.iter().filter_map(|s| s["state_bytes"].as_f64()).collect();
+        // The latency the service itself adds (message arrival → its points published), each
+        // machine's p99, µs: what of the end-to-end latency is the service's.
+        let mut added_p99_us: Vec<f64> = statuses
+            .iter()
+            .filter_map(|s| s["output"]["added_latency_us"]["p99"].as_f64())
+            .collect();
         let mut drops = std::collections::BTreeMap::<String, u64>::new();
         for s in &statuses {
             if let Some(d) = s["dropped"].as_object() {
@@ -528,6 +542,8 @@ pub fn run(p: Params) -> Result<()> {
         let r = rec.lock().expect("lock");
         let mut lat = r.latencies_ms.clone();
         let (p50, p99, pmax) = (pct(&mut lat, 0.5), pct(&mut lat, 0.99), pct(&mut lat, 1.0));
+        let (put_span_p50, put_span_max) = (pct(&mut put_spans_ms, 0.5), pct(&mut put_spans_ms, 1.0));
+        let (added_p99_median_ms, added_p99_max_ms) = (pct(&mut added_p99_us, 0.5) / 1e3, pct(&mut added_p99_us, 1.0) / 1e3);
         let span_s = r.last_arrival.map_or(publish_s, |t| (t - start).as_secs_f64());
         let samples_per_s = (samples.len() * p.machines) as f64 / p.seconds * p.pace;
         let points_expected_per_s = (expected_per_machine * p.machines as u64) as f64 / p.seconds * p.pace;
@@ -540,7 +556,14 @@ pub fn run(p: Params) -> Result<()> {
         let state_mean = state.iter().sum::<f64>() / state.len().max(1) as f64;
         let state_max = state.iter().cloned().fold(0.0, f64::max);
         let kept_up = r.points == expected && r.gaps == 0 && r.malformed == 0 && late_periods == 0 && p99 < 2.0 * p.batch_ms as f64 / p.pace;
-        let out = serde_json::json!({
+        // Where the end-to-end latency goes (its own object: `json!` nests only so deep).
+        let latency_parts = serde_json::json!({
+            "controller_put_span_ms_p50": put_span_p50,
+            "controller_put_span_ms_max": put_span_max,
+            "service_added_p99_ms_median_machine": added_p99_median_ms,
+            "service_added_p99_ms_worst_machine": added_p99_max_ms,
+        });
+        let mut out = serde_json::json!({
             "bench": "fleet",
             "machines": p.machines,
             "through_router": p.router,
@@ -581,6 +604,7 @@ pub fn run(p: Params) -> Result<()> {
             "bench_process_cpu_cores": self_cpu / span_s.max(1e-9),
             "targets": {"machines": 1000, "state_bytes_per_machine": 65536},
         });
+        out["latency_parts"] = latency_parts;
         if p.json {
             outln!("{out}")?;
         } else {
@@ -589,6 +613,7 @@ pub fn run(p: Params) -> Result<()> {
             outln!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
             outln!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, {} malformed messages, dropped {:?}", r.points, r.gaps, r.malformed, drops)?;
             outln!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;
+            outln!("  of which               controllers' puts of a period take {put_span_p50:.1} ms (median; max {put_span_max:.1} ms); the service adds p99 {added_p99_median_ms:.1} ms (median machine; worst {added_p99_max_ms:.1} ms) from arrival to publication")?;
             outln!("  kept up                {}", if kept_up { "yes" } else { "NO" })?;
             outln!("  service memory         idle {:.1} MiB, served {:.1} MiB, steady {:.1} MiB, peak {:.1} MiB", rss_idle as f64 / 1048576.0, rss_served as f64 / 1048576.0, rss_steady as f64 / 1048576.0, rss_peak as f64 / 1048576.0)?;
             outln!("  per machine            {:.1} KiB resident ({:.1} KiB before data); core state {:.1} KiB mean, {:.1} KiB max   (target ≤ 64 KiB)", kib(per_machine_rss), kib(per_machine_served), kib(state_mean), kib(state_max))?;

@@ -736,10 +736,10 @@ impl State {
                 .congestion_control(CongestionControl::Block)
                 .await
                 .map_err(z)?;
-            let alarms = crate::shard::Alarms {
-                session: self.session.clone(),
-                key: zenoh::key_expr::KeyExpr::try_from(Stream::Alarms.key(p, name)).map_err(z)?,
-            };
+            let alarms = crate::shard::Alarms::new(
+                self.session.clone(),
+                zenoh::key_expr::KeyExpr::try_from(Stream::Alarms.key(p, name)).map_err(z)?,
+            );
             let token = self
                 .session
                 .liveliness()

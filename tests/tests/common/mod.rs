@@ -281,6 +281,20 @@ pub fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
     v
 }
 
+/// Every estimator alarm in a bag, in order.
+pub fn alarms(bag: &Path) -> Vec<scancorr_proto::v1::EstimatorAlarm> {
+    use scancorr_proto::Message;
+    let r = scancorr_bag::BagReader::open(bag).unwrap();
+    let mut v = vec![];
+    for m in r.messages().unwrap() {
+        let m = m.unwrap();
+        if m.stream == scancorr_bag::Stream::Alarms {
+            v.push(scancorr_proto::v1::EstimatorAlarm::decode(&*m.data).unwrap());
+        }
+    }
+    v
+}
+
 /// Copies the messages of the streams `keep` accepts into a new bag, without any metadata
 /// record (bags as a recorder that knows nothing of the program would write them).
 pub fn copy_bag(src: &Path, dst: &Path, keep: impl Fn(scancorr_bag::Stream) -> bool) {
