@@ -588,8 +588,8 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
 }
 
 /// The short CI version of the load run: a fleet at 1 kHz per machine through a
-/// `scancorr-router` (scancorrd, the controllers and the consumer its clients) loses no
-/// point. The full run is `scancorr bench fleet --machines 200 --seconds 300 --router`.
+/// `scancorr-router` (scancorrd, the controllers on three links and the consumer its clients)
+/// loses no point. The full run is `scancorr bench fleet --machines 200 --seconds 300 --router`.
 #[test]
 fn a_fleet_through_the_router_loses_no_point() {
     let d = scratch("fleet-router");
@@ -603,11 +603,28 @@ fn a_fleet_through_the_router_loses_no_point() {
             "--seconds",
             "5",
             "--router",
+            "--links",
+            "3",
             "--json",
         ],
     );
     let v: Value = serde_json::from_str(&out).unwrap();
     assert_eq!(v["through_router"], true);
+    assert_eq!(v["controller_links"], 3, "{v}");
+    // Where the latency goes: the controllers' puts and the service's own share, both
+    // measured (each machine's status reports what it added).
+    let parts = &v["latency_parts"];
+    assert!(
+        parts["controller_put_span_ms_max"].as_f64().unwrap() > 0.0,
+        "{v}"
+    );
+    assert!(
+        parts["service_added_p99_ms_worst_machine"]
+            .as_f64()
+            .unwrap()
+            > 0.0,
+        "{v}"
+    );
     assert_eq!(v["received_points"], v["expected_points"], "{v}");
     assert!(v["expected_points"].as_u64().unwrap() >= 90_000, "{v}");
     assert_eq!(v["seq_gaps"], 0, "{v}");

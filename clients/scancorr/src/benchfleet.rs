@@ -1,6 +1,7 @@
 //! `scancorr bench fleet`: one scancorrd process serving many machines at 1 kHz each, in real
 //! time, on loopback. This process plays every machine controller (pre-encoded batches, paced
-//! by sample time) and one consumer of every machine's points; the service runs as its own
+//! by sample time; `--links` spreads them over several zenoh connections, each published from
+//! its own thread) and one consumer of every machine's points; the service runs as its own
 //! process so its memory and CPU time are its own.
 //!
 //! Figures: points delivered per second against the fleet's rate, `seq` gaps, end-to-end
@@ -38,6 +39,9 @@ pub struct Params {
     pub router: bool,
     /// The service's correcting worker shards (0: one per core).
     pub workers: usize,
+    /// Controller links: zenoh sessions (connections) the machines are spread over, each
+    /// published from its own thread.
+    pub links: usize,
     /// Print JSON.
     pub json: bool,
 }
@@ -306,6 +310,41 @@ async fn in_parallel<T: Send + 'static>(
     Ok(out)
 }
 
+/// One controller link: publishes its machines' messages of each period once the period has
+/// ended (`start` + (k + 1) periods of `wall_ns`). Per period: how late it began, and how long
+/// its puts took, ms.
+fn controller(
+    fleet: &[Vec<Period>],
+    group: &[(usize, Vec<zenoh::pubsub::Publisher<'static>>)],
+    start: Instant,
+    wall_ns: i64,
+) -> Result<Vec<(f64, f64)>> {
+    use zenoh::Wait;
+    let mut out = Vec::with_capacity(fleet.len());
+    for (k, period) in fleet.iter().enumerate() {
+        let due = start + Duration::from_nanos(((k as i64 + 1) * wall_ns) as u64);
+        let now = Instant::now();
+        let lag_ms = if now < due {
+            std::thread::sleep(due - now);
+            0.0
+        } else {
+            (now - due).as_secs_f64() * 1e3
+        };
+        let t_put = Instant::now();
+        for (m, publishers) in group {
+            for (st, bytes) in &period[*m] {
+                // A `ZBytes` clone shares the bytes.
+                publishers[*st]
+                    .put(bytes.clone())
+                    .wait()
+                    .map_err(|e| anyhow::anyhow!("{e}"))?;
+            }
+        }
+        out.push((lag_ms, t_put.elapsed().as_secs_f64() * 1e3));
+    }
+    Ok(out)
+}
+
 /// The `p` quantile of `v` (sorted in place); 0 when empty.
 pub(crate) fn pct(v: &mut [f64], p: f64) -> f64 {
     if v.is_empty() {
@@ -329,6 +368,10 @@ struct Received {
 /// Runs the benchmark.
 pub fn run(p: Params) -> Result<()> {
     anyhow::ensure!(p.machines >= 1, "--machines must be at least 1");
+    anyhow::ensure!(
+        (1..=p.machines).contains(&p.links),
+        "--links must be between 1 and the number of machines"
+    );
     anyhow::ensure!(p.batch_ms >= 1, "--batch-ms must be at least 1");
     anyhow::ensure!(
         p.seconds > 0.0 && p.seconds.is_finite(),
@@ -351,6 +394,7 @@ pub fn run(p: Params) -> Result<()> {
         let mut svc = start_service(&dir, port, &p)?;
         let pid = svc.child.id();
         let cfg = scancorrd::config::zenoh_config("peer", &[], &[format!("tcp/127.0.0.1:{port}")], false)?;
+        let cfg_controllers = cfg.clone();
         let session = zenoh::open(cfg).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         // Wait for the service.
         let t0 = Instant::now();
@@ -449,62 +493,78 @@ pub fn run(p: Params) -> Result<()> {
                     .map_err(|e| anyhow::anyhow!("{e}"))?,
             );
         }
-        let mut publishers = Vec::with_capacity(p.machines);
+        // The controllers' sessions: link 0 is this session (the consumer's too), the others
+        // their own connections to the service. Machine `m` is on link `m % links`.
+        let mut links = vec![session.clone()];
+        for _ in 1..p.links {
+            links.push(zenoh::open(cfg_controllers.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?);
+        }
+        let mut groups: Vec<Vec<(usize, Vec<zenoh::pubsub::Publisher<'static>>)>> = (0..p.links).map(|_| vec![]).collect();
         for m in 0..p.machines {
+            let link = &links[m % p.links];
             let mut row = Vec::with_capacity(4);
             for st in StreamId::ALL {
                 // A declared key expression travels as a number and its route is cached.
-                let ke = session
+                let ke = link
                     .declare_keyexpr(format!("cmm/{}/raw/{}", machine_name(m), st.name()))
                     .await
                     .map_err(|e| anyhow::anyhow!("{e}"))?;
                 row.push(
-                    session
-                        .declare_publisher(ke)
+                    link.declare_publisher(ke)
                         .congestion_control(CongestionControl::Block)
                         .await
                         .map_err(|e| anyhow::anyhow!("{e}"))?,
                 );
             }
-            publishers.push(row);
+            groups[m % p.links].push((m, row));
         }
         tokio::time::sleep(Duration::from_millis(500)).await;
 
-        // The controllers: each period's batches are published when the period has ended.
+        // The controllers: one thread per link, each publishing its machines' batches of a
+        // period when the period has ended, paced on its own.
         let self_cpu0 = cpu_seconds("self").unwrap_or(0.0);
         let svc_cpu0 = cpu_seconds(&pid.to_string()).unwrap_or(0.0);
+        let fleet = Arc::new(fleet);
+        let n_periods = fleet.len();
         let start = Instant::now();
         *start_cell.lock().expect("lock") = Some(start);
-        let mut late_periods = 0u64;
-        let mut worst_publish_lag_ms = 0f64;
-        // How long each period's puts took (all machines, one after the other), ms.
-        let mut put_spans_ms = Vec::with_capacity(fleet.len());
+        let controllers: Vec<_> = groups
+            .into_iter()
+            .map(|group| {
+                let fleet = fleet.clone();
+                std::thread::spawn(move || controller(&fleet, &group, start, wall_ns))
+            })
+            .collect();
         let mut rss_steady = 0u64;
-        let n_periods = fleet.len();
-        for (k, period) in fleet.iter().enumerate() {
-            let due = start + Duration::from_nanos(((k as i64 + 1) * wall_ns) as u64);
-            let now = Instant::now();
-            if now < due {
-                tokio::time::sleep_until(due.into()).await;
-            } else {
-                late_periods += 1;
-                worst_publish_lag_ms = worst_publish_lag_ms.max((now - due).as_secs_f64() * 1e3);
-            }
-            let t_put = Instant::now();
-            for (m, msgs) in period.iter().enumerate() {
-                for (st, bytes) in msgs {
-                    // A `ZBytes` clone shares the bytes.
-                    publishers[m][*st].put(bytes.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-                }
-            }
-            put_spans_ms.push(t_put.elapsed().as_secs_f64() * 1e3);
-            if k == n_periods * 4 / 5 {
+        let period_wall = Duration::from_nanos(wall_ns as u64);
+        let mut shown = 0;
+        while !controllers.iter().all(|c| c.is_finished()) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            let k = (start.elapsed().as_nanos() / period_wall.as_nanos()) as usize;
+            if rss_steady == 0 && k >= n_periods * 4 / 5 {
                 rss_steady = memory(pid).map(|m| m.0).unwrap_or(0);
             }
-            if !quiet && k > 0 && k % (n_periods / 10).max(1) == 0 {
+            if !quiet && k >= shown + (n_periods / 10).max(1) && k < n_periods {
+                shown = k;
                 let got = rec.lock().expect("lock").points;
                 eprintln!("  {:>3.0} %  points received {got}", 100.0 * k as f64 / n_periods as f64);
             }
+        }
+        // Per period: late when any link was; the put span and lag of the slowest link.
+        let mut late = vec![false; n_periods];
+        let mut put_spans_ms = vec![0f64; n_periods];
+        let mut worst_publish_lag_ms = 0f64;
+        for c in controllers {
+            let r = c.join().map_err(|_| anyhow::anyhow!("a controller thread panicked"))??;
+            for (k, (lag_ms, span_ms)) in r.into_iter().enumerate() {
+                late[k] |= lag_ms > 0.0;
+                worst_publish_lag_ms = worst_publish_lag_ms.max(lag_ms);
+                put_spans_ms[k] = put_spans_ms[k].max(span_ms);
+            }
+        }
+        let late_periods = late.iter().filter(|l| **l).count() as u64;
+        if rss_steady == 0 {
+            rss_steady = memory(pid).map(|m| m.0).unwrap_or(0);
         }
         let publish_s = start.elapsed().as_secs_f64();
         let expected = expected_per_machine * p.machines as u64;
@@ -605,11 +665,12 @@ pub fn run(p: Params) -> Result<()> {
             "targets": {"machines": 1000, "state_bytes_per_machine": 65536},
         });
         out["latency_parts"] = latency_parts;
+        out["controller_links"] = p.links.into();
         if p.json {
             outln!("{out}")?;
         } else {
             let kib = |b: f64| b / 1024.0;
-            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process with {} worker(s){} (loopback; this process plays the controllers and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.workers == 0 { "one-per-core".to_string() } else { p.workers.to_string() }, if p.router { " behind a scancorr-router" } else { "" })?;
+            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process with {} worker(s){} (loopback; this process plays the controllers, on {} link(s), and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.workers == 0 { "one-per-core".to_string() } else { p.workers.to_string() }, if p.router { " behind a scancorr-router" } else { "" }, p.links)?;
             outln!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
             outln!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, {} malformed messages, dropped {:?}", r.points, r.gaps, r.malformed, drops)?;
             outln!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;

@@ -361,6 +361,11 @@ enum BenchCmd {
         /// The service's correcting worker shards (0: one per core).
         #[arg(long, default_value_t = 0)]
         workers: usize,
+        /// Controller links: the machines are spread over this many zenoh sessions (each its
+        /// own connection to the service and its own thread, paced on its own), as controllers
+        /// on a shop floor each have their own.
+        #[arg(long, default_value_t = 1)]
+        links: usize,
     },
     /// The bare relay `bench live` compares against (run by it as a child process).
     #[command(hide = true)]
@@ -522,6 +527,7 @@ fn run(cli: Cli) -> Result<()> {
             pace,
             router,
             workers,
+            links,
         }) => benchfleet::run(benchfleet::Params {
             machines,
             seconds,
@@ -530,6 +536,7 @@ fn run(cli: Cli) -> Result<()> {
             pace,
             router,
             workers,
+            links,
             json,
         }),
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
