@@ -363,8 +363,9 @@ enum BenchCmd {
         workers: usize,
         /// Controller links: the machines are spread over this many zenoh sessions (each its
         /// own connection to the service and its own thread, paced on its own), as controllers
-        /// on a shop floor each have their own.
-        #[arg(long, default_value_t = 1)]
+        /// on a shop floor each have their own (one link could not publish 1 000 machines'
+        /// batches within a period here; at most one per machine).
+        #[arg(long, default_value_t = 4)]
         links: usize,
     },
     /// The bare relay `bench live` compares against (run by it as a child process).
