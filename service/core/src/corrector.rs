@@ -246,6 +246,9 @@ pub struct Corrector {
     held_all: std::collections::HashMap<String, (f64, i64)>,
     estimator: Option<Estimator>,
     probe_type: String,
+    /// The tip last found to be of `probe_type` (so its probe name is not compared again on
+    /// every point); `None` whenever `probe_type` or the model changes.
+    probe_tip: Option<u32>,
     /// The pose of the last point's tip and head angles (they rarely change).
     pose: Option<TipPose>,
     /// The estimates at the last two commands (the bracket of the next scale time), written
@@ -297,6 +300,7 @@ impl Corrector {
             held_all: Default::default(),
             estimator: None,
             probe_type: String::new(),
+            probe_tip: None,
             pose: None,
             estimates: [None, None],
             newest: 0,
@@ -392,6 +396,7 @@ impl Corrector {
             self.estimator = None;
             self.probe_type.clear();
         }
+        self.probe_tip = None;
         let j = &model.doc.judgement;
         self.judge.reconfigure(
             model.filter.clone(),
@@ -533,6 +538,7 @@ impl Corrector {
         self.held_all.clear();
         self.estimator = None;
         self.probe_type.clear();
+        self.probe_tip = None;
         self.estimates = [None, None];
         self.judge.restart();
         self.last_judged_t = None;
@@ -734,6 +740,7 @@ impl Corrector {
                     let probe = self.probe_type_for(t);
                     let m = self.model.nominal[&probe].clone();
                     self.probe_type = probe;
+                    self.probe_tip = None;
                     let mut est = Estimator::new(m);
                     let e = est.restart(&c);
                     self.estimator = Some(est);
@@ -811,14 +818,17 @@ impl Corrector {
         // Tip and probe model.
         let model: &Model = &self.model;
         let tip = model.tips.get(&p0.tip_id).ok_or(DropReason::UnknownTip)?;
-        if tip.probe != self.probe_type {
-            if let Some(est) = self.estimator.as_mut() {
-                let e1 = self.estimates[self.newest]
-                    .as_ref()
-                    .expect("a point has an estimate");
-                est.switch_model(model.nominal[&tip.probe].clone(), &e1.cmd);
+        if self.probe_tip != Some(p0.tip_id) {
+            if tip.probe != self.probe_type {
+                if let Some(est) = self.estimator.as_mut() {
+                    let e1 = self.estimates[self.newest]
+                        .as_ref()
+                        .expect("a point has an estimate");
+                    est.switch_model(model.nominal[&tip.probe].clone(), &e1.cmd);
+                }
+                self.probe_type.clone_from(&tip.probe);
             }
-            self.probe_type.clone_from(&tip.probe);
+            self.probe_tip = Some(p0.tip_id);
         }
         let settled = self.estimator.as_ref().is_some_and(|e| e.settled());
 
@@ -1045,7 +1055,7 @@ fn synthesize_into(
     let tip_center = ctx.scale + total + ctx.deflection + ctx.tip_offset();
     let d = ctx.deflection.norm();
     let normal = if d >= min_contact && d > 0.0 {
-        ctx.deflection / d
+        ctx.deflection * (1.0 / d)
     } else {
         Vec3::zeros()
     };

@@ -169,13 +169,15 @@ pub fn rotation(pos: &Vec3, vel: &Vec3, acc: &Vec3, center: &Vec3, radius: f64) 
     }
     let w = (pos - center).cross(vel);
     let wn = w.norm();
-    let vn = vel.norm();
+    let v2 = vel.norm_squared();
+    let vn = v2.sqrt();
     if wn <= 1e-12 * (1.0 + radius * vn) || vn == 0.0 {
         return (0.0, Vec3::zeros());
     }
-    let vhat = vel / vn;
-    let a_n = (acc - vhat * acc.dot(&vhat)).norm();
-    ((a_n / radius).sqrt() / (2.0 * std::f64::consts::PI), w / wn)
+    // A's component normal to V, |A − V (A·V)/|V|²|; one division, the others multiplications.
+    let a_n = (acc - vel * (acc.dot(vel) / v2)).norm();
+    const INV_TAU: f64 = 1.0 / (2.0 * std::f64::consts::PI);
+    ((a_n / radius).sqrt() * INV_TAU, w * (1.0 / wn))
 }
 
 /// The osculating circle of the estimated path at `pos` (centre, radius in mm), for commands

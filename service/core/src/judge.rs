@@ -138,7 +138,9 @@ impl Judge {
             self.restart();
             return;
         }
-        let a_meas = ((s2 - s1) / h2 - (s1 - s0) / h1) * (2.0 / (h1 + h2));
+        // The divisions by the spacings as multiplications by their reciprocals.
+        let (r1, r2) = (1.0 / h1, 1.0 / h2);
+        let a_meas = ((s2 - s1) * r2 - (s1 - s0) * r1) * (2.0 / (h1 + h2));
         if !self.primed {
             // Both filters of an axis start at rest at the estimate.
             self.states.clear();
