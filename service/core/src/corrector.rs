@@ -30,7 +30,7 @@
 
 use crate::calib::{CalibError, Calibration, Model};
 use crate::effects::BuiltEffect;
-use crate::estimator::{rotation, Estimate, Estimator};
+use crate::estimator::{rotation_with, Estimate, Estimator};
 use crate::judge::Judge;
 use crate::sample::*;
 use crate::stylus::TipPose;
@@ -199,8 +199,10 @@ impl Output {
     /// Empties all lists, keeping their capacity (and the points' lists of corrections, for
     /// the next points).
     pub fn clear(&mut self) {
-        self.spare
-            .extend(self.points.drain(..).map(|p| p.corrections));
+        if !self.points.is_empty() {
+            self.spare
+                .extend(self.points.drain(..).map(|p| p.corrections));
+        }
         self.alarms.clear();
         self.contexts.clear();
     }
@@ -249,6 +251,8 @@ pub struct Corrector {
     /// The tip last found to be of `probe_type` (so its probe name is not compared again on
     /// every point); `None` whenever `probe_type` or the model changes.
     probe_tip: Option<u32>,
+    /// The last commanded arc radius and its reciprocal (constant along an arc).
+    inv_radius: (f64, f64),
     /// The pose of the last point's tip and head angles (they rarely change).
     pose: Option<TipPose>,
     /// The estimates at the last two commands (the bracket of the next scale time), written
@@ -301,6 +305,7 @@ impl Corrector {
             estimator: None,
             probe_type: String::new(),
             probe_tip: None,
+            inv_radius: (0.0, f64::INFINITY),
             pose: None,
             estimates: [None, None],
             newest: 0,
@@ -840,12 +845,16 @@ impl Corrector {
         };
         let r = pose.machine_from_probe;
         let cmd = &est.cmd;
-        let (f_hz, rot_axis) = rotation(
+        if cmd.arc_radius != self.inv_radius.0 {
+            self.inv_radius = (cmd.arc_radius, 1.0 / cmd.arc_radius);
+        }
+        let (f_hz, rot_axis) = rotation_with(
             &est.pos,
             &est.vel,
             &est.acc,
             &cmd.arc_center,
             cmd.arc_radius,
+            self.inv_radius.1,
         );
         let mut ctx = PointContext {
             t_ns: t,
