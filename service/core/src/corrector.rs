@@ -30,7 +30,7 @@
 
 use crate::calib::{CalibError, Calibration, Model};
 use crate::effects::BuiltEffect;
-use crate::estimator::{rotation, Estimate, Estimator};
+use crate::estimator::{rotation_with, Estimate, Estimator};
 use crate::judge::Judge;
 use crate::sample::*;
 use crate::stylus::TipPose;
@@ -199,8 +199,10 @@ impl Output {
     /// Empties all lists, keeping their capacity (and the points' lists of corrections, for
     /// the next points).
     pub fn clear(&mut self) {
-        self.spare
-            .extend(self.points.drain(..).map(|p| p.corrections));
+        if !self.points.is_empty() {
+            self.spare
+                .extend(self.points.drain(..).map(|p| p.corrections));
+        }
         self.alarms.clear();
         self.contexts.clear();
     }
@@ -246,6 +248,11 @@ pub struct Corrector {
     held_all: std::collections::HashMap<String, (f64, i64)>,
     estimator: Option<Estimator>,
     probe_type: String,
+    /// The tip last found to be of `probe_type` (so its probe name is not compared again on
+    /// every point); `None` whenever `probe_type` or the model changes.
+    probe_tip: Option<u32>,
+    /// The last commanded arc radius and its reciprocal (constant along an arc).
+    inv_radius: (f64, f64),
     /// The pose of the last point's tip and head angles (they rarely change).
     pose: Option<TipPose>,
     /// The estimates at the last two commands (the bracket of the next scale time), written
@@ -297,6 +304,8 @@ impl Corrector {
             held_all: Default::default(),
             estimator: None,
             probe_type: String::new(),
+            probe_tip: None,
+            inv_radius: (0.0, f64::INFINITY),
             pose: None,
             estimates: [None, None],
             newest: 0,
@@ -392,6 +401,7 @@ impl Corrector {
             self.estimator = None;
             self.probe_type.clear();
         }
+        self.probe_tip = None;
         let j = &model.doc.judgement;
         self.judge.reconfigure(
             model.filter.clone(),
@@ -533,6 +543,7 @@ impl Corrector {
         self.held_all.clear();
         self.estimator = None;
         self.probe_type.clear();
+        self.probe_tip = None;
         self.estimates = [None, None];
         self.judge.restart();
         self.last_judged_t = None;
@@ -734,6 +745,7 @@ impl Corrector {
                     let probe = self.probe_type_for(t);
                     let m = self.model.nominal[&probe].clone();
                     self.probe_type = probe;
+                    self.probe_tip = None;
                     let mut est = Estimator::new(m);
                     let e = est.restart(&c);
                     self.estimator = Some(est);
@@ -811,14 +823,17 @@ impl Corrector {
         // Tip and probe model.
         let model: &Model = &self.model;
         let tip = model.tips.get(&p0.tip_id).ok_or(DropReason::UnknownTip)?;
-        if tip.probe != self.probe_type {
-            if let Some(est) = self.estimator.as_mut() {
-                let e1 = self.estimates[self.newest]
-                    .as_ref()
-                    .expect("a point has an estimate");
-                est.switch_model(model.nominal[&tip.probe].clone(), &e1.cmd);
+        if self.probe_tip != Some(p0.tip_id) {
+            if tip.probe != self.probe_type {
+                if let Some(est) = self.estimator.as_mut() {
+                    let e1 = self.estimates[self.newest]
+                        .as_ref()
+                        .expect("a point has an estimate");
+                    est.switch_model(model.nominal[&tip.probe].clone(), &e1.cmd);
+                }
+                self.probe_type.clone_from(&tip.probe);
             }
-            self.probe_type.clone_from(&tip.probe);
+            self.probe_tip = Some(p0.tip_id);
         }
         let settled = self.estimator.as_ref().is_some_and(|e| e.settled());
 
@@ -830,12 +845,16 @@ impl Corrector {
         };
         let r = pose.machine_from_probe;
         let cmd = &est.cmd;
-        let (f_hz, rot_axis) = rotation(
+        if cmd.arc_radius != self.inv_radius.0 {
+            self.inv_radius = (cmd.arc_radius, 1.0 / cmd.arc_radius);
+        }
+        let (f_hz, rot_axis) = rotation_with(
             &est.pos,
             &est.vel,
             &est.acc,
             &cmd.arc_center,
             cmd.arc_radius,
+            self.inv_radius.1,
         );
         let mut ctx = PointContext {
             t_ns: t,
@@ -1045,7 +1064,7 @@ fn synthesize_into(
     let tip_center = ctx.scale + total + ctx.deflection + ctx.tip_offset();
     let d = ctx.deflection.norm();
     let normal = if d >= min_contact && d > 0.0 {
-        ctx.deflection / d
+        ctx.deflection * (1.0 / d)
     } else {
         Vec3::zeros()
     };

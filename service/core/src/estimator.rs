@@ -164,18 +164,36 @@ fn settle_samples(model: &[Discrete; 3]) -> u64 {
 /// Rotation on an arc: (f in Hz, unit angular-velocity axis), both zero off arcs or at rest.
 #[inline]
 pub fn rotation(pos: &Vec3, vel: &Vec3, acc: &Vec3, center: &Vec3, radius: f64) -> (f64, Vec3) {
+    rotation_with(pos, vel, acc, center, radius, 1.0 / radius)
+}
+
+/// [`rotation`] given also `inv_radius` = 1 / `radius` (a caller on a long arc computes it
+/// once; the result is the same bits).
+#[inline]
+pub(crate) fn rotation_with(
+    pos: &Vec3,
+    vel: &Vec3,
+    acc: &Vec3,
+    center: &Vec3,
+    radius: f64,
+    inv_radius: f64,
+) -> (f64, Vec3) {
     if radius <= 0.0 {
         return (0.0, Vec3::zeros());
     }
     let w = (pos - center).cross(vel);
     let wn = w.norm();
-    let vn = vel.norm();
+    let v2 = vel.norm_squared();
+    let vn = v2.sqrt();
     if wn <= 1e-12 * (1.0 + radius * vn) || vn == 0.0 {
         return (0.0, Vec3::zeros());
     }
-    let vhat = vel / vn;
-    let a_n = (acc - vhat * acc.dot(&vhat)).norm();
-    ((a_n / radius).sqrt() / (2.0 * std::f64::consts::PI), w / wn)
+    // A's component normal to V, a_n = |A·|V|² − V (A·V)| / |V|², and f = √(a_n/R)/(2π): the
+    // reciprocals (of |V|², R, |W|) are off the chain of square roots.
+    let q = acc * v2 - vel * acc.dot(vel);
+    let a_n = q.norm() * (1.0 / v2);
+    const INV_TAU: f64 = 1.0 / (2.0 * std::f64::consts::PI);
+    ((a_n * inv_radius).sqrt() * INV_TAU, w * (1.0 / wn))
 }
 
 /// The osculating circle of the estimated path at `pos` (centre, radius in mm), for commands

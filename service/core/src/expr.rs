@@ -550,6 +550,13 @@ enum Node {
     Binary(Func2, usize, usize),
 }
 
+/// 1/c when it is exact: c a power of two whose reciprocal is a normal number too.
+fn exact_reciprocal(c: f64) -> Option<f64> {
+    const MANTISSA: u64 = (1 << 52) - 1;
+    let r = 1.0 / c;
+    (c.is_normal() && r.is_normal() && c.to_bits() & MANTISSA == 0).then_some(r)
+}
+
 /// Registers a program evaluates in without allocating.
 const STACK_REGISTERS: usize = 64;
 
@@ -597,6 +604,13 @@ impl Program {
                         let a = st.pop().expect("a checked program");
                         match (constant(&nodes, a), constant(&nodes, b)) {
                             (Some(a), Some(b)) => Node::Const(f.apply(a, b).to_bits()),
+                            // Division by a power of two: multiplication by its exact
+                            // reciprocal (the same real number rounded once: the same bits).
+                            (None, Some(c)) if f == Func2::Div && exact_reciprocal(c).is_some() => {
+                                let r = exact_reciprocal(c).expect("checked");
+                                let r = intern(Node::Const(r.to_bits()), &mut nodes);
+                                Node::Binary(Func2::Mul, a, r)
+                            }
                             _ => Node::Binary(f, a, b),
                         }
                     }
@@ -735,7 +749,10 @@ impl Program {
         for (i, v) in r[..n_in].iter_mut().enumerate() {
             *v = input(i);
         }
-        r[n_in..n_in + self.consts.len()].copy_from_slice(&self.consts);
+        // A loop, not a call to memcpy, for the few constants of a program.
+        for (r, c) in r[n_in..n_in + self.consts.len()].iter_mut().zip(&self.consts) {
+            *r = *c;
+        }
         for step in &self.steps {
             match *step {
                 Step::Unary { f, x, dst } => r[dst] = f.apply(r[x]),

@@ -45,6 +45,9 @@ pub struct Judge {
     hist: [(i64, Vec3); 3],
     a_est: [Vec3; 3],
     n_hist: usize,
+    /// The last spacing of the scale samples (ns) and 1/spacing in s⁻¹: a regular stream
+    /// needs no division per sample (the reciprocal is the same bits either way).
+    recip: (i64, f64),
     axes: [AxisState; 3],
     /// Filter states per section of the six channels: estimated x, y, z, measured x, y, z.
     /// The channels are independent, so each section runs on all six at once.
@@ -76,6 +79,7 @@ impl Judge {
             hist: [(0, Vec3::zeros()); 3],
             a_est: [Vec3::zeros(); 3],
             n_hist: 0,
+            recip: (0, f64::INFINITY),
             axes: Default::default(),
             states: Vec::new(),
             primed: false,
@@ -108,6 +112,15 @@ impl Judge {
         self.primed = false;
     }
 
+    /// 1 / (`dt_ns` in s), remembered for the last spacing.
+    #[inline]
+    fn reciprocal(&mut self, dt_ns: i64) -> f64 {
+        if dt_ns != self.recip.0 {
+            self.recip = (dt_ns, 1.0 / (dt_ns as f64 * 1e-9));
+        }
+        self.recip.1
+    }
+
     /// Whether any axis is raised.
     pub fn any_raised(&self) -> bool {
         self.axes.iter().any(|a| a.raised)
@@ -138,7 +151,16 @@ impl Judge {
             self.restart();
             return;
         }
-        let a_meas = ((s2 - s1) / h2 - (s1 - s0) / h1) * (2.0 / (h1 + h2));
+        // The divisions by the spacings as multiplications by their reciprocals (those of the
+        // last spacing remembered: the same for a regular stream).
+        let (r1, r2) = (self.reciprocal(t1 - t0), self.reciprocal(t2 - t1));
+        // 2/(h1 + h2) is exactly 1/h when the spacings are equal.
+        let k = if t1 - t0 == t2 - t1 {
+            r2
+        } else {
+            2.0 / (h1 + h2)
+        };
+        let a_meas = ((s2 - s1) * r2 - (s1 - s0) * r1) * k;
         if !self.primed {
             // Both filters of an axis start at rest at the estimate.
             self.states.clear();

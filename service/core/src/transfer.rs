@@ -182,6 +182,10 @@ pub struct Discrete {
     pub settle_samples: u64,
     /// Sample period, s.
     pub period_s: f64,
+    /// 1 / period (the input's slope without a division per step).
+    inv_period_s: f64,
+    /// 1 / period² (its curvature).
+    inv_period2: f64,
 }
 
 /// Running state of a [`Discrete`] model.
@@ -237,6 +241,8 @@ impl Discrete {
             cab: 0.0,
             settle_samples: 0,
             period_s,
+            inv_period_s: 1.0 / period_s,
+            inv_period2: 1.0 / (period_s * period_s),
         };
         if n == 0 {
             return Ok(out);
@@ -345,8 +351,8 @@ impl Discrete {
             *xi = acc;
         }
         s.x = x;
-        let slope = du / self.period_s;
-        let curv = (u_next - 2.0 * s.u + s.u_prev) / (self.period_s * self.period_s);
+        let slope = du * self.inv_period_s;
+        let curv = (u_next - 2.0 * s.u + s.u_prev) * self.inv_period2;
         s.u_prev = s.u;
         s.u = u_next;
         self.output_n::<N>(s, slope, curv)

@@ -33,9 +33,11 @@ pub struct Config {
 /// Hot-path form.
 #[derive(Debug, Clone)]
 pub struct Model {
-    basis: PositionBasis,
+    basis: super::PreparedBasis,
     diagonal: bool,
     p: Vec<nalgebra::Matrix3<f64>>,
+    /// The monomials after the constant whose P_m is not all zero (the others add nothing).
+    nonzero: Vec<usize>,
 }
 
 impl Config {
@@ -80,10 +82,14 @@ impl Config {
             .iter()
             .map(|m| nalgebra::Matrix3::from_fn(|i, j| m[i][j]))
             .collect();
+        let nonzero = (1..self.p.len())
+            .filter(|m| self.p[*m].iter().flatten().any(|v| *v != 0.0))
+            .collect();
         Ok(Model {
-            basis: self.position,
+            basis: self.position.into(),
             diagonal: self.diagonal,
             p,
+            nonzero,
         })
     }
 
@@ -155,9 +161,10 @@ impl Effect for Model {
     #[inline]
     fn correction(&self, ctx: &PointContext) -> Vec3 {
         let mut mono = [0.0; 10];
-        let n = self.basis.eval(&ctx.scale, &mut mono);
+        self.basis.eval(&ctx.scale, &mut mono);
+        // Σ_m ξ_m·P_m over the monomials with a non-zero P_m (the constant always).
         let mut p = self.p[0];
-        for m in 1..n {
+        for &m in &self.nonzero {
             p += self.p[m] * mono[m];
         }
         p * ctx.est_acc

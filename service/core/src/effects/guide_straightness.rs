@@ -55,6 +55,8 @@ pub struct Model {
     /// Knots per mm over the table, (n − 1)/(last − first): where evenly spaced knots put a
     /// position, without a search.
     knots_per_mm: f64,
+    /// 1 / (k_{j+1} − k_j) per interval (the weight without a division per point).
+    inv_width: Vec<f64>,
     straight: Vec<(usize, Vec<f64>)>,
     /// The straightness deviations at each knot as one vector (zero along the axis itself and
     /// towards the axes without a table).
@@ -169,6 +171,7 @@ impl Config {
             axis: self.axis.index(),
             knots: self.knots_mm.clone(),
             knots_per_mm: (n - 1) as f64 / (self.knots_mm[n - 1] - self.knots_mm[0]),
+            inv_width: self.knots_mm.windows(2).map(|w| 1.0 / (w[1] - w[0])).collect(),
             straight,
             straight_at,
             pitch,
@@ -250,7 +253,7 @@ impl Model {
         } else {
             k.partition_point(|x| *x <= s) - 1
         };
-        (j, (k[j + 1] - s) / (k[j + 1] - k[j]))
+        (j, (k[j + 1] - s) * self.inv_width[j])
     }
 }
 

@@ -379,6 +379,60 @@ impl PositionBasis {
     }
 }
 
+/// A [`PositionBasis`] ready for the hot path: the reciprocal of its scale computed once
+/// (the values are [`PositionBasis::eval`]'s, bit for bit).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct PreparedBasis {
+    order: u8,
+    origin: Vec3,
+    inv_scale: f64,
+}
+
+impl From<PositionBasis> for PreparedBasis {
+    fn from(b: PositionBasis) -> Self {
+        PreparedBasis {
+            order: b.order,
+            origin: b.origin_mm.into(),
+            inv_scale: 1.0 / b.scale_mm,
+        }
+    }
+}
+
+impl PreparedBasis {
+    /// Number of monomials.
+    #[inline]
+    pub fn len(&self) -> usize {
+        [1, 4, 10][self.order.min(2) as usize]
+    }
+    /// Monomial values at `p`; returns how many were written.
+    #[inline]
+    pub fn eval(&self, p: &Vec3, out: &mut [f64; 10]) -> usize {
+        out[0] = 1.0;
+        if self.order == 0 {
+            return 1;
+        }
+        let k = self.inv_scale;
+        let (x, y, z) = (
+            (p.x - self.origin.x) * k,
+            (p.y - self.origin.y) * k,
+            (p.z - self.origin.z) * k,
+        );
+        out[1] = x;
+        out[2] = y;
+        out[3] = z;
+        if self.order == 1 {
+            return 4;
+        }
+        out[4] = x * x;
+        out[5] = y * y;
+        out[6] = z * z;
+        out[7] = x * y;
+        out[8] = x * z;
+        out[9] = y * z;
+        10
+    }
+}
+
 /// Checks that every value is finite; names the field.
 pub(crate) fn check_finite(field: &str, v: &[f64]) -> Result<(), String> {
     match v.iter().position(|x| !x.is_finite()) {

@@ -40,8 +40,9 @@ fn default_powers() -> Vec<u32> {
 /// Hot-path form.
 #[derive(Debug, Clone)]
 pub struct Model {
-    basis: PositionBasis,
-    powers: Vec<i32>,
+    basis: super::PreparedBasis,
+    /// The powers of f (0..=4), indices into [`f_powers`].
+    powers: Vec<usize>,
     /// α of the three axes side by side (one vector per monomial and power, monomial-major).
     alpha: Vec<Vec3>,
 }
@@ -80,8 +81,8 @@ impl Config {
             check_finite(name, v)?;
         }
         Ok(Model {
-            basis: self.position,
-            powers: self.powers.iter().map(|p| *p as i32).collect(),
+            basis: self.position.into(),
+            powers: self.powers.iter().map(|p| *p as usize).collect(),
             alpha: (0..n)
                 .map(|k| Vec3::new(self.x[k], self.y[k], self.z[k]))
                 .collect(),
@@ -133,6 +134,13 @@ fn superscript(n: u32) -> String {
         .collect()
 }
 
+/// f⁰ … f⁴ by multiplication (no call to a power routine per point).
+#[inline]
+fn f_powers(f: f64) -> [f64; 5] {
+    let f2 = f * f;
+    [1.0, f, f2, f2 * f, f2 * f2]
+}
+
 impl Effect for Model {
     fn n_params(&self) -> usize {
         3 * self.alpha.len()
@@ -146,10 +154,11 @@ impl Effect for Model {
         let n = self.basis.eval(&ctx.scale, &mut mono);
         let r = ctx.scale - ctx.arc_center;
         let np = self.powers.len();
+        let fp = f_powers(ctx.f_hz);
         for i in 0..3 {
             for (m, xi) in mono.iter().enumerate().take(n) {
                 for (k, p) in self.powers.iter().enumerate() {
-                    out[i * n * np + m * np + k][i] = xi * ctx.f_hz.powi(*p) * r[i];
+                    out[i * n * np + m * np + k][i] = xi * fp[*p] * r[i];
                 }
             }
         }
@@ -161,17 +170,14 @@ impl Effect for Model {
         }
         let mut mono = [0.0; 10];
         let n = self.basis.eval(&ctx.scale, &mut mono);
-        let mut fp = [0.0; 5];
-        for (k, p) in self.powers.iter().enumerate() {
-            fp[k] = ctx.f_hz.powi(*p);
-        }
+        let fp = f_powers(ctx.f_hz);
         let np = self.powers.len();
         // g_i = Σ_m ξ_m Σ_k α_{i,m,k} f^k, the three axes at once.
         let mut g = Vec3::zeros();
         for (xi, a) in mono.iter().take(n).zip(self.alpha.chunks_exact(np)) {
             let mut t = Vec3::zeros();
-            for (a, fp) in a.iter().zip(&fp) {
-                t += a * *fp;
+            for (a, p) in a.iter().zip(&self.powers) {
+                t += a * fp[*p];
             }
             g += t * *xi;
         }

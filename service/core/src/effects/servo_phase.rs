@@ -89,7 +89,7 @@ fn is_true(b: &bool) -> bool {
 /// Hot-path form.
 #[derive(Debug, Clone)]
 pub struct Model {
-    basis: PositionBasis,
+    basis: super::PreparedBasis,
     /// φ; empty when the direction-dependent part is off.
     y: Vec<[f64; 3]>,
     z: Vec<[f64; 3]>,
@@ -163,7 +163,7 @@ impl Config {
             check("static_terms.z", &self.static_terms.z)?;
         }
         Ok(Model {
-            basis: self.position,
+            basis: self.position.into(),
             y: self.y.clone(),
             z: self.z.clone(),
             sy: self.static_terms.y.clone(),
