@@ -314,76 +314,36 @@ fn live_alarms_equal_offline_alarms() {
     let d = scratch("service-alarms");
     let port = free_port();
     let ep = format!("tcp/127.0.0.1:{port}");
-    ok(
-        &d,
-        &[
-            "sim",
-            "--program",
-            "ring",
-            "--fault",
-            "collision",
-            "--out",
-            "r.mcap",
-            "--calib-out",
-            "v1.json",
-        ],
+    // A command line of words, run in `d` (on the bus when `bus`).
+    let run = |line: &str, bus: bool| {
+        let mut args: Vec<&str> = line.split(' ').collect();
+        if bus {
+            args.extend(["--connect", ep.as_str()]);
+        }
+        ok(&d, &args)
+    };
+    run(
+        "sim --program ring --fault collision --out r.mcap --calib-out v1.json",
+        false,
     );
-    ok(
-        &d,
-        &[
-            "correct", "--bag", "r.mcap", "--calib", "v1.json", "--out", "off.mcap",
-        ],
-    );
+    run("correct --bag r.mcap --calib v1.json --out off.mcap", false);
     let off = alarms(&d.join("off.mcap"));
     assert!(
         off.len() >= 2,
         "the collision should raise and clear an alarm offline: {off:?}"
     );
     let svc = Service::start(&d, port);
-    ok(
-        &d,
-        &[
-            "calib",
-            "put",
-            "--machine",
-            "m1",
-            "--file",
-            "v1.json",
-            "--connect",
-            &ep,
-        ],
-    );
+    run("calib put --machine m1 --file v1.json", true);
+    let count = off.len().to_string();
     let mut rec = Command::new(scancorr())
-        .args([
-            "record",
-            "--keys",
-            "cmm/m1/alarms/**",
-            "--out",
-            "live.mcap",
-            "--count",
-            &off.len().to_string(),
-            "--seconds",
-            "60",
-            "--connect",
-            &ep,
-        ])
+        .args(["record", "--keys", "cmm/m1/alarms/**", "--out", "live.mcap"])
+        .args(["--count", &count, "--seconds", "60", "--connect", &ep])
         .current_dir(&d)
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
     std::thread::sleep(Duration::from_millis(800));
-    ok(
-        &d,
-        &[
-            "replay",
-            "--bag",
-            "r.mcap",
-            "--speed",
-            "max",
-            "--connect",
-            &ep,
-        ],
-    );
+    run("replay --bag r.mcap --speed max", true);
     assert!(rec.wait().unwrap().success());
     svc.stop();
     let live = alarms(&d.join("live.mcap"));

@@ -750,7 +750,10 @@ impl Program {
             *v = input(i);
         }
         // A loop, not a call to memcpy, for the few constants of a program.
-        for (r, c) in r[n_in..n_in + self.consts.len()].iter_mut().zip(&self.consts) {
+        for (r, c) in r[n_in..n_in + self.consts.len()]
+            .iter_mut()
+            .zip(&self.consts)
+        {
             *r = *c;
         }
         for step in &self.steps {

@@ -171,7 +171,11 @@ impl Config {
             axis: self.axis.index(),
             knots: self.knots_mm.clone(),
             knots_per_mm: (n - 1) as f64 / (self.knots_mm[n - 1] - self.knots_mm[0]),
-            inv_width: self.knots_mm.windows(2).map(|w| 1.0 / (w[1] - w[0])).collect(),
+            inv_width: self
+                .knots_mm
+                .windows(2)
+                .map(|w| 1.0 / (w[1] - w[0]))
+                .collect(),
             straight,
             straight_at,
             pitch,

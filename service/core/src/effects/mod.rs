@@ -353,29 +353,7 @@ impl PositionBasis {
     /// Monomial values at `p`; returns how many were written.
     #[inline]
     pub fn eval(&self, p: &Vec3, out: &mut [f64; 10]) -> usize {
-        out[0] = 1.0;
-        if self.order == 0 {
-            return 1;
-        }
-        let k = 1.0 / self.scale_mm;
-        let (x, y, z) = (
-            (p.x - self.origin_mm[0]) * k,
-            (p.y - self.origin_mm[1]) * k,
-            (p.z - self.origin_mm[2]) * k,
-        );
-        out[1] = x;
-        out[2] = y;
-        out[3] = z;
-        if self.order == 1 {
-            return 4;
-        }
-        out[4] = x * x;
-        out[5] = y * y;
-        out[6] = z * z;
-        out[7] = x * y;
-        out[8] = x * z;
-        out[9] = y * z;
-        10
+        PreparedBasis::from(*self).eval(p, out)
     }
 }
 
