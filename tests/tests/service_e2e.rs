@@ -322,18 +322,28 @@ fn live_alarms_equal_offline_alarms() {
         }
         ok(&d, &args)
     };
+    // A user's nominal calibration (every library effect hidden from the start calibration,
+    // data-sheet time constants), never the simulator's own parameters.
+    let hide: String = scancorr_sim::LIBRARY_EFFECTS
+        .iter()
+        .map(|e| format!(" --hide {e}"))
+        .collect();
     run(
-        "sim --program ring --fault collision --out r.mcap --calib-out v1.json",
+        &format!("sim --program ring --fault collision --out r.mcap --calib-out start.json{hide}"),
         false,
     );
-    run("correct --bag r.mcap --calib v1.json --out off.mcap", false);
+    nominal_start(&d, "start.json", "nominal.json", true);
+    run(
+        "correct --bag r.mcap --calib nominal.json --out off.mcap",
+        false,
+    );
     let off = alarms(&d.join("off.mcap"));
     assert!(
         off.len() >= 2,
         "the collision should raise and clear an alarm offline: {off:?}"
     );
     let svc = Service::start(&d, port);
-    run("calib put --machine m1 --file v1.json", true);
+    run("calib put --machine m1 --file nominal.json", true);
     let count = off.len().to_string();
     let mut rec = Command::new(scancorr())
         .args(["record", "--keys", "cmm/m1/alarms/**", "--out", "live.mcap"])
