@@ -396,8 +396,7 @@ pub fn run(p: Params) -> Result<()> {
         let mut svc = start_service(&dir, port, &p)?;
         let pid = svc.child.id();
         let cfg = scancorrd::config::zenoh_config("peer", &[], &[format!("tcp/127.0.0.1:{port}")], false)?;
-        let cfg_controllers = cfg.clone();
-        let session = zenoh::open(cfg).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let session = zenoh::open(cfg.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         // Wait for the service.
         let t0 = Instant::now();
         while query(&session, "cmm/probe-service/status".into(), None).await.is_err() {
@@ -499,7 +498,7 @@ pub fn run(p: Params) -> Result<()> {
         // their own connections to the service. Machine `m` is on link `m % links`.
         let mut links = vec![session.clone()];
         for _ in 1..p.links {
-            links.push(zenoh::open(cfg_controllers.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?);
+            links.push(zenoh::open(cfg.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?);
         }
         let mut groups: Vec<Vec<(usize, Vec<zenoh::pubsub::Publisher<'static>>)>> = (0..p.links).map(|_| vec![]).collect();
         for m in 0..p.machines {

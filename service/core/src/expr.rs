@@ -606,11 +606,13 @@ impl Program {
                             (Some(a), Some(b)) => Node::Const(f.apply(a, b).to_bits()),
                             // Division by a power of two: multiplication by its exact
                             // reciprocal (the same real number rounded once: the same bits).
-                            (None, Some(c)) if f == Func2::Div && exact_reciprocal(c).is_some() => {
-                                let r = exact_reciprocal(c).expect("checked");
-                                let r = intern(Node::Const(r.to_bits()), &mut nodes);
-                                Node::Binary(Func2::Mul, a, r)
-                            }
+                            (None, Some(c)) if f == Func2::Div => match exact_reciprocal(c) {
+                                Some(r) => {
+                                    let r = intern(Node::Const(r.to_bits()), &mut nodes);
+                                    Node::Binary(Func2::Mul, a, r)
+                                }
+                                None => Node::Binary(f, a, b),
+                            },
                             _ => Node::Binary(f, a, b),
                         }
                     }
