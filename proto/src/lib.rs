@@ -7,6 +7,7 @@
 #![forbid(unsafe_code)]
 
 pub mod names;
+pub mod points;
 
 /// Generated types of package `scancorr.v1`.
 pub mod v1 {

@@ -84,18 +84,28 @@ def build_pool(fds_bytes):
     return pool, sorted(files)
 
 
-def column_samples(columns, where, problems):
-    """The samples of a packed batch (scancorr.v1.3): its columns message numbers its fields as
-    the sample does, each a column of one value per sample, except `machine_id`, once."""
-    names = [f.name for f in columns.DESCRIPTOR.fields if f.name != "machine_id"]
+def column_samples(columns, sample_desc, where, problems):
+    """The samples of a packed batch (scancorr.v1.3) or of one packed block of points
+    (scancorr.v1.4): the columns message numbers its fields as the sample does, each a column
+    of one value per sample, except `machine_id`, once. A sample's vector field `v` is packed as
+    columns `v_x`, `v_y`, `v_z`; columns the sample has no field for (a block's effects and
+    corrections) are left to the reader of that message."""
+    sample_fields = sample_desc.fields_by_name
+    names = [
+        f.name
+        for f in columns.DESCRIPTOR.fields
+        if f.name != "machine_id"
+        and (f.name in sample_fields or f.name.rpartition("_")[0] in sample_fields)
+    ]
     cols = {name: list(getattr(columns, name)) for name in names}
     n = len(cols["seq"])
     for name, col in cols.items():
         if len(col) != n:
             problems.add(f"{where}: column {name} holds {len(col)} values for {n} samples")
             return []
+    scalars = [name for name in names if name in sample_fields]
     return [
-        SimpleNamespace(machine_id=columns.machine_id, **{k: v[i] for k, v in cols.items()})
+        SimpleNamespace(machine_id=columns.machine_id, **{k: cols[k][i] for k in scalars})
         for i in range(n)
     ]
 
@@ -181,10 +191,19 @@ def read(path, problems):
                 continue
             field = next((n for n in BATCH_FIELDS if n in cls.DESCRIPTOR.fields_by_name), None)
             samples = list(getattr(msg, field)) if field else [msg]
-            if "columns" in cls.DESCRIPTOR.fields_by_name and msg.HasField("columns"):
-                if samples:
-                    problems.add(f"{topic}: message #{t['messages']} has both samples and columns")
-                samples = column_samples(msg.columns, f"{topic}: message #{t['messages']}", problems)
+            cfield = cls.DESCRIPTOR.fields_by_name.get("columns")
+            if cfield is not None and field:
+                where = f"{topic}: message #{t['messages']}"
+                sample_desc = cls.DESCRIPTOR.fields_by_name[field].message_type
+                # One columns message (raw batches, v1.3) or a sequence of blocks (points, v1.4).
+                if cfield.is_repeated:
+                    blocks = list(msg.columns)
+                else:
+                    blocks = [msg.columns] if msg.HasField("columns") else []
+                if blocks and samples:
+                    problems.add(f"{where} has both {field} and columns")
+                for block in blocks:
+                    samples += column_samples(block, sample_desc, where, problems)
             if field and not samples:
                 problems.add(f"{topic}: message #{t['messages']} is an empty batch")
             st = streams.setdefault(topic, {"seq": None})

@@ -118,11 +118,11 @@ fn assert_points_are_the_cores(input: &Path, cal: &Path, out: &Path) {
         for x in samples.drain(..) {
             corr.push(x, &mut output);
         }
-        want.extend(wire::points(&output.points, "m1", &corr).points);
+        want.extend(wire::points(&output.points, "m1", &corr));
         output.clear();
     }
     corr.flush(&mut output);
-    want.extend(wire::points(&output.points, "m1", &corr).points);
+    want.extend(wire::points(&output.points, "m1", &corr));
     let got = points(out);
     assert_eq!(got.len(), want.len());
     assert!(

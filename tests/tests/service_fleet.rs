@@ -162,7 +162,7 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
                             &*x.payload().to_bytes(),
                         )
                         .unwrap();
-                        c.fetch_add(b.points.len() as u64, Ordering::Relaxed);
+                        c.fetch_add(b.len() as u64, Ordering::Relaxed);
                     })
                     .await
                     .unwrap(),

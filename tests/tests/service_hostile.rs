@@ -154,7 +154,7 @@ async fn collect_points(
         .declare_subscriber(key)
         .callback(move |sample| {
             let b = v1::CorrectedPointBatch::decode(&*sample.payload().to_bytes()).unwrap();
-            g.lock().unwrap().extend(b.points);
+            g.lock().unwrap().extend(b.into_points().unwrap());
         })
         .await
         .unwrap();
@@ -555,6 +555,7 @@ async fn a_subscriber_that_stops_reading_costs_only_its_machines_points() {
             machine_id: "m1".into(),
             ..Default::default()
         }],
+        columns: vec![],
     }
     .encode_to_vec();
     let t0 = Instant::now();

@@ -225,7 +225,18 @@ batch_message!(ProbeBatch, Stream::Probe, Probe, packed);
 batch_message!(TemperatureBatch, Stream::Temperature, Temperature, packed);
 batch_message!(DistanceBatch, Stream::Distance, samples, Distance);
 batch_message!(StageBatch, Stream::Stage, samples, Stage);
-batch_message!(CorrectedPointBatch, Stream::Points, points, Points);
+// Points as messages or as packed blocks (v1.4).
+batch_message!(
+    CorrectedPointBatch,
+    Stream::Points,
+    Points,
+    |b: &CorrectedPointBatch| b.len(),
+    |b: &CorrectedPointBatch| b
+        .points
+        .first()
+        .map(|p| p.t_ns)
+        .or_else(|| b.columns.iter().find_map(|c| c.t_ns.first().copied()))
+);
 
 impl BatchMessage for EstimatorAlarm {
     const STREAM: Stream = Stream::Alarms;
@@ -263,10 +274,12 @@ pub struct BatchPeek {
 /// are not well-formed protobuf.
 pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
     // Field numbers: the repeated samples/points field is 1 in every batch; `t_ns` is 3 in
-    // every sample, point and alarm. A packed batch (v1.3) holds its samples in field 3 as
-    // columns (`seq` 2, `t_ns` 3).
+    // every sample, point and alarm. A packed raw batch (v1.3) holds its samples in field 3
+    // as columns, a packed point batch (v1.4) its points in blocks of columns in field 2
+    // (`seq` 2, `t_ns` 3 in both).
     const REPEATED: u32 = 1;
     const COLUMNS: u32 = 3;
+    const POINT_COLUMNS: u32 = 2;
     const T_NS: u32 = 3;
     if stream == Stream::Alarms {
         return Some(BatchPeek {
@@ -286,7 +299,9 @@ pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
                 }
                 samples += 1;
             }
-            (COLUMNS, Value::Bytes(columns)) if packed => {
+            (f, Value::Bytes(columns))
+                if (packed && f == COLUMNS) || (stream == Stream::Points && f == POINT_COLUMNS) =>
+            {
                 let (n, t) = peek_columns(columns)?;
                 if samples == 0 {
                     first = t;
@@ -302,7 +317,8 @@ pub fn peek(stream: Stream, payload: &[u8]) -> Option<BatchPeek> {
     })
 }
 
-/// The length of the `seq` column and the first `t_ns` of a packed batch's columns (v1.3),
+/// The length of the `seq` column and the first `t_ns` of a packed batch's columns (v1.3) or
+/// of a packed point block (v1.4),
 /// whether the columns are packed or, as protobuf allows, written one value per field.
 fn peek_columns(mut columns: &[u8]) -> Option<(u64, Option<i64>)> {
     const SEQ: u32 = 2;
@@ -403,7 +419,9 @@ pub fn next_field<'a>(b: &mut &'a [u8]) -> Option<(u32, Value<'a>)> {
     (field != 0).then_some((field, value))
 }
 
-fn varint(b: &mut &[u8]) -> Option<u64> {
+/// Reads one varint in place (a value of a packed column) and advances `b` past it; `None`
+/// when the bytes end first or it runs past ten bytes.
+pub fn varint(b: &mut &[u8]) -> Option<u64> {
     let mut v = 0u64;
     for i in 0..10 {
         let (&byte, rest) = b.split_first()?;
@@ -419,7 +437,7 @@ fn varint(b: &mut &[u8]) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use scancorr_proto::v1::{CorrectedPoint, ScaleColumns, ScaleSample};
+    use scancorr_proto::v1::{CorrectedPoint, Correction, ScaleColumns, ScaleSample};
 
     #[test]
     fn peek_matches_decoding() {
@@ -449,22 +467,36 @@ mod tests {
                 first_t_ns: None
             })
         );
-        let pts = CorrectedPointBatch {
-            points: vec![
-                CorrectedPoint {
-                    t_ns: 42,
+        let points = vec![
+            CorrectedPoint {
+                t_ns: 42,
+                ..Default::default()
+            },
+            // Other effects than the first point's: packed, a second block.
+            CorrectedPoint {
+                corrections: vec![Correction {
+                    effect: "a".into(),
                     ..Default::default()
-                },
-                CorrectedPoint::default(),
-            ],
+                }],
+                ..Default::default()
+            },
+        ];
+        let pts = CorrectedPointBatch {
+            points: points.clone(),
+            columns: vec![],
         };
-        assert_eq!(
-            peek(Stream::Points, &pts.encode_to_vec()),
-            Some(BatchPeek {
-                samples: 2,
-                first_t_ns: Some(42)
-            })
-        );
+        let packed = scancorr_proto::points::pack(&points);
+        assert_eq!(packed.columns.len(), 2);
+        for b in [&pts, &packed] {
+            assert_eq!(
+                peek(Stream::Points, &b.encode_to_vec()),
+                Some(BatchPeek {
+                    samples: 2,
+                    first_t_ns: Some(42)
+                })
+            );
+            assert_eq!((b.sample_count(), b.first_t_ns()), (2, Some(42)));
+        }
         let alarm = EstimatorAlarm {
             t_ns: 9,
             raised: true,

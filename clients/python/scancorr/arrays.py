@@ -16,9 +16,10 @@
 `ALARM_DTYPE`: seq, t_ns, raised, axis (1 x, 2 y, 3 z), estimated_accel, measured_accel,
 difference, threshold (mm/s²), action (1 flag, 2 suspend), calibration_version.
 
-Decoding parses each batch with protobuf (upb) and reads the fields into one flat record
-per point, which numpy lays out in a single pass (`python bench/decode_points.py` prints the
-rate).
+Decoding parses each batch with protobuf (upb). A packed batch (scancorr.v1.4, what the
+service writes) is read column by column; a batch of per-point messages (older bags) into one
+flat record per point, which numpy lays out in a single pass (`python bench/decode_points.py`
+prints the rate).
 """
 
 from __future__ import annotations
@@ -94,8 +95,8 @@ def _parse(cls, data: bytes, what: str):
         raise DecodeError(f"{what}: {len(data)} bytes do not decode as {cls.DESCRIPTOR.full_name}: {e}") from e
 
 
-def points_from_message(batch: "pb.CorrectedPointBatch") -> np.ndarray:
-    """The points of a decoded `CorrectedPointBatch` as a `POINT_DTYPE` array."""
+def _per_point(points) -> np.ndarray:
+    """Per-point messages (scancorr.v1.0–v1.3) as a `POINT_DTYPE` array."""
     rows = [
         (
             p.seq,
@@ -115,35 +116,103 @@ def points_from_message(batch: "pb.CorrectedPointBatch") -> np.ndarray:
             p.segment_id,
             p.tip_id,
         )
-        for p in batch.points
+        for p in points
         for s, c, n in ((p.surface, p.tip_center, p.normal),)
     ]
     return np.array(rows, dtype=_FLAT).view(POINT_DTYPE)
 
 
+# A packed block's columns (scancorr.v1.4) by POINT_DTYPE's flat field.
+_BLOCK_COLUMNS = {n: ("estimator_valid" if n == "valid" else n) for n in _FLAT_NAMES}
+
+
+def _checked(block: "pb.CorrectedPointColumns") -> int:
+    """A packed block's point count; DecodeError when a column holds another number of values
+    (the corrections: one per point and effect)."""
+    n = len(block.seq)
+    for col in _BLOCK_COLUMNS.values():
+        if len(getattr(block, col)) != n:
+            raise DecodeError(
+                f"CorrectedPointColumns: column `{col}` holds {len(getattr(block, col))} values for {n} points"
+            )
+    want = n * len(block.effects)
+    for col in ("correction_dx", "correction_dy", "correction_dz"):
+        if len(getattr(block, col)) != want:
+            raise DecodeError(
+                f"CorrectedPointColumns: column `{col}` holds {len(getattr(block, col))} values "
+                f"for {n} points × {len(block.effects)} effects"
+            )
+    return n
+
+
+def _block(block: "pb.CorrectedPointColumns") -> np.ndarray:
+    """A packed block (scancorr.v1.4) as a `POINT_DTYPE` array, column by column."""
+    flat = np.empty(_checked(block), dtype=_FLAT)
+    for name, col in _BLOCK_COLUMNS.items():
+        flat[name] = np.asarray(getattr(block, col), dtype=_FLAT.fields[name][0])
+    return flat.view(POINT_DTYPE)
+
+
+def points_from_message(batch: "pb.CorrectedPointBatch") -> np.ndarray:
+    """The points of a decoded `CorrectedPointBatch` as a `POINT_DTYPE` array, from either
+    layout: one message per point, or packed blocks (scancorr.v1.4). Raises DecodeError for
+    a batch with both, or with a block whose columns hold other numbers of values."""
+    if not len(batch.columns):
+        return _per_point(batch.points)
+    if len(batch.points):
+        raise DecodeError(
+            f"CorrectedPointBatch with both {len(batch.points)} per-point messages and {len(batch.columns)} packed blocks"
+        )
+    blocks = [_block(b) for b in batch.columns]
+    return blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
+
+
 def decode_points(data: bytes, what: str = "points") -> np.ndarray:
     """One `CorrectedPointBatch` payload as a `POINT_DTYPE` array."""
-    return points_from_message(_parse(pb.CorrectedPointBatch, data, what))
+    b = _parse(pb.CorrectedPointBatch, data, what)
+    try:
+        return points_from_message(b)
+    except DecodeError as e:
+        raise DecodeError(f"{what}: {e}") from None
 
 
 def breakdown_from_message(batch: "pb.CorrectedPointBatch") -> Dict[str, np.ndarray]:
     """The per-effect corrections of each point: effect id → (n, 3) array, mm (zero where a
-    point does not carry that effect)."""
-    n = len(batch.points)
+    point does not carry that effect), from either layout (see `points_from_message`)."""
+    if len(batch.columns) and len(batch.points):
+        raise DecodeError("CorrectedPointBatch with both per-point messages and packed blocks")
+    n = len(batch.points) + sum(len(b.seq) for b in batch.columns)
     out: Dict[str, np.ndarray] = {}
+
+    def column(effect: str) -> np.ndarray:
+        a = out.get(effect)
+        if a is None:
+            a = out[effect] = np.zeros((n, 3))
+        return a
+
     for i, p in enumerate(batch.points):
         for c in p.corrections:
-            a = out.get(c.effect)
-            if a is None:
-                a = out[c.effect] = np.zeros((n, 3))
-            a[i] = (c.dx, c.dy, c.dz)
+            column(c.effect)[i] = (c.dx, c.dy, c.dz)
+    at = 0
+    for b in batch.columns:
+        m, e = _checked(b), len(b.effects)
+        if e:
+            d = np.stack(
+                [np.asarray(getattr(b, f"correction_d{k}"), dtype="<f8").reshape(m, e) for k in "xyz"], axis=-1
+            )
+            for j, effect in enumerate(b.effects):
+                column(effect)[at : at + m] = d[:, j]
+        at += m
     return out
 
 
 def decode_breakdown(data: bytes, what: str = "points") -> Tuple[np.ndarray, Dict[str, np.ndarray]]:
     """One `CorrectedPointBatch` payload: its points and their per-effect corrections."""
     b = _parse(pb.CorrectedPointBatch, data, what)
-    return points_from_message(b), breakdown_from_message(b)
+    try:
+        return points_from_message(b), breakdown_from_message(b)
+    except DecodeError as e:
+        raise DecodeError(f"{what}: {e}") from None
 
 
 def alarm_from_message(a: "pb.EstimatorAlarm") -> np.ndarray:

@@ -182,7 +182,11 @@ def read_bag(path: Union[str, "PathLike[str]"]) -> Bag:
                 bag.skipped[channel.topic] = bag.skipped.get(channel.topic, 0) + 1
                 continue
             if name == "scancorr.v1.CorrectedPointBatch":
-                a = arrays.points_from_message(msg)
+                try:
+                    a = arrays.points_from_message(msg)
+                except arrays.DecodeError:
+                    bag.malformed[channel.topic] = bag.malformed.get(channel.topic, 0) + 1
+                    continue
             elif name == "scancorr.v1.EstimatorAlarm":
                 a = arrays.alarm_from_message(msg)
             elif "samples" in msg.DESCRIPTOR.fields_by_name:

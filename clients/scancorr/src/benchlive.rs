@@ -118,30 +118,35 @@ pub fn relay(port: u16, prefix: &str) -> Result<()> {
                     continue;
                 }
                 let out = machines.get_mut(machine).expect("declared");
-                let v = |x: f64| Some(scancorr_proto::v1::Vec3 { x, y: x, z: x });
-                let points: Vec<_> = probes
-                    .iter()
-                    .map(|&(seq, t_ns)| {
-                        out.seq += 1;
-                        scancorr_proto::v1::CorrectedPoint {
-                            machine_id: machine.to_string(),
-                            seq: out.seq,
-                            t_ns,
-                            sample_seq: seq,
-                            surface: v(100.123456),
-                            tip_center: v(101.123456),
-                            normal: v(0.577),
-                            corrections: effects.iter().map(|e| scancorr_proto::v1::Correction { effect: e.clone(), dx: 1e-4, dy: 1e-4, dz: 1e-4 }).collect(),
-                            calibration_version: 1,
-                            estimator_valid: true,
-                            segment_id: 1,
-                            tip_id: 1,
-                        }
-                    })
-                    .collect();
-                let n = points.len() as u64;
+                // The service's output layout (v1.4): one packed block of the instant's points.
+                let n = probes.len();
+                let k = n * effects.len();
+                let columns = scancorr_proto::v1::CorrectedPointColumns {
+                    machine_id: machine.to_string(),
+                    seq: probes.iter().map(|_| { out.seq += 1; out.seq }).collect(),
+                    t_ns: probes.iter().map(|p| p.1).collect(),
+                    sample_seq: probes.iter().map(|p| p.0).collect(),
+                    calibration_version: vec![1; n],
+                    estimator_valid: vec![true; n],
+                    segment_id: vec![1; n],
+                    tip_id: vec![1; n],
+                    surface_x: vec![100.123456; n],
+                    surface_y: vec![100.123456; n],
+                    surface_z: vec![100.123456; n],
+                    tip_center_x: vec![101.123456; n],
+                    tip_center_y: vec![101.123456; n],
+                    tip_center_z: vec![101.123456; n],
+                    normal_x: vec![0.577; n],
+                    normal_y: vec![0.577; n],
+                    normal_z: vec![0.577; n],
+                    effects: effects.clone(),
+                    correction_dx: vec![1e-4; k],
+                    correction_dy: vec![1e-4; k],
+                    correction_dz: vec![1e-4; k],
+                };
+                let n = n as u64;
                 out.points
-                    .put(scancorr_proto::v1::CorrectedPointBatch { points }.encode_to_vec())
+                    .put(scancorr_proto::v1::CorrectedPointBatch { points: vec![], columns: vec![columns] }.encode_to_vec())
                     .wait()
                     .map_err(z)?;
                 let mut f = figures.lock().expect("lock");
@@ -209,9 +214,16 @@ struct Run {
 /// Points in a point batch, and the time stamp of the last (which keys its latency).
 fn count_points(b: &[u8]) -> (u64, Option<i64>) {
     let batch = scancorr_proto::v1::CorrectedPointBatch::decode(b).unwrap_or_default();
+    let last = batch.points.last().map(|p| p.t_ns);
     (
-        batch.points.len() as u64,
-        batch.points.last().map(|p| p.t_ns),
+        batch.len() as u64,
+        last.or_else(|| {
+            batch
+                .columns
+                .iter()
+                .rev()
+                .find_map(|c| c.t_ns.last().copied())
+        }),
     )
 }
 

@@ -631,8 +631,9 @@ impl Gaps {
                 }
             }
         } else if stream == Stream::Points {
-            if let Ok(b) = scancorr_proto::v1::CorrectedPointBatch::decode(bytes) {
-                for p in &b.points {
+            let b = scancorr_proto::v1::CorrectedPointBatch::decode(bytes);
+            if let Ok(points) = b.map(|b| b.into_points()) {
+                for p in points.iter().flatten() {
                     self.see(&p.machine_id, stream, p.seq);
                 }
             }
@@ -756,7 +757,7 @@ pub fn tail(bus: &Bus, machine: &str, bound: Bound, json: bool) -> Result<()> {
         let t0 = Instant::now();
         let mut last_seq: Option<u64> = None;
         let mut last = None::<Instant>;
-        let mut n = 0u64;
+        let (mut n, mut bad) = (0u64, 0u64);
         let ctrl_c = tokio::signal::ctrl_c();
         tokio::pin!(ctrl_c);
         loop {
@@ -767,10 +768,18 @@ pub fn tail(bus: &Bus, machine: &str, bound: Bound, json: bool) -> Result<()> {
                     let bytes = sample.payload().to_bytes();
                     match stream {
                         Stream::Points => {
-                            let Ok(b) = scancorr_proto::v1::CorrectedPointBatch::decode(&*bytes) else { continue };
+                            // A payload that is no point batch is shown, counted, and skipped.
+                            let points = match scancorr_proto::v1::CorrectedPointBatch::decode(&*bytes).map_err(|e| e.to_string()).and_then(|b| b.into_points().map_err(|e| e.to_string())) {
+                                Ok(p) => p,
+                                Err(e) => {
+                                    bad += 1;
+                                    if json { outln!("{}", serde_json::json!({"machine": m, "bad_point_batch": e, "bad_so_far": bad}))?; } else { outln!("!! {m}: a point batch that does not read ({bad} so far): {e}")?; }
+                                    continue;
+                                }
+                            };
                             n += 1;
                             last = Some(Instant::now());
-                            for p in &b.points {
+                            for p in &points {
                                 if let Some(l) = last_seq { if p.seq != l + 1 {
                                     let missed = p.seq.saturating_sub(l + 1);
                                     if json { outln!("{}", serde_json::json!({"machine": m, "missed_points": missed, "before_seq": p.seq}))?; } else { outln!("!! {m}: missed {missed} point(s)")?; }
@@ -781,9 +790,9 @@ pub fn tail(bus: &Bus, machine: &str, bound: Bound, json: bool) -> Result<()> {
                                     outln!("{}", serde_json::json!({"machine": m, "seq": p.seq, "t_ns": p.t_ns, "segment_id": p.segment_id, "tip_id": p.tip_id, "calibration_version": p.calibration_version, "estimator_valid": p.estimator_valid, "surface_mm": v(p.surface), "tip_center_mm": v(p.tip_center), "normal": v(p.normal)}))?;
                                 }
                             }
-                            if let (Some(p), false) = (b.points.last(), json) {
+                            if let (Some(p), false) = (points.last(), json) {
                                 let s = p.surface.unwrap_or_default();
-                                outln!("{m} #{:<9} t={:.3}s  surface ({:9.4} {:9.4} {:9.4}) mm  v{} {}{}", p.seq, p.t_ns as f64 * 1e-9, s.x, s.y, s.z, p.calibration_version, if p.estimator_valid { "" } else { "FLAGGED " }, if b.points.len() > 1 { format!("(+{} in batch)", b.points.len() - 1) } else { String::new() })?;
+                                outln!("{m} #{:<9} t={:.3}s  surface ({:9.4} {:9.4} {:9.4}) mm  v{} {}{}", p.seq, p.t_ns as f64 * 1e-9, s.x, s.y, s.z, p.calibration_version, if p.estimator_valid { "" } else { "FLAGGED " }, if points.len() > 1 { format!("(+{} in batch)", points.len() - 1) } else { String::new() })?;
                             }
                         }
                         Stream::Alarms => {

@@ -58,7 +58,7 @@ pub struct Summary {
 }
 
 /// Calls `f` with every corrected point of `machine` in the bag, in order; counts batches that
-/// do not decode.
+/// do not decode or are malformed (packed columns of unequal lengths).
 fn each_point(
     bag: &BagReader,
     machine: &str,
@@ -70,13 +70,13 @@ fn each_point(
         if m.stream != Stream::Points || &*m.machine != machine {
             continue;
         }
-        match scancorr_proto::v1::CorrectedPointBatch::decode(&*m.data) {
-            Ok(b) => {
-                for p in &b.points {
+        match scancorr_proto::v1::CorrectedPointBatch::decode(&*m.data).map(|b| b.into_points()) {
+            Ok(Ok(points)) => {
+                for p in &points {
                     f(p)?;
                 }
             }
-            Err(_) => *bad += 1,
+            Ok(Err(_)) | Err(_) => *bad += 1,
         }
     }
     Ok(())

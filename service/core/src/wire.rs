@@ -745,71 +745,127 @@ pub fn point(p: &CorrectedPoint, machine: &str, effect_ids: &[String]) -> v1::Co
     }
 }
 
-/// Encodes a batch of points and appends it to `buf`: the bytes of
-/// `CorrectedPointBatch { points: ps.map(point) }.encode_to_vec()`, written without building
-/// the messages (no allocation per point — the live service's hot path). Every length is
-/// known before its field is written (proto3 skips default values, so a field's size follows
-/// from its value), so each point is sized, its room made once, and written front to back.
-/// A test checks the bytes against prost's.
+/// Encodes a batch of points and appends it to `buf` as one packed block (v1.4): the bytes of
+/// `CorrectedPointBatch { columns: [pack(ps)] }.encode_to_vec()` (see
+/// [`scancorr_proto::points::pack`]), written without building the message (no allocation —
+/// the live service's hot path). The machine and the effect ids are written once, each field
+/// of the points as one packed column. Every length is known before its field is written, so
+/// the block's room is made once and written front to back. Appending to a buffer that
+/// already holds a batch gives the batch of both. A test checks the bytes against prost's.
 pub fn encode_points(
     ps: &[CorrectedPoint],
     machine: &str,
     effect_ids: &[String],
     buf: &mut Vec<u8>,
 ) {
+    if ps.is_empty() {
+        return;
+    }
+    let n = ps.len();
+    let e = effect_ids.len();
+    // The varint columns' lengths: seq, t_ns, sample_seq, calibration_version,
+    // estimator_valid (one byte a point), segment_id, tip_id.
+    let mut varints = [0, 0, 0, 0, n, 0, 0];
     for p in ps {
-        let corrections = p.corrections.iter().zip(effect_ids);
-        let body = str_len(machine)
-            + u64_len(p.seq)
-            + u64_len(p.t_ns as u64)
-            + u64_len(p.sample_seq)
-            + vec3_field_len(&p.surface)
-            + vec3_field_len(&p.tip_center)
-            + vec3_field_len(&p.normal)
-            + corrections
-                .clone()
-                .map(|(c, id)| ld_len(correction_len(c, id)))
-                .sum::<usize>()
-            + u64_len(p.calibration_version)
-            + u64_len(p.estimator_valid as u64)
-            + u64_len(p.segment_id as u64)
-            + u64_len(p.tip_id as u64);
-        let at = buf.len();
-        buf.resize(at + ld_len(body), 0);
-        let mut w = Out {
-            b: &mut buf[at..],
-            n: 0,
-        };
-        w.key(1, 2);
-        w.varint(body as u64);
-        w.str(1, machine);
-        w.u64(2, p.seq);
-        w.u64(3, p.t_ns as u64);
-        w.u64(4, p.sample_seq);
-        w.vec3(5, &p.surface);
-        w.vec3(6, &p.tip_center);
-        w.vec3(7, &p.normal);
-        for (c, id) in corrections {
-            w.key(8, 2);
-            w.varint(correction_len(c, id) as u64);
-            w.str(1, id);
-            w.f64(2, c.x);
-            w.f64(3, c.y);
-            w.f64(4, c.z);
+        varints[0] += encoded_len_varint(p.seq);
+        varints[1] += encoded_len_varint(p.t_ns as u64);
+        varints[2] += encoded_len_varint(p.sample_seq);
+        varints[3] += encoded_len_varint(p.calibration_version);
+        varints[5] += encoded_len_varint(p.segment_id.into());
+        varints[6] += encoded_len_varint(p.tip_id.into());
+    }
+    const VARINT_TAGS: [u8; 7] = [2, 3, 4, 9, 10, 11, 12];
+    let body = str_len(machine)
+        + varints.iter().map(|&l| ld_len(l)).sum::<usize>()
+        + 9 * ld_len(8 * n) + 6 // the keys of tags 16–21 take two bytes
+        + effect_ids.iter().map(|id| 1 + ld_len(id.len())).sum::<usize>()
+        + if e == 0 { 0 } else { 3 * (1 + ld_len(8 * n * e)) };
+    let at = buf.len();
+    buf.resize(at + ld_len(body), 0);
+    let mut w = Out {
+        b: &mut buf[at..],
+        n: 0,
+    };
+    w.key(2, 2);
+    w.varint(body as u64);
+    w.str(1, machine);
+    // Every column's header is written and its room skipped; one pass over the points then
+    // fills all the columns at once (a cursor each).
+    let mut v = [0usize; 7];
+    for (k, (tag, len)) in VARINT_TAGS.into_iter().zip(varints).enumerate() {
+        w.key(tag, 2);
+        w.varint(len as u64);
+        v[k] = w.skip(len);
+    }
+    let mut d = [0usize; 9];
+    for (k, at) in d.iter_mut().enumerate() {
+        w.long_key(13 + k as u16, 2);
+        w.varint(8 * n as u64);
+        *at = w.skip(8 * n);
+    }
+    for id in effect_ids {
+        w.long_key(22, 2);
+        w.varint(id.len() as u64);
+        w.bytes(id.as_bytes());
+    }
+    let mut c = [0usize; 3];
+    if e > 0 {
+        for (k, at) in c.iter_mut().enumerate() {
+            w.long_key(23 + k as u16, 2);
+            w.varint(8 * (n * e) as u64);
+            *at = w.skip(8 * n * e);
         }
-        w.u64(9, p.calibration_version);
-        w.u64(10, p.estimator_valid as u64);
-        w.u64(11, p.segment_id as u64);
-        w.u64(12, p.tip_id as u64);
-        debug_assert_eq!(w.n, w.b.len(), "a point's size was computed wrong");
+    }
+    debug_assert_eq!(w.n, w.b.len(), "a block's size was computed wrong");
+    let b = &mut *w.b;
+    for p in ps {
+        put_varint(b, &mut v[0], p.seq);
+        put_varint(b, &mut v[1], p.t_ns as u64);
+        put_varint(b, &mut v[2], p.sample_seq);
+        put_varint(b, &mut v[3], p.calibration_version);
+        put_varint(b, &mut v[4], p.estimator_valid.into());
+        put_varint(b, &mut v[5], p.segment_id.into());
+        put_varint(b, &mut v[6], p.tip_id.into());
+        for (k, x) in [p.surface, p.tip_center, p.normal].iter().enumerate() {
+            put_f64(b, &mut d[3 * k], x.x);
+            put_f64(b, &mut d[3 * k + 1], x.y);
+            put_f64(b, &mut d[3 * k + 2], x.z);
+        }
+        // The corrections, point-major; a point with fewer than `e` (never, from a corrector:
+        // one per effect) is padded with zeros so the columns keep their lengths.
+        for j in 0..e {
+            let x = p.corrections.get(j).copied().unwrap_or_default();
+            put_f64(b, &mut c[0], x.x);
+            put_f64(b, &mut c[1], x.y);
+            put_f64(b, &mut c[2], x.z);
+        }
     }
 }
 
-// Protobuf field writers and sizes for `encode_points`, skipping default values as proto3
-// does. Every tag used is below 16, so a key is one byte.
+/// Writes a varint at `b[*at..]` and moves `at` past it.
+#[inline]
+fn put_varint(b: &mut [u8], at: &mut usize, mut v: u64) {
+    while v >= 0x80 {
+        b[*at] = v as u8 | 0x80;
+        *at += 1;
+        v >>= 7;
+    }
+    b[*at] = v as u8;
+    *at += 1;
+}
+
+/// Writes a double (little-endian) at `b[*at..]` and moves `at` past it.
+#[inline]
+fn put_f64(b: &mut [u8], at: &mut usize, v: f64) {
+    b[*at..*at + 8].copy_from_slice(&v.to_le_bytes());
+    *at += 8;
+}
+
+// Protobuf field writers and sizes for `encode_points`. A singular string skips its default
+// (empty) value as proto3 does; a packed column is written whenever it holds a value.
 use scancorr_proto::prost::encoding::{encode_varint, encoded_len_varint};
 
-/// A point's room in the output, written front to back.
+/// A block's room in the output, written front to back.
 struct Out<'a> {
     b: &'a mut [u8],
     n: usize,
@@ -840,24 +896,14 @@ impl Out<'_> {
             self.bytes(s.as_bytes());
         }
     }
-    fn u64(&mut self, tag: u8, v: u64) {
-        if v != 0 {
-            self.key(tag, 0);
-            self.varint(v);
-        }
+    /// A key of a field numbered 16–2047 (two bytes).
+    fn long_key(&mut self, tag: u16, wire_type: u8) {
+        self.varint(u64::from(tag) << 3 | u64::from(wire_type));
     }
-    fn f64(&mut self, tag: u8, v: f64) {
-        if v != 0.0 {
-            self.key(tag, 1);
-            self.bytes(&v.to_le_bytes());
-        }
-    }
-    fn vec3(&mut self, tag: u8, v: &Vec3) {
-        self.key(tag, 2);
-        self.varint(vec3_len(v) as u64);
-        self.f64(1, v.x);
-        self.f64(2, v.y);
-        self.f64(3, v.z);
+    /// Skips `len` bytes (a column's room, filled later); returns where they start.
+    fn skip(&mut self, len: usize) -> usize {
+        self.n += len;
+        self.n - len
     }
 }
 
@@ -871,30 +917,6 @@ fn str_len(s: &str) -> usize {
     } else {
         ld_len(s.len())
     }
-}
-fn u64_len(v: u64) -> usize {
-    if v == 0 {
-        0
-    } else {
-        1 + encoded_len_varint(v)
-    }
-}
-fn f64_len(v: f64) -> usize {
-    if v != 0.0 {
-        9
-    } else {
-        0
-    }
-}
-fn vec3_len(v: &Vec3) -> usize {
-    f64_len(v.x) + f64_len(v.y) + f64_len(v.z)
-}
-fn vec3_field_len(v: &Vec3) -> usize {
-    ld_len(vec3_len(v))
-}
-/// The body of a `Correction`.
-fn correction_len(c: &Vec3, id: &str) -> usize {
-    str_len(id) + vec3_len(c)
 }
 fn put_u64(tag: u8, v: u64, buf: &mut Vec<u8>) {
     if v != 0 {
@@ -927,12 +949,11 @@ pub fn alarm(a: &Alarm, machine: &str) -> v1::EstimatorAlarm {
     }
 }
 
-/// Wire form of a batch of points of one corrector.
-pub fn points(ps: &[CorrectedPoint], machine: &str, corr: &Corrector) -> v1::CorrectedPointBatch {
+/// The points of one corrector as a reader gets them from a batch
+/// ([`v1::CorrectedPointBatch::into_points`]), one message each.
+pub fn points(ps: &[CorrectedPoint], machine: &str, corr: &Corrector) -> Vec<v1::CorrectedPoint> {
     let ids = corr.effect_ids();
-    v1::CorrectedPointBatch {
-        points: ps.iter().map(|p| point(p, machine, &ids)).collect(),
-    }
+    ps.iter().map(|p| point(p, machine, &ids)).collect()
 }
 
 /// How a [`Batcher`] lays out the samples of a batch.
@@ -1699,8 +1720,8 @@ mod tests {
                 surface: Vec3::new(z(f * 1.5), -f, if k % 2 == 0 { -0.0 } else { 3.25 }),
                 tip_center: Vec3::new(f, z(2.0), 1e-300),
                 normal: Vec3::zeros(),
-                corrections: (0..(k as usize % 4))
-                    .map(|i| Vec3::new(z(i as f64 * 1e-4), 0.0, -1e-6))
+                corrections: (0..3)
+                    .map(|i| Vec3::new(z(i as f64 * 1e-4), 0.0, -1e-6 * (k % 4) as f64))
                     .collect(),
                 calibration_version: k % 3,
                 estimator_valid: k % 2 == 0,
@@ -1708,22 +1729,26 @@ mod tests {
                 tip_id: (k * 300) as u32,
             });
         }
-        // Lengths of one, two and three bytes: a correction and a point longer than 127
-        // bytes, a point longer than 16 KiB.
+        // Lengths of one, two and three bytes (an effect id longer than 127 bytes, one longer
+        // than 16 KiB), and a calibration with no effect.
         let long_ids = ["x".repeat(200), "y".repeat(17_000), String::new()].to_vec();
-        for ids in [&ids, &long_ids] {
+        for ids in [&ids, &long_ids, &vec![]] {
             for machine in [
                 "m1",
                 "",
                 "a-machine-with-a-long-name-to-make-lengths-two-bytes",
             ] {
-                let want = v1::CorrectedPointBatch {
-                    points: ps.iter().map(|p| point(p, machine, ids)).collect(),
-                }
-                .encode_to_vec();
+                let per_point: Vec<_> = ps.iter().map(|p| point(p, machine, ids)).collect();
+                let want = scancorr_proto::points::pack(&per_point).encode_to_vec();
                 let mut got = vec![0xAA];
                 encode_points(&ps, machine, ids, &mut got);
                 assert_eq!(&got[1..], &want[..], "machine `{machine}`");
+                // Read back: the points, each naming the machine and all effects.
+                let back = v1::CorrectedPointBatch::decode(&got[1..])
+                    .unwrap()
+                    .into_points()
+                    .unwrap();
+                assert_eq!(back, per_point);
             }
         }
     }

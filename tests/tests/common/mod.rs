@@ -274,7 +274,8 @@ pub fn points(bag: &Path) -> Vec<scancorr_proto::v1::CorrectedPoint> {
             v.extend(
                 scancorr_proto::v1::CorrectedPointBatch::decode(&*m.data)
                     .unwrap()
-                    .points,
+                    .into_points()
+                    .unwrap(),
             );
         }
     }

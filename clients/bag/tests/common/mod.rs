@@ -129,8 +129,9 @@ pub fn batch(
             stream: StreamKind::Stage as i32,
         }
         .encode_to_vec(),
-        Stream::Points => CorrectedPointBatch {
-            points: (0..n)
+        // Packed (v1.4), as the service and the offline tools write them.
+        Stream::Points => scancorr_proto::points::pack(
+            &(0..n)
                 .map(|i| CorrectedPoint {
                     machine_id: m.clone(),
                     seq: seq(i),
@@ -143,8 +144,8 @@ pub fn batch(
                     estimator_valid: true,
                     ..Default::default()
                 })
-                .collect(),
-        }
+                .collect::<Vec<_>>(),
+        )
         .encode_to_vec(),
         Stream::Alarms => EstimatorAlarm {
             machine_id: m,
@@ -244,6 +245,7 @@ pub fn write_sample_bag(path: &std::path::Path, header: BagHeader, rounds: usize
                     ..Default::default()
                 })
                 .collect(),
+            columns: vec![],
         };
         log += 1_000;
         w.write_msg("m1", "cmm", log, &pts).unwrap();

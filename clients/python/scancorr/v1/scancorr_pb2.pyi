@@ -338,11 +338,59 @@ class CorrectedPoint(_message.Message):
     tip_id: int
     def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[int] = ..., t_ns: _Optional[int] = ..., sample_seq: _Optional[int] = ..., surface: _Optional[_Union[Vec3, _Mapping]] = ..., tip_center: _Optional[_Union[Vec3, _Mapping]] = ..., normal: _Optional[_Union[Vec3, _Mapping]] = ..., corrections: _Optional[_Iterable[_Union[Correction, _Mapping]]] = ..., calibration_version: _Optional[int] = ..., estimator_valid: _Optional[bool] = ..., segment_id: _Optional[int] = ..., tip_id: _Optional[int] = ...) -> None: ...
 
+class CorrectedPointColumns(_message.Message):
+    __slots__ = ("machine_id", "seq", "t_ns", "sample_seq", "calibration_version", "estimator_valid", "segment_id", "tip_id", "surface_x", "surface_y", "surface_z", "tip_center_x", "tip_center_y", "tip_center_z", "normal_x", "normal_y", "normal_z", "effects", "correction_dx", "correction_dy", "correction_dz")
+    MACHINE_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    T_NS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLE_SEQ_FIELD_NUMBER: _ClassVar[int]
+    CALIBRATION_VERSION_FIELD_NUMBER: _ClassVar[int]
+    ESTIMATOR_VALID_FIELD_NUMBER: _ClassVar[int]
+    SEGMENT_ID_FIELD_NUMBER: _ClassVar[int]
+    TIP_ID_FIELD_NUMBER: _ClassVar[int]
+    SURFACE_X_FIELD_NUMBER: _ClassVar[int]
+    SURFACE_Y_FIELD_NUMBER: _ClassVar[int]
+    SURFACE_Z_FIELD_NUMBER: _ClassVar[int]
+    TIP_CENTER_X_FIELD_NUMBER: _ClassVar[int]
+    TIP_CENTER_Y_FIELD_NUMBER: _ClassVar[int]
+    TIP_CENTER_Z_FIELD_NUMBER: _ClassVar[int]
+    NORMAL_X_FIELD_NUMBER: _ClassVar[int]
+    NORMAL_Y_FIELD_NUMBER: _ClassVar[int]
+    NORMAL_Z_FIELD_NUMBER: _ClassVar[int]
+    EFFECTS_FIELD_NUMBER: _ClassVar[int]
+    CORRECTION_DX_FIELD_NUMBER: _ClassVar[int]
+    CORRECTION_DY_FIELD_NUMBER: _ClassVar[int]
+    CORRECTION_DZ_FIELD_NUMBER: _ClassVar[int]
+    machine_id: str
+    seq: _containers.RepeatedScalarFieldContainer[int]
+    t_ns: _containers.RepeatedScalarFieldContainer[int]
+    sample_seq: _containers.RepeatedScalarFieldContainer[int]
+    calibration_version: _containers.RepeatedScalarFieldContainer[int]
+    estimator_valid: _containers.RepeatedScalarFieldContainer[bool]
+    segment_id: _containers.RepeatedScalarFieldContainer[int]
+    tip_id: _containers.RepeatedScalarFieldContainer[int]
+    surface_x: _containers.RepeatedScalarFieldContainer[float]
+    surface_y: _containers.RepeatedScalarFieldContainer[float]
+    surface_z: _containers.RepeatedScalarFieldContainer[float]
+    tip_center_x: _containers.RepeatedScalarFieldContainer[float]
+    tip_center_y: _containers.RepeatedScalarFieldContainer[float]
+    tip_center_z: _containers.RepeatedScalarFieldContainer[float]
+    normal_x: _containers.RepeatedScalarFieldContainer[float]
+    normal_y: _containers.RepeatedScalarFieldContainer[float]
+    normal_z: _containers.RepeatedScalarFieldContainer[float]
+    effects: _containers.RepeatedScalarFieldContainer[str]
+    correction_dx: _containers.RepeatedScalarFieldContainer[float]
+    correction_dy: _containers.RepeatedScalarFieldContainer[float]
+    correction_dz: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[_Iterable[int]] = ..., t_ns: _Optional[_Iterable[int]] = ..., sample_seq: _Optional[_Iterable[int]] = ..., calibration_version: _Optional[_Iterable[int]] = ..., estimator_valid: _Optional[_Iterable[bool]] = ..., segment_id: _Optional[_Iterable[int]] = ..., tip_id: _Optional[_Iterable[int]] = ..., surface_x: _Optional[_Iterable[float]] = ..., surface_y: _Optional[_Iterable[float]] = ..., surface_z: _Optional[_Iterable[float]] = ..., tip_center_x: _Optional[_Iterable[float]] = ..., tip_center_y: _Optional[_Iterable[float]] = ..., tip_center_z: _Optional[_Iterable[float]] = ..., normal_x: _Optional[_Iterable[float]] = ..., normal_y: _Optional[_Iterable[float]] = ..., normal_z: _Optional[_Iterable[float]] = ..., effects: _Optional[_Iterable[str]] = ..., correction_dx: _Optional[_Iterable[float]] = ..., correction_dy: _Optional[_Iterable[float]] = ..., correction_dz: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class CorrectedPointBatch(_message.Message):
-    __slots__ = ("points",)
+    __slots__ = ("points", "columns")
     POINTS_FIELD_NUMBER: _ClassVar[int]
+    COLUMNS_FIELD_NUMBER: _ClassVar[int]
     points: _containers.RepeatedCompositeFieldContainer[CorrectedPoint]
-    def __init__(self, points: _Optional[_Iterable[_Union[CorrectedPoint, _Mapping]]] = ...) -> None: ...
+    columns: _containers.RepeatedCompositeFieldContainer[CorrectedPointColumns]
+    def __init__(self, points: _Optional[_Iterable[_Union[CorrectedPoint, _Mapping]]] = ..., columns: _Optional[_Iterable[_Union[CorrectedPointColumns, _Mapping]]] = ...) -> None: ...
 
 class EstimatorAlarm(_message.Message):
     __slots__ = ("machine_id", "seq", "t_ns", "raised", "axis", "estimated_accel", "measured_accel", "difference", "threshold", "action", "calibration_version")
