@@ -103,6 +103,17 @@ def column_samples(columns, sample_desc, where, problems):
         if len(col) != n:
             problems.add(f"{where}: column {name} holds {len(col)} values for {n} samples")
             return []
+    # A block of points (v1.4) holds its corrections as columns of one value per point and
+    # effect, point-major.
+    effects = list(getattr(columns, "effects", []))
+    for name in ("correction_dx", "correction_dy", "correction_dz"):
+        if name in columns.DESCRIPTOR.fields_by_name:
+            got = len(getattr(columns, name))
+            if got != n * len(effects):
+                problems.add(
+                    f"{where}: column {name} holds {got} values for {n} points x {len(effects)} effects"
+                )
+                return []
     scalars = [name for name in names if name in sample_fields]
     return [
         SimpleNamespace(machine_id=columns.machine_id, **{k: cols[k][i] for k in scalars})

@@ -54,6 +54,7 @@ pub struct Params {
 /// `None` when the bytes are not a well-formed batch.
 fn each_point(mut b: &[u8], mut f: impl FnMut(u64, i64)) -> Option<()> {
     use scancorr_bag::{next_field, varint, Value};
+    let (mut seqs, mut times) = (vec![], vec![]);
     while !b.is_empty() {
         match next_field(&mut b)? {
             (1, Value::Bytes(mut p)) => {
@@ -69,19 +70,34 @@ fn each_point(mut b: &[u8], mut f: impl FnMut(u64, i64)) -> Option<()> {
                 f(seq, t_ns);
             }
             (2, Value::Bytes(mut block)) => {
-                let (mut seqs, mut times): (&[u8], &[u8]) = (&[], &[]);
+                // A column may come packed or a value per field, and in several pieces (as
+                // protobuf allows); its values are appended in order.
+                fn values(v: Value<'_>, to: &mut Vec<u64>) -> Option<()> {
+                    match v {
+                        Value::Varint(x) => to.push(x),
+                        Value::Bytes(mut b) => {
+                            while !b.is_empty() {
+                                to.push(varint(&mut b)?);
+                            }
+                        }
+                        Value::Fixed => return None,
+                    }
+                    Some(())
+                }
+                seqs.clear();
+                times.clear();
                 while !block.is_empty() {
                     match next_field(&mut block)? {
-                        (2, Value::Bytes(v)) => seqs = v,
-                        (3, Value::Bytes(v)) => times = v,
+                        (2, v) => values(v, &mut seqs)?,
+                        (3, v) => values(v, &mut times)?,
                         _ => {}
                     }
                 }
-                while !seqs.is_empty() {
-                    f(varint(&mut seqs)?, varint(&mut times)? as i64);
-                }
-                if !times.is_empty() {
+                if seqs.len() != times.len() {
                     return None;
+                }
+                for (&s, &t) in seqs.iter().zip(&times) {
+                    f(s, t as i64);
                 }
             }
             _ => {}

@@ -745,13 +745,15 @@ pub fn point(p: &CorrectedPoint, machine: &str, effect_ids: &[String]) -> v1::Co
     }
 }
 
-/// Encodes a batch of points and appends it to `buf` as one packed block (v1.4): the bytes of
-/// `CorrectedPointBatch { columns: [pack(ps)] }.encode_to_vec()` (see
-/// [`scancorr_proto::points::pack`]), written without building the message (no allocation —
-/// the live service's hot path). The machine and the effect ids are written once, each field
-/// of the points as one packed column. Every length is known before its field is written, so
-/// the block's room is made once and written front to back. Appending to a buffer that
-/// already holds a batch gives the batch of both. A test checks the bytes against prost's.
+/// Encodes a batch of points and appends it to `buf` as one packed block (v1.4), written
+/// without building the message (no allocation — the live service's hot path). The machine
+/// and the effect ids are written once, each field of the points as one packed column. Every
+/// length is known before its field is written, so the block's room is made once and written
+/// front to back. When every point has one correction per effect (as a corrector's points
+/// do) these are the bytes of `CorrectedPointBatch { columns: [pack(ps)] }.encode_to_vec()`
+/// (see [`scancorr_proto::points::pack`]; a test checks them against prost's); a point with
+/// fewer is padded with zero corrections. Appending to a buffer that already holds a packed
+/// batch gives the batch of both.
 pub fn encode_points(
     ps: &[CorrectedPoint],
     machine: &str,
@@ -896,7 +898,7 @@ impl Out<'_> {
             self.bytes(s.as_bytes());
         }
     }
-    /// A key of a field numbered 16–2047 (two bytes).
+    /// The key of any field number (a varint: two bytes from field 16 on).
     fn long_key(&mut self, tag: u16, wire_type: u8) {
         self.varint(u64::from(tag) << 3 | u64::from(wire_type));
     }

@@ -766,12 +766,12 @@ fn publish(
     ready: &mut Vec<Arc<Outbox>>,
 ) {
     if !out.points.is_empty() {
-        // Written straight to protobuf (the same bytes prost makes, without a message per point).
+        // Written straight to protobuf as a packed block (v1.4; the same bytes prost makes).
         if m.pending.bytes.capacity() == 0 {
             // As much room as the machine's last batch took (a machine's batches are alike),
-            // at least about 300 bytes per point with its corrections.
+            // at least about what a packed point takes: 40 bytes and 24 per correction.
             let last = m.pending.last_len;
-            let room = (out.points.len() * 320).max(last + last / 8);
+            let room = (out.points.len() * (40 + 24 * m.ids.len())).max(last + last / 8);
             m.pending.bytes = m.outbox.pool.get(room);
         }
         let p = &mut m.pending;
