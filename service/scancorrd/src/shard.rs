@@ -769,9 +769,9 @@ fn publish(
         // Written straight to protobuf as a packed block (v1.4; the same bytes prost makes).
         if m.pending.bytes.capacity() == 0 {
             // As much room as the machine's last batch took (a machine's batches are alike),
-            // at least about what a packed point takes: 40 bytes and 24 per correction.
+            // at least about what a packed point takes: 100 bytes and 24 per correction.
             let last = m.pending.last_len;
-            let room = (out.points.len() * (40 + 24 * m.ids.len())).max(last + last / 8);
+            let room = (out.points.len() * (100 + 24 * m.ids.len())).max(last + last / 8);
             m.pending.bytes = m.outbox.pool.get(room);
         }
         let p = &mut m.pending;
