@@ -156,7 +156,7 @@ pub fn pack(points: &[v1::CorrectedPoint]) -> v1::CorrectedPointBatch {
         c.estimator_valid.push(p.estimator_valid);
         c.segment_id.push(p.segment_id);
         c.tip_id.push(p.tip_id);
-        let v = |v: &Option<v1::Vec3>| v.clone().unwrap_or_default();
+        let v = |v: &Option<v1::Vec3>| v.unwrap_or_default();
         let (s, t, n) = (v(&p.surface), v(&p.tip_center), v(&p.normal));
         c.surface_x.push(s.x);
         c.surface_y.push(s.y);
