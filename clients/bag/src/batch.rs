@@ -326,13 +326,7 @@ fn peek_columns(mut columns: &[u8]) -> Option<(u64, Option<i64>)> {
     let (mut n, mut first) = (0u64, None);
     while !columns.is_empty() {
         match next_field(&mut columns)? {
-            (SEQ, Value::Varint(_)) => n += 1,
-            (SEQ, Value::Bytes(mut packed)) => {
-                while !packed.is_empty() {
-                    varint(&mut packed)?;
-                    n += 1;
-                }
-            }
+            (SEQ, v) => each_varint(v, |_| n += 1)?,
             (T_NS, Value::Varint(t)) => {
                 first.get_or_insert(t as i64);
             }
@@ -419,9 +413,23 @@ pub fn next_field<'a>(b: &mut &'a [u8]) -> Option<(u32, Value<'a>)> {
     (field != 0).then_some((field, value))
 }
 
-/// Reads one varint in place (a value of a packed column) and advances `b` past it; `None`
-/// when the bytes end first or it runs past ten bytes.
-pub fn varint(b: &mut &[u8]) -> Option<u64> {
+/// Calls `f` with each value of one occurrence of a varint column (`repeated uint64`, …), in
+/// either form protobuf allows: packed (the field's bytes hold the values) or one value per
+/// field. `None` when the bytes are not well-formed or the field is a fixed-width one.
+pub fn each_varint(v: Value<'_>, mut f: impl FnMut(u64)) -> Option<()> {
+    match v {
+        Value::Varint(x) => f(x),
+        Value::Bytes(mut b) => {
+            while !b.is_empty() {
+                f(varint(&mut b)?);
+            }
+        }
+        Value::Fixed => return None,
+    }
+    Some(())
+}
+
+fn varint(b: &mut &[u8]) -> Option<u64> {
     let mut v = 0u64;
     for i in 0..10 {
         let (&byte, rest) = b.split_first()?;

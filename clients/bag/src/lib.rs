@@ -35,7 +35,9 @@ mod reader;
 mod writer;
 
 pub use artifact::{Artifact, ArtifactKind, ARTIFACT_METADATA};
-pub use batch::{next_field, peek, stream_tag, varint, BatchMessage, BatchPeek, RawBatch, Value};
+pub use batch::{
+    each_varint, next_field, peek, stream_tag, BatchMessage, BatchPeek, RawBatch, Value,
+};
 pub use error::{BagError, Result};
 pub use reader::{
     BagMessage, BagReader, ChannelInfo, DamagedChunk, Messages, MetadataRecord, ReadOptions,

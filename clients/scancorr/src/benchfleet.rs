@@ -53,7 +53,7 @@ pub struct Params {
 /// would load the bench process, which shares the machine with the service it measures.
 /// `None` when the bytes are not a well-formed batch.
 fn each_point(mut b: &[u8], mut f: impl FnMut(u64, i64)) -> Option<()> {
-    use scancorr_bag::{next_field, varint, Value};
+    use scancorr_bag::{each_varint, next_field, Value};
     let (mut seqs, mut times) = (vec![], vec![]);
     while !b.is_empty() {
         match next_field(&mut b)? {
@@ -70,26 +70,13 @@ fn each_point(mut b: &[u8], mut f: impl FnMut(u64, i64)) -> Option<()> {
                 f(seq, t_ns);
             }
             (2, Value::Bytes(mut block)) => {
-                // A column may come packed or a value per field, and in several pieces (as
-                // protobuf allows); its values are appended in order.
-                fn values(v: Value<'_>, to: &mut Vec<u64>) -> Option<()> {
-                    match v {
-                        Value::Varint(x) => to.push(x),
-                        Value::Bytes(mut b) => {
-                            while !b.is_empty() {
-                                to.push(varint(&mut b)?);
-                            }
-                        }
-                        Value::Fixed => return None,
-                    }
-                    Some(())
-                }
+                // A column may come in several pieces (as protobuf allows): appended in order.
                 seqs.clear();
                 times.clear();
                 while !block.is_empty() {
                     match next_field(&mut block)? {
-                        (2, v) => values(v, &mut seqs)?,
-                        (3, v) => values(v, &mut times)?,
+                        (2, v) => each_varint(v, |x| seqs.push(x))?,
+                        (3, v) => each_varint(v, |x| times.push(x))?,
                         _ => {}
                     }
                 }

@@ -882,14 +882,8 @@ impl Out<'_> {
         self.b[self.n] = tag << 3 | wire_type;
         self.n += 1;
     }
-    fn varint(&mut self, mut v: u64) {
-        while v >= 0x80 {
-            self.b[self.n] = v as u8 | 0x80;
-            self.n += 1;
-            v >>= 7;
-        }
-        self.b[self.n] = v as u8;
-        self.n += 1;
+    fn varint(&mut self, v: u64) {
+        put_varint(self.b, &mut self.n, v);
     }
     fn str(&mut self, tag: u8, s: &str) {
         if !s.is_empty() {
