@@ -29,7 +29,7 @@
 //! surface point = tip centre − tip radius · n, n = deflection direction (out of the material).
 
 use crate::calib::{CalibError, Calibration, Model};
-use crate::effects::BuiltEffect;
+use crate::effects::{BuiltEffect, Effect};
 use crate::estimator::{rotation_with, Estimate, Estimator};
 use crate::judge::Judge;
 use crate::sample::*;
@@ -199,10 +199,13 @@ impl Output {
     /// Empties all lists, keeping their capacity (and the points' lists of corrections, for
     /// the next points).
     pub fn clear(&mut self) {
-        if !self.points.is_empty() {
-            self.spare
-                .extend(self.points.drain(..).map(|p| p.corrections));
-        }
+        // The lists are taken out in place (not each point moved out whole, then dropped).
+        self.spare.extend(
+            self.points
+                .iter_mut()
+                .map(|p| std::mem::take(&mut p.corrections)),
+        );
+        self.points.clear();
         self.alarms.clear();
         self.contexts.clear();
     }
@@ -559,7 +562,9 @@ impl Corrector {
         }
     }
 
-    #[inline]
+    /// Taken into [`Self::push`] (its one caller per sample): the sample is not copied
+    /// once more to be handed over.
+    #[inline(always)]
     fn take(&mut self, sample: Sample, out: &mut Output) {
         if self.accept(&sample) {
             // Make room first, so a buffer never holds (or allocates for) more than `max`.
@@ -639,6 +644,7 @@ impl Corrector {
         self.stats.dropped[r as usize] += 1;
     }
 
+    #[inline(always)]
     fn accept(&mut self, s: &Sample) -> bool {
         let k = s.stream() as usize;
         let (seq, t, finite) = (s.seq(), s.t_ns(), s.is_finite());
@@ -689,20 +695,34 @@ impl Corrector {
         }
     }
 
+    /// Whether the oldest scale sample can be corrected now: the command, probe and (when
+    /// the calibration reads temperatures) temperature streams have reached its time.
+    #[inline]
+    fn front_ready(&self) -> bool {
+        let Some(s) = self.scale_q.front() else {
+            return false;
+        };
+        let wm = self.watermarks();
+        wm[0].is_some_and(|w| w >= s.t_ns)
+            && wm[2].is_some_and(|w| w >= s.t_ns)
+            && (self.model.sensors.names().is_empty()
+                || wm[3].is_some_and(|w| w >= s.t_ns - self.model.temperature_delay_ns))
+    }
+
+    /// Corrects the scale samples that can be corrected (all of them on `flush`). Checked
+    /// here, inline, for every sample taken: most samples complete no point, and then no
+    /// call is made.
+    #[inline]
     fn emit(&mut self, flush: bool, out: &mut Output) {
-        let needs_temp = !self.model.sensors.names().is_empty();
-        while let Some(s) = self.scale_q.front().copied() {
-            if !flush {
-                let wm = self.watermarks();
-                let ready = wm[0].is_some_and(|w| w >= s.t_ns)
-                    && wm[2].is_some_and(|w| w >= s.t_ns)
-                    && (!needs_temp
-                        || wm[3].is_some_and(|w| w >= s.t_ns - self.model.temperature_delay_ns));
-                if !ready {
-                    break;
-                }
-            }
-            self.scale_q.pop_front();
+        if flush || self.front_ready() {
+            self.emit_ready(flush, out);
+        }
+    }
+
+    #[inline(never)]
+    fn emit_ready(&mut self, flush: bool, out: &mut Output) {
+        while flush && !self.scale_q.is_empty() || self.front_ready() {
+            let s = self.scale_q.pop_front().expect("a scale sample is waiting");
             if let Err(r) = self.point(s, out) {
                 self.drop(r);
             }

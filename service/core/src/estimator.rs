@@ -135,7 +135,7 @@ impl Estimator {
             *e = self.restart(c);
             return;
         }
-        let [x, y, z] = [0, 1, 2].map(|i| self.model[i].step(&mut self.state[i], c.pos[i]));
+        let [x, y, z] = Discrete::step3(&self.model, &mut self.state, c.pos.into());
         e.cmd = *c;
         e.pos = Vec3::new(x.y, y.y, z.y);
         e.vel = Vec3::new(x.dy, y.dy, z.dy);

@@ -78,8 +78,8 @@ impl Func1 {
     fn apply(self, x: f64) -> f64 {
         match self {
             Func1::Neg => -x,
-            Func1::Sin => x.sin(),
-            Func1::Cos => x.cos(),
+            Func1::Sin => crate::trig::sin(x),
+            Func1::Cos => crate::trig::cos(x),
             Func1::Tan => x.tan(),
             Func1::Asin => x.asin(),
             Func1::Acos => x.acos(),
@@ -517,6 +517,10 @@ pub struct Program {
     n_regs: usize,
     /// The register holding each expression's value.
     outputs: Vec<usize>,
+    /// For a program of at most [`SMALL_REGISTERS`] registers: the register file an
+    /// evaluation starts from, the constants in their registers and zeros elsewhere (one
+    /// copy of a fixed size, instead of zeroing the file and copying the constants in).
+    small_start: [f64; SMALL_REGISTERS],
 }
 
 /// One instruction: operand and destination registers.
@@ -703,12 +707,17 @@ impl Program {
                 Node::Const(_) | Node::Input(_) => {}
             }
         }
+        let mut small_start = [0.0; SMALL_REGISTERS];
+        if n_regs <= SMALL_REGISTERS {
+            small_start[n_inputs..n_inputs + consts.len()].copy_from_slice(&consts);
+        }
         Program {
             n_inputs,
             consts,
             steps,
             n_regs,
             outputs: outputs.iter().map(|o| reg[*o]).collect(),
+            small_start,
         }
     }
 
@@ -736,33 +745,34 @@ impl Program {
         // The register file is zeroed on every evaluation: on the stack and no larger than
         // the program needs, for the usual few-term programs.
         if self.n_regs <= SMALL_REGISTERS {
-            self.run(&mut [0.0; SMALL_REGISTERS], input, out);
-        } else if self.n_regs <= STACK_REGISTERS {
-            self.run(&mut [0.0; STACK_REGISTERS], input, out);
+            let mut r = self.small_start;
+            self.run(&mut r, input, out);
         } else {
-            self.run(&mut vec![0.0; self.n_regs], input, out);
+            let mut stack = [0.0; STACK_REGISTERS];
+            let mut heap = vec![];
+            let r = if self.n_regs <= STACK_REGISTERS {
+                &mut stack[..]
+            } else {
+                heap.resize(self.n_regs, 0.0);
+                &mut heap[..]
+            };
+            r[self.n_inputs..self.n_inputs + self.consts.len()].copy_from_slice(&self.consts);
+            self.run(r, input, out);
         }
     }
 
-    /// Runs the steps on the register file `r` (at least `n_regs` long).
+    /// Runs the steps on the register file `r` (at least `n_regs` long, the constants in
+    /// their registers).
     #[inline]
     fn run(&self, r: &mut [f64], input: impl Fn(usize) -> f64, mut out: impl FnMut(usize, f64)) {
-        let n_in = self.n_inputs;
-        for (i, v) in r[..n_in].iter_mut().enumerate() {
+        for (i, v) in r[..self.n_inputs].iter_mut().enumerate() {
             *v = input(i);
-        }
-        // A loop, not a call to memcpy, for the few constants of a program.
-        for (r, c) in r[n_in..n_in + self.consts.len()]
-            .iter_mut()
-            .zip(&self.consts)
-        {
-            *r = *c;
         }
         for step in &self.steps {
             match *step {
                 Step::Unary { f, x, dst } => r[dst] = f.apply(r[x]),
                 Step::Binary { f, a, b, dst } => r[dst] = f.apply(r[a], r[b]),
-                Step::SinCos { x, sin, cos } => (r[sin], r[cos]) = r[x].sin_cos(),
+                Step::SinCos { x, sin, cos } => (r[sin], r[cos]) = crate::trig::sin_cos(r[x]),
             }
         }
         for (i, &o) in self.outputs.iter().enumerate() {

@@ -34,6 +34,7 @@ pub mod sample;
 pub mod shape;
 pub mod stylus;
 pub mod transfer;
+pub mod trig;
 pub mod wire;
 
 pub use calib::{CalibError, Calibration};

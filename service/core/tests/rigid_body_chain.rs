@@ -21,7 +21,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use nalgebra::{Matrix3, Matrix4, Vector3, Vector4};
-use scancorr_core::effects::{EffectConfig, SensorTable};
+use scancorr_core::effects::{Effect, EffectConfig, SensorTable};
 use scancorr_core::sample::{PointContext, Vec3};
 
 const ORDER: usize = 4;

@@ -117,7 +117,7 @@ pub struct Outcome {
 
 struct Model {
     configs: Vec<EffectConfig>,
-    built: Vec<Box<dyn Effect>>,
+    built: Vec<crate::effects::Model>,
     n: usize,
 }
 
@@ -129,7 +129,7 @@ impl Model {
             EffectConfig::ServoGain(servo_gain::Config::zeros(0, gain_powers)),
         ];
         let mut sensors = ds.sensors.clone();
-        let built: Vec<Box<dyn Effect>> = configs
+        let built: Vec<crate::effects::Model> = configs
             .iter()
             .map(|c| c.build(&mut sensors).expect("zero configs build").model)
             .collect();

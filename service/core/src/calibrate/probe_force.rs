@@ -310,7 +310,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     // temperatures (the tip centre moves along the stylus, the sphere's apparent centre with
     // the scales) — not linear in time over a circle's scans.
     let mut sensors = ds.sensors.clone();
-    let thermal: Vec<Box<dyn Effect>> = [
+    let thermal: Vec<crate::effects::Model> = [
         EffectConfig::StylusThermal(stylus_thermal::Config::zeros_per_tip(&tips, false)),
         EffectConfig::ScaleThermal(scale_thermal::Config::zeros()),
     ]

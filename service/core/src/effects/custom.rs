@@ -148,6 +148,7 @@ impl Config {
     }
 }
 
+#[inline]
 fn builtin(ctx: &PointContext, k: usize) -> f64 {
     let v = &ctx.est_vel;
     let a = &ctx.est_acc;

@@ -85,7 +85,70 @@ pub struct BuiltEffect {
     /// alarm with action `suspend` is raised.
     pub dynamic: bool,
     /// The model.
-    pub model: Box<dyn Effect>,
+    pub model: Model,
+}
+
+/// Calls `$call` on the model inside a [`Model`], whatever its kind.
+macro_rules! each_model {
+    ($m:expr, $model:ident => $call:expr) => {
+        match $m {
+            Model::AccelDeflection($model) => $call,
+            Model::ServoPhase($model) => $call,
+            Model::ServoGain($model) => $call,
+            Model::StylusThermal($model) => $call,
+            Model::ScaleThermal($model) => $call,
+            Model::ProbeForce($model) => $call,
+            Model::GuideStraightness($model) => $call,
+            Model::RigidBody($model) => $call,
+            Model::ProbeLobing($model) => $call,
+            Model::Custom($model) => $call,
+            Model::FeatureMap($model) => $call,
+        }
+    };
+}
+
+/// A built effect model of any kind: one variant per kind of [`EffectConfig`].
+///
+/// An enum rather than a `Box<dyn Effect>`: the corrector calls every effect for every point,
+/// and a `match` on the kind lets each model's `correction` be inlined into that loop (no
+/// indirect call, no result returned through memory).
+#[derive(Debug, Clone)]
+pub enum Model {
+    /// [`accel_deflection`].
+    AccelDeflection(accel_deflection::Model),
+    /// [`servo_phase`].
+    ServoPhase(servo_phase::Model),
+    /// [`servo_gain`].
+    ServoGain(servo_gain::Model),
+    /// [`stylus_thermal`].
+    StylusThermal(stylus_thermal::Model),
+    /// [`scale_thermal`].
+    ScaleThermal(scale_thermal::Model),
+    /// [`probe_force`].
+    ProbeForce(probe_force::Model),
+    /// [`guide_straightness`].
+    GuideStraightness(guide_straightness::Model),
+    /// [`rigid_body`].
+    RigidBody(Box<rigid_body::Model>),
+    /// [`probe_lobing`].
+    ProbeLobing(probe_lobing::Model),
+    /// [`custom`].
+    Custom(custom::Model),
+    /// [`feature_map`].
+    FeatureMap(feature_map::Model),
+}
+
+impl Effect for Model {
+    fn n_params(&self) -> usize {
+        each_model!(self, m => m.n_params())
+    }
+    fn regressors(&self, ctx: &PointContext, out: &mut [Vec3]) {
+        each_model!(self, m => m.regressors(ctx, out))
+    }
+    #[inline]
+    fn correction(&self, ctx: &PointContext) -> Vec3 {
+        each_model!(self, m => m.correction(ctx))
+    }
 }
 
 /// Maps temperature sensor names to slots of [`PointContext::temps`].
@@ -200,18 +263,18 @@ impl EffectConfig {
     /// Validates and builds the hot-path model. Errors name the offending field, relative to
     /// this effect (the caller prefixes `effects[i]`).
     pub fn build(&self, sensors: &mut SensorTable) -> Result<BuiltEffect, String> {
-        let model: Box<dyn Effect> = match self {
-            EffectConfig::AccelDeflection(c) => Box::new(c.build()?),
-            EffectConfig::ServoPhase(c) => Box::new(c.build()?),
-            EffectConfig::ServoGain(c) => Box::new(c.build()?),
-            EffectConfig::StylusThermal(c) => Box::new(c.build(sensors)?),
-            EffectConfig::ScaleThermal(c) => Box::new(c.build(sensors)?),
-            EffectConfig::ProbeForce(c) => Box::new(c.build()?),
-            EffectConfig::GuideStraightness(c) => Box::new(c.build()?),
-            EffectConfig::RigidBody(c) => Box::new(c.build()?),
-            EffectConfig::ProbeLobing(c) => Box::new(c.build()?),
-            EffectConfig::Custom(c) => Box::new(c.build(sensors)?),
-            EffectConfig::FeatureMap(c) => Box::new(c.build()?),
+        let model = match self {
+            EffectConfig::AccelDeflection(c) => Model::AccelDeflection(c.build()?),
+            EffectConfig::ServoPhase(c) => Model::ServoPhase(c.build()?),
+            EffectConfig::ServoGain(c) => Model::ServoGain(c.build()?),
+            EffectConfig::StylusThermal(c) => Model::StylusThermal(c.build(sensors)?),
+            EffectConfig::ScaleThermal(c) => Model::ScaleThermal(c.build(sensors)?),
+            EffectConfig::ProbeForce(c) => Model::ProbeForce(c.build()?),
+            EffectConfig::GuideStraightness(c) => Model::GuideStraightness(c.build()?),
+            EffectConfig::RigidBody(c) => Model::RigidBody(Box::new(c.build()?)),
+            EffectConfig::ProbeLobing(c) => Model::ProbeLobing(c.build()?),
+            EffectConfig::Custom(c) => Model::Custom(c.build(sensors)?),
+            EffectConfig::FeatureMap(c) => Model::FeatureMap(c.build()?),
         };
         Ok(BuiltEffect {
             id: self.id(),

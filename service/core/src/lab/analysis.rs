@@ -105,7 +105,7 @@ fn columns(
     ds: &Dataset,
     art: &ArtifactFit,
     configs: &[EffectConfig],
-) -> Result<(Vec<f64>, usize, Vec<Box<dyn Effect>>), LabError> {
+) -> Result<(Vec<f64>, usize, Vec<crate::effects::Model>), LabError> {
     let mut sensors = ds.sensors.clone();
     let mut models = vec![];
     for c in configs {

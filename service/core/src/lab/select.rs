@@ -238,7 +238,7 @@ impl Space {
     ) -> Result<Space, LabError> {
         let art = &prep.art;
         let mut sensors = ds.sensors.clone();
-        let mut models: Vec<Box<dyn Effect>> = vec![];
+        let mut models: Vec<crate::effects::Model> = vec![];
         let mut out = vec![];
         let mut off = 0;
         for (name, cfg, in_model) in blocks {
