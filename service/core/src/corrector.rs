@@ -983,8 +983,7 @@ impl Corrector {
 /// Whether a sample's values lie in the machine's plausible ranges; its name in the grammar.
 fn plausible(s: &Sample, m: &Model) -> Result<(), DropReason> {
     let l = &m.doc.limits;
-    let in_travel =
-        |p: &Vec3| (0..3).all(|i| p[i] >= l.travel_mm[i][0] && p[i] <= l.travel_mm[i][1]);
+    let in_travel = |p: &Vec3| within_box(p, &l.travel_mm);
     let ok = match s {
         Sample::Command(c) => {
             in_travel(&c.pos)
@@ -1014,15 +1013,25 @@ fn plausible(s: &Sample, m: &Model) -> Result<(), DropReason> {
 /// Whether a corrected point is finite, inside the machine's volume and every correction
 /// within `limits.max_correction_mm`.
 fn inside(p: &Geometry, corrections: &[Vec3], m: &Model) -> bool {
-    let vol = &m.volume_mm;
-    let within = |v: &Vec3| (0..3).all(|i| v[i] >= vol[i][0] && v[i] <= vol[i][1]);
     let max_c = m.doc.limits.max_correction_mm;
-    within(&p.surface)
-        && within(&p.tip_center)
-        && p.normal.iter().all(|v| v.is_finite())
-        && corrections
-            .iter()
-            .all(|c| c.iter().all(|v| v.abs() <= max_c))
+    // Every test evaluated (`&`, not `&&`): no branch per coordinate on the hot path.
+    within_box(&p.surface, &m.volume_mm)
+        & within_box(&p.tip_center, &m.volume_mm)
+        & p.normal.iter().fold(true, |ok, v| ok & v.is_finite())
+        & corrections.iter().fold(true, |ok, c| {
+            ok & (c.x.abs() <= max_c) & (c.y.abs() <= max_c) & (c.z.abs() <= max_c)
+        })
+}
+
+/// Whether `p` lies in the box `[lo, hi]` per axis (false for a coordinate that is NaN).
+#[inline]
+fn within_box(p: &Vec3, b: &[[f64; 2]; 3]) -> bool {
+    (p.x >= b[0][0])
+        & (p.x <= b[0][1])
+        & (p.y >= b[1][0])
+        & (p.y <= b[1][1])
+        & (p.z >= b[2][0])
+        & (p.z <= b[2][1])
 }
 
 /// The geometric result of one point.
@@ -1071,16 +1080,16 @@ fn synthesize_into(
     min_contact: f64,
     corrections: &mut Vec<Vec3>,
 ) -> Geometry {
-    let mut total = Vec3::zeros();
     corrections.extend(effects.iter().map(|e| {
-        let c = if suspend_dynamic && e.dynamic {
+        if suspend_dynamic && e.dynamic {
             Vec3::zeros()
         } else {
             e.model.correction(ctx)
-        };
-        total += c;
-        c
+        }
     }));
+    // Summed once all are written (the same additions in the same order), not in the loop:
+    // there each sum waited on a load of the correction just stored, often in pieces.
+    let total = corrections.iter().fold(Vec3::zeros(), |t, c| t + c);
     let tip_center = ctx.scale + total + ctx.deflection + ctx.tip_offset();
     let d = ctx.deflection.norm();
     let normal = if d >= min_contact && d > 0.0 {
