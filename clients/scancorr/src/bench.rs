@@ -47,8 +47,8 @@ fn run_core(cal: &Calibration, samples: &[Sample], repeat: usize) -> Result<Core
         let mut total = 0usize;
         let t0 = Instant::now();
         // Each sample handed over as a decoder would (its copy timed with the core).
-        for s in samples.iter().cloned() {
-            corr.push(s, &mut out);
+        for s in samples {
+            corr.push(s.clone(), &mut out);
             total += out.points.len();
             out.clear();
         }

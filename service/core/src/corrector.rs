@@ -793,8 +793,11 @@ impl Corrector {
         // Command bracket → estimate at t.
         self.advance_estimator(t);
         let e1 = self.e1().ok_or(DropReason::NoCommand)?;
-        let est = if e1.cmd.t_ns == t {
-            *e1
+        // At a command's own time the estimate is read in place below (not copied out here:
+        // its fields were just written one by one, and a copy would read them back whole);
+        // between two commands it is interpolated.
+        let between = if e1.cmd.t_ns == t {
+            None
         } else if e1.cmd.t_ns < t {
             return Err(DropReason::NoCommand);
         } else {
@@ -805,7 +808,7 @@ impl Corrector {
             if e1.cmd.t_ns - e0.cmd.t_ns > gap {
                 return Err(DropReason::CommandGap);
             }
-            lerp_estimate(e0, e1, t)
+            Some(lerp_estimate(e0, e1, t))
         };
         // Probe bracket.
         while self.probe_q.len() >= 2 && self.probe_q[1].t_ns <= t {
@@ -862,6 +865,12 @@ impl Corrector {
             _ => *self
                 .pose
                 .insert(TipPose::new(tip, p0.head_a1_deg, p0.head_a2_deg)),
+        };
+        let est = match &between {
+            Some(e) => e,
+            None => self.estimates[self.newest]
+                .as_ref()
+                .expect("a point has an estimate"),
         };
         let r = pose.machine_from_probe;
         let cmd = &est.cmd;
