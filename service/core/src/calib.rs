@@ -235,15 +235,64 @@ fn invalid(field: impl Into<String>, reason: impl Into<String>) -> CalibError {
     }
 }
 
+/// A few entries by key, in key order: a sorted list (a calibration has a few tips and probe
+/// types). A service keeps a model per machine, and a `BTreeMap` takes a node of eleven
+/// entries for the first one (about 1 KB for one tip).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Table<K, V>(Vec<(K, V)>);
+
+impl<K: Ord, V> Table<K, V> {
+    /// The value of `key`.
+    pub fn get<Q: Ord + ?Sized>(&self, key: &Q) -> Option<&V>
+    where
+        K: std::borrow::Borrow<Q>,
+    {
+        self.0
+            .binary_search_by(|(k, _)| k.borrow().cmp(key))
+            .ok()
+            .map(|i| &self.0[i].1)
+    }
+    /// Entries in key order.
+    pub fn iter(&self) -> impl Iterator<Item = (&K, &V)> {
+        self.0.iter().map(|(k, v)| (k, v))
+    }
+    /// Values in key order.
+    pub fn values(&self) -> impl Iterator<Item = &V> {
+        self.0.iter().map(|(_, v)| v)
+    }
+    /// Number of entries.
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+    /// Whether there is no entry.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+}
+
+impl<K: Ord, V> From<BTreeMap<K, V>> for Table<K, V> {
+    fn from(m: BTreeMap<K, V>) -> Self {
+        // Already in key order, each key once.
+        Table(m.into_iter().collect())
+    }
+}
+
+impl<K: Ord + std::borrow::Borrow<Q>, Q: Ord + ?Sized, V> std::ops::Index<&Q> for Table<K, V> {
+    type Output = V;
+    fn index(&self, key: &Q) -> &V {
+        self.get(key).expect("a key of the table")
+    }
+}
+
 /// The built, runnable form of a calibration.
 #[derive(Debug)]
 pub struct Model {
     /// The document it was built from.
     pub doc: Calibration,
     /// Discretised G_N per probe type, per axis.
-    pub nominal: BTreeMap<String, Arc<[Discrete; 3]>>,
+    pub nominal: Table<String, Arc<[Discrete; 3]>>,
     /// Tips by id.
-    pub tips: BTreeMap<u32, TipGeometry>,
+    pub tips: Table<u32, TipGeometry>,
     /// Effects in document order.
     pub effects: Vec<BuiltEffect>,
     /// Temperature sensors the effects read, by slot.
@@ -523,8 +572,8 @@ impl Calibration {
         let ns = |s: f64| (s * 1e9).round() as i64;
         Ok(Model {
             doc: self.clone(),
-            nominal,
-            tips,
+            nominal: nominal.into(),
+            tips: tips.into(),
             effects,
             sensors,
             filter,
@@ -586,6 +635,25 @@ impl Calibration {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_table_finds_its_keys_in_order_and_only_them() {
+        let t: Table<String, u32> = BTreeMap::from([
+            ("sp25".to_string(), 1),
+            ("ppt".to_string(), 2),
+            ("a".to_string(), 3),
+        ])
+        .into();
+        assert_eq!(t.len(), 3);
+        assert_eq!(t.get("ppt"), Some(&2));
+        assert_eq!(t["sp25"], 1);
+        assert_eq!(t.get("sp2"), None);
+        assert_eq!(t.values().copied().collect::<Vec<_>>(), [3, 2, 1]);
+        let tips = Calibration::example("m1").build().unwrap().tips;
+        let first = tips.values().next().unwrap();
+        assert_eq!(tips.get(&first.id).map(|t| t.id), Some(first.id));
+        assert!(tips.get(&(first.id + 1000)).is_none());
+    }
     use crate::effects::{accel_deflection, stylus_thermal};
 
     fn doc() -> serde_json::Value {

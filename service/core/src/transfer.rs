@@ -154,24 +154,16 @@ fn polymul(a: &[f64], b: &[f64]) -> Vec<f64> {
 }
 
 /// A discretised single-input single-output model: validated coefficients, no state.
+///
+/// The coefficients of order n are kept in one allocation of n² + 6n numbers (Φ row-major,
+/// then Γ1, Γ2, C, C·A, C·A², x_ss), not in arrays sized for the largest order: a service
+/// keeps three per probe type per machine.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Discrete {
     /// State dimension n (0 for G = 1).
     pub n: usize,
-    /// Φ, row-major n×n.
-    pub phi: [[f64; MAX_ORDER]; MAX_ORDER],
-    /// Γ1.
-    pub g1: [f64; MAX_ORDER],
-    /// Γ2.
-    pub g2: [f64; MAX_ORDER],
-    /// Output row C.
-    pub c: [f64; MAX_ORDER],
-    /// C·A, for the first derivative of the output.
-    pub ca: [f64; MAX_ORDER],
-    /// C·A², for the second derivative.
-    pub ca2: [f64; MAX_ORDER],
-    /// Steady state per unit constant input: x_ss = −A⁻¹B.
-    pub xss: [f64; MAX_ORDER],
+    /// Φ, Γ1, Γ2, C, C·A, C·A², x_ss (see [`Discrete::phi`] and the others).
+    coef: Box<[f64]>,
     /// Direct feedthrough D.
     pub d: f64,
     /// C·B (non-zero for relative degree 1).
@@ -186,6 +178,56 @@ pub struct Discrete {
     inv_period_s: f64,
     /// 1 / period² (its curvature).
     inv_period2: f64,
+}
+
+/// The coefficient vectors of a model of order `n`, in the order they are stored after Φ.
+#[derive(Clone, Copy)]
+enum Part {
+    G1 = 0,
+    G2,
+    C,
+    Ca,
+    Ca2,
+    Xss,
+}
+
+impl Discrete {
+    /// Φ, row-major n×n.
+    pub fn phi(&self) -> &[f64] {
+        &self.coef[..self.n * self.n]
+    }
+    fn part(&self, p: Part) -> &[f64] {
+        let at = self.n * self.n + p as usize * self.n;
+        &self.coef[at..at + self.n]
+    }
+    fn part_mut(&mut self, p: Part) -> &mut [f64] {
+        let at = self.n * self.n + p as usize * self.n;
+        &mut self.coef[at..at + self.n]
+    }
+    /// Γ1.
+    pub fn g1(&self) -> &[f64] {
+        self.part(Part::G1)
+    }
+    /// Γ2.
+    pub fn g2(&self) -> &[f64] {
+        self.part(Part::G2)
+    }
+    /// Output row C.
+    pub fn c(&self) -> &[f64] {
+        self.part(Part::C)
+    }
+    /// C·A, for the first derivative of the output.
+    pub fn ca(&self) -> &[f64] {
+        self.part(Part::Ca)
+    }
+    /// C·A², for the second derivative.
+    pub fn ca2(&self) -> &[f64] {
+        self.part(Part::Ca2)
+    }
+    /// Steady state per unit constant input: x_ss = −A⁻¹B.
+    pub fn xss(&self) -> &[f64] {
+        self.part(Part::Xss)
+    }
 }
 
 /// Running state of a [`Discrete`] model.
@@ -229,13 +271,7 @@ impl Discrete {
         let b0 = num[0];
         let mut out = Discrete {
             n,
-            phi: [[0.0; MAX_ORDER]; MAX_ORDER],
-            g1: [0.0; MAX_ORDER],
-            g2: [0.0; MAX_ORDER],
-            c: [0.0; MAX_ORDER],
-            ca: [0.0; MAX_ORDER],
-            ca2: [0.0; MAX_ORDER],
-            xss: [0.0; MAX_ORDER],
+            coef: vec![0.0; n * n + 6 * n].into_boxed_slice(),
             d: b0,
             cb: 0.0,
             cab: 0.0,
@@ -276,14 +312,14 @@ impl Discrete {
             .ok_or_else(|| TransferError::Invalid("the model has a pole at s = 0".into()))?;
         for i in 0..n {
             for j in 0..n {
-                out.phi[i][j] = e[(i, j)];
+                out.coef[i * n + j] = e[(i, j)];
             }
-            out.g1[i] = e[(i, n)];
-            out.g2[i] = e[(i, n + 1)];
-            out.c[i] = c[(0, i)];
-            out.ca[i] = ca[(0, i)];
-            out.ca2[i] = ca2[(0, i)];
-            out.xss[i] = xss[(i, 0)];
+            out.part_mut(Part::G1)[i] = e[(i, n)];
+            out.part_mut(Part::G2)[i] = e[(i, n + 1)];
+            out.part_mut(Part::C)[i] = c[(0, i)];
+            out.part_mut(Part::Ca)[i] = ca[(0, i)];
+            out.part_mut(Part::Ca2)[i] = ca2[(0, i)];
+            out.part_mut(Part::Xss)[i] = xss[(i, 0)];
         }
         out.cb = (&c * &b)[(0, 0)];
         out.cab = (&ca * &b)[(0, 0)];
@@ -299,7 +335,7 @@ impl Discrete {
                 "the model is not stable (a pole in the right half-plane or on the axis)".into(),
             ));
         }
-        let dc: f64 = (0..n).map(|i| out.c[i] * out.xss[i]).sum::<f64>() + out.d;
+        let dc: f64 = (0..n).map(|i| out.c()[i] * out.xss()[i]).sum::<f64>() + out.d;
         if (dc - 1.0).abs() > 1e-6 {
             return Err(TransferError::Invalid(format!(
                 "static gain is {dc}, expected 1"
@@ -312,7 +348,7 @@ impl Discrete {
     /// State at rest under the constant input `u`.
     pub fn steady(&self, u: f64) -> DiscreteState {
         let mut x = [0.0; MAX_ORDER];
-        for (xi, s) in x.iter_mut().zip(self.xss.iter()).take(self.n) {
+        for (xi, s) in x.iter_mut().zip(self.xss()) {
             *xi = s * u;
         }
         DiscreteState { x, u, u_prev: u }
@@ -371,11 +407,15 @@ impl Discrete {
     fn step_n<const N: usize>(&self, s: &mut DiscreteState, u_next: f64) -> Derivs {
         debug_assert_eq!(self.n, N);
         let du = u_next - s.u;
+        // The parts as slices of the known length N (one check here, none in the loops).
+        let (phi, rest) = self.coef.split_at(N * N);
+        let (g1, rest) = rest.split_at(N);
+        let g2 = &rest[..N];
         let mut x = [0.0; MAX_ORDER];
         for (i, xi) in x.iter_mut().enumerate().take(N) {
-            let mut acc = self.g1[i] * s.u + self.g2[i] * du;
+            let mut acc = g1[i] * s.u + g2[i] * du;
             for j in 0..N {
-                acc += self.phi[i][j] * s.x[j];
+                acc += phi[i * N + j] * s.x[j];
             }
             *xi = acc;
         }
@@ -408,10 +448,14 @@ impl Discrete {
     fn output_n<const N: usize>(&self, s: &DiscreteState, slope: f64, curv: f64) -> Derivs {
         let (mut y, mut dy, mut ddy) = (self.d * s.u, self.cb * s.u + self.d * slope, 0.0);
         ddy += self.cab * s.u + self.cb * slope + self.d * curv;
+        let rest = &self.coef[N * N + 2 * N..];
+        let (c, rest) = rest.split_at(N);
+        let (ca, rest) = rest.split_at(N);
+        let ca2 = &rest[..N];
         for i in 0..N {
-            y += self.c[i] * s.x[i];
-            dy += self.ca[i] * s.x[i];
-            ddy += self.ca2[i] * s.x[i];
+            y += c[i] * s.x[i];
+            dy += ca[i] * s.x[i];
+            ddy += ca2[i] * s.x[i];
         }
         Derivs { y, dy, ddy }
     }

@@ -111,7 +111,9 @@ macro_rules! each_model {
 ///
 /// An enum rather than a `Box<dyn Effect>`: the corrector calls every effect for every point,
 /// and a `match` on the kind lets each model's `correction` be inlined into that loop (no
-/// indirect call, no result returned through memory).
+/// indirect call, no result returned through memory). The larger models are boxed, so that
+/// every effect of a calibration does not take the room of the largest kind (a service keeps
+/// one model per machine).
 #[derive(Debug, Clone)]
 pub enum Model {
     /// [`accel_deflection`].
@@ -127,15 +129,15 @@ pub enum Model {
     /// [`probe_force`].
     ProbeForce(probe_force::Model),
     /// [`guide_straightness`].
-    GuideStraightness(guide_straightness::Model),
+    GuideStraightness(Box<guide_straightness::Model>),
     /// [`rigid_body`].
     RigidBody(Box<rigid_body::Model>),
     /// [`probe_lobing`].
     ProbeLobing(probe_lobing::Model),
     /// [`custom`].
-    Custom(custom::Model),
+    Custom(Box<custom::Model>),
     /// [`feature_map`].
-    FeatureMap(feature_map::Model),
+    FeatureMap(Box<feature_map::Model>),
 }
 
 impl Effect for Model {
@@ -270,11 +272,11 @@ impl EffectConfig {
             EffectConfig::StylusThermal(c) => Model::StylusThermal(c.build(sensors)?),
             EffectConfig::ScaleThermal(c) => Model::ScaleThermal(c.build(sensors)?),
             EffectConfig::ProbeForce(c) => Model::ProbeForce(c.build()?),
-            EffectConfig::GuideStraightness(c) => Model::GuideStraightness(c.build()?),
+            EffectConfig::GuideStraightness(c) => Model::GuideStraightness(Box::new(c.build()?)),
             EffectConfig::RigidBody(c) => Model::RigidBody(Box::new(c.build()?)),
             EffectConfig::ProbeLobing(c) => Model::ProbeLobing(c.build()?),
-            EffectConfig::Custom(c) => Model::Custom(c.build(sensors)?),
-            EffectConfig::FeatureMap(c) => Model::FeatureMap(c.build()?),
+            EffectConfig::Custom(c) => Model::Custom(Box::new(c.build(sensors)?)),
+            EffectConfig::FeatureMap(c) => Model::FeatureMap(Box::new(c.build()?)),
         };
         Ok(BuiltEffect {
             id: self.id(),
