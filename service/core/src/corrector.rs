@@ -198,7 +198,17 @@ pub struct Output {
 impl Output {
     /// Empties all lists, keeping their capacity (and the points' lists of corrections, for
     /// the next points).
+    #[inline]
     pub fn clear(&mut self) {
+        if !self.points.is_empty() {
+            self.recycle_points();
+        }
+        self.alarms.clear();
+        self.contexts.clear();
+    }
+
+    /// Empties the points, their lists of corrections kept for the next points.
+    fn recycle_points(&mut self) {
         // The lists are taken out in place (not each point moved out whole, then dropped).
         self.spare.extend(
             self.points
@@ -206,8 +216,6 @@ impl Output {
                 .map(|p| std::mem::take(&mut p.corrections)),
         );
         self.points.clear();
-        self.alarms.clear();
-        self.contexts.clear();
     }
 
     /// An empty list for a point's corrections: a cleared point's, or a new one.

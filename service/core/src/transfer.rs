@@ -403,7 +403,7 @@ impl Discrete {
     }
 
     /// [`Self::step`] for a model of order `N` (= `self.n`).
-    #[inline]
+    #[inline(always)]
     fn step_n<const N: usize>(&self, s: &mut DiscreteState, u_next: f64) -> Derivs {
         debug_assert_eq!(self.n, N);
         let du = u_next - s.u;
@@ -444,7 +444,7 @@ impl Discrete {
     }
 
     /// [`Self::output`] for a model of order `N` (= `self.n`).
-    #[inline]
+    #[inline(always)]
     fn output_n<const N: usize>(&self, s: &DiscreteState, slope: f64, curv: f64) -> Derivs {
         let (mut y, mut dy, mut ddy) = (self.d * s.u, self.cb * s.u + self.d * slope, 0.0);
         ddy += self.cab * s.u + self.cb * slope + self.d * curv;
