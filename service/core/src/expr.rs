@@ -747,18 +747,19 @@ impl Program {
         if self.n_regs <= SMALL_REGISTERS {
             let mut r = self.small_start;
             self.run(&mut r, input, out);
+        } else if self.n_regs <= STACK_REGISTERS {
+            let mut r = [0.0; STACK_REGISTERS];
+            self.run(self.with_consts(&mut r), input, out);
         } else {
-            let mut stack = [0.0; STACK_REGISTERS];
-            let mut heap = vec![];
-            let r = if self.n_regs <= STACK_REGISTERS {
-                &mut stack[..]
-            } else {
-                heap.resize(self.n_regs, 0.0);
-                &mut heap[..]
-            };
-            r[self.n_inputs..self.n_inputs + self.consts.len()].copy_from_slice(&self.consts);
-            self.run(r, input, out);
+            let mut r = vec![0.0; self.n_regs];
+            self.run(self.with_consts(&mut r), input, out);
         }
+    }
+
+    /// `r` with the constants in their registers.
+    fn with_consts<'r>(&self, r: &'r mut [f64]) -> &'r mut [f64] {
+        r[self.n_inputs..self.n_inputs + self.consts.len()].copy_from_slice(&self.consts);
+        r
     }
 
     /// Runs the steps on the register file `r` (at least `n_regs` long, the constants in
