@@ -235,6 +235,27 @@ fn invalid(field: impl Into<String>, reason: impl Into<String>) -> CalibError {
     }
 }
 
+/// What a built [`Model`] keeps of its calibration document besides what is built into its
+/// other fields (effects, tips, discretised nominal models, filter sections). The document
+/// itself is not kept: a service holds one model per machine, and the document's effect list,
+/// tips and nominal model would take about 4 KB of it twice. The document is in the store it
+/// came from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    /// The document's version: every corrected point names it.
+    pub version: u64,
+    /// Sample period of the command and scale streams, s.
+    pub sample_period_s: f64,
+    /// `geometry.min_contact_deflection_mm`.
+    pub min_contact_deflection_mm: f64,
+    /// Estimator-validity judgement settings.
+    pub judgement: Judgement,
+    /// Stream-join settings.
+    pub join: Join,
+    /// Plausibility ranges.
+    pub limits: Limits,
+}
+
 /// A few entries by key, in key order: a sorted list (a calibration has a few tips and probe
 /// types). A service keeps a model per machine, and a `BTreeMap` takes a node of eleven
 /// entries for the first one (about 1 KB for one tip).
@@ -287,8 +308,9 @@ impl<K: Ord + std::borrow::Borrow<Q>, Q: Ord + ?Sized, V> std::ops::Index<&Q> fo
 /// The built, runnable form of a calibration.
 #[derive(Debug)]
 pub struct Model {
-    /// The document it was built from.
-    pub doc: Calibration,
+    /// The document's settings the corrector reads as it runs (the document itself is not
+    /// kept: see [`Settings`]).
+    pub settings: Settings,
     /// Discretised G_N per probe type, per axis.
     pub nominal: Table<String, Arc<[Discrete; 3]>>,
     /// Tips by id.
@@ -571,7 +593,14 @@ impl Calibration {
             .sqrt();
         let ns = |s: f64| (s * 1e9).round() as i64;
         Ok(Model {
-            doc: self.clone(),
+            settings: Settings {
+                version: self.version,
+                sample_period_s: self.sample_period_s,
+                min_contact_deflection_mm: self.geometry.min_contact_deflection_mm,
+                judgement: self.judgement.clone(),
+                join: self.join.clone(),
+                limits: self.limits.clone(),
+            },
             nominal: nominal.into(),
             tips: tips.into(),
             effects,

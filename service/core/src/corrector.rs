@@ -28,7 +28,7 @@
 //! Synthesis: tip centre = scales + Σ corrections + R·deflection + R·tip offset;
 //! surface point = tip centre − tip radius · n, n = deflection direction (out of the material).
 
-use crate::calib::{CalibError, Calibration, Model};
+use crate::calib::{CalibError, Calibration, Model, Settings};
 use crate::effects::{BuiltEffect, Effect};
 use crate::estimator::{rotation_with, Estimate, Estimator};
 use crate::judge::Judge;
@@ -298,8 +298,8 @@ impl Corrector {
     pub fn with_model(model: Arc<Model>) -> Corrector {
         let judge = Judge::new(
             model.filter.clone(),
-            model.doc.judgement.threshold_mm_s2,
-            model.doc.judgement.clear_fraction,
+            model.settings.judgement.threshold_mm_s2,
+            model.settings.judgement.clear_fraction,
             model.raise_samples,
             model.clear_samples,
         );
@@ -350,10 +350,9 @@ impl Corrector {
         self.model
             .effects
             .iter()
-            .zip(&self.model.doc.effects)
             .zip(&self.stats.effect_points)
-            .filter(|((_, doc), n)| **n == 0 && doc.params().iter().any(|p| *p != 0.0))
-            .map(|((e, _), _)| e.id.clone())
+            .filter(|(e, n)| **n == 0 && e.has_params)
+            .map(|(e, _)| e.id.clone())
             .collect()
     }
 
@@ -362,9 +361,9 @@ impl Corrector {
         self.record_context = on;
     }
 
-    /// The calibration in force.
-    pub fn calibration(&self) -> &Calibration {
-        &self.model.doc
+    /// The settings of the calibration in force (its version among them).
+    pub fn settings(&self) -> &Settings {
+        &self.model.settings
     }
 
     /// Effect ids in the order of [`CorrectedPoint::corrections`].
@@ -406,14 +405,16 @@ impl Corrector {
     /// estimator keeps running when the nominal model is unchanged and restarts (points
     /// flagged invalid while it settles) when it changed.
     pub fn set_model(&mut self, model: Arc<Model>) {
-        if model.doc.nominal != self.model.doc.nominal
-            || model.doc.sample_period_s != self.model.doc.sample_period_s
+        // The discretised models decide what the estimator does: equal bit for bit, its state
+        // carries over.
+        if model.nominal != self.model.nominal
+            || model.settings.sample_period_s != self.model.settings.sample_period_s
         {
             self.estimator = None;
             self.probe_type.clear();
         }
         self.probe_tip = None;
-        let j = &model.doc.judgement;
+        let j = &model.settings.judgement;
         self.judge.reconfigure(
             model.filter.clone(),
             j.threshold_mm_s2,
@@ -447,7 +448,7 @@ impl Corrector {
 
     /// The bound on samples waiting per stream in force.
     pub fn max_pending(&self) -> usize {
-        let m = self.model.doc.join.max_pending.max(1);
+        let m = self.model.settings.join.max_pending.max(1);
         self.pending_limit.map_or(m, |l| l.min(m))
     }
 
@@ -506,7 +507,7 @@ impl Corrector {
         if behind && sample.is_finite() {
             self.probation.push(sample);
             self.probation_n[k] += 1;
-            if self.probation_n[k] >= self.model.doc.join.clock_reset_samples {
+            if self.probation_n[k] >= self.model.settings.join.clock_reset_samples {
                 self.reset_clock(out);
             }
             return;
@@ -524,7 +525,7 @@ impl Corrector {
             // The sequence went back while time runs on: a wrap or restart of the counter,
             // or the samples after a bogus jump; held until enough in a row confirm it.
             self.seq_hold[k].push(sample);
-            if self.seq_hold[k].len() >= self.model.doc.join.seq_reset_samples {
+            if self.seq_hold[k].len() >= self.model.settings.join.seq_reset_samples {
                 self.stats.seq_resets += 1;
                 self.intake[k].last_seq = None;
                 for s in std::mem::take(&mut self.seq_hold[k]) {
@@ -931,9 +932,9 @@ impl Corrector {
             self.judge.restart();
         }
         self.last_judged_t = Some(t);
-        let version = model.doc.version;
-        let action = model.doc.judgement.action;
-        let threshold = model.doc.judgement.threshold_mm_s2;
+        let version = model.settings.version;
+        let action = model.settings.judgement.action;
+        let threshold = model.settings.judgement.threshold_mm_s2;
         let (alarm_seq, stats) = (&mut self.alarm_seq, &mut self.stats);
         self.judge.update(t, s.pos, est.acc, settled, &mut |tr| {
             if tr.raised {
@@ -961,7 +962,7 @@ impl Corrector {
             &ctx,
             &model.effects,
             suspend,
-            model.doc.geometry.min_contact_deflection_mm,
+            model.settings.min_contact_deflection_mm,
             &mut corrections,
         );
         if !inside(&point, &corrections, model) {
@@ -999,7 +1000,7 @@ impl Corrector {
 
 /// Whether a sample's values lie in the machine's plausible ranges; its name in the grammar.
 fn plausible(s: &Sample, m: &Model) -> Result<(), DropReason> {
-    let l = &m.doc.limits;
+    let l = &m.settings.limits;
     let in_travel = |p: &Vec3| within_box(p, &l.travel_mm);
     let ok = match s {
         Sample::Command(c) => {
@@ -1030,7 +1031,7 @@ fn plausible(s: &Sample, m: &Model) -> Result<(), DropReason> {
 /// Whether a corrected point is finite, inside the machine's volume and every correction
 /// within `limits.max_correction_mm`.
 fn inside(p: &Geometry, corrections: &[Vec3], m: &Model) -> bool {
-    let max_c = m.doc.limits.max_correction_mm;
+    let max_c = m.settings.limits.max_correction_mm;
     // Every test evaluated (`&`, not `&&`): no branch per coordinate on the hot path.
     within_box(&p.surface, &m.volume_mm)
         & within_box(&p.tip_center, &m.volume_mm)

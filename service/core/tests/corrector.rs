@@ -261,6 +261,33 @@ fn calibration_switch_mid_stream_loses_nothing() {
     assert!(out.points[n1..].iter().all(|p| p.estimator_valid));
 }
 
+#[test]
+fn calibration_switch_to_another_nominal_model_restarts_the_estimator() {
+    let streams = ring_streams(1000, 25.0, 1.5, 0.3);
+    let samples = time_ordered(&streams);
+    let cal1 = calibration();
+    let mut cal2 = calibration();
+    cal2.version = 2;
+    cal2.nominal.axes.x = transfer::TransferFunction::FirstOrder { tau_s: 0.02 };
+    let mut corr = Corrector::new(&cal1).unwrap();
+    let mut out = Output::default();
+    let half = samples.len() / 2;
+    corr.push_all(samples[..half].iter().cloned(), &mut out);
+    let n1 = out.points.len();
+    assert!(
+        out.points[n1 - 1].estimator_valid,
+        "settled before the switch"
+    );
+    corr.set_model(std::sync::Arc::new(cal2.build().unwrap()));
+    corr.push_all(samples[half..].iter().cloned(), &mut out);
+    corr.flush(&mut out);
+    assert_eq!(out.points.len(), 1000, "{:?}", corr.stats());
+    // Another nominal model: the estimator restarts, its first points flagged while it
+    // settles, then valid again.
+    assert!(!out.points[n1].estimator_valid);
+    assert!(out.points.last().unwrap().estimator_valid);
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
 

@@ -782,7 +782,7 @@ impl State {
                 .as_ref()
                 .map(|c| c.effect_ids())
                 .unwrap_or_default();
-            info!(machine = name, version = ?corrector.as_ref().map(|c| c.calibration().version), "serving machine");
+            info!(machine = name, version = ?corrector.as_ref().map(|c| c.settings().version), "serving machine");
             let outbox = Arc::new(Outbox::new(
                 points,
                 alarms,

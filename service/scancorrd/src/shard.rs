@@ -687,7 +687,7 @@ fn snap(m: &Core) -> Snap {
     Snap {
         core: m.corrector.as_ref().map(|c| CoreSnap {
             stats: c.stats().clone(),
-            version: c.calibration().version,
+            version: c.settings().version,
             pending: c.pending(),
             watermarks: c.watermarks(),
             inactive: c.inactive_effects(),

@@ -84,6 +84,9 @@ pub struct BuiltEffect {
     /// Dynamic effects depend on the estimated motion and are left out while an estimator
     /// alarm with action `suspend` is raised.
     pub dynamic: bool,
+    /// Whether any of its parameters is non-zero (an effect with none cannot contribute, so
+    /// it is not reported inactive for contributing nothing).
+    pub has_params: bool,
     /// The model.
     pub model: Model,
 }
@@ -281,6 +284,7 @@ impl EffectConfig {
         Ok(BuiltEffect {
             id: self.id(),
             dynamic: self.is_dynamic(),
+            has_params: self.params().iter().any(|p| *p != 0.0),
             model,
         })
     }
