@@ -235,10 +235,34 @@ pub fn decode_machine_tagged(
     tags: Tags,
     out: &mut Vec<Sample>,
 ) -> Result<u64, WireError> {
+    decode_machine_each(stream, bytes, machine, tags, |s| out.push(s))
+}
+
+/// [`decode_machine_tagged`] handing each sample of `machine` to `f` as it is decoded (a
+/// service pushes them straight into its corrector). Nothing is handed to `f` unless the
+/// whole batch decodes. Returns how many samples named another machine.
+pub fn decode_machine_each(
+    stream: StreamId,
+    bytes: &[u8],
+    machine: &str,
+    tags: Tags,
+    mut f: impl FnMut(Sample),
+) -> Result<u64, WireError> {
     let mut foreign = 0;
+    // A batch of packed columns names its machine once, and hands that one name with each
+    // sample: compared once.
+    let mut last: Option<(*const u8, usize, bool)> = None;
     decode_with_tags(stream, bytes, tags, |m, s| {
-        if m == machine {
-            out.push(s)
+        let mine = match last {
+            Some((p, n, mine)) if p == m.as_ptr() && n == m.len() => mine,
+            _ => {
+                let mine = m == machine;
+                last = Some((m.as_ptr(), m.len(), mine));
+                mine
+            }
+        };
+        if mine {
+            f(s)
         } else {
             foreign += 1
         }

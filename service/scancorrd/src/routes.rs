@@ -13,13 +13,20 @@ use scancorr_core::sample::StreamId;
 use scancorr_core::wire;
 use scancorr_proto::Stream;
 use std::collections::HashMap;
-use std::sync::Mutex;
-use std::time::Instant;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{RwLock, RwLockReadGuard, RwLockWriteGuard};
+use std::time::{Duration, Instant};
 
 /// The routing table shared by the subscriber's callback and the control task.
+///
+/// zenoh calls back on one thread per link, so the table is read-locked on the hot path (the
+/// callbacks do not wait for each other) and the arrival times are atomics; only a message
+/// for the control task, and the control task's changes, take the write lock.
 pub(crate) struct Routes {
     prefix: String,
-    table: Mutex<Table>,
+    /// What the arrival times count from.
+    epoch: Instant,
+    table: RwLock<Table>,
 }
 
 #[derive(Default)]
@@ -35,20 +42,52 @@ struct Route {
     shard: flume::Sender<Job>,
     /// The machine's slot on its shard.
     slot: usize,
-    /// When the newest message of each stream arrived.
-    last_arrival: [Option<Instant>; 4],
+    /// When the newest message of each stream arrived: ns since `epoch` + 1, 0 for never.
+    last_arrival: [AtomicU64; 4],
+}
+
+impl Route {
+    fn arrived(&self, epoch: Instant, sid: StreamId, at: Instant) {
+        let ns = at.saturating_duration_since(epoch).as_nanos() as u64;
+        self.last_arrival[sid as usize].fetch_max(ns.saturating_add(1), Ordering::Relaxed);
+    }
+
+    fn last_arrival(&self, epoch: Instant) -> [Option<Instant>; 4] {
+        self.last_arrival
+            .each_ref()
+            .map(|a| match a.load(Ordering::Relaxed) {
+                0 => None,
+                ns => Some(epoch + Duration::from_nanos(ns - 1)),
+            })
+    }
+}
+
+impl Table {
+    /// The shard and slot of a message of `machine` on `stream` that may go straight to its
+    /// shard (served, and none of its messages waiting at the control task).
+    fn direct(&self, machine: &str, stream: Stream) -> Option<(&Route, StreamId)> {
+        if self.closed || self.at_control.contains_key(machine) {
+            return None;
+        }
+        Some((self.routes.get(machine)?, wire::stream_id(stream)?))
+    }
 }
 
 impl Routes {
     pub(crate) fn new(prefix: &str) -> Routes {
         Routes {
             prefix: prefix.to_string(),
-            table: Mutex::default(),
+            epoch: Instant::now(),
+            table: RwLock::default(),
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, Table> {
-        self.table.lock().unwrap_or_else(|e| e.into_inner())
+    fn read(&self) -> RwLockReadGuard<'_, Table> {
+        self.table.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn write(&self) -> RwLockWriteGuard<'_, Table> {
+        self.table.write().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Sends a raw message of a served machine to its shard; returns the message when it is
@@ -61,31 +100,45 @@ impl Routes {
         let Some((machine, stream)) = Stream::parse_key(&self.prefix, s.key_expr().as_str()) else {
             return Some(s);
         };
-        let mut t = self.lock();
-        if !t.closed && !t.at_control.contains_key(machine) {
-            if let (Some(sid), Some(r)) = (wire::stream_id(stream), t.routes.get_mut(machine)) {
-                r.last_arrival[sid as usize] = Some(arrived);
-                let (shard, slot) = (r.shard.clone(), r.slot);
-                drop(t);
-                let job = Job::Raw {
-                    slot,
-                    stream: sid,
-                    bytes: s.payload().to_bytes().into_owned(),
-                    arrived,
-                };
-                // A closed queue: the service is stopping.
-                let _ = shard.send(job);
-                return None;
+        let to = {
+            let t = self.read();
+            t.direct(machine, stream).map(|(r, sid)| {
+                r.arrived(self.epoch, sid, arrived);
+                (r.shard.clone(), r.slot, sid)
+            })
+        };
+        let to = match to {
+            Some(to) => to,
+            None => {
+                // Decided again under the write lock: the table may have changed.
+                let mut t = self.write();
+                match t.direct(machine, stream) {
+                    Some((r, sid)) => {
+                        r.arrived(self.epoch, sid, arrived);
+                        (r.shard.clone(), r.slot, sid)
+                    }
+                    None => {
+                        *t.at_control.entry(machine.to_string()).or_default() += 1;
+                        return Some(s);
+                    }
+                }
             }
-        }
-        *t.at_control.entry(machine.to_string()).or_default() += 1;
-        drop(t);
-        Some(s)
+        };
+        let (shard, slot, stream) = to;
+        let job = Job::Raw {
+            slot,
+            stream,
+            bytes: s.payload().to_bytes().into_owned(),
+            arrived,
+        };
+        // A closed queue: the service is stopping.
+        let _ = shard.send(job);
+        None
     }
 
     /// The control task is done with a message of `machine` (the one `route` gave it).
     pub(crate) fn done(&self, machine: &str) {
-        let mut t = self.lock();
+        let mut t = self.write();
         if let Some(n) = t.at_control.get_mut(machine) {
             *n -= 1;
             if *n == 0 {
@@ -96,44 +149,44 @@ impl Routes {
 
     /// Routes `machine`'s messages to `shard` from now on (its state is in `slot` there).
     pub(crate) fn add(&self, machine: &str, shard: flume::Sender<Job>, slot: usize) {
-        self.lock().routes.insert(
+        self.write().routes.insert(
             machine.to_string(),
             Route {
                 shard,
                 slot,
-                last_arrival: [None; 4],
+                last_arrival: Default::default(),
             },
         );
     }
 
     /// Notes a message that reached the shard through the control task.
     pub(crate) fn arrived(&self, machine: &str, sid: StreamId, at: Instant) {
-        if let Some(r) = self.lock().routes.get_mut(machine) {
-            r.last_arrival[sid as usize] = Some(at);
+        if let Some(r) = self.read().routes.get(machine) {
+            r.arrived(self.epoch, sid, at);
         }
     }
 
     /// When the newest message of each stream of `machine` arrived.
     pub(crate) fn last_arrival(&self, machine: &str) -> [Option<Instant>; 4] {
-        self.lock()
+        self.read()
             .routes
             .get(machine)
-            .map(|r| r.last_arrival)
+            .map(|r| r.last_arrival(self.epoch))
             .unwrap_or_default()
     }
 
     /// Every machine's [`Routes::last_arrival`].
     pub(crate) fn last_arrivals(&self) -> HashMap<String, [Option<Instant>; 4]> {
-        self.lock()
+        self.read()
             .routes
             .iter()
-            .map(|(k, r)| (k.clone(), r.last_arrival))
+            .map(|(k, r)| (k.clone(), r.last_arrival(self.epoch)))
             .collect()
     }
 
     /// Stops routing to the shards (and lets go of their queues).
     pub(crate) fn close(&self) {
-        let mut t = self.lock();
+        let mut t = self.write();
         t.closed = true;
         t.routes.clear();
     }

@@ -554,7 +554,6 @@ pub(crate) fn spawn(
                 ready: Vec::new(),
                 lanes: Lanes::new(k),
                 out: Output::default(),
-                samples: Vec::new(),
                 limits,
             };
             loop {
@@ -586,7 +585,6 @@ struct Shard {
     ready: Vec<Arc<Outbox>>,
     lanes: Arc<Lanes>,
     out: Output,
-    samples: Vec<scancorr_core::sample::Sample>,
     limits: Limits,
 }
 
@@ -619,7 +617,6 @@ impl Shard {
                     &bytes,
                     arrived,
                     &self.limits,
-                    &mut self.samples,
                     &mut self.out,
                     &mut self.ready,
                 );
@@ -710,13 +707,22 @@ fn on_raw(
     bytes: &[u8],
     arrived: Instant,
     limits: &Limits,
-    samples: &mut Vec<scancorr_core::sample::Sample>,
     out: &mut Output,
     ready: &mut Vec<Arc<Outbox>>,
 ) {
     m.extra.messages += 1;
-    samples.clear();
-    match wire::decode_machine_tagged(sid, bytes, machine, limits.tags, samples) {
+    // Decoded straight into the corrector (nothing is handed over unless the whole batch
+    // decodes); without a calibration, only counted.
+    let mut uncorrected = 0u64;
+    let corr = m.corrector.as_mut();
+    let (resets, seq_resets) = corr
+        .as_ref()
+        .map_or((0, 0), |c| (c.stats().clock_resets, c.stats().seq_resets));
+    let decoded = match corr {
+        Some(c) => wire::decode_machine_each(sid, bytes, machine, limits.tags, |x| c.push(x, out)),
+        None => wire::decode_machine_each(sid, bytes, machine, limits.tags, |_| uncorrected += 1),
+    };
+    match decoded {
         Ok(f) => m.extra.wrong_machine += f,
         Err(wire::WireError::Empty(_)) => m.extra.empty += 1,
         Err(e) => {
@@ -732,13 +738,9 @@ fn on_raw(
         }
     }
     let Some(corr) = m.corrector.as_mut() else {
-        m.extra.no_calibration += samples.len() as u64;
+        m.extra.no_calibration += uncorrected;
         return;
     };
-    let (resets, seq_resets) = (corr.stats().clock_resets, corr.stats().seq_resets);
-    for x in samples.drain(..) {
-        corr.push(x, out);
-    }
     // What waits for the other streams keeps its room; the room of a batch gone through is
     // given back, not kept per machine until its next batch.
     corr.trim();
