@@ -411,15 +411,17 @@ impl Discrete {
         let (phi, rest) = self.coef.split_at(N * N);
         let (g1, rest) = rest.split_at(N);
         let g2 = &rest[..N];
-        let mut x = [0.0; MAX_ORDER];
-        for (i, xi) in x.iter_mut().enumerate().take(N) {
+        // The new state computed whole from the old, then its N entries stored (the others
+        // stay zero).
+        let mut x = [0.0; N];
+        for (i, xi) in x.iter_mut().enumerate() {
             let mut acc = g1[i] * s.u + g2[i] * du;
             for j in 0..N {
                 acc += phi[i * N + j] * s.x[j];
             }
             *xi = acc;
         }
-        s.x = x;
+        s.x[..N].copy_from_slice(&x);
         let slope = du * self.inv_period_s;
         let curv = (u_next - 2.0 * s.u + s.u_prev) * self.inv_period2;
         s.u_prev = s.u;
