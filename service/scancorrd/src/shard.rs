@@ -534,7 +534,7 @@ pub(crate) fn corrector(model: Arc<Model>, limits: &Limits) -> Corrector {
 }
 
 /// At most this many jobs are run before the points they completed are handed to the
-/// outboxes (sooner when the queue runs empty): under load a machine's messages of one burst
+/// outboxes (sooner when the jobs taken run out): under load a machine's messages of one burst
 /// become one publication, and one wake-up of a lane serves many machines.
 const BATCH_JOBS: usize = 64;
 
@@ -566,8 +566,13 @@ pub(crate) fn spawn(
                     Err(flume::RecvTimeoutError::Disconnected) => break,
                 };
                 shard.run(job);
-                for job in jobs.try_iter().take(BATCH_JOBS) {
+                // What waits is taken at once (one lock, and senders held up by a full queue
+                // are let go together, not one per job as it is taken), and run in batches.
+                for (n, job) in jobs.drain().enumerate() {
                     shard.run(job);
+                    if n % BATCH_JOBS == BATCH_JOBS - 1 {
+                        shard.hand_over();
+                    }
                 }
                 shard.hand_over();
             }
