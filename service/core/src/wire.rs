@@ -526,14 +526,45 @@ fn packed_fields(bytes: &[u8], columns: usize) -> Option<(i32, &str, [&[u8]; 12]
     Some((tag, machine.unwrap_or(""), c))
 }
 
-/// How many varints a packed column holds; `None` when one is not a varint.
-fn varints(mut b: &[u8]) -> Option<usize> {
-    let mut n = 0;
-    while !b.is_empty() {
-        scancorr_proto::prost::encoding::decode_varint(&mut b).ok()?;
-        n += 1;
+/// How many varints a packed column holds; `None` when one is not a varint. The same
+/// refusals as prost's `decode_varint`: a value ends at a byte below 0x80 within ten bytes, and
+/// the tenth byte of a ten-byte value is 0 or 1 (no overflow of 64 bits). One pass over the
+/// bytes, no value computed: a column is counted before any of it is handed out.
+fn varints(b: &[u8]) -> Option<usize> {
+    let (mut n, mut run) = (0, 0);
+    for &x in b {
+        if x < 0x80 {
+            if run == 9 && x > 1 {
+                return None;
+            }
+            n += 1;
+            run = 0;
+        } else {
+            run += 1;
+            if run == 10 {
+                return None;
+            }
+        }
     }
-    Some(n)
+    (run == 0).then_some(n)
+}
+
+/// The next varint of `b` (prost's value and refusals, see [`varints`]), inline: the values of
+/// a column are read one per sample.
+#[inline(always)]
+fn next_varint(b: &mut &[u8]) -> Option<u64> {
+    let mut v = 0u64;
+    for (i, &x) in b.iter().enumerate().take(10) {
+        v |= u64::from(x & 0x7f) << (7 * i);
+        if x < 0x80 {
+            if i == 9 && x > 1 {
+                return None;
+            }
+            *b = &b[i + 1..];
+            return Some(v);
+        }
+    }
+    None
 }
 
 /// How many doubles a packed column holds; `None` when its length is not a multiple of 8.
@@ -547,11 +578,9 @@ struct Varints<'a>(&'a [u8]);
 
 impl Iterator for Varints<'_> {
     type Item = u64;
+    #[inline]
     fn next(&mut self) -> Option<u64> {
-        if self.0.is_empty() {
-            return None;
-        }
-        scancorr_proto::prost::encoding::decode_varint(&mut self.0).ok()
+        next_varint(&mut self.0)
     }
 }
 
@@ -1660,6 +1689,36 @@ mod tests {
 
         proptest! {
             #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+            /// A packed varint column is counted and read as prost reads it: the same count
+            /// and values, and refused exactly when prost refuses one of its values.
+            #[test]
+            fn varint_columns_read_as_prost_reads_them(
+                bytes in prop::collection::vec(
+                    prop_oneof![0u8..2, 2u8..0x80, 0x80u8..=0xff, Just(0xffu8)], 0..40),
+            ) {
+                let mut b = &bytes[..];
+                let mut want = vec![];
+                let ok = loop {
+                    if b.is_empty() {
+                        break true;
+                    }
+                    match scancorr_proto::prost::encoding::decode_varint(&mut b) {
+                        Ok(v) => want.push(v),
+                        Err(_) => break false,
+                    }
+                };
+                match varints(&bytes) {
+                    Some(n) => {
+                        prop_assert!(ok, "{bytes:02x?} counted, prost refuses it");
+                        prop_assert_eq!(n, want.len());
+                        let got: Vec<u64> = Varints(&bytes).collect();
+                        prop_assert_eq!(got, want);
+                    }
+                    None => prop_assert!(!ok, "{bytes:02x?} refused, prost reads it"),
+                }
+            }
+
 
             /// Every strict prefix of a packed batch is refused, and no byte changed anywhere
             /// makes the decoder panic or hand out samples of a batch it then refuses.
