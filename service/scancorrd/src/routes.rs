@@ -20,8 +20,9 @@ use std::time::{Duration, Instant};
 /// The routing table shared by the subscriber's callback and the control task.
 ///
 /// zenoh calls back on one thread per link, so the table is read-locked on the hot path (the
-/// callbacks do not wait for each other) and the arrival times are atomics; only a message
-/// for the control task, and the control task's changes, take the write lock.
+/// callbacks of served machines' messages do not wait for each other) and the arrival times
+/// are atomics; a message for the control task (a machine not served yet, refused, or served
+/// elsewhere), and the control task's changes, take the write lock.
 pub(crate) struct Routes {
     prefix: String,
     /// What the arrival times count from.

@@ -534,7 +534,7 @@ pub(crate) fn corrector(model: Arc<Model>, limits: &Limits) -> Corrector {
 }
 
 /// At most this many jobs are run before the points they completed are handed to the
-/// outboxes (sooner when the jobs taken run out): under load a machine's messages of one burst
+/// outboxes (sooner when the queue runs empty): under load a machine's messages of one burst
 /// become one publication, and one wake-up of a lane serves many machines.
 const BATCH_JOBS: usize = 64;
 
@@ -566,13 +566,12 @@ pub(crate) fn spawn(
                     Err(flume::RecvTimeoutError::Disconnected) => break,
                 };
                 shard.run(job);
-                // What waits is taken at once (one lock, and senders held up by a full queue
-                // are let go together, not one per job as it is taken), and run in batches.
-                for (n, job) in jobs.drain().enumerate() {
+                // One job at a time, not `drain()`: each job taken lets one routing thread held
+                // up by a full queue put its job in, in the order they waited. A drain would
+                // empty the queue without letting them in, and a later job (a swap, a flush at
+                // shutdown) could then overtake theirs.
+                for job in jobs.try_iter().take(BATCH_JOBS) {
                     shard.run(job);
-                    if n % BATCH_JOBS == BATCH_JOBS - 1 {
-                        shard.hand_over();
-                    }
                 }
                 shard.hand_over();
             }
