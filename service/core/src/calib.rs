@@ -244,8 +244,6 @@ fn invalid(field: impl Into<String>, reason: impl Into<String>) -> CalibError {
 pub struct Settings {
     /// The document's version: every corrected point names it.
     pub version: u64,
-    /// Sample period of the command and scale streams, s.
-    pub sample_period_s: f64,
     /// `geometry.min_contact_deflection_mm`.
     pub min_contact_deflection_mm: f64,
     /// Estimator-validity judgement settings.
@@ -595,7 +593,6 @@ impl Calibration {
         Ok(Model {
             settings: Settings {
                 version: self.version,
-                sample_period_s: self.sample_period_s,
                 min_contact_deflection_mm: self.geometry.min_contact_deflection_mm,
                 judgement: self.judgement.clone(),
                 join: self.join.clone(),

@@ -405,11 +405,9 @@ impl Corrector {
     /// estimator keeps running when the nominal model is unchanged and restarts (points
     /// flagged invalid while it settles) when it changed.
     pub fn set_model(&mut self, model: Arc<Model>) {
-        // The discretised models decide what the estimator does: equal bit for bit, its state
-        // carries over.
-        if model.nominal != self.model.nominal
-            || model.settings.sample_period_s != self.model.settings.sample_period_s
-        {
+        // The discretised models (their sample period among their fields) decide what the
+        // estimator does: equal bit for bit, its state carries over.
+        if model.nominal != self.model.nominal {
             self.estimator = None;
             self.probe_type.clear();
         }

@@ -118,13 +118,19 @@ fn reduce(x: f64) -> (u32, f64, f64) {
     ((f as i64 & 3) as u32, y0, y1)
 }
 
+/// `reduce(x)` where it applies (|x| < [`MEDIUM`]); `None` beyond, and for NaN, where the
+/// standard library answers.
+#[inline]
+fn reduced(x: f64) -> Option<(u32, f64, f64)> {
+    (x.abs() < MEDIUM).then(|| reduce(x))
+}
+
 /// (sin x, cos x).
 #[inline]
 pub fn sin_cos(x: f64) -> (f64, f64) {
-    if x.is_nan() || x.abs() >= MEDIUM {
+    let Some((n, y0, y1)) = reduced(x) else {
         return x.sin_cos();
-    }
-    let (n, y0, y1) = reduce(x);
+    };
     let (s, c) = (kernel_sin(y0, y1), kernel_cos(y0, y1));
     match n {
         0 => (s, c),
@@ -137,10 +143,9 @@ pub fn sin_cos(x: f64) -> (f64, f64) {
 /// sin x (bit for bit `sin_cos(x).0`).
 #[inline]
 pub fn sin(x: f64) -> f64 {
-    if x.is_nan() || x.abs() >= MEDIUM {
+    let Some((n, y0, y1)) = reduced(x) else {
         return x.sin();
-    }
-    let (n, y0, y1) = reduce(x);
+    };
     match n {
         0 => kernel_sin(y0, y1),
         1 => kernel_cos(y0, y1),
@@ -152,10 +157,9 @@ pub fn sin(x: f64) -> f64 {
 /// cos x (bit for bit `sin_cos(x).1`).
 #[inline]
 pub fn cos(x: f64) -> f64 {
-    if x.is_nan() || x.abs() >= MEDIUM {
+    let Some((n, y0, y1)) = reduced(x) else {
         return x.cos();
-    }
-    let (n, y0, y1) = reduce(x);
+    };
     match n {
         0 => kernel_cos(y0, y1),
         1 => -kernel_sin(y0, y1),

@@ -1750,7 +1750,6 @@ mod tests {
                 prop_assert_eq!(ours, prost, "{:02x?}", bytes);
             }
 
-
             /// Every strict prefix of a packed batch is refused, and no byte changed anywhere
             /// makes the decoder panic or hand out samples of a batch it then refuses.
             #[test]

@@ -718,14 +718,15 @@ fn on_raw(
     // Decoded straight into the corrector (nothing is handed over unless the whole batch
     // decodes); without a calibration, only counted.
     let mut uncorrected = 0u64;
-    let corr = m.corrector.as_mut();
+    let mut corr = m.corrector.as_mut();
     let (resets, seq_resets) = corr
         .as_ref()
         .map_or((0, 0), |c| (c.stats().clock_resets, c.stats().seq_resets));
-    let decoded = match corr {
-        Some(c) => wire::decode_machine_each(sid, bytes, machine, limits.tags, |x| c.push(x, out)),
-        None => wire::decode_machine_each(sid, bytes, machine, limits.tags, |_| uncorrected += 1),
-    };
+    let decoded =
+        wire::decode_machine_each(sid, bytes, machine, limits.tags, |x| match corr.as_mut() {
+            Some(c) => c.push(x, out),
+            None => uncorrected += 1,
+        });
     match decoded {
         Ok(f) => m.extra.wrong_machine += f,
         Err(wire::WireError::Empty(_)) => m.extra.empty += 1,
