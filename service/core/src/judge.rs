@@ -288,6 +288,39 @@ mod tests {
         assert!(!events[1].1, "{events:?}");
     }
 
+    /// An axis that moves, then stands still: its filters' states reach zero, never a
+    /// subnormal number (an operation on one takes a microcode assist, about a hundred times
+    /// a normal one's time).
+    #[test]
+    fn a_still_axis_leaves_no_subnormal_filter_state() {
+        let sections = Coefficients::butterworth(1000.0, 40.0, 4).unwrap();
+        let mut j = Judge::new(sections, 100.0, 0.5, 4, 50);
+        let (mut x, mut v) = (0.0, 0.0);
+        for k in 0..20_000i64 {
+            // Accelerates for 0.2 s, then stops dead and stays.
+            let a = if k < 200 { 500.0 } else { 0.0 };
+            v = if k < 200 { v + a * 1e-3 } else { 0.0 };
+            x += v * 1e-3;
+            j.update(
+                k * 1_000_000,
+                Vec3::new(x, 0.0, 0.0),
+                Vec3::new(a, 0.0, 0.0),
+                true,
+                &mut |_| (),
+            );
+            for st in &j.states {
+                for s in st.states() {
+                    assert!(!s.is_subnormal(), "a subnormal state {s:e} at sample {k}");
+                }
+            }
+        }
+        assert!(
+            j.states.iter().all(|st| st.states().all(|s| s == 0.0)),
+            "{:?}",
+            j.states
+        );
+    }
+
     #[test]
     fn noise_alone_does_not_raise() {
         let sections = Coefficients::butterworth(1000.0, 40.0, 4).unwrap();

@@ -28,6 +28,7 @@ pub mod corrector;
 pub mod effects;
 pub mod estimator;
 pub mod expr;
+pub mod flush;
 pub mod judge;
 pub mod lab;
 pub mod sample;

@@ -10,7 +10,8 @@
 //! Source idea: a commanded scan path is piecewise smooth and densely sampled, so the
 //! triangle-hold discretisation reproduces the continuous response at the sample instants
 //! exactly for ramps (and to O(T²) for curves), unlike zero-order hold. Coefficients are
-//! validated and kept apart from filter state (as in the `biquad` crate).
+//! validated and kept apart from filter state (as in the `biquad` crate). A state that has
+//! decayed below [`crate::flush::BELOW`] is set to zero ([`crate::flush`]).
 
 use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
@@ -421,6 +422,10 @@ impl Discrete {
             }
             *xi = acc;
         }
+        if crate::flush::negligible(&x) {
+            // Decayed to nothing (an axis resting at 0 mm): zero, never subnormal.
+            x = [0.0; N];
+        }
         s.x[..N].copy_from_slice(&x);
         let slope = du * self.inv_period_s;
         let curv = (u_next - 2.0 * s.u + s.u_prev) * self.inv_period2;
@@ -512,6 +517,38 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// An axis that moves and then rests at exactly zero: the model's state decays to zero
+    /// and reaches it, never holding a subnormal number (an operation on one takes a
+    /// microcode assist, about a hundred times a normal one's time).
+    #[test]
+    fn a_state_decaying_to_zero_is_never_subnormal() {
+        let t = 0.001;
+        let lag = |tau: f64| {
+            TransferFunction::FirstOrder { tau_s: tau }
+                .rational()
+                .unwrap()
+        };
+        let second = |a: f64, b: f64| Discrete::new(&lag(a).mul(&lag(b)), t).unwrap();
+        let models = [second(0.012, 0.002), second(0.015, 0.002), first(0.010, t)];
+        let mut states = [0, 1, 2].map(|i| models[i].steady(0.0));
+        for k in 0..40_000 {
+            let u = if (10..300).contains(&k) { 25.0 } else { 0.0 };
+            Discrete::step3(&models, &mut states, [u; 3]);
+            for (i, s) in states.iter().enumerate() {
+                for x in &s.x[..models[i].n] {
+                    assert!(
+                        !x.is_subnormal(),
+                        "axis {i}: a subnormal state {x:e} at {k}"
+                    );
+                }
+            }
+        }
+        assert!(
+            states.iter().all(|s| s.x.iter().all(|x| *x == 0.0)),
+            "{states:?}"
+        );
     }
 
     #[test]
