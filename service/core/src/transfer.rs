@@ -472,25 +472,25 @@ impl Discrete {
 mod tests {
     use super::*;
 
+    fn lag(tau: f64) -> Rational {
+        TransferFunction::FirstOrder { tau_s: tau }
+            .rational()
+            .unwrap()
+    }
+
     fn first(tau: f64, t: f64) -> Discrete {
-        Discrete::new(
-            &TransferFunction::FirstOrder { tau_s: tau }
-                .rational()
-                .unwrap(),
-            t,
-        )
-        .unwrap()
+        Discrete::new(&lag(tau), t).unwrap()
+    }
+
+    /// Two first-order lags in series.
+    fn second(a: f64, b: f64, t: f64) -> Discrete {
+        Discrete::new(&lag(a).mul(&lag(b)), t).unwrap()
     }
 
     #[test]
     fn three_axes_at_once_are_three_steps_bit_for_bit() {
         let t = 0.001;
-        let lag = |tau: f64| {
-            TransferFunction::FirstOrder { tau_s: tau }
-                .rational()
-                .unwrap()
-        };
-        let second = |a: f64, b: f64| Discrete::new(&lag(a).mul(&lag(b)), t).unwrap();
+        let second = |a: f64, b: f64| second(a, b, t);
         // The same order on every axis (one match), and mixed orders (one call per axis).
         for models in [
             [
@@ -525,12 +525,7 @@ mod tests {
     #[test]
     fn a_state_decaying_to_zero_is_never_subnormal() {
         let t = 0.001;
-        let lag = |tau: f64| {
-            TransferFunction::FirstOrder { tau_s: tau }
-                .rational()
-                .unwrap()
-        };
-        let second = |a: f64, b: f64| Discrete::new(&lag(a).mul(&lag(b)), t).unwrap();
+        let second = |a: f64, b: f64| second(a, b, t);
         let models = [second(0.012, 0.002), second(0.015, 0.002), first(0.010, t)];
         let mut states = [0, 1, 2].map(|i| models[i].steady(0.0));
         for k in 0..40_000 {
