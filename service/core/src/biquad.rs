@@ -44,8 +44,9 @@ pub struct Channels<const C: usize> {
 }
 
 impl<const C: usize> Channels<C> {
-    /// Every state value of every channel.
-    pub fn states(&self) -> impl Iterator<Item = f64> + '_ {
+    /// Every state value of every channel (for the judgement's tests).
+    #[cfg(test)]
+    pub(crate) fn states(&self) -> impl Iterator<Item = f64> + '_ {
         self.s1.iter().chain(&self.s2).copied()
     }
 }
