@@ -749,22 +749,26 @@ impl Corrector {
     /// Steps the estimator through the commands up to the first at or after `t`.
     fn advance_estimator(&mut self, t: i64) {
         while self.e1().is_none_or(|e| e.cmd.t_ns < t) {
-            let Some(c) = self.cmd_q.pop_front() else {
+            let Some(c) = self.cmd_q.front() else {
                 break;
             };
             let gap = self
                 .e1()
                 .is_some_and(|e| c.t_ns - e.cmd.t_ns > self.model.max_gap_ns);
             // The later estimate becomes the earlier one: the new one goes to the other slot,
-            // in place when it holds one (not copied there from a temporary).
+            // in place when it holds one (not copied there from a temporary), stepped from the
+            // command where it waits, then dropped from the queue (popped first, it was copied
+            // out whole and its fields read back at once, waiting on that copy).
             let slot = 1 - self.newest;
             if let (false, Some(est), Some(e)) =
                 (gap, self.estimator.as_mut(), self.estimates[slot].as_mut())
             {
-                est.step_into(&c, e);
+                est.step_into(c, e);
                 self.newest = slot;
+                self.cmd_q.pop_front();
                 continue;
             }
+            let c = self.cmd_q.pop_front().expect("the front was just read");
             let est = match self.estimator.as_mut() {
                 Some(est) if !gap => est.step(&c),
                 Some(est) => est.restart(&c),
