@@ -525,13 +525,39 @@ fn packed_fields(bytes: &[u8], columns: usize) -> Option<(i32, &str, [&[u8]; 12]
     Some((tag, machine.unwrap_or(""), c))
 }
 
+/// Bit 7 of every byte of a word: where a varint's byte says that more follow.
+const CONTINUES: u64 = 0x8080_8080_8080_8080;
+
 /// How many varints a packed column holds; `None` when one is not a varint. The same
 /// refusals as prost's `decode_varint`: a value ends at a byte below 0x80 within ten bytes, and
 /// the tenth byte of a ten-byte value is 0 or 1 (no overflow of 64 bits). One pass over the
-/// bytes, no value computed: a column is counted before any of it is handed out.
+/// bytes, no value computed: a column is counted before any of it is handed out. Eight bytes
+/// are read at a time: the values ending in them are counted at once, and only the first
+/// can be too long (the others begin inside the word, so they are at most seven bytes).
 fn varints(b: &[u8]) -> Option<usize> {
+    // `run`: continuation bytes since the last value ended.
     let (mut n, mut run) = (0, 0);
-    for &x in b {
+    let (words, rest) = b.as_chunks::<8>();
+    for w in words {
+        let w = u64::from_le_bytes(*w);
+        // Bit 7 of byte k set when byte k ends a value.
+        let ends = !w & CONTINUES;
+        if ends == 0 {
+            run += 8;
+            if run >= 10 {
+                return None;
+            }
+            continue;
+        }
+        let first = ends.trailing_zeros() as usize / 8;
+        let before = run + first;
+        if before >= 10 || (before == 9 && (w >> (8 * first)) as u8 > 1) {
+            return None;
+        }
+        n += ends.count_ones() as usize;
+        run = 7 - (63 - ends.leading_zeros() as usize) / 8;
+    }
+    for &x in rest {
         if x < 0x80 {
             if run == 9 && x > 1 {
                 return None;
@@ -549,9 +575,25 @@ fn varints(b: &[u8]) -> Option<usize> {
 }
 
 /// The next varint of `b` (prost's value and refusals, see [`varints`]), inline: the values of
-/// a column are read one per sample.
+/// a column are read one per sample. A value of up to eight bytes (below 2⁵⁶: every seq, and a
+/// controller time in ns under 2.2 years) is read from one word with no loop; a longer one,
+/// or one in the column's last seven bytes, byte by byte.
 #[inline(always)]
 fn next_varint(b: &mut &[u8]) -> Option<u64> {
+    if let Some((w, _)) = b.split_first_chunk::<8>() {
+        let w = u64::from_le_bytes(*w);
+        let ends = !w & CONTINUES;
+        if ends != 0 {
+            // The value's bytes (up to its first end), their continuation bits cleared, then
+            // the 7-bit groups packed: pairs into 14 bits, fours into 28, eight into 56.
+            let x = w & (ends ^ (ends - 1)) & !CONTINUES;
+            let x = (x & 0x007f_007f_007f_007f) | ((x >> 1) & 0x3f80_3f80_3f80_3f80);
+            let x = (x & 0x0000_3fff_0000_3fff) | ((x >> 2) & 0x0fff_c000_0fff_c000);
+            let x = (x & 0x0000_0000_0fff_ffff) | ((x >> 4) & 0x00ff_ffff_f000_0000);
+            *b = &b[ends.trailing_zeros() as usize / 8 + 1..];
+            return Some(x);
+        }
+    }
     let mut v = 0u64;
     for (i, &x) in b.iter().enumerate().take(10) {
         v |= u64::from(x & 0x7f) << (7 * i);
@@ -1716,7 +1758,8 @@ mod tests {
         }
 
         /// The edges of a varint, which random bytes seldom reach: ten bytes whose last is 0 or
-        /// 1 (read) or more (refused), ten continuation bytes, a value cut short, no bytes.
+        /// 1 (read) or more (refused), ten continuation bytes, a value cut short, no bytes;
+        /// eight and nine bytes (the longest read from one word, and one more).
         #[test]
         fn varint_edges_read_as_prost_reads_them() {
             let ten = |last: u8| [[0xff; 9].as_slice(), &[last]].concat();
@@ -1733,12 +1776,29 @@ mod tests {
                 ),
                 (vec![5, 0xff, 0xff], None),
                 (vec![0x96, 0x01], Some(vec![150])),
+                (
+                    [[0xff; 7].as_slice(), &[0x7f]].concat(),
+                    Some(vec![(1 << 56) - 1]),
+                ),
+                ([[0x80; 8].as_slice(), &[1]].concat(), Some(vec![1 << 56])),
+                (
+                    [[0x81; 7].as_slice(), &[0x40]].concat(),
+                    Some(vec![
+                        (0..7).map(|k| 1u64 << (7 * k)).sum::<u64>() | 0x40 << 49,
+                    ]),
+                ),
                 (vec![], Some(vec![])),
             ];
+            // Each case also after 1–15 one-byte values: its edge then falls anywhere in the
+            // words the column is read by (eight bytes), and across two of them.
             for (bytes, want) in cases {
-                let (ours, prost) = column_as_read(&bytes);
-                assert_eq!(prost, want, "prost on {bytes:02x?}");
-                assert_eq!(ours, want, "{bytes:02x?}");
+                for before in 0..16 {
+                    let bytes = [vec![0x05; before], bytes.clone()].concat();
+                    let want = want.clone().map(|w| [vec![5; before], w].concat());
+                    let (ours, prost) = column_as_read(&bytes);
+                    assert_eq!(prost, want, "prost on {bytes:02x?}");
+                    assert_eq!(ours, want, "{bytes:02x?}");
+                }
             }
         }
 
@@ -1750,7 +1810,7 @@ mod tests {
             #[test]
             fn varint_columns_read_as_prost_reads_them(
                 bytes in prop::collection::vec(
-                    prop_oneof![0u8..2, 2u8..0x80, 0x80u8..=0xff, Just(0xffu8)], 0..40),
+                    prop_oneof![0u8..2, 2u8..0x80, 0x80u8..=0xff, Just(0xffu8)], 0..80),
             ) {
                 let (ours, prost) = column_as_read(&bytes);
                 prop_assert_eq!(ours, prost, "{:02x?}", bytes);
