@@ -408,8 +408,10 @@ impl Discrete {
     fn step_n<const N: usize>(&self, s: &mut DiscreteState, u_next: f64) -> Derivs {
         debug_assert_eq!(self.n, N);
         let du = u_next - s.u;
-        // The parts as slices of the known length N (one check here, none in the loops).
-        let (phi, rest) = self.coef.split_at(N * N);
+        // The parts cut at constant offsets from a slice of constant length (its one check in
+        // `coef_n`): no check in the cuts, none in the loops.
+        let coef = self.coef_n::<N>();
+        let (phi, rest) = coef.split_at(N * N);
         let (g1, rest) = rest.split_at(N);
         let g2 = &rest[..N];
         // The new state computed whole from the old, then its N entries stored (the others
@@ -431,7 +433,15 @@ impl Discrete {
         let curv = (u_next - 2.0 * s.u + s.u_prev) * self.inv_period2;
         s.u_prev = s.u;
         s.u = u_next;
-        self.output_n::<N>(s, slope, curv)
+        self.output_with::<N>(coef, s, slope, curv)
+    }
+
+    /// The coefficients of a model of order `N` (= `self.n`): Φ, Γ1, Γ2, C, C·A, C·A², x_ss.
+    /// A slice whose length is a constant, checked here once: the parts cut from it below
+    /// need no check of their own (each cut from `self.coef` was checked against its length).
+    #[inline(always)]
+    fn coef_n<const N: usize>(&self) -> &[f64] {
+        &self.coef[..N * N + 6 * N]
     }
 
     /// Output and derivatives of the current state for input slope and curvature.
@@ -453,9 +463,21 @@ impl Discrete {
     /// [`Self::output`] for a model of order `N` (= `self.n`).
     #[inline(always)]
     fn output_n<const N: usize>(&self, s: &DiscreteState, slope: f64, curv: f64) -> Derivs {
+        self.output_with::<N>(self.coef_n::<N>(), s, slope, curv)
+    }
+
+    /// [`Self::output_n`] with the coefficients of [`Self::coef_n`].
+    #[inline(always)]
+    fn output_with<const N: usize>(
+        &self,
+        coef: &[f64],
+        s: &DiscreteState,
+        slope: f64,
+        curv: f64,
+    ) -> Derivs {
         let (mut y, mut dy, mut ddy) = (self.d * s.u, self.cb * s.u + self.d * slope, 0.0);
         ddy += self.cab * s.u + self.cb * slope + self.d * curv;
-        let rest = &self.coef[N * N + 2 * N..];
+        let rest = &coef[N * N + 2 * N..];
         let (c, rest) = rest.split_at(N);
         let (ca, rest) = rest.split_at(N);
         let ca2 = &rest[..N];
