@@ -438,7 +438,8 @@ impl Discrete {
 
     /// The coefficients of a model of order `N` (= `self.n`): Φ, Γ1, Γ2, C, C·A, C·A², x_ss.
     /// A slice whose length is a constant, checked here once: the parts cut from it below
-    /// need no check of their own (each cut from `self.coef` was checked against its length).
+    /// need no check of their own (a cut from `self.coef`, whose length is known only at run
+    /// time, would be checked each time).
     #[inline(always)]
     fn coef_n<const N: usize>(&self) -> &[f64] {
         &self.coef[..N * N + 6 * N]

@@ -1789,8 +1789,8 @@ mod tests {
                 ),
                 (vec![], Some(vec![])),
             ];
-            // Each case also after 1–15 one-byte values: its edge then falls anywhere in the
-            // words the column is read by (eight bytes), and across two of them.
+            // Each case alone and after 1–15 one-byte values: its edge then falls anywhere in
+            // the words the column is read by (eight bytes), and across two of them.
             for (bytes, want) in cases {
                 for before in 0..16 {
                     let bytes = [vec![0x05; before], bytes.clone()].concat();
