@@ -120,23 +120,18 @@ fn python() -> PathBuf {
 }
 
 fn versions(dir: &Path, op: &Path, machine: &str) -> usize {
-    // A query through the router has failed once in five runs with "no scancorrd answered"
-    // (not understood yet): tried up to three times, each failure printed.
-    let mut last = String::new();
-    for _ in 0..3 {
-        let out = cli(
-            dir,
-            op,
-            &["calib", "history", "--machine", machine, "--json"],
-        );
-        if out.status.success() {
-            let v: Value = serde_json::from_slice(&out.stdout).unwrap();
-            return v.as_array().map(|a| a.len()).unwrap_or(0);
-        }
-        last = String::from_utf8_lossy(&out.stderr).to_string();
-        eprintln!("calib history as operator failed: {last}");
-    }
-    panic!("calib history as operator: {last}");
+    let out = cli(
+        dir,
+        op,
+        &["calib", "history", "--machine", machine, "--json"],
+    );
+    assert!(
+        out.status.success(),
+        "calib history as operator: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    v.as_array().map(|a| a.len()).unwrap_or(0)
 }
 
 /// A zenoh session as `role` (client mode), or the error it got.
@@ -305,8 +300,10 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     let out = scan("m1", "1");
     assert!(
         out.status.success(),
-        "controller-m1 → m1: {}",
-        String::from_utf8_lossy(&out.stderr)
+        "controller-m1 → m1: {}\nscancorrd:\n{}\nrouter:\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        svc.log(),
+        router.log()
     );
     // … and m2's: refused by the router; the service sees nothing of it.
     let _ = scan("m2", "2");
@@ -339,39 +336,28 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         .wait()
         .unwrap();
     std::thread::sleep(Duration::from_millis(500));
-    // A second scan of m1: its points reach both. A scan whose points reach neither is
-    // reported with the service's figures and tried again (seen once in CI, not reproduced:
-    // a max-rate scan while this process holds subscribed sessions); twice in a row fails.
-    let mut misses = vec![];
-    for seed in ["3", "4"] {
-        let before = status(&d, &op, "m1");
-        let out = scan("m1", seed);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let t0 = Instant::now();
-        while (got_op.lock().unwrap().is_empty() || *got_app.lock().unwrap() == 0)
-            && t0.elapsed() < Duration::from_secs(20)
-        {
-            std::thread::sleep(Duration::from_millis(100));
-        }
-        let (op_n, app_n) = (got_op.lock().unwrap().len(), *got_app.lock().unwrap());
-        if op_n > 0 && app_n > 0 {
-            break;
-        }
-        let after = settled(&d, &op, "m1");
-        let miss = format!(
-            "scan with seed {seed}: the service's points reached the operator ({op_n}) and the app ({app_n}); m1 before the scan: {before}\nafter: {after}"
-        );
-        eprintln!("{miss}");
-        misses.push(miss);
-    }
+    // A second scan of m1: its points reach both. (Scans through this TLS router used to fail
+    // now and then, a link closing mid-scan: zenoh-link-tls's unlocked connection, fixed in
+    // third_party/ and checked by tls_links.rs.)
+    let out = scan("m1", "3");
     assert!(
-        misses.len() < 2,
-        "{}\nscancorrd:\n{}\nrouter:\n{}",
-        misses.join("\n"),
+        out.status.success(),
+        "the second scan: {}\nscancorrd:\n{}\nrouter:\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        svc.log(),
+        router.log()
+    );
+    let t0 = Instant::now();
+    while (got_op.lock().unwrap().is_empty() || *got_app.lock().unwrap() == 0)
+        && t0.elapsed() < Duration::from_secs(20)
+    {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (op_n, app_n) = (got_op.lock().unwrap().len(), *got_app.lock().unwrap());
+    assert!(
+        op_n > 0 && app_n > 0,
+        "the service's points reached the operator ({op_n}) and the app ({app_n}); m1: {}\nscancorrd:\n{}\nrouter:\n{}",
+        settled(&d, &op, "m1"),
         svc.log(),
         router.log()
     );
