@@ -222,6 +222,15 @@ impl Config {
         // 16 batches of queue per link in the lanes the service sends in, for bursts.
         set("transport/link/tx/queue/size/data", "16".into())?;
         set("transport/link/tx/queue/size/data_low", "16".into())?;
+        // A lost router is tried again at most 1 s apart (zenoh's default backs off to 4 s):
+        // every second without one is a second of samples lost. A `zenoh_config` file keeps
+        // its own setting (deploy/zenoh-client-tls.json5 has this one).
+        if self.zenoh_config.is_none() {
+            set(
+                "connect/retry",
+                "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }".into(),
+            )?;
+        }
         Ok(z)
     }
 
@@ -343,6 +352,26 @@ fn apply(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_lost_router_is_tried_again_within_a_second_unless_a_file_says_otherwise() {
+        let max_ms = |z: zenoh::Config| {
+            let r: serde_json::Value =
+                serde_json::from_str(&z.get_json("connect/retry").unwrap()).unwrap();
+            r["period_max_ms"].as_u64()
+        };
+        assert_eq!(max_ms(Config::default().zenoh().unwrap()), Some(1000));
+        let f = std::env::temp_dir().join(format!("scancorrd-retry-{}.json5", std::process::id()));
+        std::fs::write(&f, "{ connect: { retry: { period_max_ms: 8000 } } }").unwrap();
+        let z = Config {
+            zenoh_config: Some(f.clone()),
+            ..Config::default()
+        }
+        .zenoh()
+        .unwrap();
+        std::fs::remove_file(&f).ok();
+        assert_eq!(max_ms(z), Some(8000));
+    }
 
     #[test]
     fn patterns_match_names_and_become_key_chunks() {
