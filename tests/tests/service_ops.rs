@@ -239,6 +239,8 @@ fn metrics_audit_trail_and_rollback() {
         "{h:?}"
     );
     assert_eq!(h[0]["version"], env!("CARGO_PKG_VERSION"));
+    // A peer has no router to lose.
+    assert!(h[0]["router_link"].is_null(), "{h:?}");
     let text = ok(&d, &["health", "--connect", &bus]);
     assert!(
         text.contains("ready") && text.contains("1 machine(s)"),
@@ -523,7 +525,8 @@ fn sigkill_mid_stream_keeps_the_history_and_the_database_intact() {
 
 /// The router restarted mid-stream: scancorrd (a client of it) reconnects by itself and goes
 /// on correcting; what was lost while the router was down is counted, per stream, as
-/// samples missing in seq — and the count is the samples that did not arrive.
+/// samples missing in seq — and the count is the samples that did not arrive. The outage
+/// itself is in the log (lost, back after how long) and on `health`.
 #[test]
 fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     let d = scratch("router-restart");
@@ -580,6 +583,24 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     );
     assert!(missing > 1000, "the outage lost nothing? {after}");
     assert_eq!(n(&after, "samples_in") + missing, 51829, "{after}");
+    let h: Value = serde_json::from_str(&ok(&d, &["health", "--connect", &bus, "--json"])).unwrap();
+    let link = &h[0]["router_link"];
+    let log = std::fs::read_to_string(d.join("svc.log")).unwrap();
+    assert_eq!(
+        (link["routers"].as_u64(), link["losses"].as_u64()),
+        (Some(1), Some(1)),
+        "{h}\n{log}"
+    );
+    // Down for the 2 s between kill and restart, and until zenoh connected again.
+    let down = link["down_s"].as_f64().unwrap();
+    assert!((1.5..20.0).contains(&down), "{h}");
+    assert!(
+        log.contains("lost the connection to the router")
+            && log.contains("connected to the router again after"),
+        "{log}"
+    );
+    let text = ok(&d, &["health", "--connect", &bus]);
+    assert!(text.contains("1 router(s), lost 1 time(s)"), "{text}");
     let _ = svc.kill();
     let _ = svc.wait();
     let _ = router.kill();

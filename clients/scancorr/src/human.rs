@@ -103,9 +103,45 @@ pub fn history(v: &Value) -> String {
     out
 }
 
+/// The health reply's `router_link` as the end of its line: nothing for a service that is
+/// not a router's client, else whether it is connected and the outages it had.
+pub fn router_link(v: &Value) -> String {
+    let Some(n) = v.get("routers").and_then(Value::as_u64) else {
+        return String::new();
+    };
+    let losses = v.get("losses").and_then(Value::as_u64).unwrap_or(0);
+    let state = if n == 0 {
+        "NO ROUTER (cut off from the bus)".to_string()
+    } else {
+        format!("{n} router(s)")
+    };
+    if losses == 0 {
+        format!(", {state}")
+    } else {
+        format!(
+            ", {state}, lost {losses} time(s), {} s without",
+            v.get("down_s").map(scalar).unwrap_or_else(|| "—".into())
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_router_link_ends_the_health_line() {
+        let j = |s: &str| serde_json::from_str::<Value>(s).unwrap();
+        assert_eq!(router_link(&Value::Null), "");
+        assert_eq!(
+            router_link(&j(r#"{"routers":1,"losses":0,"down_s":0.0}"#)),
+            ", 1 router(s)"
+        );
+        assert_eq!(
+            router_link(&j(r#"{"routers":0,"losses":2,"down_s":3.5}"#)),
+            ", NO ROUTER (cut off from the bus), lost 2 time(s), 3.500 s without"
+        );
+    }
 
     #[test]
     fn replies_read_as_lines() {

@@ -662,7 +662,7 @@ fn run(cli: Cli) -> Result<()> {
             } else {
                 for h in &all {
                     outln!(
-                        "scancorrd {} (zid {}): ready, up {} s, {} machine(s){}",
+                        "scancorrd {} (zid {}): ready, up {} s, {} machine(s){}{}",
                         h["version"].as_str().unwrap_or("?"),
                         h["zid"].as_str().unwrap_or("?"),
                         h["uptime_s"],
@@ -676,7 +676,8 @@ fn run(cli: Cli) -> Result<()> {
                                     .join(", ")
                             ),
                             _ => String::new(),
-                        }
+                        },
+                        human::router_link(&h["router_link"])
                     )?;
                 }
             }

@@ -13,6 +13,7 @@ mod routes;
 pub mod server;
 mod shard;
 pub mod store;
+mod uplink;
 
 pub use config::Config;
 pub use server::{run, ServiceError};

@@ -166,6 +166,8 @@ struct State {
     routes: Arc<Routes>,
     /// The point buffers the shards encode into and zenoh gives back.
     pool: Arc<crate::shard::Pool>,
+    /// The link to the router (client mode only).
+    uplink: Option<crate::uplink::Uplink>,
 }
 
 /// Runs the service until `shutdown` resolves; then flushes every machine and closes the
@@ -271,7 +273,12 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             max_pending_samples: cfg_max_pending,
             tags,
         },
+        uplink: None,
     };
+    if st.cfg.mode == "client" {
+        let n = session.info().routers_zid().await.count();
+        st.uplink = Some(crate::uplink::Uplink::new(n, Instant::now()));
+    }
     let mut threads = vec![];
     for k in 0..workers {
         // Bounded: a shard that falls behind holds up the routing, and so zenoh's reception,
@@ -313,6 +320,8 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             },
             q = status.recv_async() => if let Ok(q) = q { st.on_status(q).await },
             q = health.recv_async() => if let Ok(q) = q {
+                // The link as it is now (a query can arrive before the tick sees a return).
+                st.watch_uplink().await;
                 let quarantined: Vec<&String> = st.machines.iter().filter(|(_, m)| m.quarantined.is_some()).map(|(k, _)| k).collect();
                 let body = json!({
                     "zid": st.session.zid().to_string(),
@@ -326,6 +335,11 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                     "assignment": if st.cfg.allow_any_machine { vec!["*".to_string()] } else { st.cfg.machines.clone() },
                     "served_elsewhere": st.elsewhere.keys().collect::<Vec<_>>(),
                     "refused": st.refused,
+                    "router_link": st.uplink.as_ref().map(|u| json!({
+                        "routers": u.routers(),
+                        "losses": u.losses(),
+                        "down_s": (u.down_s(Instant::now()) * 10.0).round() / 10.0,
+                    })),
                 });
                 let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
             },
@@ -335,6 +349,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             },
             _ = tick.tick() => {
                 st.check_stalls();
+                st.watch_uplink().await;
                 notify.tick();
                 if let Some(m) = &metrics {
                     if last_metrics.elapsed() >= Duration::from_secs(1) {
@@ -406,6 +421,16 @@ impl Throughput {
 }
 
 impl State {
+    /// Looks at the session's routers (client mode): a loss or a return is logged and counted.
+    async fn watch_uplink(&mut self) {
+        if self.uplink.is_some() {
+            let n = self.session.info().routers_zid().await.count();
+            if let Some(u) = &mut self.uplink {
+                u.observe(n, Instant::now());
+            }
+        }
+    }
+
     /// Samples in, points out and samples dropped over every machine.
     async fn totals(&self) -> (u64, u64, u64) {
         let mut t = (0, 0, 0);
@@ -674,6 +699,30 @@ impl State {
         }
         r.metric("scancorr_machines", "gauge", "Machines served.");
         r.sample("scancorr_machines", &[], self.machines.len() as f64);
+        if let Some(u) = &self.uplink {
+            r.metric(
+                "scancorr_routers_connected",
+                "gauge",
+                "Routers this client is connected to (0: cut off from the bus).",
+            );
+            r.sample("scancorr_routers_connected", &[], u.routers() as f64);
+            r.metric(
+                "scancorr_router_losses_total",
+                "counter",
+                "Times the last router was lost.",
+            );
+            r.sample("scancorr_router_losses_total", &[], u.losses() as f64);
+            r.metric(
+                "scancorr_router_down_seconds_total",
+                "counter",
+                "Seconds spent without a router.",
+            );
+            r.sample(
+                "scancorr_router_down_seconds_total",
+                &[],
+                u.down_s(Instant::now()),
+            );
+        }
         r.finish()
     }
 
