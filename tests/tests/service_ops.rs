@@ -530,11 +530,11 @@ fn sigkill_mid_stream_keeps_the_history_and_the_database_intact() {
 #[test]
 fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     let d = scratch("router-restart");
-    let port = free_port();
+    let (port, mport) = (free_port(), free_port());
     let bus = format!("tcp/127.0.0.1:{port}");
     std::fs::write(
         d.join("svc.json5"),
-        format!("{{ mode: 'client', listen: [], connect: ['{bus}'], data_dir: 'data' }}"),
+        format!("{{ mode: 'client', listen: [], connect: ['{bus}'], data_dir: 'data', metrics_listen: '127.0.0.1:{mport}' }}"),
     )
     .unwrap();
     let mut router = start_router(&d, port);
@@ -601,6 +601,12 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     );
     let text = ok(&d, &["health", "--connect", &bus]);
     assert!(text.contains("1 router(s), lost 1 time(s)"), "{text}");
+    let m = http_get(mport, "/metrics");
+    assert!(
+        m.contains("\nscancorr_routers_connected 1\n")
+            && m.contains("\nscancorr_router_losses_total 1\n"),
+        "{m}"
+    );
     let _ = svc.kill();
     let _ = svc.wait();
     let _ = router.kill();
