@@ -65,7 +65,7 @@ fn client(certs: &Path, who: &str, port: u16) -> zenoh::Session {
     zenoh::open(c).wait().expect("a client connects over TLS")
 }
 
-/// What one side received: messages, the first gap in their numbering, tokens that vanished.
+/// What one side received: the next number it expects, and the first gap in the numbering.
 #[derive(Default)]
 struct Seen {
     next: u64,
