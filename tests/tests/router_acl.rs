@@ -146,13 +146,7 @@ fn session(cfg: &Path) -> Result<zenoh::Session, String> {
 #[test]
 fn roles_can_do_exactly_what_the_router_allows() {
     let d = scratch("router-acl");
-    let certs = d.join("certs");
-    let st = Command::new("bash")
-        .arg(root().join("scripts/make-certs.sh"))
-        .arg(&certs)
-        .status()
-        .unwrap();
-    assert!(st.success(), "scripts/make-certs.sh failed");
+    let certs = make_certs(&d);
     let port = free_port();
     std::fs::write(
         d.join("router.json5"),
@@ -296,15 +290,18 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
             ],
         )
     };
+    // A scan that must succeed; else its error with the service's and the router's logs.
+    let scanned = |out: std::process::Output, what: &str| {
+        assert!(
+            out.status.success(),
+            "{what}: {}\nscancorrd:\n{}\nrouter:\n{}",
+            String::from_utf8_lossy(&out.stderr),
+            svc.log(),
+            router.log()
+        )
+    };
     // Controller m1 publishes its own machine's raw streams: the service corrects them.
-    let out = scan("m1", "1");
-    assert!(
-        out.status.success(),
-        "controller-m1 → m1: {}\nscancorrd:\n{}\nrouter:\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        svc.log(),
-        router.log()
-    );
+    scanned(scan("m1", "1"), "controller-m1 → m1");
     // … and m2's: refused by the router; the service sees nothing of it.
     let _ = scan("m2", "2");
     let s1 = settled(&d, &op, "m1");
@@ -339,14 +336,7 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     // A second scan of m1: its points reach both. (Scans through this TLS router used to fail
     // now and then, a link closing mid-scan: zenoh-link-tls's unlocked connection, fixed in
     // third_party/ and checked by tls_links.rs.)
-    let out = scan("m1", "3");
-    assert!(
-        out.status.success(),
-        "the second scan: {}\nscancorrd:\n{}\nrouter:\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        svc.log(),
-        router.log()
-    );
+    scanned(scan("m1", "3"), "the second scan");
     let t0 = Instant::now();
     while (got_op.lock().unwrap().is_empty() || *got_app.lock().unwrap() == 0)
         && t0.elapsed() < Duration::from_secs(20)

@@ -75,14 +75,7 @@ struct Seen {
 #[test]
 fn tls_links_carry_traffic_both_ways_without_failing() {
     let d = scratch("tls-links");
-    let certs = d.join("certs");
-    let st = Command::new("bash")
-        .arg(root().join("scripts/make-certs.sh"))
-        .arg(&certs)
-        .stderr(Stdio::null())
-        .status()
-        .unwrap();
-    assert!(st.success(), "scripts/make-certs.sh failed");
+    let certs = make_certs(&d);
     let port = free_port();
     let c = |p: &str| certs.join(p).display().to_string();
     std::fs::write(

@@ -151,6 +151,22 @@ pub fn wait_listening(port: u16, why: impl Fn() -> String) {
     }
 }
 
+/// `scripts/make-certs.sh DIR`: a throw-away CA and the roles' certificates in `dir/certs`.
+pub fn make_certs(dir: &Path) -> PathBuf {
+    let certs = dir.join("certs");
+    let out = Command::new("bash")
+        .arg(root().join("scripts/make-certs.sh"))
+        .arg(&certs)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "scripts/make-certs.sh failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    certs
+}
+
 /// A free TCP port on loopback.
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
