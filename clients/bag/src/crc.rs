@@ -99,19 +99,6 @@ mod tests {
         );
     }
 
-    /// `cargo test -p scancorr-bag --release --lib -- --ignored --nocapture crc_speed`
-    #[test]
-    #[ignore]
-    fn crc_speed() {
-        let data: Vec<u8> = (0..64u32 << 20)
-            .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
-            .collect();
-        let t = std::time::Instant::now();
-        let c = crc32(&data);
-        let dt = t.elapsed().as_secs_f64();
-        println!("crc {c:#x}: {:.2} GB/s", data.len() as f64 / dt / 1e9);
-    }
-
     #[test]
     fn split_updates_agree() {
         let data: Vec<u8> = (0..1000u32).map(|i| ((i * 7919) >> 3) as u8).collect();

@@ -228,60 +228,6 @@ fn empty_bag() {
     assert_eq!(read_all(&bag).len(), 0);
 }
 
-/// Throughput of writing and reading 100-sample scale batches. Run with
-/// `cargo test -p scancorr-bag --release -- --ignored --nocapture throughput`.
-#[test]
-#[ignore]
-fn throughput() {
-    let path = tmp("throughput");
-    let mut rng = Rng(3);
-    let msgs: Vec<Vec<u8>> = (0..200)
-        .map(|i| batch(Stream::Scale, "m1", i * 100, i as i64, 100, &mut rng))
-        .collect();
-    let n = 100_000usize;
-    let t = std::time::Instant::now();
-    let mut w = BagWriter::create(&path, BagHeader::default()).unwrap();
-    for i in 0..n {
-        w.write(
-            Stream::Scale,
-            "m1",
-            "cmm",
-            i as u64,
-            i as u64,
-            &msgs[i % msgs.len()],
-        )
-        .unwrap();
-    }
-    w.finish().unwrap();
-    let dt = t.elapsed().as_secs_f64();
-    let size = std::fs::metadata(&path).unwrap().len();
-    println!(
-        "write: {:.0} msg/s = {:.2} M samples/s, {:.1} MB -> {:.1} MB",
-        n as f64 / dt,
-        n as f64 * 100.0 / dt / 1e6,
-        (n * msgs[0].len()) as f64 / 1e6,
-        size as f64 / 1e6
-    );
-    let t = std::time::Instant::now();
-    let bag = BagReader::open(&path).unwrap();
-    let count = read_all(&bag).len();
-    let dt = t.elapsed().as_secs_f64();
-    println!(
-        "read: {:.0} msg/s = {:.2} M samples/s",
-        count as f64 / dt,
-        count as f64 * 100.0 / dt / 1e6
-    );
-    let t = std::time::Instant::now();
-    let samples: usize = bag
-        .messages()
-        .unwrap()
-        .map(|m| m.unwrap().decode().unwrap().sample_count())
-        .sum();
-    let dt = t.elapsed().as_secs_f64();
-    println!("read+decode: {:.2} M samples/s", samples as f64 / dt / 1e6);
-    assert_eq!(count, n);
-}
-
 #[test]
 fn a_bag_synced_while_written_reads_back_whole() {
     // Well over the payload between two early syncs of the file (8 MiB): the syncs run while
