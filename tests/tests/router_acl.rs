@@ -185,6 +185,16 @@ fn roles_can_do_exactly_what_the_router_allows() {
         &["--config", "scancorrd.json5"],
         "scancorrd.log",
     );
+    // A command that must succeed; else its error with the service's and the router's logs.
+    let succeeded = |out: std::process::Output, what: &str| {
+        assert!(
+            out.status.success(),
+            "{what}: {}\nscancorrd:\n{}\nrouter:\n{}",
+            String::from_utf8_lossy(&out.stderr),
+            svc.log(),
+            router.log()
+        )
+    };
 
     let op = role(&d, "operator", port, &certs);
     let app = role(&d, "app-shape-analysis", port, &certs);
@@ -200,13 +210,9 @@ fn roles_can_do_exactly_what_the_router_allows() {
     )
     .unwrap();
     for (m, f) in [("m1", "v1.json"), ("m2", "v1-m2.json")] {
-        let out = cli(&d, &op, &["calib", "put", "--machine", m, "--file", f]);
-        assert!(
-            out.status.success(),
-            "operator calib put {m}: {}\nscancorrd:\n{}\nrouter:\n{}",
-            String::from_utf8_lossy(&out.stderr),
-            svc.log(),
-            router.log()
+        succeeded(
+            cli(&d, &op, &["calib", "put", "--machine", m, "--file", f]),
+            &format!("operator calib put {m}"),
         );
     }
 
@@ -290,18 +296,8 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
             ],
         )
     };
-    // A scan that must succeed; else its error with the service's and the router's logs.
-    let scanned = |out: std::process::Output, what: &str| {
-        assert!(
-            out.status.success(),
-            "{what}: {}\nscancorrd:\n{}\nrouter:\n{}",
-            String::from_utf8_lossy(&out.stderr),
-            svc.log(),
-            router.log()
-        )
-    };
     // Controller m1 publishes its own machine's raw streams: the service corrects them.
-    scanned(scan("m1", "1"), "controller-m1 → m1");
+    succeeded(scan("m1", "1"), "controller-m1 → m1");
     // … and m2's: refused by the router; the service sees nothing of it.
     let _ = scan("m2", "2");
     let s1 = settled(&d, &op, "m1");
@@ -336,7 +332,7 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     // A second scan of m1: its points reach both. (Scans through this TLS router used to fail
     // now and then, a link closing mid-scan: zenoh-link-tls's unlocked connection, fixed in
     // third_party/ and checked by tls_links.rs.)
-    scanned(scan("m1", "3"), "the second scan");
+    succeeded(scan("m1", "3"), "the second scan");
     let t0 = Instant::now();
     while (got_op.lock().unwrap().is_empty() || *got_app.lock().unwrap() == 0)
         && t0.elapsed() < Duration::from_secs(20)
