@@ -353,13 +353,14 @@ fn expected_points(machine: &str, samples: &[Sample]) -> Result<u64> {
     Ok(o.points.len() as u64)
 }
 
-/// The latency a path says it adds for `machine` (measured inside it), µs: (p50, p99).
-async fn added_latency(s: &zenoh::Session, machine: &str) -> Result<(f64, f64)> {
+/// The latency a path says it adds for `machine` (measured inside it), µs: (p50, p99), and
+/// the width of its histogram's buckets, % (each percentile is the upper edge of its bucket).
+async fn added_latency(s: &zenoh::Session, machine: &str) -> Result<(f64, f64, Option<f64>)> {
     let v: serde_json::Value =
         serde_json::from_str(&query(s, format!("cmm/{machine}/status"), None).await?)?;
     let l = &v["output"]["added_latency_us"];
     match (l["p50"].as_f64(), l["p99"].as_f64()) {
-        (Some(a), Some(b)) => Ok((a, b)),
+        (Some(a), Some(b)) => Ok((a, b, l["bucket_width_pct"].as_f64())),
         _ => anyhow::bail!("{machine}: no added latency in the status: {v}"),
     }
 }
@@ -464,10 +465,12 @@ pub fn run(points: usize, rounds: usize, json: bool) -> Result<()> {
         let pace = Duration::from_secs_f64(1.0 / load);
         let (mut added, mut relay_added) = ((vec![], vec![]), (vec![], vec![]));
         let (mut e2e, mut relay_e2e) = ((vec![], vec![]), (vec![], vec![]));
+        let mut width_pct = None;
         for (r, m) in names("l").enumerate() {
             let (mut a, mut b) = paths.round(&m, &samples, expected, probes, r % 2 == 0, Some(pace)).await?;
-            let (s50, s99) = added_latency(&paths.service, &m).await?;
-            let (r50, r99) = added_latency(&paths.relay, &m).await?;
+            let (s50, s99, w) = added_latency(&paths.service, &m).await?;
+            let (r50, r99, _) = added_latency(&paths.relay, &m).await?;
+            width_pct = width_pct.or(w);
             eprintln!("  latency round {r}: added p99 service {s99:.0} µs, relay {r99:.0} µs");
             added.0.push(s50);
             added.1.push(s99);
@@ -495,6 +498,7 @@ pub fn run(points: usize, rounds: usize, json: bool) -> Result<()> {
                     "latency_load_samples_per_s": load,
                     "service_added_latency_us": {"p50": spread(&added.0), "p99": spread(&added.1)},
                     "relay_added_latency_us": {"p50": spread(&relay_added.0), "p99": spread(&relay_added.1)},
+                    "added_latency_bucket_width_pct": width_pct,
                     "service_end_to_end_latency_us": {"p50": spread(&e2e.0), "p99": spread(&e2e.1)},
                     "relay_end_to_end_latency_us": {"p50": spread(&relay_e2e.0), "p99": spread(&relay_e2e.1)},
                     "targets": {"ratio": 0.9, "service_added_p99_us": 1000.0},
@@ -509,6 +513,9 @@ pub fn run(points: usize, rounds: usize, json: bool) -> Result<()> {
             outln!("  ratio      {}   (target ≥ 0.90)", f(&ratio, 2))?;
             outln!("  at half the relay's throughput ({load:.0} samples/s, paced in sleeps of ≤ 50 µs):")?;
             outln!("  added inside (arrival → points published): scancorrd p50 {} µs, p99 {} µs (target ≤ 1000); relay p50 {} µs, p99 {} µs", f(&added.0, 0), f(&added.1, 0), f(&relay_added.0, 0), f(&relay_added.1, 0))?;
+            if let Some(w) = width_pct {
+                outln!("    (each the upper edge of a histogram bucket {w:.1} % wide: the true value lies between it ÷ {:.3} and it)", 1.0 + w / 100.0)?;
+            }
             outln!("  end to end (probe published → point here): scancorrd p50 {} µs, p99 {} µs; relay p50 {} µs, p99 {} µs", f(&e2e.0, 0), f(&e2e.1, 0), f(&relay_e2e.0, 0), f(&relay_e2e.1, 0))?;
         }
         Ok(())

@@ -2,7 +2,10 @@
 //! callback handing it to the service) to the publication of the points it completed (the
 //! `put` returned). A log-scale histogram — 8 buckets per octave from 1 µs, so a percentile is
 //! known to within 9 % — of fixed size (under 1 KiB per machine), cheap enough to record every
-//! batch.
+//! batch. A percentile is reported as the upper edge of its bucket (a bound, as
+//! HdrHistogram's highest equivalent value): the true value lies between it and it divided by
+//! 1 + [`Latency::bucket_width`]. The figures carry that width, so that a reader comparing a
+//! percentile with a target close to it knows when the histogram cannot tell.
 
 use std::time::Duration;
 
@@ -65,10 +68,19 @@ impl Latency {
         Some(self.max_us)
     }
 
-    /// Count, p50, p99, p99.9 and max, µs (JSON; null percentiles when empty).
+    /// The relative width of a bucket: the upper edge of one over its lower edge, less 1
+    /// (2^(1/8) − 1, about 0.09).
+    pub fn bucket_width() -> f64 {
+        2f64.powf(1.0 / PER_OCTAVE) - 1.0
+    }
+
+    /// Count, p50, p99, p99.9 and max, µs, and the buckets' width, % (rounded up to 0.1 %: a
+    /// percentile `p` says the true value lies in `[p / (1 + width), p]`); JSON, null
+    /// percentiles when empty.
     pub fn figures(&self) -> serde_json::Value {
         let r = |x: Option<f64>| x.map(|v| (v * 10.0).round() / 10.0);
         serde_json::json!({
+            "bucket_width_pct": (Self::bucket_width() * 1000.0).ceil() / 10.0,
             "count": self.n,
             "p50": r(self.quantile_us(0.5)),
             "p99": r(self.quantile_us(0.99)),
@@ -97,6 +109,17 @@ mod tests {
         assert!((990.0..=1000.0).contains(&p99), "{p99}");
         assert_eq!(l.quantile_us(1.0), Some(1000.0));
         assert_eq!(l.count(), 1000);
+        // Each percentile bounds the true one from above, within the buckets' stated width.
+        let width = l.figures()["bucket_width_pct"].as_f64().unwrap() / 100.0;
+        assert!((0.0905..=0.091).contains(&width), "{width}");
+        for q in [0.1, 0.25, 0.5, 0.9, 0.99, 0.999] {
+            let truth = (q * 1000.0_f64).ceil();
+            let p = l.quantile_us(q).unwrap();
+            assert!(
+                truth <= p && p <= truth * (1.0 + width),
+                "q {q}: {p} for {truth} (width {width})"
+            );
+        }
         // Sub-microsecond and absurd values land in the end buckets.
         l.record(Duration::from_nanos(10));
         l.record(Duration::from_secs(3600));
