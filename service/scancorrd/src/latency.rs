@@ -2,8 +2,9 @@
 //! callback handing it to the service) to the publication of the points it completed (the
 //! `put` returned). A log-scale histogram — 8 buckets per octave from 1 µs, so a percentile is
 //! known to within 9 % — of fixed size (under 1 KiB per machine), cheap enough to record every
-//! batch. A percentile is reported as the upper edge of its bucket (a bound, as
-//! HdrHistogram's highest equivalent value): the true value lies between it and it divided by
+//! batch. A percentile is reported as the upper edge of its bucket, or the largest latency
+//! recorded when that is lower (a bound, as HdrHistogram's highest equivalent value): between
+//! 1 µs and 4.5 min the true value lies between it and it divided by
 //! 1 + [`Latency::bucket_width`]. The figures carry that width, so that a reader comparing a
 //! percentile with a target close to it knows when the histogram cannot tell.
 
