@@ -130,7 +130,6 @@ fn publishing_to_an_endpoint_with_nothing_listening_fails_fast() {
         &["replay", "--bag", "r.mcap", "--connect", "127.0.0.1:7447"],
         &["use tcp/HOST:PORT"],
     );
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -200,7 +199,6 @@ fn record_records_every_raw_message_the_simulator_publishes() {
     );
     assert_eq!(messages(&d.join("run.mcap")), expected, "{rec_err}");
     svc.stop();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -303,7 +301,6 @@ fn the_service_running_but_nothing_there_is_an_error() {
         .flatten()
         .all(|e| !e.file_name().to_string_lossy().contains(".tmp")));
     svc.stop();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -364,5 +361,4 @@ fn names_from_flags_are_checked_before_use() {
         fails_fast(&d, &args, &[needle]);
     }
     assert!(!d.join("x.mcap").exists());
-    std::fs::remove_dir_all(&d).ok();
 }

@@ -148,7 +148,6 @@ fn dynamics_recovers_the_machine_from_the_nominal_model() {
         assert!(html.contains(&format!("data-plot=\"{plot}\"")), "{plot}");
     }
     assert!(!html.contains("NaN"));
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// The σ are honest: over a few runs of another machine, most parameters are within 2σ
@@ -181,7 +180,6 @@ fn dynamics_uncertainties_are_honest_over_runs() {
     let frac = in2 as f64 / n as f64;
     eprintln!("{in2} of {n} within 2σ ({:.0} %)", 100.0 * frac);
     assert!(frac >= 0.8, "{in2} of {n} within 2σ");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -240,5 +238,4 @@ fn dynamics_refuses_a_measurement_that_cannot_determine_it() {
         &["no ring-gauge scans", "scancorr sim --program dynamics"],
     );
     assert!(!dir.join("never.json").exists());
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -352,7 +352,6 @@ fn three_methods_separate_the_guide_from_the_straightedge() {
         arr(&g["straightness_u"]["y"]).len(),
         arr(&g["knots_mm"]).len()
     );
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// The CMM's scan of a workshop straightedge (several µm of form of its own) on a machine
@@ -476,7 +475,6 @@ fn the_separated_table_corrects_the_cmm_scan_of_a_straightedge() {
         "the guide shows without a table: {before}"
     );
     assert!(after <= 1.5 * floor, "{after} µm vs 1.5 × {floor}");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// Bad input: a bag without the measurement, a method the bag cannot serve, stations that do
@@ -533,7 +531,6 @@ fn straightness_refuses_what_it_cannot_separate() {
         },
         &["station"],
     );
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// Flatness: the shear stage's probe read in five lines stepped across the face (25 mm apart
@@ -593,5 +590,4 @@ fn lines_stepped_across_give_the_flatness() {
     assert!(rms(&e) <= 2.0 * noise, "{} vs {noise}", rms(&e));
     let html = std::fs::read_to_string(dir.join("f.html")).unwrap();
     assert!(html.contains("data-plot=\"flatness\""));
-    std::fs::remove_dir_all(&dir).ok();
 }

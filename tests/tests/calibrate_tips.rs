@@ -146,7 +146,6 @@ fn tips_qualifies_the_styli_from_the_catalogue() {
     assert_eq!(q["parent_version"], 1);
     assert!(q["note"].as_str().unwrap().contains("calibrate tips"));
     assert!(q["metrics"]["tip_consistency_before_um"].as_f64().is_some());
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -180,7 +179,6 @@ fn tips_without_a_sphere_names_the_missing_measurement() {
     );
     assert!(!err.contains("NaN"), "{err}");
     assert!(!dir.join("q.json").exists());
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// Tip to tip within the noise floor once what a tip length cannot hold is out of the way: on
@@ -253,5 +251,4 @@ fn tips_agree_within_the_noise_floor_once_the_force_is_calibrated() {
         f(&without, "consistency_after_um") > 2.0 * floor,
         "{without}"
     );
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -94,7 +94,6 @@ fn campaign_simulates_and_corrects() {
     let ch = r.channel("m1", Stream::Points).expect("points channel");
     assert_eq!(ch.sample_count, Some(points));
     assert_points_are_the_cores(&d.join("c.mcap"), &d.join("start.json"), &d.join("o.mcap"));
-    std::fs::remove_dir_all(&d).ok();
 }
 
 /// The corrected bag holds exactly the points the core makes of the input bag, in order, in
@@ -258,7 +257,6 @@ fn bad_bags_and_calibrations_are_clear_errors() {
         &["correct", "--bag", "noprobe.mcap", "--calib", "start.json"],
         &["cmm/m1/raw/probe"],
     );
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -309,7 +307,6 @@ fn a_bag_cut_short_by_a_killed_simulator_is_still_readable() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let s = json(&String::from_utf8_lossy(&o.stdout));
     assert!(s["points"].as_u64().unwrap() > 10_000, "{s}");
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]

@@ -98,7 +98,6 @@ fn correct_refuses_to_write_over_its_input_bag() {
     ok(&d, &["proto", "--out", "p.bin"]);
     assert!(std::fs::read(d.join("p.bin")).unwrap().len() > 1000);
     no_temporaries(&d);
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -171,7 +170,6 @@ fn correct_refuses_the_input_through_a_symlink_or_a_hard_link() {
         .is_symlink());
     assert_eq!(points(&d.join("target.mcap")), points(&d.join("o.mcap")));
     no_temporaries(&d);
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -232,7 +230,6 @@ fn a_failing_sim_leaves_existing_outputs_alone() {
         ],
         &["--truth nodir/t.json"],
     );
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -341,7 +338,6 @@ fn a_failing_lab_command_leaves_existing_calibrations_alone() {
         .unwrap()
         .ends_with("</html>"));
     no_temporaries(&d);
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -364,7 +360,6 @@ fn record_with_nothing_listening_leaves_an_existing_bag_alone() {
         ],
         &[&ep],
     );
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -398,5 +393,4 @@ fn a_closed_stdout_is_a_quiet_exit() {
         assert!(!err.contains("panicked"), "scancorr {args:?}: {err}");
         assert_eq!(o.status.code(), Some(0), "scancorr {args:?}: {err}");
     }
-    std::fs::remove_dir_all(&d).ok();
 }

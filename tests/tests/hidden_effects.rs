@@ -12,7 +12,8 @@ fn json(s: &str) -> serde_json::Value {
 }
 
 struct Case {
-    dir: std::path::PathBuf,
+    /// Removed when the test passes (kept when it fails).
+    dir: Scratch,
 }
 
 impl Case {
@@ -76,14 +77,6 @@ impl Case {
     }
     fn path(&self, f: &str) -> String {
         self.dir.join(f).display().to_string()
-    }
-}
-
-impl Drop for Case {
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            std::fs::remove_dir_all(&self.dir).ok();
-        }
     }
 }
 
@@ -199,7 +192,6 @@ fn the_arc_gain_is_a_compliance_not_an_effect_to_hide() {
         );
         assert!(!dir.join("r.mcap").exists(), "nothing written on refusal");
     }
-    std::fs::remove_dir_all(&dir).ok();
 }
 #[test]
 fn hidden_stylus_thermal() {
@@ -389,5 +381,4 @@ fn rings_alone_confound_accel_deflection_and_servo_gain() {
     );
     assert!(how.iter().any(|s| s.contains("face")), "{how:?}");
     assert!(!how.iter().any(|s| s.contains("spin-up")), "{how:?}");
-    std::fs::remove_dir_all(&dir).ok();
 }

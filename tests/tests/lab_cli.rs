@@ -211,7 +211,6 @@ fn compare_diagnose_add_fit_history() {
     );
     let text = ok(&d, &["lab", "history", "--calib-dir", "cals"]);
     assert!(text.contains('█') && text.contains("servo_phase"), "{text}");
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -334,7 +333,6 @@ fn lab_bad_input_says_what_is_missing() {
         ],
         &["too few points"],
     );
-    std::fs::remove_dir_all(&d).ok();
 }
 
 /// One ring, scanned once for fitting at one temperature, from the nominal model with a
@@ -404,7 +402,6 @@ fn one_ring_at_one_temperature_keeps_what_it_cannot_determine() {
             .any(|s| s.contains("stylus_thermal") && s.contains("one temperature")),
         "{skipped:?}"
     );
-    std::fs::remove_dir_all(&d).ok();
 }
 
 /// A calibration without the tip the bag scanned with: the lab says why it has no points —
@@ -447,5 +444,4 @@ fn a_lab_without_points_says_why() {
             .any(|w| w.parse::<u64>().is_ok_and(|n| n > 1000)),
         "{err}"
     );
-    std::fs::remove_dir_all(&d).ok();
 }

@@ -10,7 +10,7 @@
 mod common;
 use common::*;
 use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 fn json(s: &str) -> serde_json::Value {
     serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
@@ -19,7 +19,8 @@ fn json(s: &str) -> serde_json::Value {
 use scancorr_sim::LIBRARY_EFFECTS as LIBRARY;
 
 struct Campaign {
-    dir: PathBuf,
+    /// Removed when the test passes (kept when it fails).
+    dir: Scratch,
 }
 
 impl Campaign {
@@ -117,14 +118,6 @@ impl Campaign {
     }
     fn path(&self, f: &str) -> String {
         self.dir.join(f).display().to_string()
-    }
-}
-
-impl Drop for Campaign {
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            std::fs::remove_dir_all(&self.dir).ok();
-        }
     }
 }
 

@@ -158,7 +158,6 @@ fn offline_tools_correct_the_four_streams_and_skip_the_measurements() {
         assert_eq!(plain[k], with[k], "{k}");
     }
     assert_eq!(plain_err, with_err);
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -270,5 +269,4 @@ async fn the_service_skips_the_measurements_and_counts_them() {
     assert!(off.len() > 1000, "{} points", off.len());
     assert_eq!(live.len(), off.len());
     assert!(live == off, "live points differ from offline points");
-    std::fs::remove_dir_all(&d).ok();
 }

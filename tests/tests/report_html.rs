@@ -743,7 +743,6 @@ fn reports_render_in_headless_chromium() {
         t1.elapsed().as_secs_f64(),
         d.display()
     );
-    let _ = std::fs::remove_dir_all(&d);
 }
 
 /// The compare report of a campaign with `servo_phase` left out of the calibration draws each

@@ -425,5 +425,4 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     assert_eq!(versions(&d, &op, "m1"), 1);
     drop(svc);
     drop(router);
-    std::fs::remove_dir_all(&d).ok();
 }

@@ -218,7 +218,6 @@ fn live_equals_offline_calibration_switch_and_restart() {
         .collect();
     assert_eq!(vs, vec![1, 2], "{hist}");
     svc.stop();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -302,7 +301,6 @@ fn simulator_publishes_live_and_the_service_corrects() {
         "{text}"
     );
     svc.stop();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 /// A machine whose probe collides mid-scan: the estimator alarms the service publishes live

@@ -319,7 +319,6 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
     assert!(log_b.contains("taking it over"), "{log_b}");
 
     rt.block_on(async { session.close().await }).ok();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 /// A little longer than the service's recheck interval for a machine served elsewhere.

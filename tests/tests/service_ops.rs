@@ -301,7 +301,6 @@ fn metrics_audit_trail_and_rollback() {
     );
     assert!(!log.contains('\x1b'), "colour codes in a log file");
     svc.stop();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -398,7 +397,6 @@ fn systemd_readiness_watchdog_and_json_logs() {
         err.contains("metrics_listen") && !err.contains("backtrace"),
         "{err}"
     );
-    std::fs::remove_dir_all(&d).ok();
 }
 
 #[test]
@@ -520,7 +518,6 @@ fn sigkill_mid_stream_keeps_the_history_and_the_database_intact() {
     let st = status(&d, &bus);
     assert_eq!(st["samples_in"], 51829, "{st}");
     svc.stop();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 /// The router restarted mid-stream: scancorrd (a client of it) reconnects by itself and goes
@@ -611,7 +608,6 @@ fn a_router_restart_mid_stream_is_survived_and_the_loss_counted() {
     let _ = svc.wait();
     let _ = router.kill();
     let _ = router.wait();
-    std::fs::remove_dir_all(&d).ok();
 }
 
 /// The short CI version of the load run: a fleet at 1 kHz per machine through a
@@ -655,5 +651,4 @@ fn a_fleet_through_the_router_loses_no_point() {
     assert_eq!(v["received_points"], v["expected_points"], "{v}");
     assert!(v["expected_points"].as_u64().unwrap() >= 90_000, "{v}");
     assert_eq!(v["seq_gaps"], 0, "{v}");
-    std::fs::remove_dir_all(&d).ok();
 }
