@@ -8,11 +8,12 @@
 //! the pinned packages of `tests/python/requirements.txt`). Without Python 3 and pip, or
 //! without PyPI on the first run, these tests fail: they do not skip.
 
+mod common;
+
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
-use std::time::{SystemTime, UNIX_EPOCH};
 
 const RAW: [(&str, &str); 4] = [
     ("command", "scancorr.v1.CommandBatch"),
@@ -133,36 +134,6 @@ fn python() -> &'static Path {
     })
 }
 
-/// A fresh directory under `<target>/tmp`, removed on drop (kept, and named, when the test
-/// failed).
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(tag: &str) -> TempDir {
-        let nanos = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .unwrap()
-            .as_nanos();
-        let dir = target_tmp().join(format!("python_bag-{tag}-{}-{nanos}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("temp dir");
-        TempDir(dir)
-    }
-
-    fn path(&self, name: &str) -> PathBuf {
-        self.0.join(name)
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        if std::thread::panicking() {
-            eprintln!("kept {} for inspection", self.0.display());
-        } else {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
-}
-
 /// Runs `scancorr ARGS` and parses its JSON summary.
 fn scancorr_json(args: &[&str]) -> Value {
     let out = run(
@@ -250,11 +221,11 @@ fn metadata<'a>(read: &'a Value, name: &str) -> &'a [Value] {
 
 #[test]
 fn an_independent_reader_finds_the_raw_channels_and_the_corrected_points() {
-    let tmp = TempDir::new("ring");
+    let tmp = common::scratch("python-bag-ring");
     let (raw, calib, corrected) = (
-        tmp.path("r.mcap"),
-        tmp.path("start.json"),
-        tmp.path("o.mcap"),
+        tmp.join("r.mcap"),
+        tmp.join("start.json"),
+        tmp.join("o.mcap"),
     );
     let s = |p: &PathBuf| p.to_str().unwrap().to_owned();
 
@@ -342,11 +313,11 @@ fn an_independent_reader_finds_the_raw_channels_and_the_corrected_points() {
 
 #[test]
 fn an_independent_reader_decodes_the_estimator_alarms() {
-    let tmp = TempDir::new("fault");
+    let tmp = common::scratch("python-bag-fault");
     let (raw, calib, corrected) = (
-        tmp.path("f.mcap"),
-        tmp.path("start.json"),
-        tmp.path("o.mcap"),
+        tmp.join("f.mcap"),
+        tmp.join("start.json"),
+        tmp.join("o.mcap"),
     );
     let s = |p: &PathBuf| p.to_str().unwrap().to_owned();
     scancorr_json(&[
