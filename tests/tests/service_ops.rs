@@ -652,3 +652,65 @@ fn a_fleet_through_the_router_loses_no_point() {
     assert!(v["expected_points"].as_u64().unwrap() >= 90_000, "{v}");
     assert_eq!(v["seq_gaps"], 0, "{v}");
 }
+
+/// The short CI version of `bench fleet --largest`: a search over two small fleet sizes runs
+/// a fleet measurement per probe in one process, and what it reports holds together: the
+/// bounds are the probes' verdicts, a size kept up only when each of its runs did, and every
+/// run delivered every point. (Whether a size keeps real time depends on the host; the
+/// figures are not asserted.)
+#[test]
+fn the_largest_fleet_search_reports_bounds_its_probes_support() {
+    let d = scratch("fleet-largest");
+    let out = ok(
+        &d,
+        &[
+            "bench",
+            "fleet",
+            "--largest",
+            "--workers",
+            "1",
+            "--from",
+            "4",
+            "--machines",
+            "8",
+            "--step",
+            "4",
+            "--runs",
+            "1",
+            "--seconds",
+            "2",
+            "--json",
+        ],
+    );
+    let v: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v["bench"], "fleet-largest", "{v}");
+    let probes = v["probes"].as_array().unwrap();
+    let verdict = |n: u64| {
+        let p = probes
+            .iter()
+            .find(|p| p["machines"] == n)
+            .unwrap_or_else(|| panic!("no probe of {n} machines: {v}"));
+        p["kept_up_runs"] == p["runs"] && p["runs"] == 1
+    };
+    match (v["largest_kept_up"].as_u64(), v["smallest_failed"].as_u64()) {
+        // 4 kept up, then 8 did too (both probed) or did not.
+        (Some(4), Some(8)) => assert!(verdict(4) && !verdict(8), "{v}"),
+        (Some(8), None) => assert!(verdict(4) && verdict(8), "{v}"),
+        // 4 did not: the search stops there.
+        (None, Some(4)) => assert!(!verdict(4) && probes.len() == 1, "{v}"),
+        other => panic!("bounds {other:?} outside the sizes 4 and 8: {v}"),
+    }
+    for p in probes {
+        let runs = p["each_run"].as_array().unwrap();
+        assert_eq!(runs.len() as u64, p["runs"].as_u64().unwrap(), "{p}");
+        for r in runs {
+            assert_eq!(r["machines"], p["machines"], "{r}");
+            assert_eq!(r["workers"], 1, "{r}");
+            assert!(r["expected_points"].as_u64().unwrap() > 0, "{r}");
+            assert_eq!(r["received_points"], r["expected_points"], "{r}");
+            assert_eq!(r["seq_gaps"], 0, "{r}");
+        }
+        let kept = runs.iter().filter(|r| r["kept_up"] == true).count() as u64;
+        assert_eq!(p["kept_up_runs"].as_u64().unwrap(), kept, "{p}");
+    }
+}

@@ -13,6 +13,7 @@ use crate::synth;
 use anyhow::{bail, Context, Result};
 use scancorr_core::sample::{Sample, StreamId};
 use scancorr_core::wire::Batcher;
+use std::fmt::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
@@ -388,8 +389,25 @@ struct Received {
     last_arrival: Option<Instant>,
 }
 
-/// Runs the benchmark.
+/// `scancorr bench fleet`: one measurement, printed as text or JSON.
 pub fn run(p: Params) -> Result<()> {
+    let p = checked(p)?;
+    let m = measure(&p)?;
+    if p.json {
+        outln!("{}", m.json)
+    } else {
+        out!("{}", m.text)
+    }
+}
+
+/// One fleet measurement: the figures as JSON and as the lines `bench fleet` prints.
+struct Measured {
+    json: serde_json::Value,
+    text: String,
+}
+
+/// `p` with its values checked, and no more links than machines.
+fn checked(p: Params) -> Result<Params> {
     anyhow::ensure!(p.machines >= 1, "--machines must be at least 1");
     anyhow::ensure!(p.links >= 1, "--links must be at least 1");
     // No more links than machines.
@@ -403,6 +421,11 @@ pub fn run(p: Params) -> Result<()> {
         "--seconds must be > 0"
     );
     anyhow::ensure!(p.pace > 0.0 && p.pace <= 1.0, "--pace must be in (0, 1]");
+    Ok(p)
+}
+
+/// Runs the fleet once (`p` [`checked`]); shows progress on stderr unless `p.json`.
+fn measure(p: &Params) -> Result<Measured> {
     let quiet = p.json;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -416,7 +439,7 @@ pub fn run(p: Params) -> Result<()> {
         } else {
             None
         };
-        let mut svc = start_service(&dir, port, &p)?;
+        let mut svc = start_service(&dir, port, p)?;
         let pid = svc.child.id();
         let cfg = scancorrd::config::zenoh_config("peer", &[], &[format!("tcp/127.0.0.1:{port}")], false)?;
         let session = zenoh::open(cfg.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -690,28 +713,305 @@ pub fn run(p: Params) -> Result<()> {
         });
         out["latency_parts"] = latency_parts;
         out["controller_links"] = p.links.into();
-        if p.json {
-            outln!("{out}")?;
-        } else {
+        let mut text = String::new();
+        {
             let kib = |b: f64| b / 1024.0;
-            outln!("fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process with {} worker(s){} (loopback; this process plays the controllers, on {} link(s), and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.workers == 0 { "one-per-core".to_string() } else { p.workers.to_string() }, if p.router { " behind a scancorr-router" } else { "" }, p.links)?;
-            outln!("  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
-            outln!("  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, {} malformed messages, dropped {:?}", r.points, r.gaps, r.malformed, drops)?;
-            outln!("  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;
-            outln!("  of which               controllers' puts of a period take {put_span_p50:.1} ms (median; max {put_span_max:.1} ms); the service adds p99 {added_p99_median_ms:.1} ms (median machine; worst {added_p99_max_ms:.1} ms) from arrival to publication")?;
-            outln!("  kept up                {}", if kept_up { "yes" } else { "NO" })?;
-            outln!("  service memory         idle {:.1} MiB, served {:.1} MiB, steady {:.1} MiB, peak {:.1} MiB", rss_idle as f64 / 1048576.0, rss_served as f64 / 1048576.0, rss_steady as f64 / 1048576.0, rss_peak as f64 / 1048576.0)?;
-            outln!("  per machine            {:.1} KiB resident ({:.1} KiB before data); core state {:.1} KiB mean, {:.1} KiB max   (target ≤ 64 KiB)", kib(per_machine_rss), kib(per_machine_served), kib(state_mean), kib(state_max))?;
-            outln!("  CPU                    service {:.2} cores, controllers + consumer {:.2} cores; service {us_per_point:.2} µs per point → {cores_for_target:.2} cores for 1000 machines at 1 kHz", svc_cpu / span_s.max(1e-9), self_cpu / span_s.max(1e-9))?;
+            writeln!(text, "fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process with {} worker(s){} (loopback; this process plays the controllers, on {} link(s), and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.workers == 0 { "one-per-core".to_string() } else { p.workers.to_string() }, if p.router { " behind a scancorr-router" } else { "" }, p.links)?;
+            writeln!(text, "  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
+            writeln!(text, "  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, {} malformed messages, dropped {:?}", r.points, r.gaps, r.malformed, drops)?;
+            writeln!(text, "  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;
+            writeln!(text, "  of which               controllers' puts of a period take {put_span_p50:.1} ms (median; max {put_span_max:.1} ms); the service adds p99 {added_p99_median_ms:.1} ms (median machine; worst {added_p99_max_ms:.1} ms) from arrival to publication")?;
+            writeln!(text, "  kept up                {}", if kept_up { "yes" } else { "NO" })?;
+            writeln!(text, "  service memory         idle {:.1} MiB, served {:.1} MiB, steady {:.1} MiB, peak {:.1} MiB", rss_idle as f64 / 1048576.0, rss_served as f64 / 1048576.0, rss_steady as f64 / 1048576.0, rss_peak as f64 / 1048576.0)?;
+            writeln!(text, "  per machine            {:.1} KiB resident ({:.1} KiB before data); core state {:.1} KiB mean, {:.1} KiB max   (target ≤ 64 KiB)", kib(per_machine_rss), kib(per_machine_served), kib(state_mean), kib(state_max))?;
+            writeln!(text, "  CPU                    service {:.2} cores, controllers + consumer {:.2} cores; service {us_per_point:.2} µs per point → {cores_for_target:.2} cores for 1000 machines at 1 kHz", svc_cpu / span_s.max(1e-9), self_cpu / span_s.max(1e-9))?;
         }
-        Ok(())
+        Ok(Measured { json: out, text })
     })
+}
+
+/// The sizes `bench fleet --largest` probes, and how often each.
+#[derive(Debug, Clone, Copy)]
+pub struct Search {
+    /// The smallest fleet probed.
+    pub from: usize,
+    /// The largest fleet probed.
+    pub to: usize,
+    /// The fleet sizes probed are `from + k·step` (and `to`).
+    pub step: usize,
+    /// Runs per size: a size keeps up when every one of its runs kept real time.
+    pub runs: usize,
+}
+
+/// What a search over fleet sizes found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Bounds {
+    /// Not even the smallest size kept up.
+    None { failed: usize },
+    /// The largest size kept up.
+    All { kept_up: usize },
+    /// `kept_up` did, `failed` (the next size probed above it) did not; no size between
+    /// them was probed.
+    Between { kept_up: usize, failed: usize },
+}
+
+impl Bounds {
+    fn kept_up(self) -> Option<usize> {
+        match self {
+            Bounds::None { .. } => None,
+            Bounds::All { kept_up } | Bounds::Between { kept_up, .. } => Some(kept_up),
+        }
+    }
+    fn failed(self) -> Option<usize> {
+        match self {
+            Bounds::All { .. } => None,
+            Bounds::None { failed } | Bounds::Between { failed, .. } => Some(failed),
+        }
+    }
+}
+
+/// Bisects the sizes `from, from + step, …, to` for the largest that keeps up, supposing
+/// that when a fleet does not keep up no larger one does (more machines load the same cores
+/// more): `from` first, then `to`, then halving the gap. Each size is probed once; about
+/// log₂((to − from)/step) + 2 probes. On a noisy host the sizes near the limit keep up in
+/// some runs and not in others: the bound lands somewhere in that band, and more runs per
+/// size move it to the band's lower edge.
+fn bisect(s: &Search, mut keeps_up: impl FnMut(usize) -> Result<bool>) -> Result<Bounds> {
+    let last = (s.to - s.from).div_ceil(s.step);
+    let size = |k: usize| (s.from + k * s.step).min(s.to);
+    if !keeps_up(size(0))? {
+        return Ok(Bounds::None { failed: size(0) });
+    }
+    if last == 0 || keeps_up(size(last))? {
+        return Ok(Bounds::All {
+            kept_up: size(last),
+        });
+    }
+    let (mut lo, mut hi) = (0, last);
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if keeps_up(size(mid))? {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Ok(Bounds::Between {
+        kept_up: size(lo),
+        failed: size(hi),
+    })
+}
+
+/// One size probed by the search: its runs' figures.
+struct Probe {
+    machines: usize,
+    /// Each run's figures (`bench fleet --json`), in order; the runs stop at the first that
+    /// did not keep up.
+    runs: Vec<serde_json::Value>,
+}
+
+impl Probe {
+    fn kept_up(&self) -> usize {
+        self.runs.iter().filter(|r| r["kept_up"] == true).count()
+    }
+    /// The median over the runs of a figure.
+    fn median(&self, key: &str) -> f64 {
+        let mut v: Vec<f64> = self.runs.iter().filter_map(|r| r[key].as_f64()).collect();
+        pct(&mut v, 0.5)
+    }
+}
+
+/// `scancorr bench fleet --largest`: the largest fleet that keeps real time with `p.workers`
+/// worker shards, by bisection over `search`'s sizes; each size is run up to `search.runs`
+/// times and keeps up only when every run did. Prints each probe and the bounds found.
+pub fn largest(p: Params, search: Search) -> Result<()> {
+    anyhow::ensure!(search.from >= 1, "--from must be at least 1");
+    anyhow::ensure!(
+        search.to >= search.from,
+        "--machines ({}) must be at least --from ({})",
+        search.to,
+        search.from
+    );
+    anyhow::ensure!(search.step >= 1, "--step must be at least 1");
+    anyhow::ensure!(search.runs >= 1, "--runs must be at least 1");
+    let json = p.json;
+    let mut probes: Vec<Probe> = vec![];
+    let bounds = bisect(&search, |machines| {
+        let q = checked(Params {
+            machines,
+            json: true,
+            ..p.clone()
+        })?;
+        let mut probe = Probe {
+            machines,
+            runs: vec![],
+        };
+        for run in 1..=search.runs {
+            eprintln!("  {machines} machines, run {run} of {} …", search.runs);
+            let m = measure(&q)?;
+            let kept_up = m.json["kept_up"] == true;
+            probe.runs.push(m.json);
+            if !kept_up {
+                break;
+            }
+        }
+        let ok = probe.kept_up() == search.runs;
+        eprintln!(
+            "  {machines} machines: kept up in {} of {} run(s){}",
+            probe.kept_up(),
+            probe.runs.len(),
+            if ok { "" } else { ": too many" }
+        );
+        probes.push(probe);
+        Ok(ok)
+    })?;
+    let workers = if p.workers == 0 {
+        "one per core".to_string()
+    } else {
+        p.workers.to_string()
+    };
+    if json {
+        let rows: Vec<serde_json::Value> = probes
+            .iter()
+            .map(|r| {
+                serde_json::json!({
+                    "machines": r.machines,
+                    "runs": r.runs.len(),
+                    "kept_up_runs": r.kept_up(),
+                    "service_cpu_us_per_point_median": r.median("service_cpu_us_per_point"),
+                    "rss_per_machine_bytes_median": r.median("rss_per_machine_bytes"),
+                    "p99_latency_ms_median": r.median("p99_latency_ms"),
+                    "late_periods_median": r.median("late_periods"),
+                    "each_run": r.runs,
+                })
+            })
+            .collect();
+        outln!(
+            "{}",
+            serde_json::json!({
+                "bench": "fleet-largest",
+                "workers": p.workers,
+                "from": search.from,
+                "to": search.to,
+                "step": search.step,
+                "runs_per_size": search.runs,
+                "largest_kept_up": bounds.kept_up(),
+                "smallest_failed": bounds.failed(),
+                "probes": rows,
+            })
+        )?;
+        return Ok(());
+    }
+    outln!(
+        "fleet sizes that keep real time with {workers} worker(s): {} to {} machines in steps of {}, each size run up to {} time(s) (kept up: every run did)",
+        search.from,
+        search.to,
+        search.step,
+        search.runs
+    )?;
+    outln!("  machines  kept up  µs per point  KiB per machine  p99 latency ms  late periods   (medians over the size's runs)")?;
+    let mut sorted: Vec<&Probe> = probes.iter().collect();
+    sorted.sort_by_key(|r| r.machines);
+    for r in sorted {
+        outln!(
+            "  {:>8}  {:>3} of {}  {:>12.2}  {:>15.1}  {:>14.0}  {:>12.0}",
+            r.machines,
+            r.kept_up(),
+            r.runs.len(),
+            r.median("service_cpu_us_per_point"),
+            r.median("rss_per_machine_bytes") / 1024.0,
+            r.median("p99_latency_ms"),
+            r.median("late_periods"),
+        )?;
+    }
+    match bounds {
+        Bounds::Between { kept_up, failed } => outln!("  largest that kept up: {kept_up} machines; {failed} did not (no size between them was run)"),
+        Bounds::All { kept_up } => outln!("  largest that kept up: {kept_up} machines, the largest probed: raise --machines to look further"),
+        Bounds::None { failed } => outln!("  none kept up: not even {failed} machines; lower --from"),
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use prost::Message;
+
+    /// Against every threshold a fleet could have: the bisection finds the largest size on
+    /// the grid that keeps up and the next one, probing each size at most once and about
+    /// log₂ of the sizes, never outside the range; `to` off the grid is probed as itself.
+    #[test]
+    fn bisection_finds_the_largest_size_that_keeps_up() {
+        for (from, to, step) in [
+            (100, 1000, 50),
+            (100, 1030, 50),
+            (1, 7, 1),
+            (300, 300, 50),
+            (10, 40, 100),
+        ] {
+            let search = Search {
+                from,
+                to,
+                step,
+                runs: 1,
+            };
+            let mut grid: Vec<usize> = (from..=to).step_by(step).collect();
+            if grid.last() != Some(&to) {
+                grid.push(to);
+            }
+            for threshold in from.saturating_sub(2)..=to + 2 {
+                let mut probed = vec![];
+                let found = bisect(&search, |n| {
+                    probed.push(n);
+                    Ok(n <= threshold)
+                })
+                .unwrap();
+                let want_ok = grid.iter().copied().filter(|&n| n <= threshold).max();
+                let want_fail = grid.iter().copied().find(|&n| n > threshold);
+                let want = match (want_ok, want_fail) {
+                    (None, Some(failed)) => Bounds::None { failed },
+                    (Some(kept_up), None) => Bounds::All { kept_up },
+                    (Some(kept_up), Some(failed)) => Bounds::Between { kept_up, failed },
+                    (None, None) => unreachable!("the grid is not empty"),
+                };
+                let case =
+                    format!("{from}..{to} step {step}, threshold {threshold}: probed {probed:?}");
+                assert_eq!(found, want, "{case}");
+                assert!(probed.iter().all(|n| grid.contains(n)), "{case}");
+                let mut once = probed.clone();
+                once.sort();
+                once.dedup();
+                assert_eq!(once.len(), probed.len(), "a size probed twice: {case}");
+                let bound = (grid.len() as f64).log2().ceil() as usize + 2;
+                assert!(
+                    probed.len() <= bound,
+                    "{} probes, more than {bound}: {case}",
+                    probed.len()
+                );
+            }
+        }
+    }
+
+    /// A measurement that fails ends the search with its error; nothing is probed after it.
+    #[test]
+    fn a_failed_measurement_ends_the_search() {
+        let search = Search {
+            from: 100,
+            to: 1000,
+            step: 50,
+            runs: 2,
+        };
+        let mut probed = vec![];
+        let e = bisect(&search, |n| {
+            probed.push(n);
+            if n == 1000 {
+                anyhow::bail!("scancorrd exited");
+            }
+            Ok(true)
+        })
+        .unwrap_err();
+        assert!(format!("{e:#}").contains("scancorrd exited"), "{e:#}");
+        assert_eq!(probed, vec![100, 1000]);
+    }
 
     /// The consumer's reading of point batches agrees with prost's decoding, for one batch,
     /// two joined ones, negative times; and refuses cut bytes.

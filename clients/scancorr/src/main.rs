@@ -338,7 +338,7 @@ enum BenchCmd {
         /// Print JSON (`points_per_s`, `kept_up`, `rss_per_machine_bytes`, `core_state_bytes_max`, …).
         #[arg(long)]
         json: bool,
-        /// Machines.
+        /// Machines (with `--largest`: the largest fleet probed).
         #[arg(long, default_value_t = 1000)]
         machines: usize,
         /// Seconds of scanning per machine (1 kHz).
@@ -367,6 +367,21 @@ enum BenchCmd {
         /// batches within a period here; at most one per machine).
         #[arg(long, default_value_t = 4)]
         links: usize,
+        /// Search for the largest fleet that keeps real time with these `--workers`, by
+        /// bisection over `--from` … `--machines` in steps of `--step`, each size run up to
+        /// `--runs` times (it keeps up when every run did). Takes minutes: each run is one
+        /// fleet measurement.
+        #[arg(long)]
+        largest: bool,
+        /// With `--largest`: the smallest fleet probed.
+        #[arg(long, default_value_t = 100, requires = "largest")]
+        from: usize,
+        /// With `--largest`: the step between the fleet sizes probed, machines.
+        #[arg(long, default_value_t = 50, requires = "largest")]
+        step: usize,
+        /// With `--largest`: runs per fleet size.
+        #[arg(long, default_value_t = 2, requires = "largest")]
+        runs: usize,
     },
     /// The bare relay `bench live` compares against (run by it as a child process).
     #[command(hide = true)]
@@ -529,17 +544,34 @@ fn run(cli: Cli) -> Result<()> {
             router,
             workers,
             links,
-        }) => benchfleet::run(benchfleet::Params {
-            machines,
-            seconds,
-            batch_ms,
-            max_pending,
-            pace,
-            router,
-            workers,
-            links,
-            json,
-        }),
+            largest,
+            from,
+            step,
+            runs,
+        }) => {
+            let p = benchfleet::Params {
+                machines,
+                seconds,
+                batch_ms,
+                max_pending,
+                pace,
+                router,
+                workers,
+                links,
+                json,
+            };
+            if largest {
+                let search = benchfleet::Search {
+                    from,
+                    to: machines,
+                    step,
+                    runs,
+                };
+                benchfleet::largest(p, search)
+            } else {
+                benchfleet::run(p)
+            }
+        }
         Cmd::Calib(CalibCmd::Check { file, machine }) => {
             if let Some(m) = &machine {
                 output::check_machine("--machine", m)?;
