@@ -778,7 +778,8 @@ impl Bounds {
 /// size move it to the band's lower edge.
 fn bisect(s: &Search, mut keeps_up: impl FnMut(usize) -> Result<bool>) -> Result<Bounds> {
     let last = (s.to - s.from).div_ceil(s.step);
-    let size = |k: usize| (s.from + k * s.step).min(s.to);
+    // Saturating: a `--step` beyond the range makes the grid `from` and `to` alone.
+    let size = |k: usize| s.from.saturating_add(k.saturating_mul(s.step)).min(s.to);
     if !keeps_up(size(0))? {
         return Ok(Bounds::None { failed: size(0) });
     }
@@ -848,7 +849,12 @@ pub fn largest(p: Params, search: Search) -> Result<()> {
         };
         for run in 1..=search.runs {
             eprintln!("  {machines} machines, run {run} of {} …", search.runs);
-            let m = measure(&q)?;
+            let m = measure(&q).with_context(|| {
+                format!(
+                    "measuring {machines} machines (run {run} of {})",
+                    search.runs
+                )
+            })?;
             let kept_up = m.json["kept_up"] == true;
             probe.runs.push(m.json);
             if !kept_up {
@@ -857,10 +863,11 @@ pub fn largest(p: Params, search: Search) -> Result<()> {
         }
         let ok = probe.kept_up() == search.runs;
         eprintln!(
-            "  {machines} machines: kept up in {} of {} run(s){}",
+            "  {machines} machines: kept up in {} of {} run(s){}, {:.2} µs of service CPU per point",
             probe.kept_up(),
             probe.runs.len(),
-            if ok { "" } else { ": too many" }
+            if ok { "" } else { ": does not keep up" },
+            probe.median("service_cpu_us_per_point"),
         );
         probes.push(probe);
         Ok(ok)
@@ -947,6 +954,7 @@ mod tests {
             (1, 7, 1),
             (300, 300, 50),
             (10, 40, 100),
+            (10, 40, usize::MAX),
         ] {
             let search = Search {
                 from,
