@@ -320,7 +320,8 @@ enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
-    /// Throughput of the pure core with every effect enabled (one thread).
+    /// Throughput of the pure core (one thread): every effect and the campaign's, or a calibration
+    /// of yours; with `--per-effect`, what each effect costs.
     Core {
         /// Print JSON (`samples_per_s`, …).
         #[arg(long)]
@@ -328,9 +329,18 @@ enum BenchCmd {
         /// Scale samples per repetition.
         #[arg(long, default_value_t = 300_000)]
         points: usize,
-        /// Repetitions (the best and the median are reported).
+        /// Repetitions (the best and the median are reported); with `--per-effect`, also its
+        /// rounds.
         #[arg(long, default_value_t = 5)]
         repeat: usize,
+        /// Time this calibration (JSON) instead of the every-effect and the campaign ones, on
+        /// a ring at the centre of its travel, with its first tip and its sensors.
+        #[arg(long)]
+        calib: Option<PathBuf>,
+        /// Also what each effect costs: ns per point with every effect less without it,
+        /// timed in rounds (median and range), and what the effects share.
+        #[arg(long)]
+        per_effect: bool,
     },
     /// One scancorrd process serving many machines at 1 kHz each in real time: delivered
     /// points, seq gaps, latency, memory and CPU per machine.
@@ -516,7 +526,15 @@ fn run(cli: Cli) -> Result<()> {
             json,
             points,
             repeat,
-        }) => bench::core(points, repeat, json),
+            calib,
+            per_effect,
+        }) => bench::core(&bench::CoreOptions {
+            points,
+            repeat,
+            calib,
+            per_effect,
+            json,
+        }),
         Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
         Cmd::Bench(BenchCmd::Discover { json }) => demo::bench(json),
         Cmd::Bench(BenchCmd::Procedures {

@@ -57,17 +57,61 @@ pub fn all_effects_calibration(machine: &str) -> Calibration {
     c
 }
 
+/// Where a ring scan runs and what the machine reports besides its motion.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RingSetup {
+    /// The ring's centre, mm (the scales read it 50 mm higher: the stylus's length).
+    pub centre: Vec3,
+    /// The tip every probe sample names.
+    pub tip_id: u32,
+    /// The temperature sensors read (every 100 ms).
+    pub sensors: Vec<String>,
+}
+
+impl Default for RingSetup {
+    /// The benchmarks' ring: at (250, 300, −150) mm, tip 1, five sensors (the every-effect
+    /// calibration's and more).
+    fn default() -> RingSetup {
+        RingSetup {
+            centre: Vec3::new(250.0, 300.0, -150.0),
+            tip_id: 1,
+            sensors: ["stylus", "scale_x", "scale_y", "scale_z", "air"]
+                .map(String::from)
+                .to_vec(),
+        }
+    }
+}
+
+impl RingSetup {
+    /// A ring that `cal` can correct: centred in its travel, scanned with its first tip, with
+    /// every temperature sensor its effects read.
+    pub fn for_calibration(cal: &Calibration) -> Result<RingSetup, scancorr_core::CalibError> {
+        let model = cal.build()?;
+        let [x, y, z] = cal.limits.travel_mm.map(|[lo, hi]| 0.5 * (lo + hi));
+        Ok(RingSetup {
+            centre: Vec3::new(x, y, z - 50.0),
+            // A built calibration has at least one tip.
+            tip_id: cal.geometry.tips.first().map_or(1, |t| t.id),
+            sensors: model.sensors.names().to_vec(),
+        })
+    }
+}
+
 /// Samples of `n` scale instants at 1 kHz: rings at 4 speeds, each starting from rest.
 /// Returns the samples in time order and the number of scale samples.
 pub fn ring_scan(n: usize) -> Vec<Sample> {
-    let mut out = Vec::with_capacity(n * 3 + n / 100 + 8);
-    let centre = Vec3::new(250.0, 300.0, -150.0);
+    ring_scan_with(n, &RingSetup::default())
+}
+
+/// [`ring_scan`] of the ring `setup` places.
+pub fn ring_scan_with(n: usize, setup: &RingSetup) -> Vec<Sample> {
+    let mut out = Vec::with_capacity(n * 3 + n / 100 * (setup.sensors.len() + 1) + 8);
+    let centre = setup.centre;
     let (ring_r, tip_r, defl) = (25.0, 1.5, 0.3);
     let path_r = ring_r - tip_r;
     let speeds = [10.0, 25.0, 50.0, 80.0];
     let per = 4000usize;
     let mut theta = 0.0f64;
-    let sensors = ["stylus", "scale_x", "scale_y", "scale_z", "air"];
     let mut tseq = 0u64;
     for k in 0..n {
         let seg = k / per;
@@ -96,16 +140,16 @@ pub fn ring_scan(n: usize) -> Vec<Sample> {
             seq: k as u64,
             t_ns,
             deflection: -dir * defl,
-            tip_id: 1,
+            tip_id: setup.tip_id,
             head_a1_deg: 0.0,
             head_a2_deg: 0.0,
         }));
         if k % 100 == 0 {
-            for s in sensors {
+            for s in &setup.sensors {
                 out.push(Sample::Temperature(TemperatureSample {
                     seq: tseq,
                     t_ns: t_ns - 1000,
-                    sensor: s.into(),
+                    sensor: s.clone(),
                     celsius: 20.0 + 2.0 * (k as f64 / n as f64),
                 }));
                 tseq += 1;
