@@ -50,6 +50,21 @@ fn bench_core_times_a_users_calibration_and_what_each_effect_costs() {
         ],
     ));
     assert_eq!(v["calibration"], "m9.json", "{v}");
+    // The ring at the centre of the travel (the scales read it 50 mm higher), with the tip
+    // and the sensors of this calibration.
+    assert_eq!(
+        v["ring"]["centre_mm"],
+        serde_json::json!([2500.0, -3500.0, 650.0]),
+        "{v}"
+    );
+    assert_eq!(v["ring"]["tip_id"], 7, "{v}");
+    assert!(
+        v["ring"]["sensors"]
+            .as_array()
+            .unwrap()
+            .contains(&"probe_head".into()),
+        "{v}"
+    );
     // Corrected where this machine can scan (all but the first 200 ms, which wait for the
     // first temperatures), not dropped as implausible.
     assert!(v["points"].as_u64().unwrap() >= points - 250, "{v}");
@@ -109,6 +124,10 @@ fn bench_core_times_a_users_calibration_and_what_each_effect_costs() {
         ],
     );
     assert!(text.contains("calibration m9.json: 8 effects"), "{text}");
+    assert!(
+        text.contains("ring of 25 mm at (2500.0, -3500.0, 650.0) mm, tip 7"),
+        "{text}"
+    );
     assert!(text.contains("what each effect costs"), "{text}");
     for id in &want {
         assert!(text.contains(id.as_str()), "{id}: {text}");

@@ -142,7 +142,7 @@ fn rounded(v: f64) -> String {
 /// The calibration is timed without any effect and without each effect in turn, and each of
 /// those timings sits between two timings of the whole calibration: the variant is measured
 /// as a ratio to the mean of its two neighbours, so that a host that speeds up or slows down
-/// during the run (this one does, by half) changes the ratio much less than the times. The
+/// during the run (a shared host does, by half or more) changes the ratio much less than the times. The
 /// ratios are turned back into ns per point at the median time of the whole calibration. An
 /// effect's cost is the whole calibration's time less the time without it. Every round times
 /// every variant once, starting one variant later than the round before.
@@ -263,6 +263,13 @@ impl EffectCosts {
     }
 
     fn print(&self) -> Result<()> {
+        if self.effects.is_empty() {
+            outln!(
+                "  no effect in this calibration: nothing to cost (the core takes {} ns per point)",
+                self.every.text()
+            )?;
+            return Ok(());
+        }
         outln!(
             "  what each effect costs, ns per point (every effect less all but it, each timed between two timings of every effect; median (min to max) of {} rounds):",
             self.rounds
@@ -334,19 +341,19 @@ pub struct CoreOptions {
 /// every effect of the library and with the campaign's effects (`bench correct`'s), or with
 /// a calibration of the user's (on a ring placed where that machine can scan it).
 pub fn core(o: &CoreOptions) -> Result<()> {
-    let (label, cal, samples) = match &o.calib {
+    let (label, cal, setup) = match &o.calib {
         Some(path) => {
             let cal = crate::offline::load_calibration(path)?;
             let setup = synth::RingSetup::for_calibration(&cal)?;
-            let samples = synth::ring_scan_with(o.points, &setup);
-            (path.display().to_string(), cal, samples)
+            (path.display().to_string(), cal, setup)
         }
         None => (
             "every effect".to_string(),
             synth::all_effects_calibration("bench"),
-            synth::ring_scan(o.points),
+            synth::RingSetup::default(),
         ),
     };
+    let samples = synth::ring_scan_with(o.points, &setup);
     let n = samples.len();
     let main = run_core(&cal, &samples, o.repeat).with_context(|| label.clone())?;
     let campaign = match o.calib {
@@ -362,6 +369,11 @@ pub fn core(o: &CoreOptions) -> Result<()> {
         let mut v = serde_json::json!({
             "bench": "core",
             "calibration": label,
+            "ring": {
+                "centre_mm": [setup.centre.x, setup.centre.y, setup.centre.z],
+                "tip_id": setup.tip_id,
+                "sensors": setup.sensors,
+            },
             "samples": n,
             "points": main.points,
             "effects": main.effects,
@@ -386,6 +398,19 @@ pub fn core(o: &CoreOptions) -> Result<()> {
         "core: {n} samples of a ring scan, {} runs each, one thread (target ≥ {:.0e} samples/s)",
         main.rates.len(),
         CORE_TARGET_SAMPLES_PER_S
+    )?;
+    let c = setup.centre;
+    outln!(
+        "  ring of 25 mm at ({:.1}, {:.1}, {:.1}) mm, tip {}, sensors {}",
+        c.x,
+        c.y,
+        c.z,
+        setup.tip_id,
+        if setup.sensors.is_empty() {
+            "none".to_string()
+        } else {
+            setup.sensors.join(", ")
+        }
     )?;
     let main_name = match o.calib {
         Some(_) => format!("calibration {label}"),
