@@ -59,12 +59,17 @@ fn time_core(model: &Arc<Model>, samples: &[Sample]) -> (f64, usize, Stats) {
     (t0.elapsed().as_secs_f64(), total, corr.stats().clone())
 }
 
-/// Refuses a pass in which most scale samples became no point: it would time the drops.
-fn ensure_corrected(points: usize, samples: &[Sample], stats: &Stats) -> Result<()> {
-    let offered = samples
+/// The scale samples of a scan: the points it offers.
+fn offered(samples: &[Sample]) -> usize {
+    samples
         .iter()
         .filter(|s| matches!(s, Sample::Scale(_)))
-        .count();
+        .count()
+}
+
+/// Refuses a pass in which most of the `offered` scale samples became no point: it would
+/// time the drops.
+fn ensure_corrected(points: usize, offered: usize, stats: &Stats) -> Result<()> {
     if 2 * points < offered {
         let drops: Vec<String> = stats
             .dropped_by_name()
@@ -81,11 +86,12 @@ fn ensure_corrected(points: usize, samples: &[Sample], stats: &Stats) -> Result<
 
 fn run_core(cal: &Calibration, samples: &[Sample], repeat: usize) -> Result<CoreFigures> {
     let model = Arc::new(cal.build()?);
+    let offered = offered(samples);
     let mut rates = vec![];
     let mut produced = 0;
     for _ in 0..repeat.max(1) {
         let (dt, points, stats) = time_core(&model, samples);
-        ensure_corrected(points, samples, &stats)?;
+        ensure_corrected(points, offered, &stats)?;
         rates.push(samples.len() as f64 / dt);
         produced = points;
     }
@@ -161,18 +167,19 @@ struct EffectCosts {
 }
 
 fn effect_costs(cal: &Calibration, samples: &[Sample], rounds: usize) -> Result<EffectCosts> {
+    let offered = offered(samples);
     effect_costs_timed(cal, rounds, |model| {
         let (dt, points, stats) = time_core(model, samples);
-        ensure_corrected(points, samples, &stats)?;
+        ensure_corrected(points, offered, &stats)?;
         Ok(dt * 1e9 / points as f64)
     })
 }
 
-/// [`effect_costs`] with `time(model)` the core's ns per point with `model`.
+/// [`effect_costs`] with `ns_per_point(model)` the core's time per point with `model`.
 fn effect_costs_timed(
     cal: &Calibration,
     rounds: usize,
-    mut time: impl FnMut(&Arc<Model>) -> Result<f64>,
+    mut ns_per_point: impl FnMut(&Arc<Model>) -> Result<f64>,
 ) -> Result<EffectCosts> {
     let rounds = rounds.max(1);
     // Variant 0 is no effect; variant 1 + k is without effect k.
@@ -199,7 +206,7 @@ fn effect_costs_timed(
         .map(|(name, c)| build(name, c))
         .collect::<Result<Vec<_>>>()?;
     let mut time = |model: &Arc<Model>, name: &str| {
-        time(model).with_context(|| format!("the calibration with {name}"))
+        ns_per_point(model).with_context(|| format!("the calibration with {name}"))
     };
     let (mut every, mut ratio) = (vec![], vec![Vec::with_capacity(rounds); models.len()]);
     let mut progress = crate::output::Progress::new();
@@ -528,14 +535,14 @@ mod tests {
         );
         let scan = synth::ring_scan_with(2000, &setup);
         let (_, points, stats) = time_core(&model, &scan);
-        ensure_corrected(points, &scan, &stats).unwrap();
+        ensure_corrected(points, offered(&scan), &stats).unwrap();
         // All but the first 200 ms, which wait for the first temperatures to be old enough.
         assert!(points >= 1750, "{points} points of 2000: {stats:?}");
         // The benchmarks' own ring lies outside this machine's travel: nearly everything is
         // dropped, and the benchmark says so rather than timing the drops.
         let default = synth::ring_scan(2000);
         let (_, points, stats) = time_core(&model, &default);
-        let e = ensure_corrected(points, &default, &stats).unwrap_err();
+        let e = ensure_corrected(points, offered(&default), &stats).unwrap_err();
         assert!(e.to_string().contains("implausible"), "{e}");
         // The default setup is the benchmarks' ring, unchanged.
         assert_eq!(
