@@ -9,6 +9,20 @@ fn json(s: &str) -> Value {
     serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
 }
 
+/// `scancorr bench core --calib FILE --points N --repeat R` and `extra`.
+fn core_args<'a>(
+    file: &'a str,
+    points: &'a str,
+    repeat: &'a str,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
+    let mut args = vec![
+        "bench", "core", "--calib", file, "--points", points, "--repeat", repeat,
+    ];
+    args.extend_from_slice(extra);
+    args
+}
+
 /// The every-effect example of a machine whose travel is far from the benchmarks' default
 /// ring, whose only tip is 7 and whose stylus sensor is `probe_head`: the ring must be placed
 /// for it.
@@ -36,18 +50,7 @@ fn bench_core_times_a_users_calibration_and_what_each_effect_costs() {
     let points = 3000;
     let v = json(&ok(
         &d,
-        &[
-            "bench",
-            "core",
-            "--calib",
-            "m9.json",
-            "--points",
-            "3000",
-            "--repeat",
-            "2",
-            "--per-effect",
-            "--json",
-        ],
+        &core_args("m9.json", "3000", "2", &["--per-effect", "--json"]),
     ));
     assert_eq!(v["calibration"], "m9.json", "{v}");
     // The ring at the centre of the travel (the scales read it 50 mm higher), with the tip
@@ -109,20 +112,7 @@ fn bench_core_times_a_users_calibration_and_what_each_effect_costs() {
     }
 
     // The text names every effect.
-    let text = ok(
-        &d,
-        &[
-            "bench",
-            "core",
-            "--calib",
-            "m9.json",
-            "--points",
-            "2000",
-            "--repeat",
-            "1",
-            "--per-effect",
-        ],
-    );
+    let text = ok(&d, &core_args("m9.json", "2000", "1", &["--per-effect"]));
     assert!(text.contains("calibration m9.json: 8 effects"), "{text}");
     assert!(
         text.contains("ring of 25 mm at (2500.0, -3500.0, 650.0) mm, tip 7"),
@@ -143,16 +133,7 @@ fn bench_core_refuses_a_calibration_its_ring_cannot_scan() {
     std::fs::write(d.join("tiny.json"), cal.to_string()).unwrap();
     fails(
         &d,
-        &[
-            "bench",
-            "core",
-            "--calib",
-            "tiny.json",
-            "--points",
-            "1000",
-            "--repeat",
-            "1",
-        ],
+        &core_args("tiny.json", "1000", "1", &[]),
         &["tiny.json", "the ring scan gave", "implausible"],
     );
     fails(
