@@ -41,6 +41,7 @@ fn sim(dir: &Path, program: &str, seed: &str, out: &str, truth: &str, guide: boo
         "--calib-out",
         "start.json",
     ];
+    a.extend(BUYERS_DOCUMENTS);
     a.extend(MACHINE);
     if guide {
         a.extend(["--hide", "guide_straightness"]);
@@ -131,7 +132,7 @@ fn chain(name: &str, guide: bool) {
     let dir = scratch(name);
     sim(&dir, "tips", "1", "t.mcap", "t.truth.json", guide);
     // The user's start: no effects, catalogue styli, data-sheet time constants (30 % off).
-    nominal_start(&dir, "start.json", "nominal.json", true);
+    nominal_start(&dir, "nominal.json", true);
 
     let calibrate = |proc: &str, bag: &str, from: &str, to: &str| {
         ok(

@@ -379,13 +379,14 @@ fn probe_force_static_maps_correct_a_later_scan_of_the_same_circles() {
         "--effect",
         "stylus_thermal=0",
     ];
+    a.extend(BUYERS_DOCUMENTS);
     for h in scancorr_sim::LIBRARY_EFFECTS {
         if !h.ends_with("_thermal") {
             a.extend(["--hide", h]);
         }
     }
     ok(&dir, &a);
-    nominal_start(&dir, "start.json", "nominal.json", true);
+    nominal_start(&dir, "nominal.json", true);
     ok(
         &dir,
         &[

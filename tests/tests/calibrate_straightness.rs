@@ -389,8 +389,9 @@ fn the_separated_table_corrects_the_cmm_scan_of_a_straightedge() {
     for h in ["servo_phase", "guide_straightness"] {
         a.extend(["--hide", h]);
     }
+    a.extend(BUYERS_DOCUMENTS);
     ok(&dir, &a);
-    nominal_start(&dir, "start.json", "nominal.json", true);
+    nominal_start(&dir, "nominal.json", true);
     measure(&dir, "straightness-three-probe", "t3.mcap", &[]);
     measure(
         &dir,

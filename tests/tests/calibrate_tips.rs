@@ -9,11 +9,6 @@ fn json(s: &str) -> serde_json::Value {
     serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
 }
 
-/// A nominal calibration: no effects, data-sheet time constants (30 % off), catalogue styli.
-fn nominal(dir: &std::path::Path, from: &str, to: &str) {
-    nominal_start(dir, from, to, true);
-}
-
 fn sim_tips(dir: &std::path::Path, seed: &str, out: &str, extra: &[&str]) {
     let mut a = vec![
         "sim",
@@ -34,11 +29,13 @@ fn sim_tips(dir: &std::path::Path, seed: &str, out: &str, extra: &[&str]) {
 fn tips_qualifies_the_styli_from_the_catalogue() {
     let dir = scratch("calibrate-tips");
     let mut extra = vec!["--calib-out", "start.json", "--truth", "truth.json"];
+    extra.extend(BUYERS_DOCUMENTS);
     for h in scancorr_sim::LIBRARY_EFFECTS {
         extra.extend(["--hide", h]);
     }
     sim_tips(&dir, "1", "t1.mcap", &extra);
-    nominal(&dir, "start.json", "catalogue.json");
+    // A nominal calibration: no effects, data-sheet time constants (30 % off), catalogue styli.
+    nominal_start(&dir, "nominal.json", true);
     let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
     let tp = &truth["params"];
     let r = json(&ok(
@@ -49,7 +46,7 @@ fn tips_qualifies_the_styli_from_the_catalogue() {
             "--bag",
             "t1.mcap",
             "--calib",
-            "catalogue.json",
+            "nominal.json",
             "--out",
             "q.json",
             "--json",
@@ -219,6 +216,7 @@ fn tips_agree_within_the_noise_floor_once_the_force_is_calibrated() {
         ];
         if start {
             a.extend(["--calib-out", "start.json"]);
+            a.extend(BUYERS_DOCUMENTS);
         }
         a.extend(machine);
         ok(&dir, &a);
@@ -226,8 +224,8 @@ fn tips_agree_within_the_noise_floor_once_the_force_is_calibrated() {
     let calibrate =
         |proc: &str, bag: &str, from: &str, to: &str| calibrate_json(&dir, proc, bag, from, to);
     sim("tips", "1", "t1.mcap", true);
-    nominal(&dir, "start.json", "catalogue.json");
-    let q = calibrate("tips", "t1.mcap", "catalogue.json", "q.json");
+    nominal_start(&dir, "nominal.json", true);
+    let q = calibrate("tips", "t1.mcap", "nominal.json", "q.json");
     sim("probe-force", "2", "pf.mcap", false);
     calibrate("probe-force", "pf.mcap", "q.json", "pf.json");
     sim("tips", "3", "t3.mcap", false);

@@ -320,17 +320,16 @@ fn live_alarms_equal_offline_alarms() {
         }
         ok(&d, &args)
     };
-    // A user's nominal calibration (every library effect hidden from the start calibration,
-    // data-sheet time constants), never the simulator's own parameters.
-    let hide: String = scancorr_sim::LIBRARY_EFFECTS
-        .iter()
-        .map(|e| format!(" --hide {e}"))
-        .collect();
+    // A user's nominal calibration (`scancorr calib nominal` from the data sheet and the
+    // catalogue: no effects, data-sheet time constants), never the simulator's own parameters.
     run(
-        &format!("sim --program ring --fault collision --out r.mcap --calib-out start.json{hide}"),
+        &format!(
+            "sim --program ring --fault collision --out r.mcap {}",
+            BUYERS_DOCUMENTS.join(" ")
+        ),
         false,
     );
-    nominal_start(&d, "start.json", "nominal.json", true);
+    nominal_start(&d, "nominal.json", true);
     run(
         "correct --bag r.mcap --calib nominal.json --out off.mcap",
         false,

@@ -22,6 +22,9 @@
 //!
 //! [`measure`] reads the measurement streams the corrector does not use (v1.2 distance probes
 //! and micro-stage) of one machine as plain readings, for calibration procedures.
+//!
+//! [`import`] reads a user's recorded table (CSV or whitespace columns) into samples of the
+//! raw streams through a column mapping, and writes a bag's raw streams as such a table.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
@@ -29,6 +32,7 @@ mod artifact;
 mod batch;
 mod crc;
 mod error;
+pub mod import;
 mod layout;
 pub mod measure;
 mod reader;

@@ -9,7 +9,8 @@ The same definitions as `scancorr shape fit` (service/core/src/shape.rs):
 - residuals: a circle's are radial within its plane (positive outside), a sphere's radial, a
   plane's signed along its normal, a line's the (non-negative) distance from it;
 - a normal or direction has its largest-magnitude component positive;
-- `roundness` (circle) is the peak-to-valley of the least-squares circle's residuals;
+- `roundness` (circle) is the peak-to-valley of the least-squares circle's residuals,
+  `flatness` (plane) that of the least-squares plane's;
   `straightness` (line) the diameter of the cylinder about the least-squares line that holds
   every point (twice the largest distance), in the points' unit.
 
@@ -32,6 +33,7 @@ __all__ = [
     "fit_plane",
     "roundness",
     "straightness",
+    "flatness",
     "peak_to_valley",
 ]
 
@@ -206,6 +208,11 @@ def fit_plane(points: object) -> Fit:
 def roundness(points: object) -> float:
     """Peak-to-valley of the least-squares circle's radial residuals."""
     return fit_circle(points).peak_to_valley
+
+
+def flatness(points: object) -> float:
+    """Peak-to-valley of the least-squares plane's residuals."""
+    return fit_plane(points).peak_to_valley
 
 
 def straightness(points: object) -> float:

@@ -462,6 +462,8 @@ pub fn correct(repeat: usize, json: bool) -> Result<()> {
         out: bag.clone(),
         truth: None,
         calib_out: Some(dir.join("start.json")),
+        datasheet_out: None,
+        catalogue_out: None,
         batch: 100,
         prefix: scancorr_proto::DEFAULT_PREFIX.into(),
         json: false,

@@ -31,29 +31,6 @@ fn read(p: &Path) -> Result<serde_json::Value> {
     serde_json::from_str(&std::fs::read_to_string(p)?).with_context(|| p.display().to_string())
 }
 
-/// The nominal start: no effects, time constants 30 % off, catalogue styli.
-fn nominal(dir: &Path) -> Result<()> {
-    let mut c = read(&dir.join("start.json"))?;
-    for ax in c["nominal"]["axes"]
-        .as_object_mut()
-        .context("nominal.axes")?
-        .values_mut()
-    {
-        let t = ax["tau_s"].as_f64().context("tau_s")?;
-        ax["tau_s"] = (t * 1.3).into();
-    }
-    let cat = scancorr_sim::machine::catalogue_styli();
-    for t in c["geometry"]["tips"].as_array_mut().context("tips")? {
-        if let Some(s) = cat.iter().find(|s| Some(s.id as u64) == t["id"].as_u64()) {
-            t["l1_mm"] = s.l1_mm.into();
-            t["l2_mm"] = s.l2_mm.into();
-            t["radius_mm"] = s.radius_mm.into();
-        }
-    }
-    std::fs::write(dir.join("nominal.json"), c.to_string())?;
-    Ok(())
-}
-
 #[derive(Default)]
 struct Tally {
     n: usize,
@@ -456,13 +433,34 @@ fn measure_and_calibrate(
     Ok(r)
 }
 
-/// Runs `sim_args` with every library effect left out of the start, then writes the nominal
-/// start (`nominal.json`) from its `start.json`.
+/// Runs `sim_args` with every library effect left out of the start and the machine's data
+/// sheet and stylus catalogue beside, then makes the user's nominal start (`nominal.json`: no
+/// effects, data-sheet time constants 30 % off, catalogue styli) from them with `scancorr
+/// calib nominal`.
 fn sim_nominal(dir: &Path, sim_args: &[&str]) -> Result<()> {
     let mut a = sim_args.to_vec();
     for h in scancorr_sim::LIBRARY_EFFECTS {
         a.extend(["--hide", h]);
     }
+    a.extend([
+        "--datasheet-out",
+        "datasheet.json",
+        "--catalogue-out",
+        "catalogue.json",
+    ]);
     exe(dir, &a)?;
-    nominal(dir)
+    exe(
+        dir,
+        &[
+            "calib",
+            "nominal",
+            "--datasheet",
+            "datasheet.json",
+            "--catalogue",
+            "catalogue.json",
+            "--out",
+            "nominal.json",
+        ],
+    )?;
+    Ok(())
 }

@@ -19,6 +19,11 @@ use std::path::PathBuf;
 
 #[derive(Subcommand)]
 pub enum CalibrateCmd {
+    /// Thermal drift from a recording of hours (ISO 230-3): the measured displacement of the
+    /// tool or probe against the part with the structure's temperatures (and the spindle
+    /// speed), fitted on the first part and judged on a later held-out period; the drift
+    /// from the temperatures through their heat paths' lags, each coefficient ± σ.
+    ThermalDrift(crate::thermalcmd::Args),
     /// Qualify the styli on a master sphere: the offset of each tip and head angle from the
     /// reference tip gives the stylus lengths, the sphere's apparent size each tip's effective
     /// radius, the drift with temperature each stylus's expansion coefficient.
@@ -151,6 +156,11 @@ pub enum CalibrateCmd {
         #[arg(long)]
         report: Option<PathBuf>,
     },
+    /// A plate's features (holes) measured against nominal: the similarity (offset,
+    /// rotation, scale), the anisotropic scale/shear (quadrupole; scale per axis and
+    /// squareness), higher-order terms chosen by cross-validation over holes, each ± σ, and
+    /// the original plug-plate tool's fit. Reports only.
+    Plate(crate::platecmd::PlateArgs),
 }
 
 fn sigma_json(ps: &[Param]) -> (serde_json::Value, serde_json::Value) {
@@ -707,6 +717,8 @@ fn run_dynamic_map(
 pub fn run(cmd: CalibrateCmd) -> Result<()> {
     crate::output::started();
     match cmd {
+        CalibrateCmd::Plate(a) => crate::platecmd::run(a),
+        CalibrateCmd::ThermalDrift(a) => crate::thermalcmd::run(a),
         CalibrateCmd::DynamicMap {
             bag,
             calib,

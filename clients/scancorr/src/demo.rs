@@ -331,6 +331,8 @@ fn sim(
         out: out.to_path_buf(),
         truth: truth.map(Path::to_path_buf),
         calib_out: calib.map(Path::to_path_buf),
+        datasheet_out: None,
+        catalogue_out: None,
         batch: 100,
         prefix: scancorr_proto::DEFAULT_PREFIX.into(),
         json: false,

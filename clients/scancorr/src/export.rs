@@ -12,6 +12,11 @@
 //!
 //! The bag is read twice (the effects' names first), so a long recording is never held in
 //! memory; the output is written under a temporary name and renamed when complete.
+//!
+//! `--raw` ([`run_raw`]): the raw streams instead, as one wide CSV (`t_ns`, one row per
+//! time; `scancorr_bag::import::export_wide`) with its mapping beside (`F.map.json`, and the
+//! bag's metadata records as `F.meta.json`), so `scancorr import --csv F.csv --map
+//! F.map.json [--artifacts F.meta.json]` reads it back to the same samples.
 
 use crate::output::{refuse_same_file, AtomicOutput};
 use anyhow::{bail, Context, Result};
@@ -290,6 +295,108 @@ pub fn run(
             .collect::<Vec<_>>()
             .join(", "),
         out.display()
+    );
+    Ok(())
+}
+
+/// `scancorr export --bag B --raw --out F.csv`: every raw stream of one machine as one wide
+/// CSV, its mapping as `F.map.json` and the bag's metadata records as `F.meta.json` beside.
+pub fn run_raw(bag_path: &Path, machine: Option<&str>, out: &Path) -> Result<()> {
+    let map_path = out.with_extension("map.json");
+    let meta_path = out.with_extension("meta.json");
+    refuse_same_file(
+        &[
+            ("--out", out),
+            ("the mapping", &map_path),
+            ("the records", &meta_path),
+        ],
+        &[("--bag", bag_path)],
+    )?;
+    let bag = BagReader::open(bag_path).with_context(|| format!("--bag {}", bag_path.display()))?;
+    let mut raw: Vec<String> = vec![];
+    for c in bag.channels() {
+        if scancorr_bag::import::STREAMS.contains(&c.stream) && !raw.contains(&c.machine) {
+            raw.push(c.machine.clone());
+        }
+    }
+    let machine = match (machine, raw.as_slice()) {
+        (_, []) => bail!("{} holds no raw stream", bag_path.display()),
+        (Some(m), list) if list.iter().any(|x| x == m) => m.to_string(),
+        (Some(m), list) => bail!(
+            "--machine {m}: no raw stream of it in {} (machines: {})",
+            bag_path.display(),
+            list.join(", ")
+        ),
+        (None, [one]) => one.clone(),
+        (None, list) => bail!(
+            "{} holds the raw streams of {} machines ({}): name one with --machine",
+            bag_path.display(),
+            list.len(),
+            list.join(", ")
+        ),
+    };
+    let file = AtomicOutput::new("--out", out)?;
+    let map_file = AtomicOutput::new("the mapping", &map_path)?;
+    let records: Vec<scancorr_bag::import::Record> = bag
+        .metadata()
+        .iter()
+        .map(|m| scancorr_bag::import::Record {
+            name: m.name.clone(),
+            entries: m.entries.clone(),
+        })
+        .collect();
+    let meta_file = (!records.is_empty())
+        .then(|| AtomicOutput::new("the records", &meta_path))
+        .transpose()?;
+    let mut w = std::fs::OpenOptions::new()
+        .write(true)
+        .truncate(true)
+        .open(file.path())
+        .with_context(|| format!("writing {}", out.display()))?;
+    let ex = scancorr_bag::import::export_wide(&bag, &machine, &mut w)
+        .with_context(|| format!("{}: the raw streams of {machine}", bag_path.display()))?;
+    drop(w);
+    map_file.write_all(serde_json::to_string_pretty(&ex.mapping)? + "\n")?;
+    if let Some(f) = &meta_file {
+        f.write_all(serde_json::to_string_pretty(&records)? + "\n")?;
+    }
+    file.commit()?;
+    map_file.commit()?;
+    if let Some(f) = meta_file {
+        f.commit()?;
+    }
+    if ex.bad_batches > 0 {
+        eprintln!(
+            "warning: {} raw batch(es) of {machine} could not be decoded and were left out (first: {})",
+            ex.bad_batches,
+            ex.first_bad_batch.as_deref().unwrap_or("")
+        );
+    }
+    if ex.foreign_samples > 0 {
+        eprintln!(
+            "warning: {} sample(s) inside {machine}'s batches name another machine and were left out",
+            ex.foreign_samples
+        );
+    }
+    let samples: Vec<String> = ex.samples.iter().map(|(k, v)| format!("{k} {v}")).collect();
+    eprintln!(
+        "exported {} row(s) of machine {machine}'s raw streams ({}) → {}, mapping {}{}; read back with `scancorr import --csv {} --map {}{} --out B.mcap`",
+        ex.rows,
+        samples.join(", "),
+        out.display(),
+        map_path.display(),
+        if records.is_empty() {
+            String::new()
+        } else {
+            format!(", records {}", meta_path.display())
+        },
+        out.display(),
+        map_path.display(),
+        if records.is_empty() {
+            String::new()
+        } else {
+            format!(" --artifacts {}", meta_path.display())
+        },
     );
     Ok(())
 }

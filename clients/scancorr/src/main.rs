@@ -16,8 +16,12 @@ mod calibsep;
 mod demo;
 mod export;
 mod human;
+mod importcmd;
 mod labcmd;
+mod nominalcmd;
 mod offline;
+mod platecmd;
+mod platefile;
 mod plotdata;
 mod provenance;
 mod report;
@@ -25,6 +29,7 @@ mod shapecmd;
 mod simcmd;
 mod simsep;
 mod synth;
+mod thermalcmd;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -92,7 +97,14 @@ enum Cmd {
         /// Output file.
         #[arg(long)]
         out: PathBuf,
+        /// The raw streams instead: one wide CSV (t_ns, one row per time) and its mapping
+        /// beside (F.map.json; the bag's records as F.meta.json) for `scancorr import`.
+        #[arg(long)]
+        raw: bool,
     },
+    /// A recorded table (CSV or whitespace columns: a controller's trace, a data logger, CMM
+    /// software) into a bag of the raw streams, through a column mapping.
+    Import(importcmd::ImportArgs),
     /// The model lab: compare, diagnose, add, fit, history.
     #[command(subcommand)]
     Lab(labcmd::LabCmd),
@@ -222,6 +234,16 @@ struct SimCli {
     /// Starting calibration (JSON): the true model without the hidden effects.
     #[arg(long)]
     calib_out: Option<PathBuf>,
+    /// The machine's data sheet (JSON), what a buyer gets: per axis the time constant as its
+    /// maker states it (30 % off the machine's), the travel; the streaming period, the
+    /// machine id. For `scancorr calib nominal --datasheet`.
+    #[arg(long)]
+    datasheet_out: Option<PathBuf>,
+    /// The probe and stylus catalogue (JSON): the probe's response, per tip the stylus as
+    /// listed (not as built) with its material's expansion coefficient. For `scancorr calib
+    /// nominal --catalogue`.
+    #[arg(long)]
+    catalogue_out: Option<PathBuf>,
     /// Place the program's artifact at x,y,z (mm).
     #[arg(long, allow_hyphen_values = true)]
     position: Option<String>,
@@ -495,6 +517,11 @@ enum CalibCmd {
         #[command(flatten)]
         bus: bus::Bus,
     },
+    /// Write a machine's nominal calibration (version 1, no effects) from its data sheet
+    /// (time constants, travel) and the probe and stylus catalogue — the start of the
+    /// procedures and the lab (`scancorr sim --datasheet-out --catalogue-out` writes both for a
+    /// simulated machine).
+    Nominal(nominalcmd::NominalArgs),
     /// Print an example document (nominal model only) for a machine.
     Example {
         /// Machine id.
@@ -611,6 +638,7 @@ fn run(cli: Cli) -> Result<()> {
             )?;
             Ok(())
         }
+        Cmd::Calib(CalibCmd::Nominal(a)) => nominalcmd::run(a),
         Cmd::Lab(c) => labcmd::run(c),
         Cmd::Calibrate(c) => calibcmd::run(c),
         Cmd::Proto { out } => {
@@ -833,12 +861,21 @@ fn run(cli: Cli) -> Result<()> {
             segment,
             machine,
             out,
+            raw,
         } => {
             if let Some(m) = &machine {
                 output::check_machine("--machine", m)?;
             }
+            if raw {
+                anyhow::ensure!(
+                    segment.is_none() && format == "csv",
+                    "--raw exports every raw stream as CSV: without --segment or --format"
+                );
+                return export::run_raw(&bag, machine.as_deref(), &out);
+            }
             export::run(&bag, &format, segment, machine.as_deref(), &out)
         }
+        Cmd::Import(a) => importcmd::run(a),
         Cmd::Sim(a) if simsep::is_separation(&a.program) => {
             simsep::refuse(
                 &[
@@ -878,6 +915,8 @@ fn run(cli: Cli) -> Result<()> {
                 machine: a.machine,
                 out,
                 truth: a.truth,
+                datasheet_out: a.datasheet_out,
+                catalogue_out: a.catalogue_out,
                 batch: a.batch,
                 prefix: a.bus.prefix,
                 json: a.json,
@@ -954,6 +993,8 @@ fn run(cli: Cli) -> Result<()> {
                     out: out.clone(),
                     truth: a.truth,
                     calib_out: a.calib_out,
+                    datasheet_out: a.datasheet_out,
+                    catalogue_out: a.catalogue_out,
                     batch: a.batch,
                     prefix: a.bus.prefix.clone(),
                     json: a.json,

@@ -3,7 +3,8 @@
 //! standard input (`x y z` rows, or `x y` rows for a profile in the XY plane; whitespace or
 //! comma separated, `#` comments, optional point count on the first line). Prints the form
 //! too: the peak-to-valley of the residual about the fitted feature (for a circle its
-//! roundness, least-squares reference).
+//! roundness, for a plane its flatness, least-squares reference); `--json` adds each point's
+//! residual.
 
 use anyhow::{Context, Result};
 use scancorr_core::shape::{fit_circle, fit_line, fit_plane, fit_sphere, parse_points, ShapeKind};
@@ -25,6 +26,8 @@ struct Summary {
     max_abs_residual: f64,
     /// Peak-to-valley of the residual, mm.
     form: f64,
+    /// Each point's residual (as the core's fit defines it), mm, in input order.
+    residuals: Vec<f64>,
 }
 
 fn peak_to_valley(r: &[f64]) -> f64 {
@@ -84,6 +87,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
                 form: peak_to_valley(&f.residuals),
+                residuals: f.residuals,
             }
         }
         ShapeKind::Sphere => {
@@ -97,6 +101,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
                 form: peak_to_valley(&f.residuals),
+                residuals: f.residuals,
             }
         }
         ShapeKind::Line => {
@@ -112,6 +117,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 // A line's residuals are distances (≥ 0): its straightness is the diameter of
                 // the cylinder about the least-squares line that holds every point.
                 form: 2.0 * f.max_abs_residual(),
+                residuals: f.residuals,
             }
         }
         ShapeKind::Plane => {
@@ -125,6 +131,7 @@ fn fit(kind: ShapeKind, points: &[Vec3]) -> Result<Summary> {
                 rms: f.rms,
                 max_abs_residual: f.max_abs_residual(),
                 form: peak_to_valley(&f.residuals),
+                residuals: f.residuals,
             }
         }
     })
@@ -152,6 +159,13 @@ struct JsonSummary {
     /// holds every point, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     straightness: Option<f64>,
+    /// A plane's flatness: the peak-to-valley of its residuals, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    flatness: Option<f64>,
+    /// Each point's residual, mm, in input order: signed radial in the circle's plane
+    /// (circle) or from the centre (sphere), positive outside; signed along the normal
+    /// (plane); the distance from the line (line, ≥ 0).
+    residuals: Vec<f64>,
 }
 
 fn to_json(s: &Summary) -> JsonSummary {
@@ -166,6 +180,8 @@ fn to_json(s: &Summary) -> JsonSummary {
         peak_to_valley: s.form,
         roundness: (s.kind == ShapeKind::Circle).then_some(s.form),
         straightness: (s.kind == ShapeKind::Line).then_some(s.form),
+        flatness: (s.kind == ShapeKind::Plane).then_some(s.form),
+        residuals: s.residuals.clone(),
     }
 }
 
@@ -223,6 +239,7 @@ fn print_human(s: &Summary, file: &Path) -> Result<()> {
             "straightness",
             "Ø of the cylinder about the least-squares line holding every point",
         ),
+        ShapeKind::Plane => ("flatness", "peak-to-valley of the residual"),
         _ => ("form (P−V)", "peak-to-valley of the residual"),
     };
     outln!("  {form:<16} {}  mm  ({what})", fixed(s.form, 6))?;

@@ -15,6 +15,10 @@ pub struct SimArgs {
     pub out: PathBuf,
     pub truth: Option<PathBuf>,
     pub calib_out: Option<PathBuf>,
+    /// The machine's data sheet (what its maker states: not the truth).
+    pub datasheet_out: Option<PathBuf>,
+    /// The probe and stylus catalogue.
+    pub catalogue_out: Option<PathBuf>,
     pub batch: usize,
     pub prefix: String,
     pub json: bool,
@@ -60,11 +64,13 @@ fn stream_of(s: StreamId) -> Stream {
 }
 
 /// What a simulation wrote, not yet committed: the bag, the ground truth, the calibration,
-/// and the JSON summary (with `--json`).
+/// the data sheet and catalogue, and the JSON summary (with `--json`).
 pub struct Written {
     pub bag: AtomicOutput,
     truth: Option<AtomicOutput>,
     calib: Option<AtomicOutput>,
+    datasheet: Option<AtomicOutput>,
+    catalogue: Option<AtomicOutput>,
     json: Option<serde_json::Value>,
 }
 
@@ -76,9 +82,11 @@ impl Written {
             bag,
             truth,
             calib,
+            datasheet,
+            catalogue,
             json,
         } = self;
-        crate::output::commit_all([truth, calib])?;
+        crate::output::commit_all([truth, calib, datasheet, catalogue])?;
         let bag = if keep_bag {
             bag.commit()?;
             None
@@ -114,6 +122,12 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
         if let Some(p) = &a.calib_out {
             outs.push(("--calib-out", p));
         }
+        if let Some(p) = &a.datasheet_out {
+            outs.push(("--datasheet-out", p));
+        }
+        if let Some(p) = &a.catalogue_out {
+            outs.push(("--catalogue-out", p));
+        }
         crate::output::refuse_same_file(&outs, &[])?;
     }
     crate::output::check_machine("--machine", &a.options.machine_id)?;
@@ -128,6 +142,16 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
         .calib_out
         .as_deref()
         .map(|p| AtomicOutput::new("--calib-out", p))
+        .transpose()?;
+    let datasheet_out = a
+        .datasheet_out
+        .as_deref()
+        .map(|p| AtomicOutput::new("--datasheet-out", p))
+        .transpose()?;
+    let catalogue_out = a
+        .catalogue_out
+        .as_deref()
+        .map(|p| AtomicOutput::new("--catalogue-out", p))
         .transpose()?;
     let machine = a.options.machine_id.clone();
     let mut w = BagWriter::create(bag_out.path(), BagHeader::default())
@@ -231,6 +255,13 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
     if let Some(c) = &calib_out {
         c.write_all(res.start_calibration.to_json())?;
     }
+    if let Some(d) = &datasheet_out {
+        let sheet = scancorr_sim::data_sheet(&res.truth.machine, &machine, 1.0 / o.rate_hz);
+        d.write_all(sheet.to_json())?;
+    }
+    if let Some(c) = &catalogue_out {
+        c.write_all(scancorr_sim::stylus_catalogue().to_json())?;
+    }
     let secs = t_start.elapsed().as_secs_f64();
     let total: u64 = res.counts.iter().sum();
     let mut json = None;
@@ -277,6 +308,8 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
         bag: bag_out,
         truth: truth_out,
         calib: calib_out,
+        datasheet: datasheet_out,
+        catalogue: catalogue_out,
         json,
     })
 }

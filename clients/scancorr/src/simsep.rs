@@ -18,6 +18,10 @@ pub struct SepArgs {
     pub machine: String,
     pub out: PathBuf,
     pub truth: Option<PathBuf>,
+    /// The machine's data sheet and the stylus catalogue (as `sim` writes them for any
+    /// program).
+    pub datasheet_out: Option<PathBuf>,
+    pub catalogue_out: Option<PathBuf>,
     pub batch: usize,
     pub prefix: String,
     pub json: bool,
@@ -35,7 +39,8 @@ pub fn refuse(flags: &[(&str, bool)], program: &str) -> Result<()> {
         bail!(
             "{}: not for `{program}` (a straightness error-separation measurement: distance \
              probes on the X carriage; it takes --machine-seed, --seed, --rate, --effect \
-             guide_straightness=F, --reversal, --lines N, --out, --truth)",
+             guide_straightness=F, --reversal, --lines N, --out, --truth, --datasheet-out, \
+             --catalogue-out)",
             given.join(", ")
         );
     }
@@ -48,6 +53,12 @@ pub fn run(a: SepArgs) -> Result<()> {
     if let Some(p) = &a.truth {
         outs.push(("--truth", p));
     }
+    if let Some(p) = &a.datasheet_out {
+        outs.push(("--datasheet-out", p));
+    }
+    if let Some(p) = &a.catalogue_out {
+        outs.push(("--catalogue-out", p));
+    }
     crate::output::refuse_same_file(&outs, &[])?;
     crate::output::check_machine("--machine", &a.machine)?;
     crate::output::check_prefix(&a.prefix)?;
@@ -57,6 +68,16 @@ pub fn run(a: SepArgs) -> Result<()> {
         .truth
         .as_deref()
         .map(|p| AtomicOutput::new("--truth", p))
+        .transpose()?;
+    let datasheet_out = a
+        .datasheet_out
+        .as_deref()
+        .map(|p| AtomicOutput::new("--datasheet-out", p))
+        .transpose()?;
+    let catalogue_out = a
+        .catalogue_out
+        .as_deref()
+        .map(|p| AtomicOutput::new("--catalogue-out", p))
         .transpose()?;
     let mut w = BagWriter::create(bag_out.path(), BagHeader::default())
         .with_context(|| format!("creating {}", a.out.display()))?;
@@ -194,7 +215,14 @@ pub fn run(a: SepArgs) -> Result<()> {
     if let Some(t) = &truth_out {
         t.write_all(serde_json::to_string_pretty(&truth)?)?;
     }
-    crate::output::commit_all([Some(bag_out), truth_out])?;
+    if let Some(d) = &datasheet_out {
+        let machine = scancorr_sim::machine::TrueMachine::from_seed(o.machine_seed);
+        d.write_all(scancorr_sim::data_sheet(&machine, &m, 1.0 / o.rate_hz).to_json())?;
+    }
+    if let Some(c) = &catalogue_out {
+        c.write_all(scancorr_sim::stylus_catalogue().to_json())?;
+    }
+    crate::output::commit_all([Some(bag_out), truth_out, datasheet_out, catalogue_out])?;
     let c = counts.get();
     if a.json {
         outln!(

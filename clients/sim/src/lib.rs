@@ -25,6 +25,9 @@ use machine::{head_rotation, profile, TrueMachine, V3};
 use program::{FeatureInfo, Path, Plan, ProgramInfo, SegmentInfo, SegmentKind};
 use rng::Rng;
 use scancorr_core::calib::Calibration;
+use scancorr_core::datasheet::{
+    Catalogue, CatalogueProbe, CatalogueStylus, DataSheet, SheetAxes, SheetAxis,
+};
 use scancorr_core::effects::{self as fx, EffectConfig};
 use scancorr_core::sample::*;
 use scancorr_core::transfer::TransferFunction;
@@ -457,6 +460,66 @@ pub fn calibration_for(
     c
 }
 
+/// How far the data sheet's time constants are off the machine's: its maker states each 30 %
+/// longer than the axis follows (what a user starts from, which the procedures refit).
+pub const DATA_SHEET_TAU_FACTOR: f64 = 1.3;
+
+/// The simulated machines' travel, [min, max] per axis (x, y, z) in machine coordinates, mm:
+/// every program's carriage path lies inside it (checked by a test).
+pub const TRAVEL_MM: [[f64; 2]; 3] = [[0.0, 1000.0], [0.0, 800.0], [-600.0, 0.0]];
+
+/// What the maker's data sheet of `m` says: each axis's time constant as stated
+/// ([`DATA_SHEET_TAU_FACTOR`] times the first-order τ the truth's calibration has: not the
+/// truth), the travel, the streaming period `period` and the machine's id.
+pub fn data_sheet(m: &TrueMachine, machine_id: &str, period: f64) -> DataSheet {
+    let axis = |i: usize| SheetAxis {
+        tau_s: (1.0 / m.servo[i].kp - PROBE_TAU_S) * DATA_SHEET_TAU_FACTOR,
+        travel_mm: TRAVEL_MM[i],
+    };
+    DataSheet {
+        machine_id: machine_id.to_string(),
+        note: format!(
+            "the simulator's data sheet of machine seed {} (time constants as its maker \
+             states them, {} % off)",
+            m.machine_seed,
+            ((DATA_SHEET_TAU_FACTOR - 1.0) * 100.0).round()
+        ),
+        sample_period_s: period,
+        axes: SheetAxes {
+            x: axis(0),
+            y: axis(1),
+            z: axis(2),
+        },
+    }
+}
+
+/// The probe and stylus catalogue of every simulated machine: the probe's own response and
+/// the styli as listed ([`machine::catalogue_styli`]; each machine's are built a few µm off),
+/// with their materials' expansion coefficients.
+pub fn stylus_catalogue() -> Catalogue {
+    Catalogue {
+        note: "the simulator's probe and stylus catalogue (listed lengths, not qualified)".into(),
+        probes: machine::catalogue_styli()
+            .iter()
+            .map(|s| (s.probe.clone(), CatalogueProbe { tau_s: PROBE_TAU_S }))
+            .collect(),
+        tips: machine::catalogue_styli()
+            .into_iter()
+            .map(|s| CatalogueStylus {
+                id: s.id,
+                probe: s.probe,
+                l1_mm: s.l1_mm,
+                l2_mm: s.l2_mm,
+                beta1_deg: s.beta1_deg,
+                l3_mm: 0.0,
+                beta2_deg: 0.0,
+                radius_mm: s.radius_mm,
+                alpha_per_k: Some(s.alpha_per_k),
+            })
+            .collect(),
+    }
+}
+
 /// Dynamic state of the three axes and the structure.
 #[derive(Debug, Clone, Copy, Default)]
 struct State {
@@ -867,4 +930,66 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
         },
         counts,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The data sheet's travel holds every program's carriage path and arc centres at its
+    /// usual place, and the single-artifact programs' at the place the README and the tests
+    /// move artifacts to (`--position` moves the whole campaign, not one artifact).
+    #[test]
+    fn every_program_stays_within_the_data_sheets_travel() {
+        let m = TrueMachine::from_seed(1);
+        for name in program::PROGRAMS {
+            let moved = (name != "campaign").then(|| V3::new(550.0, 300.0, -250.0));
+            for position in [None, moved] {
+                let plan = program::plan(name, &m, position).unwrap();
+                let mut t = 0.0;
+                while t <= plan.duration() {
+                    let i = plan.segment_at(t);
+                    let s = &plan.segments[i];
+                    let mut check = |p: V3, what: &str| {
+                        for (k, [lo, hi]) in TRAVEL_MM.iter().enumerate() {
+                            assert!(
+                                (*lo..=*hi).contains(&p[k]),
+                                "{name} at {position:?}: {what} {p:?} outside the travel at t = {t} s"
+                            );
+                        }
+                    };
+                    check(s.at(t - plan.starts[i]), "carriage");
+                    if let Path::Arc { center, .. } = s.path {
+                        check(center, "arc centre");
+                    }
+                    t += 0.01;
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_data_sheet_and_catalogue_make_a_valid_nominal_calibration() {
+        let m = TrueMachine::from_seed(7);
+        let d = data_sheet(&m, "m1", 0.001);
+        let c = stylus_catalogue();
+        let (cal, _) = scancorr_core::datasheet::nominal(None, Some(&d), &c, None, "").unwrap();
+        // The stated time constants are 30 % off the truth's.
+        let truth = calibration_for(&m, "m1", &BTreeMap::new(), &[], 0.001);
+        let tau = |tf: &TransferFunction| match tf {
+            TransferFunction::FirstOrder { tau_s } => *tau_s,
+            _ => panic!("{tf:?}"),
+        };
+        assert_eq!(
+            tau(&cal.nominal.axes.y),
+            tau(&truth.nominal.axes.y) * DATA_SHEET_TAU_FACTOR
+        );
+        assert_eq!(cal.nominal.probes, truth.nominal.probes);
+        // The catalogue's styli, not the machine's own.
+        assert_eq!(cal.geometry.tips.len(), m.styli.len());
+        for (t, s) in cal.geometry.tips.iter().zip(&m.styli) {
+            assert_eq!((t.id, t.beta1_deg), (s.id, s.beta1_deg));
+            assert_ne!(t.l1_mm, s.l1_mm);
+        }
+    }
 }

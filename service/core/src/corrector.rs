@@ -29,6 +29,7 @@
 //! surface point = tip centre − tip radius · n, n = deflection direction (out of the material).
 
 use crate::calib::{CalibError, Calibration, Model, Settings};
+use crate::effects::thermal_drift::Lag;
 use crate::effects::{BuiltEffect, Effect};
 use crate::estimator::{rotation_with, Estimate, Estimator};
 use crate::judge::Judge;
@@ -236,7 +237,8 @@ struct Intake {
 struct PendingTemp {
     t_ns: i64,
     sensor: String,
-    slot: Option<usize>,
+    /// Whether the calibration reads this sensor (directly or through a lag).
+    used: bool,
     celsius: f64,
 }
 
@@ -420,16 +422,29 @@ impl Corrector {
             model.raise_samples,
             model.clear_samples,
         );
-        // Temperature slots may differ: re-resolve the held values by name.
+        // Temperature slots may differ: re-resolve the held values by name. A lag the old
+        // model ran too (same sensor and τ) keeps its state; a new one starts at the sensor's
+        // last reading (the structure taken as in equilibrium with it).
+        let (old, old_valid) = (self.held, self.held_valid);
         self.held_valid = 0;
         for (i, name) in model.sensors.names().iter().enumerate() {
-            if let Some((v, t)) = self.held_all.get(name) {
+            let tau = model.sensors.tau(i);
+            let kept = (0..self.model.sensors.names().len()).find(|&o| {
+                old_valid & (1 << o) != 0
+                    && tau > 0.0
+                    && self.model.sensors.names()[o] == *name
+                    && self.model.sensors.tau(o) == tau
+            });
+            if let Some(o) = kept {
+                self.held[i] = old[o];
+                self.held_valid |= 1 << i;
+            } else if let Some((v, t)) = self.held_all.get(name) {
                 self.held[i] = (*v, *t);
                 self.held_valid |= 1 << i;
             }
         }
         for p in self.temp_q.iter_mut() {
-            p.slot = model.sensors.find(&p.sensor);
+            p.used = model.sensors.uses(&p.sensor);
         }
         self.stats.effect_points = vec![0; model.effects.len()];
         // The tips' geometry may differ.
@@ -599,14 +614,14 @@ impl Corrector {
                     self.probe_q.push_back(p);
                 }
                 Sample::Temperature(t) => {
-                    let slot = self.model.sensors.find(&t.sensor);
-                    if slot.is_none() {
+                    let used = self.model.sensors.uses(&t.sensor);
+                    if !used {
                         // Not used by this calibration: only its last reading is kept (for a
                         // calibration that needs it), for a bounded number of names.
                         self.hold(&PendingTemp {
                             t_ns: t.t_ns,
                             sensor: t.sensor,
-                            slot: None,
+                            used: false,
                             celsius: t.celsius,
                         });
                         return self.emit(false, out);
@@ -617,7 +632,7 @@ impl Corrector {
                     }
                     self.temp_q.push_back(PendingTemp {
                         t_ns: t.t_ns,
-                        slot,
+                        used,
                         celsius: t.celsius,
                         sensor: t.sensor,
                     });
@@ -688,7 +703,7 @@ impl Corrector {
     }
 
     fn hold(&mut self, p: &PendingTemp) {
-        let room = self.held_all.len() < MAX_KEPT_SENSORS || p.slot.is_some();
+        let room = self.held_all.len() < MAX_KEPT_SENSORS || p.used;
         match self.held_all.get_mut(&p.sensor) {
             Some(h) => *h = (p.celsius, p.t_ns),
             None if room => {
@@ -696,9 +711,31 @@ impl Corrector {
             }
             None => self.drop(DropReason::UnknownSensor),
         }
-        if let Some(slot) = p.slot {
-            self.held[slot] = (p.celsius, p.t_ns);
-            self.held_valid |= 1 << slot;
+        if p.used {
+            // Every slot of this sensor: its reading, or the reading through a lag
+            // (thermal_drift), advanced by the time since the slot's previous reading.
+            let sensors = &self.model.sensors;
+            for slot in 0..sensors.names().len() {
+                if sensors.names()[slot] != p.sensor {
+                    continue;
+                }
+                let (z, t0) = self.held[slot];
+                let v = if self.held_valid & (1 << slot) == 0 || p.t_ns <= t0 {
+                    if self.held_valid & (1 << slot) != 0 && sensors.tau(slot) > 0.0 {
+                        // A second reading at the same instant: the lag has had no time.
+                        z
+                    } else {
+                        p.celsius
+                    }
+                } else {
+                    Lag {
+                        tau_s: sensors.tau(slot),
+                    }
+                    .step(z, p.celsius, (p.t_ns - t0) as f64 * 1e-9)
+                };
+                self.held[slot] = (v, p.t_ns);
+                self.held_valid |= 1 << slot;
+            }
         }
     }
 

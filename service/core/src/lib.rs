@@ -25,6 +25,7 @@ pub mod biquad;
 pub mod calib;
 pub mod calibrate;
 pub mod corrector;
+pub mod datasheet;
 pub mod effects;
 pub mod estimator;
 pub mod expr;

@@ -729,3 +729,68 @@ fn an_effect_without_its_signal_is_named_inactive() {
     let (_, st) = run(&cal0, time_ordered(&ring_streams(300, 25.0, 1.5, 0.3)));
     assert_eq!(st.effect_points, vec![0]);
 }
+
+#[test]
+fn thermal_drift_runs_each_sensors_lag_over_its_readings_and_keeps_it_across_a_swap() {
+    use scancorr_core::effects::thermal_drift::{self, Lag};
+    // A fast-changing sensor read every 10 ms (the ring's temperatures are every 100 ms).
+    let mut streams = ring_streams(1500, 25.0, 1.5, 0.3);
+    streams[3].clear();
+    let temp_at = |k: usize| 21.0 + 2.0 * (k as f64 * 0.02).sin();
+    let times: Vec<i64> = (0..=180)
+        .map(|j| j as i64 * 10 * T_NS - 300 * T_NS)
+        .collect();
+    for (j, &t) in times.iter().enumerate() {
+        streams[3].push(Sample::Temperature(TemperatureSample {
+            seq: j as u64,
+            t_ns: t,
+            sensor: "spindle".into(),
+            celsius: temp_at(j),
+        }));
+    }
+    let mut cal = Calibration::example("m1");
+    let mut td = thermal_drift::Config::zeros(&[
+        ("spindle".into(), 0.4, 20.0),
+        ("spindle".into(), 0.0, 20.0),
+    ]);
+    td.set_params(&[1e-3, 0.0, 0.0, 2e-3, -1e-3, 0.0, 0.0, 0.0, 5e-4]);
+    cal.effects.push(EffectConfig::ThermalDrift(td));
+    let samples = time_ordered(&streams);
+    let (out, stats) = run(&cal, samples.clone());
+    assert_eq!(out.points.len(), 1500, "{stats:?}");
+    // The lag over the readings at or before each point's time less the join's temperature
+    // delay.
+    let t_s: Vec<f64> = times.iter().map(|&t| t as f64 * 1e-9).collect();
+    let u: Vec<f64> = (0..times.len()).map(temp_at).collect();
+    let z = Lag { tau_s: 0.4 }.run(&t_s, &u);
+    let delay = cal.join.temperature_delay_s;
+    for p in &out.points {
+        let t = p.t_ns as f64 * 1e-9 - delay;
+        let j = t_s.iter().rposition(|&x| x <= t + 1e-12).unwrap();
+        let want = Vec3::new(
+            1e-3 + 2e-3 * (z[j] - 20.0),
+            -1e-3 * (z[j] - 20.0),
+            5e-4 * (u[j] - 20.0),
+        );
+        assert!(
+            (p.corrections[0] - want).norm() < 1e-15,
+            "seq {}: {:?} vs {want:?}",
+            p.seq,
+            p.corrections[0]
+        );
+    }
+    // A swap to an equal calibration mid-stream keeps the lag's state: the same points.
+    let mut corr = Corrector::new(&cal).unwrap();
+    let mut out2 = Output::default();
+    let half = samples.len() / 2;
+    corr.push_all(samples[..half].iter().cloned(), &mut out2);
+    let mut cal2 = cal.clone();
+    cal2.version = 2;
+    corr.set_model(std::sync::Arc::new(cal2.build().unwrap()));
+    corr.push_all(samples[half..].iter().cloned(), &mut out2);
+    corr.flush(&mut out2);
+    assert_eq!(out2.points.len(), out.points.len());
+    for (a, b) in out.points.iter().zip(&out2.points) {
+        assert_eq!(a.corrections[0], b.corrections[0], "seq {}", a.seq);
+    }
+}

@@ -396,9 +396,20 @@ pub async fn status(s: &zenoh::Session, machine: &str) -> serde_json::Value {
     panic!("no status reply");
 }
 
+/// What `scancorr sim` adds to write the documents a machine's buyer gets: its data sheet
+/// (`datasheet.json`) and the probe and stylus catalogue (`catalogue.json`), which
+/// [`nominal_start`] makes the user's start from.
+pub const BUYERS_DOCUMENTS: [&str; 4] = [
+    "--datasheet-out",
+    "datasheet.json",
+    "--catalogue-out",
+    "catalogue.json",
+];
+
 /// `scancorr sim --program PROGRAM` of `machine` (run `seed`) into `out`, with every library
-/// effect hidden from the start, and the user's nominal start `nominal.json` from it (with
-/// the catalogue's styli when `catalogue`); the truth goes to `truth.json`.
+/// effect hidden from the start and the buyer's documents beside, and the user's nominal start
+/// `nominal.json` from them (with the catalogue's styli when `catalogue`); the truth goes to
+/// `truth.json`.
 pub fn measure_from_nominal(
     dir: &Path,
     program: &str,
@@ -422,38 +433,28 @@ pub fn measure_from_nominal(
         "--truth",
         "truth.json",
     ];
+    a.extend(BUYERS_DOCUMENTS);
     for h in scancorr_sim::LIBRARY_EFFECTS {
         a.extend(["--hide", h]);
     }
     ok(dir, &a);
-    nominal_start(dir, "start.json", "nominal.json", catalogue);
+    nominal_start(dir, "nominal.json", catalogue);
 }
 
-/// A user's nominal start from the simulator's `from` (written with every library effect
-/// hidden): no effects, data-sheet time constants (30 % off) and, with `catalogue`, the
-/// catalogue's styli instead of the machine's own; written to `to`.
-pub fn nominal_start(dir: &Path, from: &str, to: &str, catalogue: bool) {
-    let mut c: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join(from)).unwrap()).unwrap();
-    assert!(
-        c["effects"].as_array().unwrap().is_empty(),
-        "{from} has effects"
-    );
-    for ax in c["nominal"]["axes"].as_object_mut().unwrap().values_mut() {
-        let t = ax["tau_s"].as_f64().unwrap();
-        ax["tau_s"] = (t * 1.3).into();
-    }
-    if catalogue {
-        let cat = scancorr_sim::machine::catalogue_styli();
-        for t in c["geometry"]["tips"].as_array_mut().unwrap() {
-            let id = t["id"].as_u64().unwrap() as u32;
-            let s = cat.iter().find(|s| s.id == id).unwrap();
-            t["l1_mm"] = s.l1_mm.into();
-            t["l2_mm"] = s.l2_mm.into();
-            t["radius_mm"] = s.radius_mm.into();
-        }
-    }
-    std::fs::write(dir.join(to), serde_json::to_string_pretty(&c).unwrap()).unwrap();
+/// A user's nominal start, written to `to` by `scancorr calib nominal` from the data sheet a
+/// `scancorr sim … BUYERS_DOCUMENTS` wrote in `dir`: no effects, data-sheet time constants
+/// (30 % off) and, with `catalogue`, the catalogue's styli; without, the machine's own styli
+/// (as a qualification would find them), taken from the simulator's `start.json` (`--tips-from`).
+pub fn nominal_start(dir: &Path, to: &str, catalogue: bool) {
+    let styli = if catalogue {
+        ["--catalogue", "catalogue.json"]
+    } else {
+        ["--tips-from", "start.json"]
+    };
+    let mut a = vec!["calib", "nominal", "--datasheet", "datasheet.json"];
+    a.extend(styli);
+    a.extend(["--out", to]);
+    ok(dir, &a);
 }
 
 /// `scancorr calibrate PROC --bag BAG --calib FROM --out TO --json` in `dir`: its JSON output,

@@ -13,16 +13,24 @@
 //! * [`dynamics`] — the ring-gauge procedure: time constants, deflection matrix, phase, gain.
 //! * [`straightness`] — error separation of a guide's straightness (and pitch) from a
 //!   straightedge's: three probes, two probes, or one probe on a shear stage.
+//! * [`thermal_drift`] — a drift recording (displacement and structure temperatures over
+//!   hours): the drift from the temperatures and heat sources through their lags, judged on a
+//!   later held-out period.
 //! * [`separation`] — `calibrate straightness`: the raw streams into stations, the
 //!   separation, the guide's table with its uncertainties in the calibration.
+//! * [`plate`] — a plate's features measured against nominal: similarity, anisotropic
+//!   scale/shear (quadrupole; scale per axis and squareness), higher-order terms chosen by
+//!   leave-one-hole-out cross-validation, the original plug-plate tool's fit reproduced.
 //!
 //! [`Dataset`]: crate::lab::dataset::Dataset
 
 pub mod dynamic_map;
 pub mod dynamics;
+pub mod plate;
 pub mod probe_force;
 pub mod separation;
 pub mod straightness;
+pub mod thermal_drift;
 pub mod tips;
 pub mod zero_force;
 

@@ -19,6 +19,7 @@ pub mod scale_thermal;
 pub mod servo_gain;
 pub mod servo_phase;
 pub mod stylus_thermal;
+pub mod thermal_drift;
 
 use crate::sample::{PointContext, Vec3, MAX_SENSORS};
 use serde::{Deserialize, Serialize};
@@ -49,10 +50,12 @@ pub enum EffectConfig {
     Custom(custom::Config),
     /// A per-point correction map of one feature's scans at one speed (the dynamic map).
     FeatureMap(feature_map::Config),
+    /// Thermal drift from the structure's temperatures through their heat paths' lags.
+    ThermalDrift(thermal_drift::Config),
 }
 
 /// Names of the built-in kinds, as written in documents.
-pub const KINDS: [&str; 11] = [
+pub const KINDS: [&str; 12] = [
     "accel_deflection",
     "servo_phase",
     "servo_gain",
@@ -64,6 +67,7 @@ pub const KINDS: [&str; 11] = [
     "probe_lobing",
     "custom",
     "feature_map",
+    "thermal_drift",
 ];
 
 /// A validated effect, ready for the hot path.
@@ -106,6 +110,7 @@ macro_rules! each_model {
             Model::ProbeLobing($model) => $call,
             Model::Custom($model) => $call,
             Model::FeatureMap($model) => $call,
+            Model::ThermalDrift($model) => $call,
         }
     };
 }
@@ -141,6 +146,8 @@ pub enum Model {
     Custom(Box<custom::Model>),
     /// [`feature_map`].
     FeatureMap(Box<feature_map::Model>),
+    /// [`thermal_drift`].
+    ThermalDrift(Box<thermal_drift::Model>),
 }
 
 impl Effect for Model {
@@ -156,33 +163,52 @@ impl Effect for Model {
     }
 }
 
-/// Maps temperature sensor names to slots of [`PointContext::temps`].
+/// Maps temperature sensor names to slots of [`PointContext::temps`]. A slot holds a sensor's
+/// reading or, for a [`thermal_drift`] term, the reading through a first-order lag of time
+/// constant τ (the corrector keeps the lag's state: [`thermal_drift::Lag`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct SensorTable {
     names: Vec<String>,
+    taus: Vec<f64>,
 }
 
 impl SensorTable {
-    /// Slot of `name`, allocating one if new.
+    /// Slot of `name`'s reading, allocating one if new.
     pub fn slot(&mut self, name: &str) -> Result<usize, String> {
-        if let Some(i) = self.names.iter().position(|n| n == name) {
+        self.lagged_slot(name, 0.0)
+    }
+    /// Slot of `name`'s reading through a lag of `tau_s` (0: the reading), allocating one if
+    /// new.
+    pub fn lagged_slot(&mut self, name: &str, tau_s: f64) -> Result<usize, String> {
+        if let Some(i) =
+            (0..self.names.len()).find(|&i| self.names[i] == name && self.taus[i] == tau_s)
+        {
             return Ok(i);
         }
         if self.names.len() == MAX_SENSORS {
             return Err(format!(
-                "more than {MAX_SENSORS} temperature sensors referenced"
+                "more than {MAX_SENSORS} temperature sensors (or lagged sensors) referenced"
             ));
         }
         self.names.push(name.to_string());
+        self.taus.push(tau_s);
         Ok(self.names.len() - 1)
     }
-    /// Slot of `name` if known.
+    /// Slot of `name`'s reading (no lag) if known.
     pub fn find(&self, name: &str) -> Option<usize> {
-        self.names.iter().position(|n| n == name)
+        (0..self.names.len()).find(|&i| self.names[i] == name && self.taus[i] == 0.0)
     }
-    /// Sensor names by slot.
+    /// Whether any slot reads `name` (directly or through a lag).
+    pub fn uses(&self, name: &str) -> bool {
+        self.names.iter().any(|n| n == name)
+    }
+    /// Sensor names by slot (a lagged slot is named by its sensor).
     pub fn names(&self) -> &[String] {
         &self.names
+    }
+    /// The lag's time constant of a slot, s (0: the reading itself).
+    pub fn tau(&self, slot: usize) -> f64 {
+        self.taus[slot]
     }
 }
 
@@ -212,6 +238,7 @@ impl EffectConfig {
             EffectConfig::ProbeLobing(_) => "probe_lobing",
             EffectConfig::Custom(_) => "custom",
             EffectConfig::FeatureMap(_) => "feature_map",
+            EffectConfig::ThermalDrift(_) => "thermal_drift",
         }
     }
 
@@ -229,6 +256,7 @@ impl EffectConfig {
             EffectConfig::ProbeLobing(c) => c.id.clone(),
             EffectConfig::Custom(c) => Some(c.id.clone()),
             EffectConfig::FeatureMap(c) => c.id.clone(),
+            EffectConfig::ThermalDrift(c) => c.id.clone(),
         };
         id.unwrap_or_else(|| self.kind().to_string())
     }
@@ -247,6 +275,7 @@ impl EffectConfig {
             EffectConfig::ProbeLobing(c) => c.id = id,
             EffectConfig::Custom(c) => c.id = id.unwrap_or_else(|| "custom".into()),
             EffectConfig::FeatureMap(c) => c.id = id,
+            EffectConfig::ThermalDrift(c) => c.id = id,
         }
     }
 
@@ -280,6 +309,7 @@ impl EffectConfig {
             EffectConfig::ProbeLobing(c) => Model::ProbeLobing(c.build()?),
             EffectConfig::Custom(c) => Model::Custom(Box::new(c.build(sensors)?)),
             EffectConfig::FeatureMap(c) => Model::FeatureMap(Box::new(c.build()?)),
+            EffectConfig::ThermalDrift(c) => Model::ThermalDrift(Box::new(c.build(sensors)?)),
         };
         Ok(BuiltEffect {
             id: self.id(),
@@ -303,6 +333,7 @@ impl EffectConfig {
             EffectConfig::ProbeLobing(c) => c.params(),
             EffectConfig::Custom(c) => c.coefficients.clone(),
             EffectConfig::FeatureMap(c) => c.params(),
+            EffectConfig::ThermalDrift(c) => c.params(),
         }
     }
 
@@ -324,6 +355,7 @@ impl EffectConfig {
                 .map(|t| format!("{}·[{}]", t.axis.name(), t.expr))
                 .collect(),
             EffectConfig::FeatureMap(c) => c.param_names(),
+            EffectConfig::ThermalDrift(c) => c.param_names(),
         }
     }
 
@@ -350,6 +382,7 @@ impl EffectConfig {
             EffectConfig::ProbeLobing(c) => c.set_params(p),
             EffectConfig::Custom(c) => c.coefficients = p.to_vec(),
             EffectConfig::FeatureMap(c) => c.set_params(p),
+            EffectConfig::ThermalDrift(c) => c.set_params(p),
         }
         Ok(c)
     }

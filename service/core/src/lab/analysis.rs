@@ -572,6 +572,14 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
                     .into(),
             ))
         }
+        "thermal_drift" => {
+            return Err(LabError::Data(
+                "thermal_drift: its sensors and lags are found from a drift recording (the \
+                 displacement of the tool against the part with the structure's temperatures, \
+                 over hours), not from artifact scans: `scancorr calibrate thermal-drift`"
+                    .into(),
+            ))
+        }
         k => {
             return Err(LabError::Data(format!(
                 "unknown effect `{k}` (known: {})",
