@@ -172,7 +172,7 @@ fn record_records_every_raw_message_the_simulator_publishes() {
             "--program",
             "ring",
             "--live",
-            // Twice real time: the README runs it at 1.0. (scancorrd drops forwarded raw
+            // Twice real time, as the README runs it. (scancorrd drops forwarded raw
             // messages for a consumer that falls behind — its `qos/network` overwrite — so
             // at `max` a recorder may see gaps, which `record` then reports as an error.)
             "--live-rate",

@@ -19,7 +19,11 @@ pub struct NominalArgs {
     datasheet: Option<PathBuf>,
     /// The probe and stylus catalogue (JSON: `probes` with their `tau_s`, `tips` with `id`,
     /// `probe`, `l1_mm`, `l2_mm`, `beta1_deg`, `radius_mm`, `alpha_per_k`).
-    #[arg(long, required_unless_present = "tips_from", conflicts_with = "tips_from")]
+    #[arg(
+        long,
+        required_unless_present = "tips_from",
+        conflicts_with = "tips_from"
+    )]
     catalogue: Option<PathBuf>,
     /// Instead of a catalogue: the probes and tips of this calibration (styli qualified by
     /// `scancorr calibrate tips`; nothing else of it is taken).

@@ -950,7 +950,7 @@ mod tests {
                 while t <= plan.duration() {
                     let i = plan.segment_at(t);
                     let s = &plan.segments[i];
-                    let mut check = |p: V3, what: &str| {
+                    let check = |p: V3, what: &str| {
                         for (k, [lo, hi]) in TRAVEL_MM.iter().enumerate() {
                             assert!(
                                 (*lo..=*hi).contains(&p[k]),
