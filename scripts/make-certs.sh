@@ -10,6 +10,7 @@
 # DIR/controller-M-{cert,key}.pem        CN controller-M        (one per machine)
 # DIR/app-shape-analysis-{cert,key}.pem  CN app-shape-analysis  (an app)
 # DIR/operator-{cert,key}.pem            CN operator            (an operator / the lab)
+# DIR/auditor-{cert,key}.pem             CN auditor             (reads calibrations, changes none)
 # DIR/rogue-ca.pem, rogue-{cert,key}.pem a second CA and a `controller-m1` it signed (for
 #                                        tests: a certificate the router must refuse)
 #
@@ -55,6 +56,7 @@ leaf scancorrd ca
 for m in "${machines[@]}"; do leaf "controller-$m" ca; done
 leaf app-shape-analysis ca
 leaf operator ca
+leaf auditor ca
 # A certificate for an existing name from a CA the bus does not trust.
 ca rogue-ca
 leaf controller-m1 rogue-ca

@@ -160,9 +160,31 @@ pub fn machine_of<'a>(prefix: &str, key: &'a str, suffix: &str) -> Option<&'a st
     names::is_valid(m).then_some(m)
 }
 
-/// Key expression of a machine's calibration queryable.
+/// Key expression of a machine's calibration queryable for reading: the current document,
+/// `?version=N`, `?history`.
 pub fn calibration_key(prefix: &str, machine: &str) -> String {
     format!("{prefix}/{machine}/calibration")
+}
+
+/// Key expression of a machine's calibration queryable for changing it: a put (the document
+/// as the query's payload) or `?rollback=N`. Apart from [`calibration_key`] so that access
+/// control can give reading and changing to different roles.
+pub fn calibration_write_key(prefix: &str, machine: &str) -> String {
+    format!("{prefix}/{machine}/calibration/write")
+}
+
+/// The service's refusal of a change asked on the read key (`write` false) or of a read
+/// asked on the write key (`write` true).
+pub fn calibration_keys_misused(prefix: &str, machine: &str, write: bool) -> String {
+    let (read, change) = (
+        calibration_key(prefix, machine),
+        calibration_write_key(prefix, machine),
+    );
+    if write {
+        format!("{change} takes puts and rollbacks only; read the calibration and its history on {read}")
+    } else {
+        format!("calibrations are put and rolled back on {change}, not on {read} (the key that reads them)")
+    }
 }
 
 /// The key of the services' health query, `<prefix>/@scancorrd/health`: every scancorrd on
@@ -276,6 +298,18 @@ mod tests {
         assert_eq!(Stream::parse_key("cmm", "cmm/m7/raw/other"), None);
         assert_eq!(Stream::parse_key("cmm", "other/m7/raw/scale"), None);
         assert_eq!(calibration_key("cmm", "m1"), "cmm/m1/calibration");
+        assert_eq!(
+            calibration_write_key("cmm", "m1"),
+            "cmm/m1/calibration/write"
+        );
+        assert_eq!(
+            machine_of("cmm", "cmm/m1/calibration/write", "calibration/write"),
+            Some("m1")
+        );
+        assert_eq!(
+            machine_of("cmm", "cmm/m1/calibration/write", "calibration"),
+            None
+        );
         assert_eq!(
             machine_of("cmm", "cmm/cmm/calibration", "calibration"),
             Some("cmm")

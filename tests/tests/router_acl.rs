@@ -197,6 +197,7 @@ fn roles_can_do_exactly_what_the_router_allows() {
     };
 
     let op = role(&d, "operator", port, &certs);
+    let auditor = role(&d, "auditor", port, &certs);
     let app = role(&d, "app-shape-analysis", port, &certs);
     let c1 = role(&d, "controller-m1", port, &certs);
     let rogue = role(&d, "rogue", port, &certs);
@@ -261,6 +262,89 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     assert!(!cli(&d, &app, &["calib", "get", "--machine", "m1"])
         .status
         .success());
+
+    // Reading and changing calibrations are apart (issue 44: whoever could read could roll
+    // back). The auditor reads the calibration and its history...
+    succeeded(
+        cli(&d, &auditor, &["calib", "get", "--machine", "m1"]),
+        "auditor calib get",
+    );
+    assert_eq!(versions(&d, &auditor, "m1"), 1);
+    // ... but neither rolls back nor puts: the router refuses the write key.
+    let out = cli(
+        &d,
+        &auditor,
+        &["calib", "rollback", "--machine", "m1", "--to", "1"],
+    );
+    assert!(!out.status.success(), "the auditor rolled back");
+    let out = cli(
+        &d,
+        &auditor,
+        &["calib", "put", "--machine", "m1", "--file", "v1.json"],
+    );
+    assert!(!out.status.success(), "the auditor put a calibration");
+    // Nor through the key it may query: the service takes no change there.
+    let aud_s = session(&auditor).expect("the auditor connects");
+    for (sel, payload) in [
+        ("cmm/m1/calibration?rollback=1", None),
+        ("cmm/m1/calibration", Some(v1.clone())),
+    ] {
+        let mut g = aud_s.get(sel).timeout(Duration::from_secs(5));
+        if let Some(p) = payload {
+            g = g.payload(p);
+        }
+        let reply = g.wait().unwrap().recv().expect("the service answers");
+        let e = reply.into_result().expect_err("a change on the read key");
+        let e = e.payload().try_to_string().unwrap().to_string();
+        assert!(e.contains("cmm/m1/calibration/write"), "{sel}: {e}");
+    }
+    drop(aud_s);
+    assert_eq!(
+        versions(&d, &op, "m1"),
+        1,
+        "the auditor changed the history"
+    );
+    // The operator puts a second version and rolls back to the first (a third version).
+    succeeded(
+        cli(
+            &d,
+            &op,
+            &["calib", "put", "--machine", "m1", "--file", "v1.json"],
+        ),
+        "operator calib put v2",
+    );
+    succeeded(
+        cli(
+            &d,
+            &op,
+            &["calib", "rollback", "--machine", "m1", "--to", "1"],
+        ),
+        "operator calib rollback",
+    );
+    assert_eq!(versions(&d, &op, "m1"), 3);
+    // The router said what it refused: the key expression, the peer and the rule.
+    let t0 = Instant::now();
+    let denied = loop {
+        let log = router.log();
+        if let Some(l) = log.lines().find(|l| {
+            l.contains("WARN")
+                && l.contains("ACL denied query (ingress) on cmm/m1/calibration/write")
+                && l.contains("auditor")
+        }) {
+            break l.to_string();
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "no denial in the router's log:\n{log}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(
+        denied.contains("no rule of subject auditors allows it")
+            && denied.contains("ask-calibration"),
+        "{denied}"
+    );
+
     // An app may ask for status and see which machines are served.
     assert!(cli(&d, &app, &["status", "--machine", "m1", "--json"])
         .status
@@ -387,6 +471,55 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         "an app declared the service's liveliness token: {listed}"
     );
 
+    // The app's forged put is in the router's log; a flood of denied puts writes at most 20
+    // lines per 10 s, and one line counts the rest.
+    let flood = 2000;
+    for k in 0..flood {
+        app_s
+            .put(format!("cmm/m1/raw/flood{k}"), b"FORGED".to_vec())
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .wait()
+            .unwrap();
+    }
+    let t0 = Instant::now();
+    let log = loop {
+        let log = router.log();
+        if log.contains("not logged") || t0.elapsed() > Duration::from_secs(20) {
+            break log;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    assert!(
+        log.lines().any(|l| l.contains("WARN")
+            && l.contains("ACL denied put (ingress) on cmm/m1/corrected/points")
+            && l.contains("app-shape-analysis")),
+        "{log}"
+    );
+    let flood_lines = log
+        .lines()
+        .filter(|l| l.contains("ACL denied put (ingress) on cmm/m1/raw/flood"))
+        .count();
+    assert!(
+        (1..=20).contains(&flood_lines),
+        "{flood_lines} lines:\n{log}"
+    );
+    let counted: u64 = log
+        .lines()
+        .filter(|l| l.contains("not logged"))
+        .filter_map(|l| {
+            l.split("ACL: ")
+                .nth(1)?
+                .split(' ')
+                .next()?
+                .parse::<u64>()
+                .ok()
+        })
+        .sum();
+    assert!(
+        counted + flood_lines as u64 >= flood,
+        "{counted} counted, {flood_lines} written of {flood}:\n{log}"
+    );
+
     // Certificates: none, a rogue CA's, or plain TCP: no connection at all.
     let nocert = d.join("nocert.json5");
     std::fs::write(
@@ -422,7 +555,7 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         !out.status.success(),
         "plain TCP to the TLS port got an answer"
     );
-    assert_eq!(versions(&d, &op, "m1"), 1);
+    assert_eq!(versions(&d, &op, "m1"), 3);
     drop(svc);
     drop(router);
 }

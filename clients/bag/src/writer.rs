@@ -169,6 +169,14 @@ impl BagWriter {
             path: path.clone(),
             error,
         })?;
+        BagWriter::from_file(file, path, header)
+    }
+
+    /// Writes the bag into `file`, already open for writing and empty (a temporary file the
+    /// caller created exclusively, so nothing is reopened by name); `path` names it in
+    /// messages.
+    pub fn from_file(file: File, path: impl AsRef<Path>, header: BagHeader) -> Result<BagWriter> {
+        let path = path.as_ref().to_path_buf();
         let compression = match header.compression {
             Compression::Zstd => Some(mcap::Compression::Zstd),
             Compression::Lz4 => Some(mcap::Compression::Lz4),

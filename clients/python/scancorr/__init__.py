@@ -8,7 +8,9 @@
 
 - `connect(endpoint | zenoh_config=FILE)` → `Client`: `subscribe_points`, `subscribe_alarms`,
   `get_calibration`, `put_calibration`, `history`, `status`, `machines`
-- `read_bag(path)` → `Bag`: every channel as numpy arrays (pandas with `Bag.frames()`)
+- `read_bag(path, skip_damaged=False)` → `Bag`: every channel as numpy arrays (pandas with
+  `Bag.frames()`), every checksum verified: damage raises `BagError`; a bag cut short, skipped
+  chunks and undecodable messages are counted on the `Bag` and warned about (`BagWarning`)
 - `scancorr.shape`: `fit_circle`, `fit_sphere`, `fit_line`, `fit_plane`, `roundness`,
   `straightness`
 - `POINT_DTYPE`, `ALARM_DTYPE`: the arrays' layouts (`scancorr.arrays`)
@@ -16,7 +18,7 @@
 
 from . import arrays, shape
 from .arrays import ALARM_DTYPE, POINT_DTYPE, DecodeError
-from .bag import Bag, Channel, read_bag
+from .bag import Bag, BagError, BagWarning, Channel, DamagedChunk, Truncation, read_bag
 from .client import (
     AlarmSubscription,
     Client,
@@ -36,8 +38,11 @@ __all__ = [
     "POINT_DTYPE",
     "AlarmSubscription",
     "Bag",
+    "BagError",
+    "BagWarning",
     "Channel",
     "Client",
+    "DamagedChunk",
     "DecodeError",
     "NoService",
     "NotServed",
@@ -45,6 +50,7 @@ __all__ = [
     "PointSubscription",
     "ScancorrError",
     "ServiceError",
+    "Truncation",
     "arrays",
     "connect",
     "read_bag",

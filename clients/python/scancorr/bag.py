@@ -1,22 +1,51 @@
-"""Reading scancorr bags (MCAP, protobuf) into numpy arrays, with `mcap` and
-`mcap-protobuf-support` (the message classes come from the schema each channel carries).
+"""Reading scancorr bags (MCAP, protobuf) into numpy arrays (the message classes come from the
+schema each channel carries).
 
     bag = scancorr.read_bag("corrected.mcap")
     pts = bag.points()                    # every corrected point, arrays.POINT_DTYPE
     scale = bag["cmm/m1/raw/scale"]        # one channel's samples: seq, t_ns, x, y, z
     frames = bag.frames()                  # the same as pandas DataFrames (needs pandas)
+
+The bag is read as the Rust reader reads it (`scancorr._mcap`): every checksum verified, every
+length checked before it is allocated, decompression capped; damage raises `BagError` naming
+the file, the record and its byte offset. Nothing is lost in silence: a bag cut short is read
+up to its last complete chunk (`Bag.truncation`), messages that do not decode are counted
+(`Bag.undecodable`), with `skip_damaged=True` damaged chunks are skipped and listed
+(`Bag.damaged_chunks`); each of these also issues a `BagWarning`, and `Bag.problems()` lists
+them.
 """
 
 from __future__ import annotations
 
+import os
+import warnings
 from dataclasses import dataclass, field
 from operator import attrgetter
 from os import PathLike
-from typing import Any, Dict, List, Union
+from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from . import arrays
+from . import _mcap, arrays
+from ._mcap import RECORD_LIMIT, BagError, DamagedChunk, Truncation
+
+__all__ = [
+    "RECORD_LIMIT",
+    "Bag",
+    "BagError",
+    "BagWarning",
+    "Channel",
+    "DamagedChunk",
+    "Truncation",
+    "flat_columns",
+    "read_bag",
+]
+
+
+class BagWarning(UserWarning):
+    """Issued by `read_bag` when a bag was read with something missing: cut short, damaged
+    chunks skipped, messages that do not decode or are no valid batch."""
+
 
 # protobuf FieldDescriptor types → numpy.
 _NP = {
@@ -56,15 +85,48 @@ class Channel:
 
 @dataclass
 class Bag:
-    """What `read_bag` read."""
+    """What `read_bag` read.
+
+    skipped:        messages per topic of channels that are not scancorr protobuf channels
+                    (other schemas or encodings, or a channel the bag never declares)
+    malformed:      messages per topic that decode but are no valid batch (packed columns of
+                    unequal lengths, or both forms in one batch): counted, not read
+    undecodable:    messages per topic whose payload does not decode as the channel's
+                    message (or whose schema cannot be used): counted, not read
+    truncation:     set when the file was cut short: everything up to its last complete chunk
+                    was read (`Truncation.readable_len` of `file_len` bytes)
+    damaged_chunks: chunks skipped because they failed verification, with the messages lost
+                    (only with `skip_damaged=True`; otherwise damage raises `BagError`)
+    damage_notes:   damage that cost no message (a damaged summary: the data section was
+                    scanned and verified instead) or, skipping, a data-section CRC mismatch
+    """
 
     path: str
     channels: Dict[str, Channel] = field(default_factory=dict)
     metadata: Dict[str, Dict[str, str]] = field(default_factory=dict)
     skipped: Dict[str, int] = field(default_factory=dict)
-    # Messages per topic that decode but are no valid batch (packed columns of unequal
-    # lengths, or both forms in one batch): counted, not read.
     malformed: Dict[str, int] = field(default_factory=dict)
+    undecodable: Dict[str, int] = field(default_factory=dict)
+    truncation: Optional[Truncation] = None
+    damaged_chunks: List[DamagedChunk] = field(default_factory=list)
+    damage_notes: List[str] = field(default_factory=list)
+
+    def problems(self) -> List[str]:
+        """What was not read, one line each (empty when the whole bag was read): the
+        warnings `read_bag` issues."""
+        out = []
+        t = self.truncation
+        if t is not None:
+            out.append(
+                f"{self.path}: the bag is cut short ({t.reason}); read the {t.readable_len} of "
+                f"{t.file_len} bytes that form complete chunks"
+            )
+        out += [f"{self.path}: {d}" for d in self.damaged_chunks]
+        out += [f"{self.path}: {n}" for n in self.damage_notes]
+        for what, counts in (("could not be decoded", self.undecodable), ("are no valid batch", self.malformed)):
+            for topic, n in sorted(counts.items()):
+                out.append(f"{self.path}: {n} message(s) on {topic} {what}: skipped")
+        return out
 
     def __getitem__(self, topic: str) -> np.ndarray:
         return self.channels[topic].data
@@ -162,49 +224,145 @@ def _columns(columns: Any, dt: np.dtype) -> np.ndarray:
     return a
 
 
-def read_bag(path: Union[str, "PathLike[str]"]) -> Bag:
+# Message classes built from schema data (a FileDescriptorSet), by (data, name): bags of one
+# release share their schemas, and building a descriptor pool costs milliseconds.
+_CLASSES: Dict[Tuple[bytes, str], Any] = {}
+
+
+def _message_class(data: bytes, name: str) -> Any:
+    """The message class `name` of the FileDescriptorSet `data`; raises when the schema cannot
+    be used (does not parse, lacks the message)."""
+    key = (data, name)
+    cls = _CLASSES.get(key)
+    if cls is None:
+        from google.protobuf.descriptor_pb2 import FileDescriptorSet
+        from google.protobuf.descriptor_pool import DescriptorPool
+        from google.protobuf.message_factory import GetMessageClass
+
+        fds = FileDescriptorSet.FromString(data)
+        files = {fd.name: fd for fd in fds.file}
+        if len(files) != len(fds.file):
+            raise ValueError("the FileDescriptorSet holds a file twice")
+        pool = DescriptorPool()
+        added: set = set()
+
+        def add(fd: Any, depth: int = 0) -> None:
+            if fd.name in added or depth > 100:
+                return
+            added.add(fd.name)
+            for dep in fd.dependency:
+                if dep in files:
+                    add(files[dep], depth + 1)
+            pool.Add(fd)
+
+        for fd in fds.file:
+            add(fd)
+        cls = GetMessageClass(pool.FindMessageTypeByName(name))
+        if len(_CLASSES) >= 64:
+            _CLASSES.clear()
+        _CLASSES[key] = cls
+    return cls
+
+
+def read_bag(path: Union[str, "PathLike[str]"], *, skip_damaged: bool = False) -> Bag:
     """Every channel of a scancorr bag as numpy arrays: raw samples per stream, corrected
     points (`arrays.POINT_DTYPE`), alarms (`arrays.ALARM_DTYPE`); the bag's metadata records
-    as dicts. Channels of other schemas are counted in `skipped`, batches that are not valid
-(packed columns of unequal lengths) in `malformed`; neither is read."""
-    from mcap.reader import make_reader
-    from mcap_protobuf.decoder import DecoderFactory
+    as dicts. Samples are in log-time order (file order on equal times).
 
-    bag = Bag(path=str(path))
-    parts: Dict[str, List[np.ndarray]] = {}
-    info: Dict[str, tuple] = {}
+    Every checksum is verified and every length checked, as the Rust reader does: a damaged
+    bag raises `BagError` (`<file>: damaged bag: chunk at byte offset N: CRC mismatch …`), or,
+    with `skip_damaged=True`, its damaged chunks are skipped and listed in `damaged_chunks`. A
+    bag cut short is read up to its last complete chunk (`truncation`). Channels of other
+    schemas are counted in `skipped`, messages that do not decode in `undecodable`, batches
+    that are not valid (packed columns of unequal lengths) in `malformed`; none of them is
+    read. Whatever was not read is also issued as a `BagWarning` (see `Bag.problems()`).
+    Raises OSError when the file cannot be read."""
+    path_s = os.fspath(path)
+    bag = Bag(path=str(path_s))
+    # topic -> [(log time, order, array)]
+    parts: Dict[str, List[Tuple[int, int, np.ndarray]]] = {}
+    schemas: Dict[str, str] = {}
     cache: Dict[str, tuple] = {}
-    with open(path, "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        for schema, channel, _message, msg in reader.iter_decoded_messages(log_time_order=True):
-            name = schema.name if schema is not None else ""
-            if not name.startswith("scancorr.v1.") or msg is None:
-                bag.skipped[channel.topic] = bag.skipped.get(channel.topic, 0) + 1
-                continue
-            if name == "scancorr.v1.CorrectedPointBatch":
-                try:
-                    a = arrays.points_from_message(msg)
-                except arrays.DecodeError:
-                    bag.malformed[channel.topic] = bag.malformed.get(channel.topic, 0) + 1
-                    continue
-            elif name == "scancorr.v1.EstimatorAlarm":
-                a = arrays.alarm_from_message(msg)
-            elif "samples" in msg.DESCRIPTOR.fields_by_name:
-                try:
-                    a = _samples(msg, cache)
-                except ValueError:
-                    bag.malformed[channel.topic] = bag.malformed.get(channel.topic, 0) + 1
-                    continue
-            else:
-                bag.skipped[channel.topic] = bag.skipped.get(channel.topic, 0) + 1
-                continue
-            parts.setdefault(channel.topic, []).append(a)
-            n = info.get(channel.topic, (name, 0))[1]
-            info[channel.topic] = (name, n + 1)
-        f.seek(0)
-        for m in make_reader(f).iter_metadata():
-            bag.metadata[m.name] = dict(m.metadata)
-    for topic, arrs in parts.items():
-        name, n = info[topic]
-        bag.channels[topic] = Channel(topic=topic, schema=name, messages=n, data=np.concatenate(arrs))
+    # channel id -> (topic, schema name, message class; None: not a scancorr protobuf
+    # channel, False: its schema cannot be used)
+    routes: Dict[int, Tuple[str, str, Any]] = {}
+    order = 0
+
+    def count(d: Dict[str, int], topic: str) -> None:
+        d[topic] = d.get(topic, 0) + 1
+
+    def route(channel_id: int, ch: Any, schema: Any) -> Tuple[str, str, Any]:
+        r = routes.get(channel_id)
+        if r is not None:
+            return r
+        if ch is None:
+            # Not kept: a later channel record may declare it.
+            return (f"<undeclared channel {channel_id}>", "", None)
+        name = schema.name if schema is not None else ""
+        if (
+            schema is None
+            or not name.startswith("scancorr.v1.")
+            or schema.encoding != "protobuf"
+            or ch.message_encoding != "protobuf"
+        ):
+            r = (ch.topic, "", None)
+        else:
+            try:
+                r = (ch.topic, name, _message_class(schema.data, name))
+            except Exception:  # protobuf raises several types for a schema it cannot use
+                r = (ch.topic, name, False)
+        routes[channel_id] = r
+        return r
+
+    def on_message(channel_id: int, ch: Any, schema: Any, log_time: int, payload: memoryview) -> None:
+        nonlocal order
+        topic, name, cls = route(channel_id, ch, schema)
+        if cls is None:
+            count(bag.skipped, topic)
+            return
+        if cls is False:
+            count(bag.undecodable, topic)
+            return
+        try:
+            msg = cls.FromString(bytes(payload))
+        except Exception:  # protobuf raises several types
+            count(bag.undecodable, topic)
+            return
+        if name == "scancorr.v1.CorrectedPointBatch":
+            try:
+                a = arrays.points_from_message(msg)
+            except arrays.DecodeError:
+                count(bag.malformed, topic)
+                return
+        elif name == "scancorr.v1.EstimatorAlarm":
+            a = arrays.alarm_from_message(msg)
+        elif "samples" in msg.DESCRIPTOR.fields_by_name:
+            try:
+                a = _samples(msg, cache)
+            except ValueError:
+                count(bag.malformed, topic)
+                return
+        else:
+            count(bag.skipped, topic)
+            return
+        parts.setdefault(topic, []).append((log_time, order, a))
+        schemas[topic] = name
+        order += 1
+
+    cat = _mcap.read(path_s, on_message, skip_damaged=skip_damaged)
+    for topic, msgs in parts.items():
+        msgs.sort(key=lambda m: (m[0], m[1]))
+        bag.channels[topic] = Channel(
+            topic=topic,
+            schema=schemas[topic],
+            messages=len(msgs),
+            data=np.concatenate([m[2] for m in msgs]),
+        )
+    for name, entries in cat.metadata:
+        bag.metadata[name] = dict(entries)
+    bag.truncation = cat.truncation
+    bag.damaged_chunks = list(cat.damaged)
+    bag.damage_notes = list(cat.notes)
+    for line in bag.problems():
+        warnings.warn(line, BagWarning, stacklevel=2)
     return bag

@@ -10,7 +10,8 @@ Key expressions (proto/scancorr/v1/scancorr.proto; `prefix` defaults to `cmm`):
 
     <prefix>/<machine>/corrected/points   CorrectedPointBatch   (subscribe_points)
     <prefix>/<machine>/alarms/estimator   EstimatorAlarm        (subscribe_alarms)
-    <prefix>/<machine>/calibration        queryable: get (?version=N, ?history) and put
+    <prefix>/<machine>/calibration        queryable: get (?version=N, ?history)
+    <prefix>/<machine>/calibration/write  queryable: put (payload) and ?rollback=N
     <prefix>/<machine>/status             queryable: the machine's status document
     <prefix>/<machine>/scancorrd          liveliness token of the service serving it
 
@@ -312,14 +313,14 @@ class Client:
             raise ValueError("the calibration document must be a JSON object")
         if note is not None:
             doc = dict(doc, note=note)
-        return self._json(self._key(machine, "calibration"), json.dumps(doc).encode(), who=True)
+        return self._json(self._key(machine, "calibration/write"), json.dumps(doc).encode(), who=True)
 
     def rollback(self, machine: str, to: int) -> Dict[str, Any]:
         """Makes version `to` of `machine`'s calibration current again, as a new version
         (its parent the current one). Returns `{"machine", "version", "parent_version"}`."""
         if not isinstance(to, int) or isinstance(to, bool) or to < 1:
             raise ValueError(f"to {to!r}: must be a version number (>= 1)")
-        return self._json(f"{self._key(machine, 'calibration')}?rollback={to}", who=True)
+        return self._json(f"{self._key(machine, 'calibration/write')}?rollback={to}", who=True)
 
     def history(self, machine: str) -> List[Dict[str, Any]]:
         """Every stored version of `machine`'s calibration, oldest first."""

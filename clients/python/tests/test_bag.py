@@ -24,7 +24,8 @@ def test_read_bag_reads_every_channel_of_a_campaign(campaign: pathlib.Path) -> N
     b = scancorr.read_bag(campaign / "c.mcap")
     counts = {k: int(v) for k, v in b.metadata["scancorr.sample_counts"].items()}
     assert set(b.topics()) == set(counts), (b.topics(), counts)
-    assert not b.skipped and not b.malformed
+    assert not b.skipped and not b.malformed and not b.undecodable
+    assert b.truncation is None and not b.damaged_chunks and not b.problems()
     for topic, n in counts.items():
         a = b[topic]
         assert len(a) == n, topic
@@ -63,8 +64,10 @@ def test_read_bag_reads_the_corrected_points(campaign: pathlib.Path) -> None:
 def test_a_file_that_is_not_a_bag_is_refused(tmp_path: pathlib.Path) -> None:
     p = tmp_path / "x.mcap"
     p.write_bytes(b"not an mcap file")
-    with pytest.raises(Exception):
+    with pytest.raises(scancorr.BagError, match=f"^{p}: not an MCAP file: wrong magic bytes at the start$"):
         scancorr.read_bag(p)
+    with pytest.raises(FileNotFoundError):
+        scancorr.read_bag(tmp_path / "missing.mcap")
 
 
 def test_the_readme_example_runs(tmp_path: pathlib.Path) -> None:

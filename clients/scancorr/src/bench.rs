@@ -448,8 +448,7 @@ pub fn core(o: &CoreOptions) -> Result<()> {
 
 /// `scancorr bench correct`: the offline corrector end to end on a campaign bag.
 pub fn correct(repeat: usize, json: bool) -> Result<()> {
-    let dir = std::env::temp_dir().join(format!("scancorr-bench-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
+    let dir = crate::output::private_dir("scancorr-bench")?;
     let bag = dir.join("campaign.mcap");
     let out = dir.join("corrected.mcap");
     let options = scancorr_sim::Options {

@@ -432,10 +432,10 @@ fn measure(p: &Params) -> Result<Measured> {
         .enable_all()
         .build()?;
     rt.block_on(async {
-        let dir = std::env::temp_dir().join(format!("scancorr-bench-fleet-{}", std::process::id()));
+        let dir = crate::output::private_dir("scancorr-bench-fleet")?;
         let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
         let _router = if p.router {
-            Some(start_router(&dir.with_extension("router"), port)?)
+            Some(start_router(&crate::output::private_dir("scancorr-bench-router")?, port)?)
         } else {
             None
         };
@@ -478,7 +478,7 @@ fn measure(p: &Params) -> Result<Measured> {
         // One calibration per machine: the service creates each machine's state on the put.
         let t_cal = Instant::now();
         let puts: Vec<(String, Option<String>)> = (0..p.machines)
-            .map(|m| (format!("cmm/{}/calibration", machine_name(m)), Some(synth::all_effects_calibration(&machine_name(m)).to_json())))
+            .map(|m| (scancorr_proto::calibration_write_key("cmm", &machine_name(m)), Some(synth::all_effects_calibration(&machine_name(m)).to_json())))
             .collect();
         in_parallel(&session, puts, 32, "calibrations put", quiet, |_| ()).await?;
         let cal_s = t_cal.elapsed().as_secs_f64();

@@ -166,11 +166,7 @@ pub fn relay(port: u16, prefix: &str) -> Result<()> {
 }
 
 fn start_relay(port: u16, prefix: &str) -> Result<Service> {
-    let dir = std::env::temp_dir().join(format!(
-        "scancorr-bench-relay-{}-{port}",
-        std::process::id()
-    ));
-    std::fs::create_dir_all(&dir)?;
+    let dir = crate::output::private_dir(&format!("scancorr-bench-relay-{port}"))?;
     let child = Command::new(std::env::current_exe()?)
         .args([
             "bench",
@@ -339,7 +335,7 @@ async fn drive(
 async fn put_calibration(s: &zenoh::Session, machine: &str) -> Result<()> {
     query(
         s,
-        format!("cmm/{machine}/calibration"),
+        scancorr_proto::calibration_write_key("cmm", machine),
         Some(synth::all_effects_calibration(machine).to_json()),
     )
     .await
@@ -424,7 +420,7 @@ pub fn run(points: usize, rounds: usize, json: bool) -> Result<()> {
     rt.block_on(async {
         let free = || -> Result<u16> { Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port()) };
         let (port, relay_port) = (free()?, free()?);
-        let dir = std::env::temp_dir().join(format!("scancorr-bench-live-{}", std::process::id()));
+        let dir = crate::output::private_dir("scancorr-bench-live")?;
         let _svc = start_scancorrd(&dir, port, "")?;
         let _relay = start_relay(relay_port, "cmm")?;
         let paths = Paths {

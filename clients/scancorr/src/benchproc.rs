@@ -42,8 +42,7 @@ struct Tally {
 
 /// Runs the benchmark.
 pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result<()> {
-    let dir = std::env::temp_dir().join(format!("scancorr-bench-proc-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
+    let dir = crate::output::private_dir("scancorr-bench-proc")?;
     let mut all = BTreeMap::new();
     for proc in procedures {
         let program = match proc.as_str() {

@@ -298,7 +298,7 @@ pub fn calib_put(bus: &Bus, machine: &str, file: &Path) -> Result<String> {
     let text = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
     ask_as_user(
         bus,
-        scancorr_proto::calibration_key(&bus.prefix, machine),
+        scancorr_proto::calibration_write_key(&bus.prefix, machine),
         Some(text),
     )
 }
@@ -406,7 +406,11 @@ pub fn machines(bus: &Bus) -> Result<Vec<String>> {
                     .strip_prefix(&format!("{}/", bus.prefix))
                     .and_then(|r| r.strip_suffix("/scancorrd"))
                 {
-                    v.push(m.to_string());
+                    // A token with a wildcard (any peer may declare `cmm/*/scancorrd`) names
+                    // no machine.
+                    if scancorr_proto::names::check_machine(m).is_ok() {
+                        v.push(m.to_string());
+                    }
                 }
             }
         }
@@ -451,8 +455,41 @@ impl Drop for Conn {
 /// How long a publisher waits for a subscriber before giving up.
 const MATCH_WAIT: Duration = Duration::from_secs(5);
 
+/// What a replay sent, and what became of it.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Replayed {
+    /// Messages published.
+    pub sent: u64,
+    /// Of those, how many did not reach the scancorrd serving their machine (lost on the way:
+    /// a link closed, a router down); None when no scancorrd answered to confirm.
+    pub not_delivered: Option<u64>,
+    /// Of those that arrived, how many the service shed (it could not correct them in real
+    /// time; counted on the machine's status as `input.shed`).
+    pub shed: u64,
+}
+
+impl Replayed {
+    /// What became of them, in words (empty when everything arrived and was corrected).
+    pub fn said(&self) -> String {
+        let mut v = vec![];
+        match self.not_delivered {
+            Some(0) => {}
+            Some(n) => v.push(format!("{n} did not reach scancorrd")),
+            None => v.push("their arrival is not confirmed (no scancorrd answered)".into()),
+        }
+        if self.shed > 0 {
+            v.push(format!("{} were shed by scancorrd", self.shed));
+        }
+        if v.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", v.join("; "))
+        }
+    }
+}
+
 /// `replay`: bag → bus, paced by sample time (`rate` × real time; None = as fast as possible).
-pub fn replay(bus: &Bus, bag: &Path, rate: Option<f64>, looping: bool) -> Result<u64> {
+pub fn replay(bus: &Bus, bag: &Path, rate: Option<f64>, looping: bool) -> Result<Replayed> {
     bus.check()?;
     // Read the bag before connecting: a bad bag is reported as such.
     BagReader::open(bag).with_context(|| format!("reading bag {}", bag.display()))?;
@@ -460,8 +497,16 @@ pub fn replay(bus: &Bus, bag: &Path, rate: Option<f64>, looping: bool) -> Result
 }
 
 impl Conn {
-    /// Publishes a bag's raw streams; fails when nobody subscribes to them.
-    pub fn replay(&self, bus: &Bus, bag: &Path, rate: Option<f64>, looping: bool) -> Result<u64> {
+    /// Publishes a bag's raw streams; fails when nobody subscribes to them. Closes once every
+    /// message has arrived at the scancorrd serving its machine (a query that travels behind
+    /// them comes back with their count), or says how many did not.
+    pub fn replay(
+        &self,
+        bus: &Bus,
+        bag: &Path,
+        rate: Option<f64>,
+        looping: bool,
+    ) -> Result<Replayed> {
         let reader =
             BagReader::open(bag).with_context(|| format!("reading bag {}", bag.display()))?;
         let s = &self.session;
@@ -476,7 +521,7 @@ impl Conn {
                         .congestion_control(CongestionControl::Block)
                         .await
                         .map_err(z)?;
-                    pubs.insert(ch.topic.clone(), (key, p));
+                    pubs.insert(ch.topic.clone(), (key, p, ch.machine.clone()));
                 }
             }
             if pubs.is_empty() {
@@ -486,7 +531,7 @@ impl Conn {
             let t0 = Instant::now();
             let matched = loop {
                 let mut matched = vec![];
-                for (key, p) in pubs.values() {
+                for (key, p, _) in pubs.values() {
                     if p.matching_status().await.map(|m| m.matching()).unwrap_or(false) {
                         matched.push(key.clone());
                     }
@@ -499,16 +544,27 @@ impl Conn {
             if matched.is_empty() {
                 bail!(
                     "nobody subscribes to {} on {} (waited {} s): is scancorrd running there with prefix `{}`?",
-                    pubs.values().map(|(k, _)| format!("`{k}`")).collect::<Vec<_>>().join(", "),
+                    pubs.values().map(|(k, _, _)| format!("`{k}`")).collect::<Vec<_>>().join(", "),
                     bus.endpoints(),
                     MATCH_WAIT.as_secs(),
                     bus.prefix
                 );
             }
-            for (key, _) in pubs.values() {
+            for (key, _, _) in pubs.values() {
                 if !matched.contains(key) {
                     eprintln!("warning: nobody subscribes to `{key}`; its messages go nowhere");
                 }
+            }
+            // What the service serving each machine has received of it so far: the replay's
+            // messages are counted against it at the end (none: no scancorrd answers for it,
+            // and delivery cannot be confirmed).
+            let machines: std::collections::BTreeSet<String> =
+                pubs.values().map(|(_, _, m)| m.clone()).collect();
+            let mut ledgers = std::collections::BTreeMap::new();
+            for m in &machines {
+                let before = input_of(s, &bus.prefix, m, ASK_FIRST).await;
+                let pacing = before.is_some();
+                ledgers.insert(m.clone(), Ledger { before, sent: 0, pacing });
             }
             let mut sent = 0u64;
             let mut progress = crate::output::Progress::new();
@@ -518,7 +574,7 @@ impl Conn {
                 let mut first: Option<u64> = None;
                 for m in reader.messages()? {
                     let m = m?;
-                    let Some((_, p)) = pubs.get(&*m.topic) else {
+                    let Some((_, p, machine)) = pubs.get(&*m.topic) else {
                         continue;
                     };
                     if let Some(r) = rate {
@@ -540,6 +596,14 @@ impl Conn {
                     };
                     p.put(data).await.map_err(z)?;
                     sent += 1;
+                    let l = ledgers.get_mut(machine).expect("a ledger per machine");
+                    l.sent += 1;
+                    // As fast as possible: paced by the service, so that what it has not
+                    // corrected yet of this machine stays small (it never waits for a
+                    // publisher; what it cannot hold, it sheds).
+                    if rate.is_none() && l.pacing && l.sent % PACE_EVERY == 0 {
+                        l.pacing = pace(s, &bus.prefix, machine).await;
+                    }
                     progress.tick(|| format!("replaying {}: {sent} of {total} message(s){}", bag.display(), if looping { " (looping)" } else { "" }));
                 }
                 if !looping {
@@ -547,11 +611,57 @@ impl Conn {
                 }
             }
             progress.finish();
-            // Let the last messages leave before closing.
-            tokio::time::sleep(Duration::from_millis(300)).await;
+            // Every message has left, and arrived, once the service has counted them: a
+            // query travels behind them, in the same queue, over the same links.
+            let mut lost = vec![];
+            let mut unconfirmed = vec![];
+            let mut replayed = Replayed { sent, not_delivered: Some(0), shed: 0 };
+            for (m, l) in &ledgers {
+                let Some(before) = &l.before else {
+                    unconfirmed.push(m.clone());
+                    continue;
+                };
+                let after = settle(s, &bus.prefix, m, before.arrived + l.sent).await;
+                let Some(after) = after else {
+                    unconfirmed.push(m.clone());
+                    continue;
+                };
+                let arrived = after.arrived.saturating_sub(before.arrived).min(l.sent);
+                let shed = after.shed.saturating_sub(before.shed).min(arrived);
+                replayed.shed += shed;
+                if let Some(n) = &mut replayed.not_delivered {
+                    *n += l.sent - arrived;
+                }
+                if shed > 0 {
+                    eprintln!(
+                        "warning: scancorrd had shed {shed} of the {} message(s) of machine `{m}` when the replay ended: it could not correct them in real time (`input` on its status: `scancorr status --machine {m}`)",
+                        l.sent
+                    );
+                }
+                if arrived < l.sent {
+                    lost.push(format!("{} of {} for machine `{m}`", l.sent - arrived, l.sent));
+                }
+            }
+            if !unconfirmed.is_empty() {
+                replayed.not_delivered = None;
+                // Without a service to count them: time for the last messages to leave.
+                tokio::time::sleep(Duration::from_millis(300)).await;
+                eprintln!(
+                    "warning: no scancorrd answered for machine(s) {}: whether their messages arrived is not confirmed",
+                    unconfirmed.iter().map(|m| format!("`{m}`")).collect::<Vec<_>>().join(", ")
+                );
+            }
+            if !lost.is_empty() {
+                // Said, not failed: a replay that outlived a router restart goes on, and the
+                // service counts the samples missing too.
+                eprintln!(
+                    "warning: messages published did not reach scancorrd ({}): they were lost on the way (a link closed, a router was down)",
+                    lost.join(", ")
+                );
+            }
             // A subscriber that went away (the service stopped) did not get everything.
             let mut still = false;
-            for (_, p) in pubs.values() {
+            for (_, p, _) in pubs.values() {
                 still |= p.matching_status().await.map(|m| m.matching()).unwrap_or(false);
             }
             if !still {
@@ -560,8 +670,128 @@ impl Conn {
                     bus.endpoints()
                 );
             }
-            Ok(sent)
+            Ok(replayed)
         })
+    }
+}
+
+/// How long the first question to the service may take to answer (a machine's status).
+const ASK_FIRST: Duration = Duration::from_secs(3);
+
+/// With `--speed max` / `--live-rate max`, the service is asked every this many messages of a
+/// machine how much of it waits to be corrected.
+const PACE_EVERY: u64 = 32;
+
+/// Publishing waits while more than this of a machine waits in the service, bytes…
+const PACE_HIGH: u64 = 1 << 20;
+
+/// … until it is below this.
+const PACE_LOW: u64 = 256 << 10;
+
+/// What a service has received of one machine (its status' `input`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Received {
+    arrived: u64,
+    shed: u64,
+    queued_bytes: u64,
+}
+
+/// A machine's messages in a replay: what its service had received before, and what was sent.
+struct Ledger {
+    before: Option<Received>,
+    sent: u64,
+    /// Paced by the service (it answers).
+    pacing: bool,
+}
+
+/// What the scancorrd serving `machine` has received of it (`status?input`, answered at once
+/// from the counters of its input); zero for a machine it does not serve yet; None when no
+/// scancorrd answers within `wait`.
+async fn input_of(
+    s: &zenoh::Session,
+    prefix: &str,
+    machine: &str,
+    wait: Duration,
+) -> Option<Received> {
+    let replies = s
+        .get(format!("{prefix}/{machine}/status?input"))
+        .timeout(wait)
+        .await
+        .ok()?;
+    let mut best: Option<Received> = None;
+    while let Ok(r) = replies.recv_async().await {
+        let Ok(sample) = r.result() else { continue };
+        let Ok(text) = sample.payload().try_to_string() else {
+            continue;
+        };
+        let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
+            continue;
+        };
+        let got = if v["served"] == true {
+            let i = &v["input"];
+            // A service older than the `input` counters cannot confirm anything.
+            let Some(arrived) = i["arrived"].as_u64() else {
+                continue;
+            };
+            Received {
+                arrived,
+                shed: i["shed"].as_u64().unwrap_or(0),
+                queued_bytes: i["queued_bytes"].as_u64().unwrap_or(0),
+            }
+        } else {
+            Received {
+                arrived: 0,
+                shed: 0,
+                queued_bytes: 0,
+            }
+        };
+        if best.is_none_or(|b| got.arrived > b.arrived) {
+            best = Some(got);
+        }
+    }
+    best
+}
+
+/// Waits while the service holds more than [`PACE_HIGH`] of `machine` not yet corrected;
+/// false when it no longer answers (the replay goes on unpaced).
+async fn pace(s: &zenoh::Session, prefix: &str, machine: &str) -> bool {
+    let t0 = Instant::now();
+    let mut high = PACE_HIGH;
+    while t0.elapsed() < Duration::from_secs(30) {
+        match input_of(s, prefix, machine, Duration::from_secs(2)).await {
+            Some(r) if r.queued_bytes > high => {
+                high = PACE_LOW;
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            Some(_) => return true,
+            None => return false,
+        }
+    }
+    true
+}
+
+/// What the service has received of `machine` once it has `expect` messages, or once the count
+/// stops growing (a query behind the replay's messages came back and the next ones say the
+/// same); None when it stops answering.
+async fn settle(s: &zenoh::Session, prefix: &str, machine: &str, expect: u64) -> Option<Received> {
+    let t0 = Instant::now();
+    let mut last: Option<Received> = None;
+    let mut same = 0;
+    loop {
+        let r = input_of(s, prefix, machine, Duration::from_secs(5)).await?;
+        if r.arrived >= expect || t0.elapsed() > Duration::from_secs(20) {
+            return Some(r);
+        }
+        if last.is_some_and(|l| l.arrived == r.arrived) {
+            same += 1;
+            if same >= 5 {
+                return Some(r);
+            }
+        } else {
+            same = 0;
+        }
+        last = Some(r);
+        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 
@@ -684,7 +914,7 @@ pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
     let (n, gaps) = conn.rt.block_on(async {
         let s = &conn.session;
         let sub = s.declare_subscriber(keys).await.map_err(z)?;
-        let mut w = BagWriter::create(file.path(), BagHeader { compression: scancorr_bag::Compression::Lz4, ..BagHeader::default() })
+        let mut w = BagWriter::from_file(file.file()?, file.path(), BagHeader { compression: scancorr_bag::Compression::Lz4, ..BagHeader::default() })
             .with_context(|| format!("creating {}", out.display()))?;
         let t0 = Instant::now();
         let mut last = None::<Instant>;

@@ -39,8 +39,7 @@ pub fn run(with: &[String], dir: Option<PathBuf>, json: bool) -> Result<()> {
 /// `scancorr bench discover`: the demo's loop (default campaign, ≈ 330 k samples per stream,
 /// from the nominal model), timed; prints seconds, steps, the final error and peak memory.
 pub fn bench(json: bool) -> Result<()> {
-    let dir = std::env::temp_dir().join(format!("scancorr-bench-discover-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let dir = crate::output::private_dir("scancorr-bench-discover")?;
     let r = run_in(&[], &dir, false, true);
     std::fs::remove_dir_all(&dir).ok();
     let mut v = r?;

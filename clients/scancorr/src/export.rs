@@ -18,7 +18,7 @@
 //! bag's metadata records as `F.meta.json`), so `scancorr import --csv F.csv --map
 //! F.map.json [--artifacts F.meta.json]` reads it back to the same samples.
 
-use crate::output::{refuse_same_file, AtomicOutput};
+use crate::output::{csv_text, header_name, one_line, refuse_same_file, AtomicOutput};
 use anyhow::{bail, Context, Result};
 use scancorr_bag::{BagReader, Stream};
 use scancorr_proto::v1::CorrectedPoint;
@@ -87,12 +87,21 @@ fn each_point(
     Ok(())
 }
 
-fn csv_field(s: &str) -> String {
-    if s.contains([',', '"', '\n', '\r']) {
-        format!("\"{}\"", s.replace('"', "\"\""))
-    } else {
-        s.to_string()
+/// The effects' names in the CSV header: each sanitised ([`header_name`]) and, when two
+/// become alike, told apart by `~2`, `~3`, ….
+fn header_names(effects: &[String]) -> Vec<String> {
+    let mut out: Vec<String> = Vec::with_capacity(effects.len());
+    for e in effects {
+        let base = header_name(e);
+        let mut name = base.clone();
+        let mut n = 1;
+        while out.contains(&name) {
+            n += 1;
+            name = format!("{base}~{n}");
+        }
+        out.push(name);
     }
+    out
 }
 
 fn v3(v: &Option<scancorr_proto::v1::Vec3>) -> [f64; 3] {
@@ -168,13 +177,7 @@ pub fn run(
         }
     }
     let file = AtomicOutput::new("--out", out)?;
-    let mut w = BufWriter::new(
-        std::fs::OpenOptions::new()
-            .write(true)
-            .truncate(true)
-            .open(file.path())
-            .with_context(|| format!("writing {}", out.display()))?,
-    );
+    let mut w = BufWriter::new(file.file()?);
     let mut sum = Summary::default();
     let mut bad2 = 0;
     match format {
@@ -184,13 +187,13 @@ pub fn run(
                  surface_x_mm,surface_y_mm,surface_z_mm,tip_center_x_mm,tip_center_y_mm,\
                  tip_center_z_mm,normal_x,normal_y,normal_z",
             );
-            for e in &effects {
+            for e in header_names(&effects) {
                 for a in ["dx", "dy", "dz"] {
-                    head += &format!(",{}", csv_field(&format!("{e}_{a}_mm")));
+                    head += &format!(",{}", csv_text(&format!("{e}_{a}_mm")));
                 }
             }
             writeln!(w, "{head}")?;
-            let m = csv_field(&machine);
+            let m = csv_text(&machine);
             each_point(&bag, &machine, &mut bad2, |p| {
                 if !keep(p) {
                     return Ok(());
@@ -236,13 +239,13 @@ pub fn run(
             writeln!(
                 w,
                 "# scancorr export: corrected surface points in contact, mm (x y z), machine {}, {}",
-                machine,
+                one_line(&machine),
                 match segment {
                     Some(s) => format!("segment {s}"),
                     None => "every segment".to_string(),
                 }
             )?;
-            writeln!(w, "# from {}", bag_path.display())?;
+            writeln!(w, "# from {}", one_line(&bag_path.display().to_string()))?;
             each_point(&bag, &machine, &mut bad2, |p| {
                 if !keep(p) {
                     return Ok(());
@@ -348,11 +351,7 @@ pub fn run_raw(bag_path: &Path, machine: Option<&str>, out: &Path) -> Result<()>
     let meta_file = (!records.is_empty())
         .then(|| AtomicOutput::new("the records", &meta_path))
         .transpose()?;
-    let mut w = std::fs::OpenOptions::new()
-        .write(true)
-        .truncate(true)
-        .open(file.path())
-        .with_context(|| format!("writing {}", out.display()))?;
+    let mut w = file.file()?;
     let ex = scancorr_bag::import::export_wide(&bag, &machine, &mut w)
         .with_context(|| format!("{}: the raw streams of {machine}", bag_path.display()))?;
     drop(w);
@@ -428,8 +427,13 @@ mod tests {
         let s: BTreeSet<u32> = [1, 2, 3, 4, 7, 9, 10].into_iter().collect();
         assert_eq!(compact(&s), "1–4, 7, 9–10");
         assert_eq!(compact(&BTreeSet::new()), "");
-        assert_eq!(csv_field("m1"), "m1");
-        assert_eq!(csv_field("a,\"b\""), "\"a,\"\"b\"\"\"");
+        assert_eq!(csv_text("m1"), "m1");
+        assert_eq!(csv_text("a,\"b\""), "\"a,\"\"b\"\"\"");
+        assert_eq!(csv_text("=1+2"), "\"'=1+2\"");
+        assert_eq!(
+            header_names(&["a,b".into(), "a_b".into(), "x\ny".into()]),
+            ["a_b", "a_b~2", "x_y"]
+        );
         assert!("tsv".parse::<Format>().is_err());
     }
 }

@@ -341,7 +341,7 @@ pub fn run(a: ImportArgs) -> Result<()> {
     let out = AtomicOutput::new("--out", &a.out)?;
     let machine = m.machine.clone().unwrap_or_default();
     let mut w = Writer {
-        w: BagWriter::create(out.path(), BagHeader::default())
+        w: BagWriter::from_file(out.file()?, out.path(), BagHeader::default())
             .with_context(|| format!("creating {}", a.out.display()))?,
         b: Batcher::new(&machine, a.batch),
         machine: &machine,

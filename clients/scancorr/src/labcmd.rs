@@ -207,7 +207,11 @@ struct Loaded {
 }
 
 fn load(d: &DataArgs) -> Result<Loaded> {
-    let cal = offline::load_calibration(&d.calib)?;
+    load_from(d, offline::load_calibration(&d.calib)?)
+}
+
+/// [`load`] with the calibration already read.
+fn load_from(d: &DataArgs, cal: Calibration) -> Result<Loaded> {
     crate::output::stage(&format!(
         "reading {} bag(s) …",
         d.bag.len() + d.validate.len()
@@ -277,6 +281,42 @@ pub(crate) fn outputs<const N: usize>(
         v.push(p.map(|p| AtomicOutput::new(f, p)).transpose()?);
     }
     Ok(v.try_into().unwrap_or_else(|_| unreachable!("N outputs")))
+}
+
+/// Every file `lab discover` may write into `out_dir` that could be the same file as one of
+/// `others` (its inputs and `--report`): `calibration.json`, and of the step versions
+/// `v<first>.json` … `v<last>.json` those that already exist there (as files, symlinks or
+/// hard links) or that one of `others` is named like. A version file that does not exist yet
+/// and that nothing is named like is a new file: it can collide with nothing.
+fn discover_outputs(
+    out_dir: &Path,
+    first: u64,
+    last: u64,
+    others: &[(&str, &Path)],
+) -> Vec<PathBuf> {
+    let is_step = |name: &std::ffi::OsStr| {
+        name.to_str()
+            .and_then(|n| {
+                let k: u64 = n.strip_prefix('v')?.strip_suffix(".json")?.parse().ok()?;
+                (format!("v{k}.json") == n && (first..=last).contains(&k)).then_some(())
+            })
+            .is_some()
+    };
+    let mut names: std::collections::BTreeSet<std::ffi::OsString> =
+        [std::ffi::OsString::from("calibration.json")].into();
+    if let Ok(entries) = std::fs::read_dir(out_dir) {
+        for e in entries.flatten() {
+            if is_step(&e.file_name()) {
+                names.insert(e.file_name());
+            }
+        }
+    }
+    for (_, p) in others {
+        if let Some(n) = p.file_name().filter(|n| is_step(n)) {
+            names.insert(n.to_os_string());
+        }
+    }
+    names.into_iter().map(|n| out_dir.join(n)).collect()
 }
 
 /// Writes `text` to a prepared output; an HTML report gets the provenance block.
@@ -643,10 +683,32 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             json,
             report,
         } => {
-            let [report_out] = outputs([("--report", report.as_deref())], &data.inputs())?;
+            // Every file the loop will write, against every input and each other, before any
+            // work: the step versions after the start's, `calibration.json`, --report.
+            let start = offline::load_calibration(&data.calib)?;
+            let first = start.version.saturating_add(1);
+            let last = first.saturating_add(max_steps as u64);
+            let inputs = data.inputs();
+            let mut others = inputs.clone();
+            if let Some(r) = &report {
+                others.push(("--report", r.as_path()));
+            }
+            let written = discover_outputs(&out_dir, first, last, &others);
+            let mut outs: Vec<(&str, &Path)> =
+                written.iter().map(|p| ("--out-dir", p.as_path())).collect();
+            if let Some(r) = &report {
+                outs.push(("--report", r.as_path()));
+            }
+            refuse_same_file(&outs, &inputs).with_context(|| {
+                format!(
+                    "lab discover writes v{first}.json … v{last}.json and calibration.json into --out-dir {}",
+                    out_dir.display()
+                )
+            })?;
+            let [report_out] = outputs([("--report", report.as_deref())], &inputs)?;
             std::fs::create_dir_all(&out_dir)
                 .with_context(|| format!("creating --out-dir {}", out_dir.display()))?;
-            let l = load(&data)?;
+            let l = load_from(&data, start)?;
             // The start's points: warnings (drops, bags without samples) once, up front.
             dataset_for(&l, &l.cal)?;
             if data.validate.is_empty() {

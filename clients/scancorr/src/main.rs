@@ -708,7 +708,7 @@ fn run(cli: Cli) -> Result<()> {
         }) => {
             output::check_machine("--machine", &machine)?;
             bus.check()?;
-            let key = scancorr_proto::calibration_key(&bus.prefix, &machine);
+            let key = scancorr_proto::calibration_write_key(&bus.prefix, &machine);
             let reply = bus::ask_as_user(&bus, format!("{key}?rollback={to}"), None)?;
             if json {
                 outln!("{reply}")?;
@@ -802,14 +802,19 @@ fn run(cli: Cli) -> Result<()> {
                 anyhow::ensure!(v.is_finite() && v > 0.0, "--speed must be > 0");
                 Some(v)
             };
-            let n = bus::replay(&bus, &bag, r, looping)?;
+            let r = bus::replay(&bus, &bag, r, looping)?;
             if json {
                 outln!(
                     "{}",
-                    serde_json::json!({"replayed_messages": n, "bag": bag.display().to_string()})
+                    serde_json::json!({"replayed_messages": r.sent, "not_delivered": r.not_delivered, "shed": r.shed, "bag": bag.display().to_string()})
                 )?;
             } else {
-                eprintln!("replayed {n} message(s) from {}", bag.display());
+                eprintln!(
+                    "replayed {} message(s) from {}{}",
+                    r.sent,
+                    bag.display(),
+                    r.said()
+                );
             }
             Ok(())
         }
@@ -972,11 +977,16 @@ fn run(cli: Cli) -> Result<()> {
                 Some(v)
             };
             let keep = a.out.is_some();
+            // The bag of a live run without --out: in a folder of our own, removed when done.
+            let mut _live_dir = None;
             let out = match (&a.out, live) {
                 (Some(p), _) => p.clone(),
                 // Removed when done (never committed).
                 (None, true) => {
-                    std::env::temp_dir().join(format!("scancorr-live-{}.mcap", std::process::id()))
+                    let d = output::RemoveDir(output::private_dir("scancorr-live")?);
+                    let p = d.0.join("live.mcap");
+                    _live_dir = Some(d);
+                    p
                 }
                 (None, false) => anyhow::bail!("give --out FILE (or --live to publish on the bus)"),
             };
@@ -1004,8 +1014,8 @@ fn run(cli: Cli) -> Result<()> {
             let unkept = written.commit(keep)?;
             if let Some(conn) = conn {
                 let bag = unkept.as_ref().map(|o| o.path()).unwrap_or(&out);
-                let n = conn.replay(&a.bus, bag, rate, false)?;
-                eprintln!("published {n} message(s) live");
+                let r = conn.replay(&a.bus, bag, rate, false)?;
+                eprintln!("published {} message(s) live{}", r.sent, r.said());
             }
             Ok(())
         }

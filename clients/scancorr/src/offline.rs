@@ -400,7 +400,8 @@ pub fn correct(
     // the bottleneck.
     let writer = match &out_file {
         Some(f) => Some(
-            BagWriter::create(
+            BagWriter::from_file(
+                f.file()?,
                 f.path(),
                 BagHeader {
                     compression: scancorr_bag::Compression::Lz4,

@@ -4,9 +4,15 @@
 //!   renamed over the final name by [`AtomicOutput::commit`] once it is complete; dropped
 //!   without a commit (an error, a panic), the temporary file is removed and whatever had the
 //!   final name before is untouched. Creating it early checks that the folder is writable
-//!   before any work is done.
+//!   before any work is done. The temporary file is created exclusively (`O_CREAT|O_EXCL`,
+//!   which never follows a symlink: a link planted under that name is left alone and another
+//!   name taken) and written through the handle that created it, never reopened by name.
 //! * [`refuse_same_file`]: an output that is one of the command's inputs (the same path, or
 //!   the same file through a symlink or a hard link) is refused before anything is written.
+//! * [`csv_text`], [`header_name`], [`one_line`]: text from a bag or a document put into a
+//!   CSV cell (quoted per RFC 4180, a formula neutralised), a CSV header (sanitised) or a
+//!   comment line (control characters escaped).
+//! * [`private_dir`]: a fresh folder of our own for a tool's scratch files.
 //! * [`outln!`]: printing to stdout that turns a closed pipe (`scancorr … | head`) into a
 //!   quiet exit instead of a panic.
 
@@ -25,6 +31,8 @@ pub struct AtomicOutput {
     tmp: PathBuf,
     /// Written in place: not a regular file (`/dev/null`, a FIFO), which cannot be replaced.
     direct: bool,
+    /// The temporary file, as created (`None` when `direct`).
+    file: Option<fs::File>,
     committed: bool,
 }
 
@@ -43,6 +51,7 @@ impl AtomicOutput {
                     dest: path.to_path_buf(),
                     tmp: path.to_path_buf(),
                     direct: true,
+                    file: None,
                     committed: false,
                 });
             }
@@ -58,33 +67,36 @@ impl AtomicOutput {
         let name = dest
             .file_name()
             .with_context(|| format!("{flag} {}: not a file name", path.display()))?;
-        let mut tmp_name = name.to_os_string();
-        tmp_name.push(format!(".tmp-{}", std::process::id()));
-        let tmp = dest.with_file_name(tmp_name);
-        fs::OpenOptions::new()
-            .write(true)
-            .create(true)
-            .truncate(true)
-            .open(&tmp)
-            .with_context(|| {
-                format!(
-                    "{flag} {}: cannot write in {}",
-                    path.display(),
-                    folder_of(&dest).display()
-                )
-            })?;
+        let (tmp, file) = create_exclusive(&dest, name).with_context(|| {
+            format!(
+                "{flag} {}: cannot write in {}",
+                path.display(),
+                folder_of(&dest).display()
+            )
+        })?;
         Ok(AtomicOutput {
             shown: path.to_path_buf(),
             dest,
             tmp,
             direct: false,
+            file: Some(file),
             committed: false,
         })
     }
 
-    /// The temporary file to write to.
+    /// The temporary file (to read back what was written; write through [`Self::file`]).
     pub fn path(&self) -> &Path {
         &self.tmp
+    }
+
+    /// A handle to write the output through: the temporary file as it was created (empty,
+    /// unless written already), or the device or pipe itself when written in place.
+    pub fn file(&self) -> Result<fs::File> {
+        match &self.file {
+            Some(f) => f.try_clone(),
+            None => fs::OpenOptions::new().write(true).open(&self.tmp),
+        }
+        .with_context(|| format!("writing {}", self.shown.display()))
     }
 
     /// The name the user gave.
@@ -94,7 +106,17 @@ impl AtomicOutput {
 
     /// Writes `bytes` as the whole content (to the temporary file).
     pub fn write_all(&self, bytes: impl AsRef<[u8]>) -> Result<()> {
-        fs::write(&self.tmp, bytes).with_context(|| format!("writing {}", self.shown.display()))
+        use std::io::{Seek, SeekFrom};
+        let context = || format!("writing {}", self.shown.display());
+        match &self.file {
+            Some(f) => {
+                let mut f = f;
+                f.set_len(0).with_context(context)?;
+                f.seek(SeekFrom::Start(0)).with_context(context)?;
+                f.write_all(bytes.as_ref()).with_context(context)
+            }
+            None => fs::write(&self.tmp, bytes).with_context(context),
+        }
     }
 
     /// Makes the file complete: flushed to disk and renamed over the final name (keeping the
@@ -104,14 +126,16 @@ impl AtomicOutput {
             self.committed = true;
             return Ok(());
         }
-        let f = fs::File::open(&self.tmp)
+        let f = self
+            .file
+            .take()
             .with_context(|| format!("writing {}", self.shown.display()))?;
         f.sync_all()
             .with_context(|| format!("writing {}", self.shown.display()))?;
-        drop(f);
         if let Ok(old) = fs::metadata(&self.dest) {
-            let _ = fs::set_permissions(&self.tmp, old.permissions());
+            let _ = f.set_permissions(old.permissions());
         }
+        drop(f);
         fs::rename(&self.tmp, &self.dest)
             .with_context(|| format!("writing {}", self.shown.display()))?;
         self.committed = true;
@@ -142,6 +166,72 @@ pub fn write_file(flag: &str, path: &Path, bytes: impl AsRef<[u8]>) -> Result<()
     o.commit()
 }
 
+/// Creates the temporary file for `dest` exclusively: `<name>.tmp-<pid>`, or when something
+/// (a stale file, a planted symlink) already has that name, `<name>.tmp-<pid>-<n>`; whatever
+/// had the name is left as it was. `create_new` is `O_CREAT|O_EXCL`, which fails on an
+/// existing name even when it is a symlink (dangling or not) instead of following it.
+fn create_exclusive(dest: &Path, name: &std::ffi::OsStr) -> std::io::Result<(PathBuf, fs::File)> {
+    let pid = std::process::id();
+    let mut last = None;
+    for n in 0..64 {
+        let mut tmp_name = name.to_os_string();
+        if n == 0 {
+            tmp_name.push(format!(".tmp-{pid}"));
+        } else {
+            tmp_name.push(format!(".tmp-{pid}-{n}"));
+        }
+        let tmp = dest.with_file_name(tmp_name);
+        match fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+        {
+            Ok(f) => return Ok((tmp, f)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some(e),
+            Err(e) => return Err(e),
+        }
+    }
+    Err(last.unwrap_or_else(|| std::io::Error::other("no free temporary name")))
+}
+
+/// Creates a fresh folder of our own (mode 0700) named `<prefix>-<pid>` in the system's
+/// temporary folder, or `<prefix>-<pid>-<n>` when that name is taken: a folder someone else
+/// made in advance (with symlinks in it) is never used.
+pub fn private_dir(prefix: &str) -> Result<PathBuf> {
+    let base = std::env::temp_dir();
+    let pid = std::process::id();
+    for n in 0..64 {
+        let d = base.join(if n == 0 {
+            format!("{prefix}-{pid}")
+        } else {
+            format!("{prefix}-{pid}-{n}")
+        });
+        let mut b = fs::DirBuilder::new();
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::DirBuilderExt;
+            b.mode(0o700);
+        }
+        match b.create(&d) {
+            Ok(()) => return Ok(d),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => {
+                return Err(anyhow::Error::new(e).context(format!("creating {}", d.display())))
+            }
+        }
+    }
+    bail!("no free folder name {prefix}-{pid}-… in {}", base.display())
+}
+
+/// Removes a folder, with what is in it, when dropped.
+pub struct RemoveDir(pub PathBuf);
+
+impl Drop for RemoveDir {
+    fn drop(&mut self) {
+        let _ = fs::remove_dir_all(&self.0);
+    }
+}
+
 fn folder_of(p: &Path) -> PathBuf {
     match p.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
@@ -149,39 +239,73 @@ fn folder_of(p: &Path) -> PathBuf {
     }
 }
 
-/// The absolute, symlink-free form of a path that may not exist yet (its folder resolved).
+/// The absolute, symlink-free form of a path that may not exist yet: its longest existing
+/// ancestor resolved, the rest appended (`.` dropped, `..` taken lexically: nothing below a
+/// missing folder can be a symlink).
 fn resolved(p: &Path) -> Option<PathBuf> {
+    use std::path::Component;
     if let Ok(c) = fs::canonicalize(p) {
         return Some(c);
     }
-    let dir = fs::canonicalize(folder_of(p)).ok()?;
-    Some(dir.join(p.file_name()?))
+    let abs = if p.is_absolute() {
+        p.to_path_buf()
+    } else {
+        std::env::current_dir().ok()?.join(p)
+    };
+    let parts: Vec<Component> = abs.components().collect();
+    for i in (1..parts.len()).rev() {
+        let Ok(mut out) = fs::canonicalize(parts[..i].iter().collect::<PathBuf>()) else {
+            continue;
+        };
+        for c in &parts[i..] {
+            match c {
+                Component::ParentDir => {
+                    out.pop();
+                }
+                Component::Normal(n) => out.push(n),
+                _ => {}
+            }
+        }
+        return Some(out);
+    }
+    None
+}
+
+/// What a path names, for comparing outputs with inputs: an existing file's device and inode
+/// (so the same file through a symlink or a hard link compares equal), otherwise the place it
+/// would be created at.
+#[derive(PartialEq, Eq)]
+enum FileId {
+    Inode(u64, u64),
+    Place(PathBuf),
+}
+
+fn file_id(p: &Path) -> FileId {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        if let Ok(m) = fs::metadata(p) {
+            return FileId::Inode(m.dev(), m.ino());
+        }
+    }
+    FileId::Place(resolved(p).unwrap_or_else(|| p.to_path_buf()))
 }
 
 /// Whether `a` and `b` name the same file: the same resolved path, or (when both exist) the
 /// same device and inode (a hard link).
-pub fn same_file(a: &Path, b: &Path) -> bool {
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::MetadataExt;
-        if let (Ok(x), Ok(y)) = (fs::metadata(a), fs::metadata(b)) {
-            if (x.dev(), x.ino()) == (y.dev(), y.ino()) {
-                return true;
-            }
-        }
-    }
-    match (resolved(a), resolved(b)) {
-        (Some(x), Some(y)) => x == y,
-        _ => a == b,
-    }
+#[cfg(test)]
+fn same_file(a: &Path, b: &Path) -> bool {
+    file_id(a) == file_id(b)
 }
 
 /// Refuses an output that is one of the inputs, or the same file as another output.
 /// `outputs` and `inputs` are (flag, path) pairs, e.g. `("--out", out)`, `("--bag", bag)`.
 pub fn refuse_same_file(outputs: &[(&str, &Path)], inputs: &[(&str, &Path)]) -> Result<()> {
+    let out_ids: Vec<FileId> = outputs.iter().map(|(_, p)| file_id(p)).collect();
+    let in_ids: Vec<FileId> = inputs.iter().map(|(_, p)| file_id(p)).collect();
     for (i, (oflag, out)) in outputs.iter().enumerate() {
-        for (iflag, inp) in inputs {
-            if same_file(out, inp) {
+        for (j, (iflag, inp)) in inputs.iter().enumerate() {
+            if out_ids[i] == in_ids[j] {
                 bail!(
                     "{oflag} {} is the same file as the input {iflag} {}: writing it would destroy the input; choose another output file",
                     out.display(),
@@ -189,8 +313,8 @@ pub fn refuse_same_file(outputs: &[(&str, &Path)], inputs: &[(&str, &Path)]) -> 
                 );
             }
         }
-        for (oflag2, out2) in &outputs[i + 1..] {
-            if same_file(out, out2) {
+        for (k, (oflag2, out2)) in outputs.iter().enumerate().skip(i + 1) {
+            if out_ids[i] == out_ids[k] {
                 bail!(
                     "{oflag} {} and {oflag2} {} are the same file: one would overwrite the other",
                     out.display(),
@@ -200,6 +324,50 @@ pub fn refuse_same_file(outputs: &[(&str, &Path)], inputs: &[(&str, &Path)]) -> 
         }
     }
     Ok(())
+}
+
+/// A text field as one CSV cell (RFC 4180): quoted when it holds a comma, a quote or a line
+/// break (quotes doubled); a cell a spreadsheet would take for a formula (starting with `=`,
+/// `+`, `-`, `@`, a tab or a carriage return) is prefixed with `'` and quoted, as OWASP
+/// recommends against CSV injection. Only for text (names, ids): numbers are written as
+/// they are.
+pub fn csv_text(s: &str) -> String {
+    let formula = s.starts_with(['=', '+', '-', '@', '\t', '\r']);
+    if formula {
+        format!("\"'{}\"", s.replace('"', "\"\""))
+    } else if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+/// A name (an effect id, a machine) made fit for a CSV header: every control character,
+/// comma, quote and semicolon replaced by `_`. Put it through [`csv_text`] as well.
+pub fn header_name(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_control() || matches!(c, ',' | '"' | ';') {
+                '_'
+            } else {
+                c
+            }
+        })
+        .collect()
+}
+
+/// Text (a file name, a machine) made fit for one line of a comment header: control
+/// characters (line breaks above all) escaped as `\n`, `\u{1b}`, ….
+pub fn one_line(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        if c.is_control() {
+            out.extend(c.escape_default());
+        } else {
+            out.push(c);
+        }
+    }
+    out
 }
 
 /// stdout was closed by its reader (`scancorr … | head`): the command stops quietly.
@@ -280,7 +448,54 @@ mod tests {
         assert!(!same_file(&d.join("b.json"), &f));
         assert!(refuse_same_file(&[("--out", &h)], &[("--calib", &f)]).is_err());
         assert!(refuse_same_file(&[("--out", &d.join("b.json"))], &[("--calib", &f)]).is_ok());
+        // Paths below a folder that does not exist yet compare by where they would be.
+        assert!(same_file(
+            &d.join("new/x/../a.json"),
+            &d.join("new/./a.json")
+        ));
+        assert!(!same_file(&d.join("new/a.json"), &d.join("new/b.json")));
         fs::remove_dir_all(&d).ok();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_planted_temporary_symlink_is_never_followed() {
+        let d = std::env::temp_dir().join(format!("scancorr-output-link-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&d);
+        fs::create_dir_all(&d).unwrap();
+        let victim = d.join("victim.txt");
+        fs::write(&victim, "precious").unwrap();
+        let out = d.join("out.json");
+        let planted = d.join(format!("out.json.tmp-{}", std::process::id()));
+        std::os::unix::fs::symlink(&victim, &planted).unwrap();
+        // A dangling one as well: O_EXCL refuses it too (it would create the target).
+        let dangling = d.join(format!("out.json.tmp-{}-1", std::process::id()));
+        std::os::unix::fs::symlink(d.join("created.txt"), &dangling).unwrap();
+        let o = AtomicOutput::new("--out", &out).unwrap();
+        assert_ne!(o.path(), planted);
+        assert_ne!(o.path(), dangling);
+        o.write_all("new").unwrap();
+        o.commit().unwrap();
+        assert_eq!(fs::read_to_string(&victim).unwrap(), "precious");
+        assert!(!d.join("created.txt").exists());
+        assert_eq!(fs::read_to_string(&out).unwrap(), "new");
+        assert!(!fs::symlink_metadata(&out).unwrap().file_type().is_symlink());
+        fs::remove_dir_all(&d).ok();
+    }
+
+    #[test]
+    fn csv_cells_and_names() {
+        assert_eq!(csv_text("ring"), "ring");
+        assert_eq!(csv_text("a,b"), "\"a,b\"");
+        assert_eq!(
+            csv_text("=HYPERLINK(\"http://x\",\"y\")"),
+            "\"'=HYPERLINK(\"\"http://x\"\",\"\"y\"\")\""
+        );
+        for f in ["+1", "-1", "@SUM(A1)", "\tx", "\rx"] {
+            assert!(csv_text(f).starts_with("\"'"), "{f:?}");
+        }
+        assert_eq!(header_name("a,b\"c\nd;e\u{7}"), "a_b_c_d_e_");
+        assert_eq!(one_line("a\nb\r\u{1b}"), "a\\nb\\r\\u{1b}");
     }
 }
 

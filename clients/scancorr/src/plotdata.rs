@@ -14,11 +14,7 @@ use std::fmt::Write;
 use std::path::Path;
 
 fn q(s: &str) -> String {
-    if s.contains([',', '"', '\n']) {
-        format!("\"{}\"", s.replace('"', "\"\""))
-    } else {
-        s.to_string()
-    }
+    crate::output::csv_text(s)
 }
 
 /// Prepares `dir` (created when missing; a file there is refused).

@@ -154,7 +154,7 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
         .map(|p| AtomicOutput::new("--catalogue-out", p))
         .transpose()?;
     let machine = a.options.machine_id.clone();
-    let mut w = BagWriter::create(bag_out.path(), BagHeader::default())
+    let mut w = BagWriter::from_file(bag_out.file()?, bag_out.path(), BagHeader::default())
         .with_context(|| format!("creating {}", a.out.display()))?;
     let mut b = Batcher::new(&machine, a.batch);
     let mut err: Option<anyhow::Error> = None;

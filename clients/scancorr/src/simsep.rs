@@ -79,7 +79,7 @@ pub fn run(a: SepArgs) -> Result<()> {
         .as_deref()
         .map(|p| AtomicOutput::new("--catalogue-out", p))
         .transpose()?;
-    let mut w = BagWriter::create(bag_out.path(), BagHeader::default())
+    let mut w = BagWriter::from_file(bag_out.file()?, bag_out.path(), BagHeader::default())
         .with_context(|| format!("creating {}", a.out.display()))?;
     let m = a.machine.clone();
     let latency_ns: i64 = 1_000_000;

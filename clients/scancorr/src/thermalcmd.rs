@@ -480,8 +480,27 @@ pub fn run(a: Args) -> Result<()> {
             full.heldout.mae_um
         )?;
         for t in &c.terms {
-            outln!("    {:<26} k = {:.4} µm/K", term_name(t), t.k)?;
+            outln!(
+                "    {:<26} k = {:>20}   τ = {}",
+                t.source,
+                format!("{} µm/K", crate::report::value_sigma(t.k, Some(t.sigma))),
+                match t.tau_sigma_s {
+                    Some(u) if u.is_finite() =>
+                        format!("{} s", crate::report::value_sigma(t.tau_s, Some(u))),
+                    Some(_) => format!("{:.0} s (its σ cannot be determined)", t.tau_s),
+                    None => format!("{:.0} s", t.tau_s),
+                }
+            )?;
         }
+        outln!(
+            "    lags {} (residual lag-1 correlation {:.3}: σ inflated for it)",
+            if c.refined {
+                "refined off the basis: they lowered the cross-validated error"
+            } else {
+                "kept at the basis: refining them did not lower the cross-validated error"
+            },
+            c.residual_rho
+        )?;
         if full.terms.iter().any(|t| t.kind == SourceKind::HeatSource) {
             outln!(
                 "  note: the heat-source terms are not in the calibration: the wire contract has no spindle-speed stream yet"
@@ -576,7 +595,7 @@ fn print_text(rec: &Recording, f: &ThermalFit) -> Result<()> {
 /// `t4 (τ 2400 s)`, `spindle_rpm² (τ 600 s)`.
 pub fn term_name(t: &thermal_drift::Term) -> String {
     format!(
-        "{}{} (τ {} s)",
+        "{}{} (τ {:.0} s)",
         t.source,
         if t.power == 2 { "²" } else { "" },
         t.tau_s

@@ -24,13 +24,16 @@ pub struct Calibration {
     /// The version this one was derived from (history of the model lab).
     #[serde(default)]
     pub parent_version: Option<u64>,
-    /// What changed and why, in words.
+    /// What changed and why, in words. Free text ([`check_text`]): no control (but line feeds
+    /// and tabs), bidirectional-override or zero-width characters; nor in `created`, the
+    /// `metrics` names or a `feature_map`'s `feature`.
     #[serde(default)]
     pub note: String,
     /// Creation time, RFC 3339 (informative; the core keeps no clock).
     #[serde(default)]
     pub created: String,
-    /// Sample period of the controller's command and scale streams, s.
+    /// Sample period of the controller's command and scale streams, s; 1e-5 … 0.1 s (100 kHz
+    /// to 10 Hz, [`SAMPLE_PERIOD_S`]).
     pub sample_period_s: f64,
     /// Nominal transfer-function model of the machine (G1 per axis) and probes (G2).
     pub nominal: Nominal,
@@ -50,7 +53,8 @@ pub struct Calibration {
     #[serde(default)]
     pub limits: Limits,
     /// Figures the model lab measured for this version (e.g. `heldout_rms_um`), so the history
-    /// of versions can show the error falling without re-reading the data.
+    /// of versions can show the error falling without re-reading the data. Informative (the
+    /// service does not read them): any finite number.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub metrics: BTreeMap<String, f64>,
 }
@@ -84,7 +88,8 @@ pub struct Geometry {
     /// Tips that may be active.
     pub tips: Vec<TipGeometry>,
     /// Below this deflection the contact direction is unknown: the point's normal is zero
-    /// and its surface point is the tip centre, mm.
+    /// and its surface point is the tip centre, mm; 0 … 1 mm and below
+    /// `limits.probe_range_mm`.
     #[serde(default = "default_min_contact")]
     pub min_contact_deflection_mm: f64,
 }
@@ -97,15 +102,15 @@ fn default_min_contact() -> f64 {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Judgement {
-    /// |A_est − A_meas| above this (filtered) raises an alarm, mm/s².
+    /// |A_est − A_meas| above this (filtered) raises an alarm, mm/s²; 1 … 10⁶ mm/s².
     pub threshold_mm_s2: f64,
-    /// ...when it stays above for at least this long, s.
+    /// ...when it stays above for at least this long, s; 0 … 10 s.
     pub min_duration_s: f64,
-    /// Clears when below `clear_fraction × threshold`...
+    /// Clears when below `clear_fraction × threshold`...; 0 … 1.
     pub clear_fraction: f64,
-    /// ...for at least this long, s.
+    /// ...for at least this long, s; 0 … 10 s.
     pub clear_duration_s: f64,
-    /// Low-pass cutoff applied to both accelerations, Hz.
+    /// Low-pass cutoff applied to both accelerations, Hz; 0.1 Hz up to half the sample rate.
     pub filter_cutoff_hz: f64,
     /// Butterworth order (2, 4, 6 or 8).
     pub filter_order: usize,
@@ -132,17 +137,17 @@ impl Default for Judgement {
 #[serde(deny_unknown_fields, default)]
 pub struct Join {
     /// Consecutive samples of a stream further apart than this many sample periods are a
-    /// gap: nothing is interpolated across it.
+    /// gap: nothing is interpolated across it; 1 … 1000.
     pub max_gap_periods: f64,
     /// A point at time t uses the temperatures measured up to t − this delay, so the slow
-    /// temperature stream never holds the fast ones back, s.
+    /// temperature stream never holds the fast ones back, s; 0 … 60 s.
     pub temperature_delay_s: f64,
-    /// A held temperature older than this (at t − delay) is stale, s.
+    /// A held temperature older than this (at t − delay) is stale, s; 0.01 … 86 400 s.
     pub temperature_max_age_s: f64,
     /// Most samples buffered per stream while waiting for the others.
     pub max_pending: usize,
     /// A sample this much earlier than its stream's latest is evidence that the controller's
-    /// clock was reset (a reboot), not a late sample, s.
+    /// clock was reset (a reboot), not a late sample, s; 0.001 … 3600 s.
     pub clock_reset_s: f64,
     /// That many such samples of one stream confirm the reset: the machine's join, estimator
     /// and judgement restart in the new time base, and the samples held while confirming are
@@ -158,20 +163,93 @@ pub struct Join {
 
 /// The machine's plausible ranges. Inputs outside are dropped as `implausible`; a point whose
 /// surface or tip centre is not finite or lies outside the travel (widened by the longest
-/// stylus reach) is dropped as `implausible_output`, never published.
+/// stylus reach) is dropped as `implausible_output`, never published. The machine's speed,
+/// acceleration and head rate bound how far a scale or probe sample can be from its
+/// stream's recent past (the corrector's jump gate: `implausible_jump`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Limits {
     /// Axis travel, [min, max] per axis (x, y, z), mm: commanded positions, arc centres and
-    /// scale readings must lie inside it.
+    /// scale readings must lie inside it; min < max, within ±10⁶ mm.
     pub travel_mm: [[f64; 2]; 3],
-    /// Largest stylus deflection the probe can measure (each component), mm.
+    /// Largest stylus deflection the probe can measure (each component), mm; 0.01 … 1000 mm.
     pub probe_range_mm: f64,
-    /// Temperatures any sensor can plausibly read, [min, max], °C.
+    /// Temperatures any sensor can plausibly read, [min, max], °C; −273.15 ≤ min < max ≤ 2000.
     pub temperature_c: [f64; 2],
     /// Largest correction of one effect on one axis, mm (a model that predicts more is
-    /// broken: its point is dropped as `implausible_output`).
+    /// broken: its point is dropped as `implausible_output`); 0.001 … 1000 mm. This bounds
+    /// the effects' fitted coefficients at run time (they are only required to be finite).
     pub max_correction_mm: f64,
+    /// The machine's fastest motion of an axis, mm/s: a scale reading cannot move further
+    /// than this in the time since the last, nor a probe's deflection grow faster (the
+    /// surface pushes the stylus at most at the machine's speed). The jump gate of the
+    /// corrector (`corrector`, "Jump gate"). Absent from documents written before it: the
+    /// default, generous for any CMM or machine tool; 1 … 10⁹ mm/s.
+    #[serde(
+        default = "default_max_speed",
+        skip_serializing_if = "is_default_max_speed"
+    )]
+    pub max_speed_mm_s: f64,
+    /// The machine's largest acceleration of an axis, mm/s²: a scale reading cannot leave
+    /// the path its last two readings extrapolate by more than this allows. The jump gate;
+    /// 10 … 10¹² mm/s².
+    #[serde(
+        default = "default_max_accel",
+        skip_serializing_if = "is_default_max_accel"
+    )]
+    pub max_accel_mm_s2: f64,
+    /// The fastest the probe head turns (A1 and A2), °/s. The jump gate; 1 … 10⁹ °/s.
+    #[serde(
+        default = "default_max_head_rate",
+        skip_serializing_if = "is_default_max_head_rate"
+    )]
+    pub max_head_rate_deg_s: f64,
+    /// The readings' noise the jump gate allows on top of the motion, mm (per reading);
+    /// 0 … 1000 mm.
+    #[serde(
+        default = "default_jump_noise",
+        skip_serializing_if = "is_default_jump_noise"
+    )]
+    pub jump_noise_mm: f64,
+    /// A jump the next this many samples of the stream confirm (none of them back on the
+    /// old track) is real, not an absurd sample: they are taken and their points flagged.
+    /// The jump gate; 1 … 1000 (1: every jump taken, its points flagged).
+    #[serde(
+        default = "default_jump_confirm",
+        skip_serializing_if = "is_default_jump_confirm"
+    )]
+    pub jump_confirm_samples: usize,
+}
+
+fn default_max_speed() -> f64 {
+    2000.0
+}
+fn is_default_max_speed(v: &f64) -> bool {
+    *v == default_max_speed()
+}
+fn default_max_accel() -> f64 {
+    50_000.0
+}
+fn is_default_max_accel(v: &f64) -> bool {
+    *v == default_max_accel()
+}
+fn default_max_head_rate() -> f64 {
+    360.0
+}
+fn is_default_max_head_rate(v: &f64) -> bool {
+    *v == default_max_head_rate()
+}
+fn default_jump_noise() -> f64 {
+    0.005
+}
+fn is_default_jump_noise(v: &f64) -> bool {
+    *v == default_jump_noise()
+}
+fn default_jump_confirm() -> usize {
+    4
+}
+fn is_default_jump_confirm(v: &usize) -> bool {
+    *v == default_jump_confirm()
 }
 
 impl Default for Limits {
@@ -181,6 +259,11 @@ impl Default for Limits {
             probe_range_mm: 5.0,
             temperature_c: [-20.0, 80.0],
             max_correction_mm: 5.0,
+            max_speed_mm_s: default_max_speed(),
+            max_accel_mm_s2: default_max_accel(),
+            max_head_rate_deg_s: default_max_head_rate(),
+            jump_noise_mm: default_jump_noise(),
+            jump_confirm_samples: default_jump_confirm(),
         }
     }
 }
@@ -234,6 +317,112 @@ fn invalid(field: impl Into<String>, reason: impl Into<String>) -> CalibError {
         reason: reason.into(),
     }
 }
+
+/// A number as a refusal shows it: plain for everyday magnitudes, with an exponent
+/// otherwise (`1e300`, not three hundred digits).
+pub fn shown(v: f64) -> String {
+    if v == 0.0 || (1e-4..1e7).contains(&v.abs()) || !v.is_finite() {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// Checks that `v` lies in `[lo, hi]` (`unit` after the bounds); the refusal names the field,
+/// the value and the range. The ranges are physical: a value outside would not be a
+/// mistake the service can correct with, it would drop or flag every point.
+pub fn in_range(field: &str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(), String> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        let unit = if unit.is_empty() {
+            String::new()
+        } else {
+            format!(" {unit}")
+        };
+        Err(format!(
+            "{field}: {} is outside the allowed range [{}, {}]{unit}",
+            shown(v),
+            shown(lo),
+            shown(hi)
+        ))
+    }
+}
+
+/// [`in_range`] for a field of the document.
+fn range(field: &str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(), CalibError> {
+    in_range(field, v, lo, hi, unit).map_err(|r| {
+        let reason = r.split_once(": ").map_or(r.clone(), |(_, r)| r.to_string());
+        invalid(field, reason)
+    })
+}
+
+/// Why a character may not appear in free text people read (a note, an audit record):
+/// control characters, bidirectional-text controls and invisible (zero-width and other
+/// format) characters make the text read otherwise than it is stored.
+pub fn hidden_char(c: char) -> Option<&'static str> {
+    match c {
+        '\u{202A}'..='\u{202E}'
+        | '\u{2066}'..='\u{2069}'
+        | '\u{200E}'
+        | '\u{200F}'
+        | '\u{061C}' => Some("a bidirectional-text control"),
+        '\u{200B}'..='\u{200D}'
+        | '\u{2060}'..='\u{2064}'
+        | '\u{206A}'..='\u{206F}'
+        | '\u{FEFF}'
+        | '\u{180E}'
+        | '\u{034F}'
+        | '\u{00AD}'
+        | '\u{115F}'
+        | '\u{1160}'
+        | '\u{3164}'
+        | '\u{FFA0}'
+        | '\u{FFF9}'..='\u{FFFB}'
+        | '\u{E0000}'..='\u{E007F}' => Some("an invisible character"),
+        '\u{2028}' | '\u{2029}' => Some("a line or paragraph separator"),
+        c if c.is_control() => Some("a control character"),
+        _ => None,
+    }
+}
+
+/// Checks free text for [`hidden_char`]s; `lines` lets line feeds and tabs through (a
+/// note). The refusal names the field, the character and where it is.
+pub fn check_text(field: &str, text: &str, lines: bool) -> Result<(), String> {
+    for (i, c) in text.chars().enumerate() {
+        if lines && (c == '\n' || c == '\t') {
+            continue;
+        }
+        if let Some(what) = hidden_char(c) {
+            return Err(format!(
+                "{field}: character {} is U+{:04X}, {what}; free text may hold no control, \
+                 bidirectional-override or zero-width characters",
+                i + 1,
+                c as u32
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// `text` with each [`hidden_char`] written as `<U+XXXX>`: text that is taken, not refused
+/// (a requester's claimed identity), shown as it is.
+pub fn escape_text(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        if hidden_char(c).is_some() {
+            out.push_str(&format!("<U+{:04X}>", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// Range of `sample_period_s`, s: 10 Hz to 100 kHz (the simulator's rates).
+pub const SAMPLE_PERIOD_S: [f64; 2] = [1e-5, 0.1];
+/// Range of a time constant of the nominal model (`first_order.tau_s`), s.
+pub const TAU_S: [f64; 2] = [1e-5, 10.0];
 
 /// What a built [`Model`] keeps of its calibration document besides what is built into its
 /// other fields (effects, tips, discretised nominal models, filter sections). The document
@@ -386,16 +575,26 @@ impl Calibration {
     pub fn build(&self) -> Result<Model, CalibError> {
         scancorr_proto::names::check_machine(&self.machine_id)
             .map_err(|e| invalid("machine_id", e.to_string()))?;
+        // Free text people read (the history, reports): nothing that reads otherwise than it is.
+        let text = |field: &str, t: &str, lines: bool| {
+            check_text(field, t, lines).map_err(|r| {
+                invalid(
+                    field,
+                    r.split_once(": ").map_or(r.clone(), |(_, r)| r.into()),
+                )
+            })
+        };
+        text("note", &self.note, true)?;
+        text("created", &self.created, false)?;
+        for k in self.metrics.keys() {
+            text(&format!("metrics.{}", escape_text(k)), k, false)?;
+        }
         if let Some((k, _)) = self.metrics.iter().find(|(_, v)| !v.is_finite()) {
             return Err(invalid(format!("metrics.{k}"), "must be a finite number"));
         }
         let t = self.sample_period_s;
-        if !(t.is_finite() && t > 0.0 && t < 1.0) {
-            return Err(invalid(
-                "sample_period_s",
-                "must be a finite number between 0 and 1 s",
-            ));
-        }
+        let [lo, hi] = SAMPLE_PERIOD_S;
+        range("sample_period_s", t, lo, hi, "s")?;
         // Nominal models: G1 per axis × G2 per probe type.
         let mut g1 = vec![];
         for (name, tf) in [
@@ -439,7 +638,10 @@ impl Calibration {
         let mut tips = BTreeMap::new();
         for (i, tip) in self.geometry.tips.iter().enumerate() {
             let field = format!("geometry.tips[{i}]");
-            tip.validate(&field).map_err(|e| invalid(&field, e))?;
+            tip.validate(&field).map_err(|e| match e.split_once(": ") {
+                Some((f, reason)) if f.starts_with(&field) => invalid(f, reason),
+                _ => invalid(&field, e),
+            })?;
             if !self.nominal.probes.contains_key(&tip.probe) {
                 return Err(invalid(
                     format!("{field}.probe"),
@@ -453,13 +655,13 @@ impl Calibration {
                 ));
             }
         }
-        let mc = self.geometry.min_contact_deflection_mm;
-        if !(mc.is_finite() && mc >= 0.0) {
-            return Err(invalid(
-                "geometry.min_contact_deflection_mm",
-                "must be a finite number ≥ 0",
-            ));
-        }
+        range(
+            "geometry.min_contact_deflection_mm",
+            self.geometry.min_contact_deflection_mm,
+            0.0,
+            1.0,
+            "mm",
+        )?;
         // Effects.
         let mut sensors = SensorTable::default();
         let mut effects = vec![];
@@ -490,28 +692,14 @@ impl Calibration {
         }
         // Judgement.
         let j = &self.judgement;
-        for (n, v) in [
-            ("threshold_mm_s2", j.threshold_mm_s2),
-            ("min_duration_s", j.min_duration_s),
-            ("clear_fraction", j.clear_fraction),
-            ("clear_duration_s", j.clear_duration_s),
-            ("filter_cutoff_hz", j.filter_cutoff_hz),
+        for (n, v, lo, hi, unit) in [
+            ("threshold_mm_s2", j.threshold_mm_s2, 1.0, 1e6, "mm/s²"),
+            ("min_duration_s", j.min_duration_s, 0.0, 10.0, "s"),
+            ("clear_fraction", j.clear_fraction, 0.0, 1.0, ""),
+            ("clear_duration_s", j.clear_duration_s, 0.0, 10.0, "s"),
+            ("filter_cutoff_hz", j.filter_cutoff_hz, 0.1, 0.5 / t, "Hz"),
         ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(invalid(
-                    format!("judgement.{n}"),
-                    "must be a finite number ≥ 0",
-                ));
-            }
-        }
-        if j.threshold_mm_s2 <= 0.0 {
-            return Err(invalid("judgement.threshold_mm_s2", "must be > 0"));
-        }
-        if j.clear_fraction > 1.0 {
-            return Err(invalid(
-                "judgement.clear_fraction",
-                "must be between 0 and 1",
-            ));
+            range(&format!("judgement.{n}"), v, lo, hi, unit)?;
         }
         let filter = biquad::Coefficients::butterworth(1.0 / t, j.filter_cutoff_hz, j.filter_order).ok_or_else(|| {
             invalid(
@@ -521,25 +709,26 @@ impl Calibration {
         })?;
         // Join.
         let jn = &self.join;
-        if !(jn.max_gap_periods.is_finite() && jn.max_gap_periods >= 1.0) {
-            return Err(invalid(
-                "join.max_gap_periods",
-                "must be a finite number ≥ 1",
-            ));
-        }
-        for (n, v) in [
-            ("temperature_delay_s", jn.temperature_delay_s),
-            ("temperature_max_age_s", jn.temperature_max_age_s),
+        for (n, v, lo, hi) in [
+            ("max_gap_periods", jn.max_gap_periods, 1.0, 1000.0),
+            ("temperature_delay_s", jn.temperature_delay_s, 0.0, 60.0),
+            (
+                "temperature_max_age_s",
+                jn.temperature_max_age_s,
+                0.01,
+                86_400.0,
+            ),
+            ("clock_reset_s", jn.clock_reset_s, 0.001, 3600.0),
         ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(invalid(format!("join.{n}"), "must be a finite number ≥ 0"));
-            }
+            let unit = if n == "max_gap_periods" {
+                "periods"
+            } else {
+                "s"
+            };
+            range(&format!("join.{n}"), v, lo, hi, unit)?;
         }
         if jn.max_pending < 16 {
             return Err(invalid("join.max_pending", "must be at least 16"));
-        }
-        if !(jn.clock_reset_s.is_finite() && jn.clock_reset_s > 0.0) {
-            return Err(invalid("join.clock_reset_s", "must be a finite number > 0"));
         }
         if !(1..=1000).contains(&jn.clock_reset_samples) {
             return Err(invalid("join.clock_reset_samples", "must be 1 … 1000"));
@@ -554,26 +743,57 @@ impl Calibration {
             {
                 return Err(invalid(
                     format!("limits.travel_mm[{i}]"),
-                    "must be [min, max] with min < max, finite, within ±1 000 000 mm",
+                    format!(
+                        "[{}, {}] is not [min, max] with min < max, both within [-1e6, 1e6] mm",
+                        shown(*lo),
+                        shown(*hi)
+                    ),
                 ));
             }
         }
-        for (n, v) in [
-            ("probe_range_mm", l.probe_range_mm),
-            ("max_correction_mm", l.max_correction_mm),
+        for (n, v, lo) in [
+            ("probe_range_mm", l.probe_range_mm, 0.01),
+            ("max_correction_mm", l.max_correction_mm, 0.001),
         ] {
-            if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
-                return Err(invalid(
-                    format!("limits.{n}"),
-                    "must be a number in (0, 1000] mm",
-                ));
-            }
+            range(&format!("limits.{n}"), v, lo, 1000.0, "mm")?;
+        }
+        if self.geometry.min_contact_deflection_mm >= l.probe_range_mm {
+            return Err(invalid(
+                "geometry.min_contact_deflection_mm",
+                format!(
+                    "{} mm is not below limits.probe_range_mm ({} mm): no deflection would be a contact",
+                    shown(self.geometry.min_contact_deflection_mm),
+                    shown(l.probe_range_mm)
+                ),
+            ));
+        }
+        // The jump gate's: up to far beyond any machine, so a user can set it out of the way.
+        for (n, v, lo, hi, unit) in [
+            ("max_speed_mm_s", l.max_speed_mm_s, 1.0, 1e9, "mm/s"),
+            ("max_accel_mm_s2", l.max_accel_mm_s2, 10.0, 1e12, "mm/s²"),
+            (
+                "max_head_rate_deg_s",
+                l.max_head_rate_deg_s,
+                1.0,
+                1e9,
+                "°/s",
+            ),
+            ("jump_noise_mm", l.jump_noise_mm, 0.0, 1000.0, "mm"),
+        ] {
+            range(&format!("limits.{n}"), v, lo, hi, unit)?;
+        }
+        if !(1..=1000).contains(&l.jump_confirm_samples) {
+            return Err(invalid("limits.jump_confirm_samples", "must be 1 … 1000"));
         }
         let [tlo, thi] = l.temperature_c;
         if !(tlo.is_finite() && thi.is_finite() && tlo < thi && tlo >= -273.15 && thi <= 2000.0) {
             return Err(invalid(
                 "limits.temperature_c",
-                "must be [min, max] with −273.15 ≤ min < max ≤ 2000 °C",
+                format!(
+                    "[{}, {}] is not [min, max] with min < max, both within [-273.15, 2000] °C",
+                    shown(tlo),
+                    shown(thi)
+                ),
             ));
         }
         let reach = tips
@@ -725,6 +945,272 @@ mod tests {
         }
     }
 
+    /// Issue 44: `temperature_delay_s = 1e300`, `tau_s = 1e-300`, `sample_period_s = 1e-12`
+    /// were accepted (and dropped or flagged every point). Every number of the document has a
+    /// physical range; a value outside is refused naming the field, the value and the range.
+    #[test]
+    fn absurd_values_are_refused_naming_field_value_and_range() {
+        use serde_json::json;
+        let mut base = doc();
+        base["effects"].as_array_mut().unwrap().push(json!({
+            "kind": "thermal_drift",
+            "terms": [{"sensor": "spindle", "tau_s": 600.0, "k_mm_per_k": [0.0, 0.0, 1e-3]}]
+        }));
+        base["effects"].as_array_mut().unwrap().push(json!({
+            "kind": "scale_thermal", "alpha_per_k": [11.5e-6, 11.5e-6, 11.5e-6]
+        }));
+        base["nominal"]["probes"]["so"] =
+            json!({"kind": "second_order", "natural_freq_hz": 200.0, "damping": 0.7});
+        base["nominal"]["probes"]["ra"] =
+            json!({"kind": "rational", "num": [1.0], "den": [1e-4, 0.02, 1.0]});
+        let c = Calibration::from_json(&base.to_string()).unwrap();
+        c.build().expect("the base document is valid");
+        let cases: &[(&[&str], serde_json::Value, &str, &str, &str)] = &[
+            (
+                &["join", "temperature_delay_s"],
+                json!(1e300),
+                "join.temperature_delay_s",
+                "1e300",
+                "[0, 60] s",
+            ),
+            (
+                &["nominal", "axes", "x", "tau_s"],
+                json!(1e-300),
+                "nominal.axes.x",
+                "1e-300",
+                "[1e-5, 10] s",
+            ),
+            (
+                &["nominal", "axes", "y", "tau_s"],
+                json!(1e3),
+                "nominal.axes.y",
+                "1000",
+                "[1e-5, 10] s",
+            ),
+            (
+                &["sample_period_s"],
+                json!(1e-12),
+                "sample_period_s",
+                "1e-12",
+                "[1e-5, 0.1] s",
+            ),
+            (
+                &["sample_period_s"],
+                json!(0.5),
+                "sample_period_s",
+                "0.5",
+                "[1e-5, 0.1] s",
+            ),
+            (
+                &["join", "temperature_max_age_s"],
+                json!(0.0),
+                "join.temperature_max_age_s",
+                "0",
+                "[0.01, 86400] s",
+            ),
+            (
+                &["join", "max_gap_periods"],
+                json!(1e300),
+                "join.max_gap_periods",
+                "1e300",
+                "[1, 1000] periods",
+            ),
+            (
+                &["join", "clock_reset_s"],
+                json!(1e-300),
+                "join.clock_reset_s",
+                "1e-300",
+                "[0.001, 3600] s",
+            ),
+            (
+                &["judgement", "threshold_mm_s2"],
+                json!(1e-300),
+                "judgement.threshold_mm_s2",
+                "1e-300",
+                "[1, 1000000] mm/s²",
+            ),
+            (
+                &["judgement", "min_duration_s"],
+                json!(1e300),
+                "judgement.min_duration_s",
+                "1e300",
+                "[0, 10] s",
+            ),
+            (
+                &["judgement", "clear_duration_s"],
+                json!(-1.0),
+                "judgement.clear_duration_s",
+                "-1",
+                "[0, 10] s",
+            ),
+            (
+                &["judgement", "filter_cutoff_hz"],
+                json!(1e-300),
+                "judgement.filter_cutoff_hz",
+                "1e-300",
+                "[0.1, 500] Hz",
+            ),
+            (
+                &["limits", "probe_range_mm"],
+                json!(1e-300),
+                "limits.probe_range_mm",
+                "1e-300",
+                "[0.01, 1000] mm",
+            ),
+            (
+                &["limits", "max_correction_mm"],
+                json!(1e-9),
+                "limits.max_correction_mm",
+                "1e-9",
+                "[0.001, 1000] mm",
+            ),
+            (
+                &["geometry", "min_contact_deflection_mm"],
+                json!(3.0),
+                "geometry.min_contact_deflection_mm",
+                "3",
+                "[0, 1] mm",
+            ),
+            (
+                &["geometry", "tips", "0", "radius_mm"],
+                json!(1e300),
+                "geometry.tips[0].radius_mm",
+                "1e300",
+                "[0.005, 100] mm",
+            ),
+            (
+                &["geometry", "tips", "0", "l1_mm"],
+                json!(1e7),
+                "geometry.tips[0].l1_mm",
+                "1e7",
+                "[0, 2000] mm",
+            ),
+            (
+                &["geometry", "tips", "0", "beta1_deg"],
+                json!(1e300),
+                "geometry.tips[0].beta1_deg",
+                "1e300",
+                "[-360, 360] °",
+            ),
+            (
+                &["nominal", "probes", "so", "natural_freq_hz"],
+                json!(1e9),
+                "nominal.probes.so",
+                "1e9",
+                "[0.01, 10000] Hz",
+            ),
+            (
+                &["nominal", "probes", "so", "damping"],
+                json!(1e-300),
+                "nominal.probes.so",
+                "1e-300",
+                "[0.001, 100]",
+            ),
+            (
+                &["nominal", "probes", "ra", "den"],
+                json!([1e-300, 1.0]),
+                "nominal.probes.ra",
+                "pole",
+                "rad/s",
+            ),
+            (
+                &["effects", "2", "terms", "0", "tau_s"],
+                json!(1e300),
+                "effects[2].terms[0].tau_s",
+                "1e300",
+                "[0, 1000000] s",
+            ),
+            (
+                &["effects", "2", "terms", "0", "reference_c"],
+                json!(-300.0),
+                "effects[2].terms[0].reference_c",
+                "-300",
+                "°C",
+            ),
+            (
+                &["effects", "3", "alpha_per_k", "1"],
+                json!(1.0),
+                "effects[3].alpha_per_k[1]",
+                "1",
+                "1/K",
+            ),
+            (
+                &["effects", "1", "reference_temp_c"],
+                json!(1e300),
+                "effects[1].reference_temp_c",
+                "1e300",
+                "°C",
+            ),
+        ];
+        for (path, v, field, value, range) in cases {
+            let mut d = base.clone();
+            let mut at = &mut d;
+            for p in &path[..path.len() - 1] {
+                at = match p.parse::<usize>() {
+                    Ok(i) => &mut at[i],
+                    Err(_) => &mut at[*p],
+                };
+            }
+            let last = path[path.len() - 1];
+            match last.parse::<usize>() {
+                Ok(i) => at[i] = v.clone(),
+                Err(_) => at[last] = v.clone(),
+            }
+            let e = err(d);
+            assert!(
+                e.contains(&format!("`{field}")) && e.contains(value) && e.contains(range),
+                "{path:?} = {v}: {e}"
+            );
+        }
+    }
+
+    /// Issue 44: free text (the audit's author, a note) took bidirectional overrides and
+    /// zero-width characters, which make it read otherwise than it is stored.
+    #[test]
+    fn hidden_characters_in_free_text_are_refused_naming_the_field() {
+        let mut v = doc();
+        v["note"] = "fitted by lab\nsecond line\twith a tab".into();
+        assert!(Calibration::from_json(&v.to_string())
+            .unwrap()
+            .build()
+            .is_ok());
+        for (field, text, code) in [
+            ("note", "approved \u{202E}v9 noitarbilac", "U+202E"),
+            ("note", "ok\u{200B}", "U+200B"),
+            ("note", "bell\u{7}", "U+0007"),
+            ("note", "tag\u{E0041}", "U+E0041"),
+            ("created", "2026-01-01T00:00:00Z\u{2066}", "U+2066"),
+            ("created", "2026\n", "U+000A"),
+        ] {
+            let mut v = doc();
+            v[field] = text.into();
+            let e = err(v);
+            assert!(
+                e.contains(&format!("`{field}`")) && e.contains(code),
+                "{field} = {text:?}: {e}"
+            );
+        }
+        let mut v = doc();
+        v["metrics"] = serde_json::json!({"rms\u{200D}_um": 1.0});
+        let e = err(v);
+        assert!(e.contains("`metrics.rms<U+200D>_um`"), "{e}");
+        let mut v = doc();
+        v["effects"]
+            .as_array_mut()
+            .unwrap()
+            .push(serde_json::json!({
+                "kind": "feature_map", "feature": "ring \u{202D}A", "segments": [1], "tip": 1,
+                "place_tolerance_mm": 1.0, "latitude_deg": 0.0, "values_mm": [0.0, 0.0, 0.0, 0.0],
+                "center_mm": [0.0, 0.0]
+            }));
+        let e = err(v);
+        assert!(
+            e.contains("`effects[2].feature`") && e.contains("U+202D"),
+            "{e}"
+        );
+        assert_eq!(escape_text("a\u{202E}b"), "a<U+202E>b");
+    }
+
     #[test]
     fn refusals_name_the_field() {
         let mut v = doc();
@@ -796,6 +1282,42 @@ mod tests {
         let mut v = doc();
         v["join"]["seq_reset_samples"] = serde_json::json!(0);
         assert!(err(v).contains("join.seq_reset_samples"));
+        for (field, bad) in [
+            ("max_speed_mm_s", serde_json::json!(0.0)),
+            ("max_accel_mm_s2", serde_json::json!(-1.0)),
+            ("max_head_rate_deg_s", serde_json::json!(1e300)),
+            ("jump_noise_mm", serde_json::json!(-0.001)),
+            ("jump_confirm_samples", serde_json::json!(0)),
+        ] {
+            let mut v = doc();
+            v["limits"][field] = bad;
+            let e = err(v);
+            assert!(e.contains(&format!("limits.{field}")), "{e}");
+        }
+    }
+
+    #[test]
+    fn the_jump_gates_limits_default_and_stay_out_of_documents_that_keep_them() {
+        // A document written before the gate's limits existed reads with their defaults, and
+        // one that keeps the defaults is written as before (older readers refuse unknown
+        // fields).
+        let v = doc();
+        assert!(v["limits"].get("max_speed_mm_s").is_none(), "{v}");
+        let c = Calibration::from_json(&v.to_string()).unwrap();
+        let l = &c.limits;
+        assert_eq!(
+            (l.max_speed_mm_s, l.max_accel_mm_s2, l.max_head_rate_deg_s),
+            (2000.0, 50_000.0, 360.0)
+        );
+        assert_eq!((l.jump_noise_mm, l.jump_confirm_samples), (0.005, 4));
+        let mut v = doc();
+        v["limits"]["max_speed_mm_s"] = serde_json::json!(500.0);
+        let c = Calibration::from_json(&v.to_string()).unwrap();
+        c.build().unwrap();
+        assert_eq!(c.limits.max_speed_mm_s, 500.0);
+        let back = serde_json::to_value(&c).unwrap();
+        assert_eq!(back["limits"]["max_speed_mm_s"], serde_json::json!(500.0));
+        assert!(back["limits"].get("max_accel_mm_s2").is_none());
     }
 }
 

@@ -25,10 +25,39 @@
 //! [`scancorr_proto::names`] grammar are dropped as `bad_name`. A point that is not finite or
 //! lies outside the machine's volume is dropped as `implausible_output`: never published.
 //!
+//! Jump gate. Limits judge each value alone; a scale or probe sample is also judged against
+//! its stream's recent past, by what no machine can do at its fastest (`limits`: speed v̄,
+//! acceleration ā, head rate ω̄, reading noise m). With s₁, s₀ the last two samples taken
+//! (t₁ > t₀), h = t − t₁ and h₀ = t₁ − t₀, a sample s at t is on its stream's track when
+//! * scales, per axis: |s − s₁| ≤ v̄·h + 2m, and (when s₀ is no gap before s₁)
+//!   |s − s₁ − (s₁ − s₀)·h/h₀| ≤ ā·h·(h + h₀)/2 + 2m·(1 + h/h₀) — the extrapolation of the
+//!   last two readings misses the true position by at most ā·h²/2 (Taylor, the acceleration
+//!   bounded) plus the slope's own error ā·h·h₀/2 (the chord's slope is the velocity
+//!   somewhere within [t₀, t₁]);
+//! * probe: the deflection d within v̄·h + 2m of the segment from 0 to d₁ (the stylus may
+//!   spring back towards rest at any speed, but a surface pushes it at most as fast as the
+//!   machine moves), each head angle within ω̄·h + 0.01° of its last (the difference taken
+//!   within ±180°, a head turning through 0° included), and the same tip.
+//!
+//! A sample off its track is held, with the samples that follow it, until one of them is
+//! back on the old track (extrapolated over the longer h): the held samples left the track
+//! and came back, which no machine can do — they are dropped as `implausible_jump`. When
+//! `limits.jump_confirm_samples` in a row stay off it, the stream really moved (a collision,
+//! a head indexing, a tip changed): they are taken and the track restarts from them
+//! (counted in [`Stats::stream_jumps`]). Either way the points between the last sample
+//! taken before the jump and the sample that settled it (the point at each time the join
+//! would interpolate across the jump) are flagged (`estimator_valid = false`). The decision
+//! depends only on the stream's own samples, so the output still does not depend on the
+//! interleaving; the probe stream counts as arrived for the join only up to the last sample
+//! taken. What is held at the end of input is dropped. Source idea: a rate-of-change
+//! (slew-rate) and extrapolation plausibility check of a sampled physical quantity, as in
+//! sensor validation for control (a reading the plant's dynamics cannot produce is
+//! rejected; a step that persists is believed).
+//!
 //! Synthesis: tip centre = scales + Σ corrections + R·deflection + R·tip offset;
 //! surface point = tip centre − tip radius · n, n = deflection direction (out of the material).
 
-use crate::calib::{CalibError, Calibration, Model, Settings};
+use crate::calib::{CalibError, Calibration, Limits, Model, Settings};
 use crate::effects::thermal_drift::Lag;
 use crate::effects::{BuiltEffect, Effect};
 use crate::estimator::{rotation_with, Estimate, Estimator};
@@ -71,11 +100,14 @@ pub enum DropReason {
     BadName,
     /// A point that is not finite or lies outside the machine's volume (not published).
     ImplausibleOutput,
+    /// A scale or probe sample off its stream's track by more than the machine can move,
+    /// with the stream back on the track after it (the jump gate).
+    ImplausibleJump,
 }
 
 impl DropReason {
     /// All reasons, in index order.
-    pub const ALL: [DropReason; 15] = [
+    pub const ALL: [DropReason; 16] = [
         DropReason::NonFinite,
         DropReason::Duplicate,
         DropReason::OutOfOrder,
@@ -91,6 +123,7 @@ impl DropReason {
         DropReason::UnknownSensor,
         DropReason::BadName,
         DropReason::ImplausibleOutput,
+        DropReason::ImplausibleJump,
     ];
     /// snake_case name used in JSON output and logs.
     pub fn name(self) -> &'static str {
@@ -110,6 +143,7 @@ impl DropReason {
             "unknown_sensor",
             "bad_name",
             "implausible_output",
+            "implausible_jump",
         ][self as usize]
     }
 }
@@ -126,7 +160,7 @@ pub struct Stats {
     /// Points produced while the estimate was not valid.
     pub points_invalid: u64,
     /// Drops by reason ([`DropReason`] index).
-    pub dropped: [u64; 15],
+    pub dropped: [u64; 16],
     /// Stream sequences restarted (a counter wrap or restart, confirmed).
     pub seq_resets: u64,
     /// Points to which each effect of the calibration in force contributed a non-zero
@@ -135,10 +169,17 @@ pub struct Stats {
     /// Seq jumps (missing samples) seen per stream.
     pub seq_gaps: [u64; 4],
     /// Samples missing in those jumps (lost before the corrector: a router down, a link
-    /// dropped), per stream.
+    /// dropped), per stream. A jump longer than the stream could have made in the time since
+    /// its previous sample (four per sample period, plus 1024) is a bogus seq or a counter
+    /// restarted higher: counted as a gap, not as missing samples (the return of a bogus seq
+    /// is then a `seq_resets`).
     pub samples_missing: [u64; 4],
     /// Alarms raised.
     pub alarms_raised: u64,
+    /// Jumps beyond the machine's speed and acceleration that the stream's next samples
+    /// confirmed, per stream (command, scale, probe, temperature): taken, the points around
+    /// them flagged (the jump gate).
+    pub stream_jumps: [u64; 4],
 }
 
 impl Stats {
@@ -164,6 +205,7 @@ impl Stats {
             self.samples_in[i] += o.samples_in[i];
             self.seq_gaps[i] += o.seq_gaps[i];
             self.samples_missing[i] += o.samples_missing[i];
+            self.stream_jumps[i] += o.stream_jumps[i];
         }
         for i in 0..self.dropped.len() {
             self.dropped[i] += o.dropped[i];
@@ -245,6 +287,136 @@ struct PendingTemp {
 /// Most names of temperature sensors the calibration does not use whose last reading is kept.
 pub const MAX_KEPT_SENSORS: usize = 64;
 
+/// The jump gates' slots: scales, probe.
+const GATE_SCALE: usize = 0;
+const GATE_PROBE: usize = 1;
+
+/// The head angles' reading noise the jump gate allows, degrees.
+const HEAD_NOISE_DEG: f64 = 0.01;
+
+/// Most flagged spans a gate keeps; beyond, the newest two are merged.
+const MAX_FLAGGED_SPANS: usize = 64;
+
+/// The jump gate of one stream, scales or probe (the module's "Jump gate").
+#[derive(Debug, Clone, Default)]
+struct Gate {
+    /// The last two samples taken (t_ns, values), the later second: scales x, y, z; probe
+    /// u, v, w, A1, A2.
+    hist: [Option<(i64, [f64; 5])>; 2],
+    /// The probe's tip at the last sample taken.
+    tip: u32,
+    /// The time of the last sample taken (what the join may use up to).
+    taken_t: Option<i64>,
+    /// Samples off the stream's track, held until the next ones decide.
+    held: Vec<Sample>,
+    /// Spans (after, up to] of time whose points are flagged, in time order, disjoint.
+    flagged: VecDeque<(i64, i64)>,
+}
+
+/// What the jump gate compares of a scale or probe sample, and the probe's tip.
+#[inline]
+fn gate_values(s: &Sample) -> ([f64; 5], u32) {
+    match s {
+        Sample::Scale(s) => ([s.pos.x, s.pos.y, s.pos.z, 0.0, 0.0], 0),
+        Sample::Probe(p) => (
+            [
+                p.deflection.x,
+                p.deflection.y,
+                p.deflection.z,
+                p.head_a1_deg,
+                p.head_a2_deg,
+            ],
+            p.tip_id,
+        ),
+        _ => ([0.0; 5], 0),
+    }
+}
+
+impl Gate {
+    /// Whether a sample at `t` with values `v` is on the track of the samples taken.
+    #[inline]
+    fn fits(&self, probe: bool, t: i64, v: &[f64; 5], tip: u32, l: &Limits, gap_ns: i64) -> bool {
+        let Some((t1, s1)) = self.hist[1] else {
+            return true;
+        };
+        let h = (t - t1) as f64 * 1e-9;
+        let m2 = 2.0 * l.jump_noise_mm;
+        let reach = l.max_speed_mm_s * h + m2;
+        if probe {
+            if tip != self.tip {
+                return false;
+            }
+            // Distance from d to the segment [0, d₁].
+            let (d, d1) = (Vec3::new(v[0], v[1], v[2]), Vec3::new(s1[0], s1[1], s1[2]));
+            let n1 = d1.norm_squared();
+            let back = if n1 > 0.0 {
+                (d.dot(&d1) / n1).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let turn = l.max_head_rate_deg_s * h + HEAD_NOISE_DEG;
+            let angle = |a: f64, b: f64| {
+                let x = (a - b).rem_euclid(360.0);
+                x.min(360.0 - x)
+            };
+            return (d - d1 * back).norm() <= reach
+                && angle(v[3], s1[3]) <= turn
+                && angle(v[4], s1[4]) <= turn;
+        }
+        let slope = match self.hist[0] {
+            Some((t0, s0)) if t1 - t0 <= gap_ns => {
+                let h0 = (t1 - t0) as f64 * 1e-9;
+                let bound = 0.5 * l.max_accel_mm_s2 * h * (h + h0) + m2 * (1.0 + h / h0);
+                Some((s0, h / h0, bound))
+            }
+            _ => None,
+        };
+        (0..3).all(|i| {
+            let step = v[i] - s1[i];
+            step.abs() <= reach
+                && slope.is_none_or(|(s0, r, bound)| (step - (s1[i] - s0[i]) * r).abs() <= bound)
+        })
+    }
+
+    /// Takes a sample into the track.
+    #[inline]
+    fn record(&mut self, t: i64, v: [f64; 5], tip: u32) {
+        self.hist = [self.hist[1], Some((t, v))];
+        self.tip = tip;
+        self.taken_t = Some(t);
+    }
+
+    /// Flags the points in (after, upto].
+    fn flag(&mut self, after: i64, upto: i64) {
+        let full = self.flagged.len() >= MAX_FLAGGED_SPANS;
+        match self.flagged.back_mut() {
+            Some(b) if b.1 >= after || full => b.1 = b.1.max(upto),
+            _ => self.flagged.push_back((after, upto)),
+        }
+    }
+
+    /// Whether the point at `t` is flagged; forgets the spans before it (points come in time
+    /// order).
+    #[inline]
+    fn flags(&mut self, t: i64) -> bool {
+        if self.flagged.is_empty() {
+            return false;
+        }
+        while self.flagged.front().is_some_and(|f| f.1 < t) {
+            self.flagged.pop_front();
+        }
+        self.flagged.front().is_some_and(|f| f.0 < t)
+    }
+
+    /// Forgets the track (a new time base).
+    fn reset(&mut self) {
+        self.hist = [None, None];
+        self.taken_t = None;
+        self.held.clear();
+        self.flagged.clear();
+    }
+}
+
 /// One machine's correction pipeline.
 #[derive(Debug)]
 pub struct Corrector {
@@ -288,6 +460,8 @@ pub struct Corrector {
     /// Samples whose seq went back while their time runs on, per stream, held until they
     /// prove a sequence restart (or a sample of the old sequence proves them duplicates).
     seq_hold: [Vec<Sample>; 4],
+    /// The jump gates of the scale and probe streams.
+    gates: [Gate; 2],
 }
 
 impl Corrector {
@@ -332,6 +506,7 @@ impl Corrector {
             probation: Vec::new(),
             probation_n: [0; 4],
             seq_hold: Default::default(),
+            gates: Default::default(),
         }
         .with_effect_counters()
     }
@@ -397,8 +572,8 @@ impl Corrector {
     pub fn pending(&self) -> [usize; 4] {
         [
             self.cmd_q.len(),
-            self.scale_q.len(),
-            self.probe_q.len(),
+            self.scale_q.len() + self.gates[GATE_SCALE].held.len(),
+            self.probe_q.len() + self.gates[GATE_PROBE].held.len(),
             self.temp_q.len(),
         ]
     }
@@ -505,6 +680,14 @@ impl Corrector {
                 .iter()
                 .map(|h| h.capacity() * size_of::<Sample>())
                 .sum::<usize>()
+            + self
+                .gates
+                .iter()
+                .map(|g| {
+                    g.held.capacity() * size_of::<Sample>()
+                        + g.flagged.capacity() * size_of::<(i64, i64)>()
+                })
+                .sum::<usize>()
             + self.probe_type.capacity()
             + self.judge.heap_bytes()
     }
@@ -559,6 +742,7 @@ impl Corrector {
     /// join, estimator and judgement restart (point and alarm `seq` run on), and the samples
     /// that proved the reset are taken in the new time base.
     fn reset_clock(&mut self, out: &mut Output) {
+        self.drop_held();
         self.emit(true, out);
         self.cmd_q.clear();
         self.probe_q.clear();
@@ -572,6 +756,9 @@ impl Corrector {
         self.estimates = [None, None];
         self.judge.restart();
         self.last_judged_t = None;
+        for g in self.gates.iter_mut() {
+            g.reset();
+        }
         self.stats.clock_resets += 1;
         self.probation_n = [0; 4];
         for h in self.seq_hold.iter_mut() {
@@ -589,6 +776,73 @@ impl Corrector {
     #[inline(always)]
     fn take(&mut self, sample: Sample, out: &mut Output) {
         if self.accept(&sample) {
+            match sample {
+                Sample::Scale(_) | Sample::Probe(_) => self.screen(sample),
+                _ => self.enqueue(sample),
+            }
+        }
+        self.emit(false, out);
+    }
+
+    /// The jump gate (the module's "Jump gate"): a scale or probe sample on its stream's
+    /// track is queued; off it, held; the samples held are dropped when the stream is back
+    /// on its track, and taken when it stays off it.
+    #[inline]
+    fn screen(&mut self, sample: Sample) {
+        let g = match sample {
+            Sample::Scale(_) => GATE_SCALE,
+            _ => GATE_PROBE,
+        };
+        let (v, tip) = gate_values(&sample);
+        let t = sample.t_ns();
+        let (limits, gap) = (&self.model.settings.limits, self.model.max_gap_ns);
+        let gate = &mut self.gates[g];
+        if gate.fits(g == GATE_PROBE, t, &v, tip, limits, gap) {
+            if !gate.held.is_empty() {
+                // Off the track and back: no machine moves so.
+                let n = gate.held.len() as u64;
+                gate.held.clear();
+                let after = gate.taken_t.unwrap_or(i64::MIN);
+                gate.flag(after, t);
+                self.stats.dropped[DropReason::ImplausibleJump as usize] += n;
+            }
+            gate.record(t, v, tip);
+            return self.enqueue(sample);
+        }
+        gate.held.push(sample);
+        if gate.held.len() < limits.jump_confirm_samples {
+            return;
+        }
+        // The stream stays where it jumped: it moved. Its samples are taken, the track
+        // restarts from them, and the points across the jump are flagged.
+        let mut held = std::mem::take(&mut gate.held);
+        let after = gate.taken_t.unwrap_or(i64::MIN);
+        gate.flag(after, held.last().map_or(t, |s| s.t_ns()));
+        gate.hist = [None, None];
+        self.stats.stream_jumps[if g == GATE_SCALE { 1 } else { 2 }] += 1;
+        for s in held.drain(..) {
+            let (v, tip) = gate_values(&s);
+            self.gates[g].record(s.t_ns(), v, tip);
+            self.enqueue(s);
+        }
+        // The list's room is kept for the next jump.
+        self.gates[g].held = held;
+    }
+
+    /// Drops the samples the jump gates hold (end of input, or a new time base): nothing
+    /// confirmed them.
+    fn drop_held(&mut self) {
+        for g in self.gates.iter_mut() {
+            self.stats.dropped[DropReason::ImplausibleJump as usize] += g.held.len() as u64;
+            g.held.clear();
+        }
+    }
+
+    /// Puts an accepted sample into its join buffer (a temperature the calibration does not
+    /// use only into the held readings).
+    #[inline(always)]
+    fn enqueue(&mut self, sample: Sample) {
+        {
             // Make room first, so a buffer never holds (or allocates for) more than `max`.
             let max = self.max_pending();
             match sample {
@@ -624,7 +878,7 @@ impl Corrector {
                             used: false,
                             celsius: t.celsius,
                         });
-                        return self.emit(false, out);
+                        return;
                     }
                     if self.temp_q.len() >= max {
                         let p = self.temp_q.pop_front().expect("non-empty");
@@ -639,7 +893,6 @@ impl Corrector {
                 }
             }
         }
-        self.emit(false, out);
     }
 
     /// Takes many samples.
@@ -659,6 +912,7 @@ impl Corrector {
             h.clear();
         }
         self.probation_n = [0; 4];
+        self.drop_held();
         self.emit(true, out);
     }
 
@@ -693,9 +947,15 @@ impl Corrector {
             self.stats.dropped[DropReason::OutOfOrder as usize] += 1;
             return false;
         }
-        if let Some(l) = st.last_seq.filter(|l| seq > l + 1) {
+        if let Some(l) = st.last_seq.filter(|l| seq > l.saturating_add(1)) {
             self.stats.seq_gaps[k] += 1;
-            self.stats.samples_missing[k] += seq - l - 1;
+            // A jump the stream cannot have made in the time since its last sample (a bogus
+            // seq, a counter restarted higher) loses no sample: its return is a seq reset.
+            let dt = st.last_t.map_or(0, |l| t.saturating_sub(l));
+            if seq - l - 1 <= plausible_missing(dt, &self.model) {
+                self.stats.samples_missing[k] =
+                    self.stats.samples_missing[k].saturating_add(seq - l - 1);
+            }
         }
         st.last_seq = Some(seq);
         st.last_t = Some(t);
@@ -747,8 +1007,15 @@ impl Corrector {
             return false;
         };
         let wm = self.watermarks();
+        // The probe stream has arrived up to the last sample its jump gate took.
+        let probe = &self.gates[GATE_PROBE];
+        let wp = if probe.held.is_empty() {
+            wm[2]
+        } else {
+            probe.taken_t
+        };
         wm[0].is_some_and(|w| w >= s.t_ns)
-            && wm[2].is_some_and(|w| w >= s.t_ns)
+            && wp.is_some_and(|w| w >= s.t_ns)
             && (self.model.sensors.names().is_empty()
                 || wm[3].is_some_and(|w| w >= s.t_ns - self.model.temperature_delay_ns))
     }
@@ -1011,7 +1278,9 @@ impl Corrector {
         for (n, c) in self.stats.effect_points.iter_mut().zip(&corrections) {
             *n += u64::from(*c != Vec3::zeros());
         }
-        let valid = settled && !alarm;
+        // Points across a jump of the scales or the probe (the jump gate) are flagged.
+        let jumped = self.gates[GATE_SCALE].flags(t) | self.gates[GATE_PROBE].flags(t);
+        let valid = settled && !alarm && !jumped;
         out.points.push(CorrectedPoint {
             seq: self.point_seq,
             t_ns: t,
@@ -1035,6 +1304,20 @@ impl Corrector {
         }
         Ok(())
     }
+}
+
+/// Most samples a stream can have lost in `dt_ns` since its previous sample: four per sample
+/// period (a controller streaming faster than its calibration says; the temperature stream's
+/// several sensors per instant) plus 1024. A longer seq jump is not counted as missing.
+fn plausible_missing(dt_ns: i64, m: &Model) -> u64 {
+    let period_ns = m
+        .nominal
+        .values()
+        .next()
+        .map_or(1e6, |d| d[0].period_s * 1e9)
+        .max(1.0);
+    // `as` saturates: a time jump of centuries gives a large bound, never a wrapped one.
+    ((dt_ns.max(0) as f64 / period_ns * 4.0) as u64).saturating_add(1024)
 }
 
 /// Whether a sample's values lie in the machine's plausible ranges; its name in the grammar.

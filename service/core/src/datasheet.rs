@@ -36,7 +36,7 @@ pub struct DataSheet {
     /// What the sheet is: maker, model, document (free text, informative).
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub note: String,
-    /// The controller's streaming period of the command and scale samples, s.
+    /// The controller's streaming period of the command and scale samples, s; 1e-5 … 0.1 s.
     pub sample_period_s: f64,
     /// Per axis.
     pub axes: SheetAxes,
@@ -202,13 +202,16 @@ impl DataSheet {
         };
         scancorr_proto::names::check_machine(&self.machine_id)
             .map_err(|e| bad("machine_id", &e.to_string()))?;
-        let t = self.sample_period_s;
-        if !(t.is_finite() && t > 0.0 && t < 1.0) {
-            return Err(bad(
-                "sample_period_s",
-                "must be a finite number between 0 and 1 s",
-            ));
-        }
+        // The calibration's ranges (it must build from the sheet).
+        let in_range = |field: &str, v: f64, [lo, hi]: [f64; 2]| {
+            crate::calib::in_range(field, v, lo, hi, "s")
+                .map_err(|r| bad(field, r.split_once(": ").map_or(r.as_str(), |(_, r)| r)))
+        };
+        in_range(
+            "sample_period_s",
+            self.sample_period_s,
+            crate::calib::SAMPLE_PERIOD_S,
+        )?;
         for (name, a) in self.axes.each() {
             positive(DOC, format!("axes.{name}.tau_s"), a.tau_s)?;
             if a.tau_s >= 10.0 {
@@ -217,6 +220,7 @@ impl DataSheet {
                     "must be below 10 s (a time constant in seconds, not milliseconds)",
                 ));
             }
+            in_range(&format!("axes.{name}.tau_s"), a.tau_s, crate::calib::TAU_S)?;
             let [lo, hi] = a.travel_mm;
             if !(lo.is_finite() && hi.is_finite() && lo < hi) {
                 return Err(bad(

@@ -13,7 +13,11 @@ use crate::sample::Vec3;
 use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
 
-/// Geometry of one tip of a calibration document.
+/// Longest limb of a stylus (`l1_mm`, `l2_mm`, `l3_mm`), mm.
+pub const MAX_LENGTH_MM: f64 = 2000.0;
+
+/// Geometry of one tip of a calibration document. Ranges: limbs 0 … 2000 mm, tip radius
+/// 0.005 … 100 mm, bend angles ±360°.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TipGeometry {
@@ -64,11 +68,15 @@ impl TipGeometry {
                 return Err(format!("{field}.{name}: must be a finite number"));
             }
         }
-        if self.radius_mm <= 0.0 {
-            return Err(format!("{field}.radius_mm: must be > 0"));
-        }
-        if self.l1_mm < 0.0 || self.l2_mm < 0.0 || self.l3_mm < 0.0 {
-            return Err(format!("{field}: stylus lengths must be ≥ 0"));
+        for (name, v, lo, hi, unit) in [
+            ("l1_mm", self.l1_mm, 0.0, MAX_LENGTH_MM, "mm"),
+            ("radius_mm", self.radius_mm, 0.005, 100.0, "mm"),
+            ("l2_mm", self.l2_mm, 0.0, MAX_LENGTH_MM, "mm"),
+            ("beta1_deg", self.beta1_deg, -360.0, 360.0, "°"),
+            ("l3_mm", self.l3_mm, 0.0, MAX_LENGTH_MM, "mm"),
+            ("beta2_deg", self.beta2_deg, -360.0, 360.0, "°"),
+        ] {
+            crate::calib::in_range(&format!("{field}.{name}"), v, lo, hi, unit)?;
         }
         Ok(())
     }

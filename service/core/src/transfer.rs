@@ -27,18 +27,19 @@ pub enum TransferFunction {
     Unity,
     /// G(s) = 1/(τ s + 1): a servo with one dominant time constant.
     FirstOrder {
-        /// Time constant τ, s.
+        /// Time constant τ, s; 10 µs … 10 s ([`crate::calib::TAU_S`]).
         tau_s: f64,
     },
     /// G(s) = ωn²/(s² + 2ζωn s + ωn²), ωn = 2π·natural_freq_hz.
     SecondOrder {
-        /// Natural frequency, Hz.
+        /// Natural frequency, Hz; 0.01 … 10 000 Hz.
         natural_freq_hz: f64,
-        /// Damping ratio ζ.
+        /// Damping ratio ζ; 0.001 … 100.
         damping: f64,
     },
     /// G(s) = (num[0] sⁿ + … + num[n]) / (den[0] sᵐ + … + den[m]), highest power first;
-    /// proper (n ≤ m) with unit static gain.
+    /// proper (n ≤ m) with unit static gain; every pole's magnitude within 10⁻³ … 10⁷ rad/s
+    /// ([`POLE_RAD_S`]) and, when n = m, |num[0]/den[0]| ≤ 100.
     Rational {
         /// Numerator coefficients, highest power first.
         num: Vec<f64>,
@@ -74,9 +75,9 @@ impl TransferFunction {
                 den: vec![1.0],
             }),
             TransferFunction::FirstOrder { tau_s } => {
-                if !(tau_s.is_finite() && *tau_s > 0.0) {
-                    return bad("tau_s must be a finite number > 0");
-                }
+                let [lo, hi] = crate::calib::TAU_S;
+                crate::calib::in_range("tau_s", *tau_s, lo, hi, "s")
+                    .map_err(TransferError::Invalid)?;
                 Ok(Rational {
                     num: vec![1.0],
                     den: vec![*tau_s, 1.0],
@@ -86,12 +87,12 @@ impl TransferFunction {
                 natural_freq_hz,
                 damping,
             } => {
-                if !(natural_freq_hz.is_finite() && *natural_freq_hz > 0.0) {
-                    return bad("natural_freq_hz must be a finite number > 0");
-                }
-                if !(damping.is_finite() && *damping > 0.0) {
-                    return bad("damping must be a finite number > 0");
-                }
+                let [lo, hi] = NATURAL_FREQ_HZ;
+                crate::calib::in_range("natural_freq_hz", *natural_freq_hz, lo, hi, "Hz")
+                    .map_err(TransferError::Invalid)?;
+                let [lo, hi] = DAMPING;
+                crate::calib::in_range("damping", *damping, lo, hi, "")
+                    .map_err(TransferError::Invalid)?;
                 let wn = 2.0 * std::f64::consts::PI * natural_freq_hz;
                 Ok(Rational {
                     num: vec![wn * wn],
@@ -116,10 +117,56 @@ impl TransferFunction {
                 if dc_den == 0.0 || ((dc_num / dc_den) - 1.0).abs() > 1e-6 {
                     return bad("static gain num(0)/den(0) must be 1 (a position servo follows a constant command)");
                 }
+                if r.num.len() == r.den.len() {
+                    let d = r.num[0] / r.den[0];
+                    crate::calib::in_range(
+                        "num[0]/den[0] (the gain at high frequency)",
+                        d,
+                        -MAX_FEEDTHROUGH,
+                        MAX_FEEDTHROUGH,
+                        "",
+                    )
+                    .map_err(TransferError::Invalid)?;
+                }
+                if r.den.len() - 1 <= MAX_ORDER {
+                    let [lo, hi] = POLE_RAD_S;
+                    for p in poles(&r.den) {
+                        crate::calib::in_range("den: a pole's magnitude |p|", p, lo, hi, "rad/s")
+                            .map_err(TransferError::Invalid)?;
+                    }
+                }
                 Ok(r)
             }
         }
     }
+}
+
+/// Range of `second_order.natural_freq_hz`, Hz.
+pub const NATURAL_FREQ_HZ: [f64; 2] = [0.01, 10_000.0];
+/// Range of `second_order.damping`.
+pub const DAMPING: [f64; 2] = [0.001, 100.0];
+/// Range of the magnitude of each pole of a `rational` model, rad/s (time constants from
+/// 0.1 µs to 1000 s: wider than `first_order`'s, for the poles a resonance spreads apart).
+pub const POLE_RAD_S: [f64; 2] = [1e-3, 1e7];
+/// Largest |num[0]/den[0]| of a `rational` model whose numerator has the denominator's
+/// degree (its gain at high frequency).
+pub const MAX_FEEDTHROUGH: f64 = 100.0;
+
+/// The magnitudes of the roots of `den` (highest power first, leading coefficient non-zero):
+/// the eigenvalues of its companion matrix.
+fn poles(den: &[f64]) -> Vec<f64> {
+    let n = den.len() - 1;
+    if n == 0 {
+        return vec![];
+    }
+    let mut c = DMatrix::<f64>::zeros(n, n);
+    for i in 0..n - 1 {
+        c[(i + 1, i)] = 1.0;
+    }
+    for i in 0..n {
+        c[(0, i)] = -den[i + 1] / den[0];
+    }
+    c.complex_eigenvalues().iter().map(|z| z.norm()).collect()
 }
 
 fn trim(p: &[f64]) -> Vec<f64> {

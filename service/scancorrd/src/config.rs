@@ -60,6 +60,20 @@ pub struct Config {
     /// Correcting worker shards (threads), each owning its machines' correctors; 0: one per
     /// core.
     pub workers: usize,
+    /// Most CPU time a point may cost with a calibration that is put, µs (measured on a
+    /// reference point when it is put): a costlier one is refused, since it could not be
+    /// corrected in real time (at 1 kHz, 1 000 µs is a whole core). A stored one is served and
+    /// said in the log. 0: no limit.
+    pub max_point_cost_us: f64,
+    /// A raw message that has waited on its shard longer than this when its turn comes is
+    /// shed (counted as `input.shed_late` on the machine's status, said in the log), ms: a
+    /// machine whose correction the shard cannot keep up with loses its own stale messages,
+    /// and the other machines of the shard keep their share of its time.
+    pub shed_after_ms: u64,
+    /// Raw messages of one machine waiting on its shard, bytes: more are shed as they arrive
+    /// (`input.shed_queue_full`), never waited for (zenoh's callback waiting would stop the
+    /// link, and behind a router that link carries every machine).
+    pub max_input_bytes_per_machine: usize,
 }
 
 impl Default for Config {
@@ -83,6 +97,9 @@ impl Default for Config {
             metrics_listen: None,
             throughput_log_s: 60,
             workers: 0,
+            max_point_cost_us: 200.0,
+            shed_after_ms: 2000,
+            max_input_bytes_per_machine: 4 << 20,
         }
     }
 }
@@ -170,6 +187,15 @@ impl Config {
         }
         if self.max_pending_samples == 0 {
             return Err("max_pending_samples: at least 1".into());
+        }
+        if !(self.max_point_cost_us.is_finite() && self.max_point_cost_us >= 0.0) {
+            return Err("max_point_cost_us: a number ≥ 0 (0: no limit)".into());
+        }
+        if !(100..=600_000).contains(&self.shed_after_ms) {
+            return Err("shed_after_ms: 100 … 600 000".into());
+        }
+        if self.max_input_bytes_per_machine < 64 * 1024 {
+            return Err("max_input_bytes_per_machine: at least 64 KiB".into());
         }
         if let Some(m) = &self.metrics_listen {
             m.parse::<std::net::SocketAddr>().map_err(|_| {

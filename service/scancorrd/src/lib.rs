@@ -6,6 +6,7 @@
 #![forbid(unsafe_code)]
 
 pub mod config;
+mod cost;
 pub mod latency;
 pub mod metrics;
 pub mod notify;

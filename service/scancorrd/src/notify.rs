@@ -3,17 +3,22 @@
 //! Without that variable every call does nothing.
 //!
 //! `READY=1` once the subscriptions, queryables and stored machines are up; `WATCHDOG=1` at
-//! half the interval systemd asks for in `WATCHDOG_USEC`, from the service's main loop (so a
-//! loop that stops turning is restarted); `STOPPING=1` when shutting down.
+//! half the interval systemd asks for in `WATCHDOG_USEC`, from a task of its own ([`watchdog`])
+//! and only while the control loop and every correcting shard prove that they turn (each
+//! beats as it goes; neither waits on the other), so a service that stops correcting is
+//! restarted; `STOPPING=1` when shutting down.
 
+use crate::shard::Beat;
 use std::os::unix::net::UnixDatagram;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use tracing::{error, info};
 
 /// The notification socket and the watchdog's pace.
 pub struct Notifier {
     target: Option<(UnixDatagram, String)>,
     watchdog: Option<Duration>,
-    last: Option<Instant>,
+    last: Mutex<Option<Instant>>,
 }
 
 impl Notifier {
@@ -35,8 +40,13 @@ impl Notifier {
         Notifier {
             target,
             watchdog,
-            last: None,
+            last: Mutex::new(None),
         }
+    }
+
+    /// Half the watchdog interval systemd asks for (the pace of `WATCHDOG=1`), if it does.
+    pub fn watchdog_every(&self) -> Option<Duration> {
+        self.watchdog
     }
 
     /// Whether systemd listens.
@@ -63,12 +73,60 @@ impl Notifier {
     }
 
     /// `WATCHDOG=1` when half the watchdog interval has passed since the last one.
-    pub fn tick(&mut self) {
+    pub fn tick(&self) {
         if let Some(every) = self.watchdog {
-            if self.last.is_none_or(|t| t.elapsed() >= every) {
+            let mut last = self.last.lock().unwrap_or_else(|e| e.into_inner());
+            if last.is_none_or(|t| t.elapsed() >= every) {
                 self.send("WATCHDOG=1");
-                self.last = Some(Instant::now());
+                *last = Some(Instant::now());
             }
+        }
+    }
+}
+
+/// How long the control loop or a shard may go without a beat before the watchdog is no
+/// longer fed (half the interval systemd asks for; without a watchdog, the log still says).
+fn stall_limit(n: &Notifier) -> Duration {
+    n.watchdog_every()
+        .unwrap_or(Duration::from_secs(5))
+        .max(Duration::from_millis(500))
+}
+
+/// Feeds the watchdog while the control loop (`control`) and every shard (`shards`) beat
+/// within [`stall_limit`]; says in the log which one stopped, and when it turns again.
+pub(crate) async fn watchdog(n: Arc<Notifier>, control: Arc<Beat>, shards: Vec<Arc<Beat>>) {
+    let limit = stall_limit(&n);
+    let mut told = false;
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    loop {
+        tick.tick().await;
+        let mut stuck = vec![];
+        if control.age() > limit {
+            stuck.push(format!(
+                "the control loop ({:.1} s)",
+                control.age().as_secs_f64()
+            ));
+        }
+        for (k, b) in shards.iter().enumerate() {
+            if b.age() > limit {
+                stuck.push(format!("shard {k} ({:.1} s)", b.age().as_secs_f64()));
+            }
+        }
+        if stuck.is_empty() {
+            n.tick();
+            if told {
+                told = false;
+                info!(
+                    "every correcting shard and the control loop turn again: the watchdog is fed"
+                );
+            }
+        } else if !told {
+            told = true;
+            error!(
+                stuck = %stuck.join(", "),
+                "no progress for more than {:.1} s: the systemd watchdog is no longer fed (the service is restarted if it does not recover)",
+                limit.as_secs_f64()
+            );
         }
     }
 }

@@ -3,6 +3,12 @@
 //! measurement stream) goes to the control task, which decides. One hop and no task wake-up
 //! less per message on the hot path.
 //!
+//! zenoh's callback never waits here: a shard's queue is unbounded, and each machine's share
+//! of it is bounded by its [`Input`] (`max_input_bytes_per_machine`): a machine whose shard
+//! does not keep up has its own messages shed (counted on its status), never another's. The
+//! callback of a link waiting on a full queue would stop that link, and behind a router one
+//! link carries every machine.
+//!
 //! Order is kept per machine: while any message of a machine waits on the control task's
 //! queue, its later messages queue behind it there too, so none overtakes another on the
 //! way to the shard. The counts are kept per machine name only while such messages wait
@@ -13,9 +19,71 @@ use scancorr_core::sample::StreamId;
 use scancorr_core::wire;
 use scancorr_proto::Stream;
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{RwLock, RwLockReadGuard, RwLockWriteGuard};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
+
+/// A served machine's input on its way to its shard: counted and bounded in zenoh's callback,
+/// without a lock or a wait. Shared by the route, the machine's state on its shard (which
+/// gives the bytes back and counts what it sheds) and the control task (status).
+#[derive(Debug)]
+pub(crate) struct Input {
+    /// Raw messages of the machine that reached the service (shed ones included).
+    pub(crate) arrived: AtomicU64,
+    /// Shed as they arrived: the machine's messages waiting on its shard already held
+    /// `max_input_bytes_per_machine`.
+    pub(crate) shed_queue_full: AtomicU64,
+    /// Shed on the shard: they had waited longer than `shed_after_ms` when their turn came
+    /// (the shard fell behind real time with this machine's work).
+    pub(crate) shed_late: AtomicU64,
+    /// Bytes of the machine's messages waiting on its shard.
+    pub(crate) queued_bytes: AtomicUsize,
+    max_bytes: usize,
+}
+
+impl Input {
+    pub(crate) fn new(max_bytes: usize) -> Input {
+        Input {
+            arrived: AtomicU64::new(0),
+            shed_queue_full: AtomicU64::new(0),
+            shed_late: AtomicU64::new(0),
+            queued_bytes: AtomicUsize::new(0),
+            max_bytes,
+        }
+    }
+
+    /// Counts a message of `len` bytes that arrived, and takes it into the machine's queue:
+    /// false (shed, counted) when the queue is full. A message alone in the queue is always
+    /// taken, whatever its size.
+    pub(crate) fn admit(&self, len: usize) -> bool {
+        self.arrived.fetch_add(1, Ordering::Relaxed);
+        let before = self.queued_bytes.fetch_add(len, Ordering::AcqRel);
+        if before > 0 && before + len > self.max_bytes {
+            self.queued_bytes.fetch_sub(len, Ordering::AcqRel);
+            self.shed_queue_full.fetch_add(1, Ordering::Relaxed);
+            return false;
+        }
+        true
+    }
+
+    /// A message of `len` bytes left the queue (corrected or shed).
+    pub(crate) fn taken(&self, len: usize) {
+        self.queued_bytes.fetch_sub(len, Ordering::AcqRel);
+    }
+
+    /// Messages shed, by reason, and the bytes waiting.
+    pub(crate) fn figures(&self) -> serde_json::Value {
+        let full = self.shed_queue_full.load(Ordering::Relaxed);
+        let late = self.shed_late.load(Ordering::Relaxed);
+        serde_json::json!({
+            "arrived": self.arrived.load(Ordering::Relaxed),
+            "shed": full + late,
+            "shed_queue_full": full,
+            "shed_late": late,
+            "queued_bytes": self.queued_bytes.load(Ordering::Relaxed),
+        })
+    }
+}
 
 /// The routing table shared by the subscriber's callback and the control task.
 ///
@@ -28,6 +96,8 @@ pub(crate) struct Routes {
     /// What the arrival times count from.
     epoch: Instant,
     table: RwLock<Table>,
+    /// Messages of machines not served that the control task had no room for.
+    busy: AtomicU64,
 }
 
 #[derive(Default)]
@@ -43,6 +113,7 @@ struct Route {
     shard: flume::Sender<Job>,
     /// The machine's slot on its shard.
     slot: usize,
+    input: Arc<Input>,
     /// When the newest message of each stream arrived: ns since `epoch` + 1, 0 for never.
     last_arrival: [AtomicU64; 4],
 }
@@ -51,6 +122,26 @@ impl Route {
     fn arrived(&self, epoch: Instant, sid: StreamId, at: Instant) {
         let ns = at.saturating_duration_since(epoch).as_nanos() as u64;
         self.last_arrival[sid as usize].fetch_max(ns.saturating_add(1), Ordering::Relaxed);
+    }
+
+    /// Hands a message to the machine's shard, unless its queue there is full (counted).
+    fn send(&self, epoch: Instant, sid: StreamId, s: &zenoh::sample::Sample, at: Instant) {
+        self.arrived(epoch, sid, at);
+        let bytes = s.payload().to_bytes().into_owned();
+        let len = bytes.len();
+        if !self.input.admit(len) {
+            return;
+        }
+        let job = Job::Raw {
+            slot: self.slot,
+            stream: sid,
+            bytes,
+            arrived: at,
+        };
+        // Unbounded: never waits. A closed queue: the service is stopping.
+        if self.shard.send(job).is_err() {
+            self.input.taken(len);
+        }
     }
 
     fn last_arrival(&self, epoch: Instant) -> [Option<Instant>; 4] {
@@ -80,6 +171,7 @@ impl Routes {
             prefix: prefix.to_string(),
             epoch: Instant::now(),
             table: RwLock::default(),
+            busy: AtomicU64::new(0),
         }
     }
 
@@ -91,8 +183,9 @@ impl Routes {
         self.table.write().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Sends a raw message of a served machine to its shard; returns the message when it is
-    /// for the control task.
+    /// Sends a raw message of a served machine to its shard (or sheds it, counted, when its
+    /// queue there is full); returns the message when it is for the control task. Never
+    /// waits.
     pub(crate) fn route(
         &self,
         s: zenoh::sample::Sample,
@@ -101,40 +194,61 @@ impl Routes {
         let Some((machine, stream)) = Stream::parse_key(&self.prefix, s.key_expr().as_str()) else {
             return Some(s);
         };
-        let to = {
+        {
             let t = self.read();
-            t.direct(machine, stream).map(|(r, sid)| {
-                r.arrived(self.epoch, sid, arrived);
-                (r.shard.clone(), r.slot, sid)
-            })
-        };
-        let to = match to {
-            Some(to) => to,
-            None => {
-                // Decided again under the write lock: the table may have changed.
-                let mut t = self.write();
-                match t.direct(machine, stream) {
-                    Some((r, sid)) => {
-                        r.arrived(self.epoch, sid, arrived);
-                        (r.shard.clone(), r.slot, sid)
-                    }
-                    None => {
-                        *t.at_control.entry(machine.to_string()).or_default() += 1;
-                        return Some(s);
-                    }
-                }
+            if let Some((r, sid)) = t.direct(machine, stream) {
+                r.send(self.epoch, sid, &s, arrived);
+                return None;
             }
-        };
-        let (shard, slot, stream) = to;
-        let job = Job::Raw {
-            slot,
-            stream,
-            bytes: s.payload().to_bytes().into_owned(),
-            arrived,
-        };
-        // A closed queue: the service is stopping.
-        let _ = shard.send(job);
+        }
+        // Decided again under the write lock: the table may have changed.
+        let mut t = self.write();
+        match t.direct(machine, stream) {
+            Some((r, sid)) => r.send(self.epoch, sid, &s, arrived),
+            None => {
+                *t.at_control.entry(machine.to_string()).or_default() += 1;
+                return Some(s);
+            }
+        }
         None
+    }
+
+    /// A message [`Routes::route`] gave the control task, for which its queue had no room:
+    /// shed (counted on the machine's status when it is served, else as `control_busy`).
+    pub(crate) fn busy(&self, s: &zenoh::sample::Sample) {
+        let machine = Stream::parse_key(&self.prefix, s.key_expr().as_str()).map(|(m, _)| m);
+        if let Some(m) = machine {
+            self.done(m);
+            if let Some(r) = self.read().routes.get(m) {
+                r.input.arrived.fetch_add(1, Ordering::Relaxed);
+                r.input.shed_queue_full.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+        }
+        self.busy.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Messages of machines not served that the control task had no room for.
+    pub(crate) fn busy_count(&self) -> u64 {
+        self.busy.load(Ordering::Relaxed)
+    }
+
+    /// Sends a raw message of a served machine (one the control task took) to its shard, or
+    /// sheds it, counted, when its queue there is full. False when the machine has no route.
+    pub(crate) fn deliver(
+        &self,
+        machine: &str,
+        sid: StreamId,
+        s: &zenoh::sample::Sample,
+        arrived: Instant,
+    ) -> bool {
+        match self.read().routes.get(machine) {
+            Some(r) => {
+                r.send(self.epoch, sid, s, arrived);
+                true
+            }
+            None => false,
+        }
     }
 
     /// The control task is done with a message of `machine` (the one `route` gave it).
@@ -149,22 +263,22 @@ impl Routes {
     }
 
     /// Routes `machine`'s messages to `shard` from now on (its state is in `slot` there).
-    pub(crate) fn add(&self, machine: &str, shard: flume::Sender<Job>, slot: usize) {
+    pub(crate) fn add(
+        &self,
+        machine: &str,
+        shard: flume::Sender<Job>,
+        slot: usize,
+        input: Arc<Input>,
+    ) {
         self.write().routes.insert(
             machine.to_string(),
             Route {
                 shard,
                 slot,
+                input,
                 last_arrival: Default::default(),
             },
         );
-    }
-
-    /// Notes a message that reached the shard through the control task.
-    pub(crate) fn arrived(&self, machine: &str, sid: StreamId, at: Instant) {
-        if let Some(r) = self.read().routes.get(machine) {
-            r.arrived(self.epoch, sid, at);
-        }
     }
 
     /// When the newest message of each stream of `machine` arrived.

@@ -4,7 +4,12 @@
 //! it completes is handed to that machine's [`Outbox`], which publishes it off the correcting
 //! thread; this control task serves the rest (new machines, refusals, queries, the store): a subscriber that stops reading can delay or cost only the points of the machines it
 //! subscribes to (dropped newest-first past `max_queued_bytes_per_machine`, counted), never
-//! another machine's correction.
+//! another machine's correction. Nothing on the way in waits: zenoh's callback never blocks
+//! (a machine's messages over its share of its shard's queue are shed, counted), and this
+//! task never waits on a shard (their snapshots are published; a status query's is awaited by
+//! a task of its own; the watchdog is fed by its own task while this loop and every shard
+//! turn, see `notify`). A calibration too costly per point to correct in real time is refused
+//! at put (`cost`).
 //!
 //! Everything from outside is checked before it is used: key expressions and machine ids
 //! (`scancorr_proto::names`), the stream tag of every raw batch, message and document sizes.
@@ -12,8 +17,8 @@
 //! service's memory by inventing names), and logged at most once per [`LOG_EVERY`].
 
 use crate::config::Config;
-use crate::routes::Routes;
-use crate::shard::{Core, Job, Limits, Outbox, Snap};
+use crate::routes::{Input, Routes};
+use crate::shard::{Core, Handle, Job, Limits, Outbox, Snap};
 use crate::store::Audit;
 use crate::store::Store;
 use scancorr_core::wire;
@@ -72,6 +77,9 @@ struct Refused {
     /// Raw messages of a machine in this instance's assignment that another instance already
     /// serves (its liveliness token is on the bus): refused, so no point is published twice.
     served_elsewhere: u64,
+    /// Raw messages of machines not served yet that arrived while the control task's queue
+    /// was full (zenoh's callback never waits for it).
+    control_busy: u64,
 }
 
 /// How long a machine found served by another instance stays refused before the bus is asked
@@ -145,6 +153,11 @@ struct Machine {
     stalled: [bool; 4],
     /// Calibrations put for this machine since the service started.
     puts: u64,
+    /// Its input's counters (shared with its route and its shard).
+    input: Arc<Input>,
+    /// What its calibration costs per point, measured on a reference point when it was put
+    /// or loaded, µs.
+    point_cost_us: Option<f64>,
 }
 
 struct State {
@@ -159,8 +172,9 @@ struct State {
     /// Machines of this instance's assignment that another instance serves, with when the bus
     /// was last asked.
     elsewhere: BTreeMap<String, Instant>,
-    /// The correcting workers' job queues, and how many machines each corrects.
-    shards: Vec<flume::Sender<Job>>,
+    /// The correcting workers (job queue, published snapshots, progress), and how many
+    /// machines each corrects.
+    shards: Vec<Handle>,
     on_shard: Vec<usize>,
     limits: Limits,
     routes: Arc<Routes>,
@@ -182,7 +196,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         Some(a) => Some(crate::metrics::serve(a).map_err(ServiceError::Refused)?),
         None => None,
     };
-    let mut notify = crate::notify::Notifier::from_env();
+    let notify = crate::notify::Notifier::from_env();
     info!(
         version = env!("CARGO_PKG_VERSION"),
         mode = %cfg.mode,
@@ -216,9 +230,12 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             session
                 .declare_subscriber(format!("{prefix}/{m}/raw/**"))
                 .callback(move |s| {
+                    // Never waits: a full queue sheds (counted), it does not hold up the link.
                     let arrived = Instant::now();
                     if let Some(s) = routes.route(s, arrived) {
-                        let _ = tx.send((arrived, s));
+                        if let Err(flume::TrySendError::Full((_, s))) = tx.try_send((arrived, s)) {
+                            routes.busy(&s);
+                        }
                     }
                 })
                 .await
@@ -227,6 +244,13 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         declared._queryables.push(
             session
                 .declare_queryable(format!("{prefix}/{m}/calibration"))
+                .with((calib_tx.clone(), calib.clone()))
+                .await
+                .map_err(z)?,
+        );
+        declared._queryables.push(
+            session
+                .declare_queryable(format!("{prefix}/{m}/calibration/write"))
                 .with((calib_tx.clone(), calib.clone()))
                 .await
                 .map_err(z)?,
@@ -249,6 +273,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     let started = Instant::now();
     let workers = cfg.workers();
     let cfg_max_pending = cfg.max_pending_samples;
+    let cfg_shed_after_ms = cfg.shed_after_ms;
     let tags = if cfg.accept_untagged_batches {
         wire::Tags::AllowUntagged
     } else {
@@ -272,6 +297,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         limits: Limits {
             max_pending_samples: cfg_max_pending,
             tags,
+            shed_after: Duration::from_millis(cfg_shed_after_ms),
         },
         uplink: None,
     };
@@ -281,15 +307,13 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     }
     let mut threads = vec![];
     for k in 0..workers {
-        // Bounded: a shard that falls behind holds up the routing, and so zenoh's reception,
-        // instead of growing without bound.
-        let (tx, rx) = flume::bounded(256);
-        threads.push(
-            crate::shard::spawn(k, st.limits.clone(), rx).map_err(|e| {
-                ServiceError::Refused(format!("starting correcting worker {k}: {e}"))
-            })?,
-        );
-        st.shards.push(tx);
+        // Unbounded queues: nothing that sends to a shard waits. Each machine's share is
+        // bounded where its messages arrive (`max_input_bytes_per_machine`), and a shard that
+        // falls behind real time sheds the work of the machine that costs it (see `shard`).
+        let (h, thread) = crate::shard::spawn(k, st.limits.clone())
+            .map_err(|e| ServiceError::Refused(format!("starting correcting worker {k}: {e}")))?;
+        threads.push(thread);
+        st.shards.push(h);
     }
     // Machines with a stored calibration are served from the start; one whose stored
     // calibration is damaged is quarantined (named in the log and on its status) while the
@@ -306,11 +330,22 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         "READY=1\nSTATUS=serving {} machine(s)",
         st.machines.len()
     ));
+    // The watchdog is fed from its own task, and only while this loop and every shard turn:
+    // neither waits on the other, so a shard that stops (or a loop that does) starves it.
+    let control_beat = crate::shard::Beat::new();
+    let notify = Arc::new(notify);
+    let watchdog = tokio::spawn(crate::notify::watchdog(
+        notify.clone(),
+        control_beat.clone(),
+        st.shards.iter().map(|h| h.beat.clone()).collect(),
+    ));
     let mut last_metrics = Instant::now() - Duration::from_secs(10);
-    let mut through = Throughput::new(st.totals().await);
+    let mut through = Throughput::new(st.totals());
     tokio::pin!(shutdown);
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     loop {
+        // Each turn of the loop (each event handled) proves that it turns.
+        control_beat.beat();
         tokio::select! {
             biased;
             _ = &mut shutdown => break,
@@ -323,25 +358,50 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                 // The link as it is now (a query can arrive before the tick sees a return).
                 st.watch_uplink().await;
                 let quarantined: Vec<&String> = st.machines.iter().filter(|(_, m)| m.quarantined.is_some()).map(|(k, _)| k).collect();
-                let body = json!({
+                let mut body = json!({
                     "zid": st.session.zid().to_string(),
                     "version": env!("CARGO_PKG_VERSION"),
                     "ready": true,
                     "uptime_s": started.elapsed().as_secs_f64().round(),
                     "machines": st.machines.len(),
                     "quarantined": quarantined,
-                    "samples_in": st.totals().await.0,
                     "workers": st.shards.len(),
                     "assignment": if st.cfg.allow_any_machine { vec!["*".to_string()] } else { st.cfg.machines.clone() },
                     "served_elsewhere": st.elsewhere.keys().collect::<Vec<_>>(),
-                    "refused": st.refused,
+                    "refused": st.refused_now(),
                     "router_link": st.uplink.as_ref().map(|u| json!({
                         "routers": u.routers(),
                         "losses": u.losses(),
                         "down_s": (u.down_s(Instant::now()) * 10.0).round() / 10.0,
                     })),
                 });
-                let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
+                // The samples taken in, as the shards have them now: each publishes its
+                // snapshots when asked, awaited by a task of its own (bounded; a shard that
+                // does not answer is counted as last published).
+                let shards: Vec<_> = st.shards.iter().map(|h| (h.jobs.clone(), h.board.clone(), h.snaps_asked.clone())).collect();
+                tokio::spawn(async move {
+                    use std::sync::atomic::Ordering::AcqRel;
+                    let mut waits = vec![];
+                    for (jobs, _, asked) in &shards {
+                        if asked.fetch_add(1, AcqRel) >= MAX_SNAPS_ASKED {
+                            asked.fetch_sub(1, AcqRel);
+                            continue;
+                        }
+                        let (tx, rx) = tokio::sync::oneshot::channel();
+                        if jobs.send(Job::Publish(tx)).is_ok() {
+                            waits.push(rx);
+                        }
+                    }
+                    let _ = tokio::time::timeout(STATUS_WAIT, async {
+                        for w in waits {
+                            let _ = w.await;
+                        }
+                    })
+                    .await;
+                    let boards: Vec<_> = shards.into_iter().map(|(_, b, _)| b).collect();
+                    body["samples_in"] = totals(&boards).0.into();
+                    let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
+                });
             },
             s = raw.recv_async() => match s {
                 Ok((at, s)) => st.on_raw(s, at).await,
@@ -350,10 +410,9 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             _ = tick.tick() => {
                 st.check_stalls();
                 st.watch_uplink().await;
-                notify.tick();
                 if let Some(m) = &metrics {
                     if last_metrics.elapsed() >= Duration::from_secs(1) {
-                        let text = st.metrics().await;
+                        let text = st.metrics();
                         if let Ok(mut t) = m.lock() {
                             *t = text;
                         }
@@ -361,7 +420,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                     }
                 }
                 if st.cfg.throughput_log_s > 0 && through.at.elapsed() >= Duration::from_secs(st.cfg.throughput_log_s) {
-                    let now = st.totals().await;
+                    let now = st.totals();
                     let dt = through.at.elapsed().as_secs_f64();
                     info!(
                         machines = st.machines.len(),
@@ -375,14 +434,27 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             }
         }
     }
+    watchdog.abort();
     notify.send("STOPPING=1");
     st.routes.close();
     info!("shutting down: flushing buffered samples");
-    for tx in &st.shards {
+    // Every shard finishes what is queued and flushes, at once; bounded, so a shard that does
+    // not come back cannot keep the service from stopping.
+    let mut waits = vec![];
+    for h in &st.shards {
         let (done, wait) = tokio::sync::oneshot::channel();
-        if tx.send_async(Job::Flush(done)).await.is_ok() {
-            let _ = wait.await;
+        if h.jobs.send(Job::Flush(done)).is_ok() {
+            waits.push(wait);
         }
+    }
+    let flushed = tokio::time::timeout(Duration::from_secs(10), async {
+        for w in waits {
+            let _ = w.await;
+        }
+    })
+    .await;
+    if flushed.is_err() {
+        warn!("the correcting workers did not flush within 10 s: stopping without them");
     }
     // What was corrected is published before the session closes (bounded: a subscriber that
     // does not read cannot keep the service from stopping).
@@ -391,8 +463,10 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     drop(st);
-    for t in threads {
-        let _ = t.join();
+    if flushed.is_ok() {
+        for t in threads {
+            let _ = t.join();
+        }
     }
     // A peer that stopped reading cannot be told goodbye: closing is bounded, and a close
     // that times out is not a failure of the service.
@@ -431,51 +505,24 @@ impl State {
         }
     }
 
-    /// Samples in, points out and samples dropped over every machine.
-    async fn totals(&self) -> (u64, u64, u64) {
-        let mut t = (0, 0, 0);
-        for s in self.snaps(None).await.values() {
-            if let Some(c) = &s.core {
-                t.0 += c.stats.samples();
-                t.1 += c.stats.points_out;
-                t.2 += c.stats.dropped_total();
-            }
-        }
-        t
+    /// Samples in, points out and samples dropped over every machine (their latest published
+    /// snapshots: never waits on a shard).
+    fn totals(&self) -> (u64, u64, u64) {
+        let boards: Vec<_> = self.shards.iter().map(|h| h.board.clone()).collect();
+        totals(&boards)
     }
 
-    /// Snapshots of one machine, or of all, from their shards (taken between two messages).
-    async fn snaps(&self, machine: Option<&str>) -> BTreeMap<String, Snap> {
-        let targets: Vec<usize> = match machine {
-            Some(m) => self
-                .machines
-                .get(m)
-                .map(|m| vec![m.shard])
-                .unwrap_or_default(),
-            None => (0..self.shards.len()).collect(),
-        };
-        let mut out = BTreeMap::new();
-        for k in targets {
-            let (tx, rx) = tokio::sync::oneshot::channel();
-            if self.shards[k]
-                .send_async(Job::Snap(machine.map(str::to_string), tx))
-                .await
-                .is_ok()
-            {
-                if let Ok(v) = rx.await {
-                    out.extend(v);
-                }
-            }
-        }
-        out
+    /// Every machine's latest published snapshot.
+    fn snaps(&self) -> BTreeMap<String, Snap> {
+        self.shards.iter().flat_map(|h| h.board.all()).collect()
     }
 
     /// The Prometheus text: per machine, samples in (per stream), points out and flagged,
     /// drops by reason, samples missing in seq, alarms, the calibration version and puts,
     /// queue depths (samples pending the join, bytes waiting to be published) and the
     /// processing lag; refusals before a machine by reason.
-    async fn metrics(&self) -> String {
-        let snaps = self.snaps(None).await;
+    fn metrics(&self) -> String {
+        let snaps = self.snaps();
         use crate::metrics::Render;
         let mut r = Render::default();
         let streams = ["command", "scale", "probe", "temperature"];
@@ -611,6 +658,25 @@ impl State {
         );
         metric(
             &mut r,
+            "scancorr_messages_shed_total",
+            "counter",
+            "Raw messages shed before correction, by reason: late (the machine's shard fell behind real time with them) or queue_full (its queue on the shard was full).",
+            &|m, _s| {
+                use std::sync::atomic::Ordering::Relaxed;
+                Some(vec![
+                    (
+                        vec![("reason", "late".into())],
+                        m.input.shed_late.load(Relaxed) as f64,
+                    ),
+                    (
+                        vec![("reason", "queue_full".into())],
+                        m.input.shed_queue_full.load(Relaxed) as f64,
+                    ),
+                ])
+            },
+        );
+        metric(
+            &mut r,
             "scancorr_alarms_raised_total",
             "counter",
             "Estimator-validity alarms raised.",
@@ -688,7 +754,7 @@ impl State {
             "counter",
             "Samples and requests refused before a machine, by reason.",
         );
-        if let Ok(serde_json::Value::Object(o)) = serde_json::to_value(&self.refused) {
+        if let Ok(serde_json::Value::Object(o)) = serde_json::to_value(self.refused_now()) {
             for (k, v) in o {
                 r.sample(
                     "scancorr_refused_total",
@@ -743,8 +809,10 @@ impl State {
             .timeout(Duration::from_secs(2))
             .await
         {
+            // Only a token naming this very machine claims it: a token with a wildcard
+            // (`cmm/*/scancorrd`, which any peer may declare) names no machine.
             while let Ok(r) = replies.recv_async().await {
-                found |= r.result().is_ok();
+                found |= r.result().is_ok_and(|t| t.key_expr().as_str() == key);
             }
         }
         if found {
@@ -804,12 +872,16 @@ impl State {
                         .map_err(z)?,
                 );
             }
+            let mut point_cost_us = None;
             let (corrector, quarantined) = match self.store.current(name) {
                 Ok(Some(c)) => match c.build() {
-                    Ok(m) => (
-                        Some(crate::shard::corrector(Arc::new(m), &self.limits)),
-                        None,
-                    ),
+                    Ok(m) => {
+                        point_cost_us = Some(crate::cost::point_cost_us(&m, crate::cost::AT_START));
+                        (
+                            Some(crate::shard::corrector(Arc::new(m), &self.limits)),
+                            None,
+                        )
+                    }
                     Err(e) => (
                         None,
                         Some(format!(
@@ -827,10 +899,14 @@ impl State {
             if let Some(q) = &quarantined {
                 error!(machine = name, reason = %q, "machine quarantined: not corrected until a new calibration is put; the other machines are served");
             }
-            let ids = corrector
-                .as_ref()
-                .map(|c| c.effect_ids())
-                .unwrap_or_default();
+            // A stored calibration costlier than the limit is served (refusing it would stop
+            // correcting the machine), and said: its shard sheds its work if it falls behind.
+            if let Some(us) = point_cost_us {
+                let limit = self.cfg.max_point_cost_us;
+                if limit > 0.0 && us > limit {
+                    error!(machine = name, point_cost_us = us.round(), limit_us = limit, "the stored calibration costs more CPU per point than `max_point_cost_us`: it is served, and the machine's messages are shed when its shard falls behind real time");
+                }
+            }
             info!(machine = name, version = ?corrector.as_ref().map(|c| c.settings().version), "serving machine");
             let outbox = Arc::new(Outbox::new(
                 points,
@@ -839,29 +915,24 @@ impl State {
                 self.cfg.max_queued_bytes_per_machine,
                 self.pool.clone(),
             ));
+            let input = Arc::new(Input::new(self.cfg.max_input_bytes_per_machine));
             // The shard with the fewest machines corrects it.
             let shard = (0..self.shards.len())
                 .min_by_key(|k| self.on_shard[*k])
                 .expect("at least one shard");
             let slot = self.on_shard[shard];
             self.shards[shard]
-                .send_async(Job::Add {
+                .jobs
+                .send(Job::Add {
                     slot,
                     name: name.to_string(),
-                    core: Box::new(Core {
-                        corrector,
-                        ids,
-                        extra: Default::default(),
-                        last_point_t_ns: None,
-                        outbox: outbox.clone(),
-                        pending: Default::default(),
-                    }),
+                    core: Box::new(Core::new(corrector, outbox.clone(), input.clone())),
                 })
-                .await
                 .map_err(|_| ServiceError::Refused("the correcting workers have stopped".into()))?;
             self.on_shard[shard] += 1;
             // From now on its raw messages go straight to its shard (after the `Add`).
-            self.routes.add(name, self.shards[shard].clone(), slot);
+            self.routes
+                .add(name, self.shards[shard].jobs.clone(), slot, input.clone());
             self.machines.insert(
                 name.to_string(),
                 Machine {
@@ -874,10 +945,21 @@ impl State {
                     not_corrected: 0,
                     stalled: [false; 4],
                     puts: 0,
+                    input,
+                    point_cost_us,
                 },
             );
         }
         Ok(self.machines.get_mut(name).expect("inserted"))
+    }
+
+    /// The refusals, with the messages zenoh's callback shed for want of room at the control
+    /// task.
+    fn refused_now(&self) -> Refused {
+        Refused {
+            control_busy: self.routes.busy_count(),
+            ..self.refused.clone()
+        }
     }
 
     /// Whether a query about `machine` is for another instance to answer (it serves the
@@ -929,7 +1011,12 @@ impl State {
                 info!("messages on raw/distance and raw/stage (measurements the service does not correct) are skipped and counted as `not_corrected` on the status");
             }
             match self.machines.get_mut(machine) {
-                Some(m) => m.not_corrected += 1,
+                Some(m) => {
+                    m.not_corrected += 1;
+                    m.input
+                        .arrived
+                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
                 None => self.refused.not_corrected += 1,
             }
             return;
@@ -960,16 +1047,9 @@ impl State {
                 return;
             }
         }
-        let m = self.machines.get_mut(&machine).expect("served");
-        self.routes.arrived(&machine, sid, arrived);
-        // Decoded, corrected and published on the machine's shard, in arrival order.
-        let job = Job::Raw {
-            slot: m.slot,
-            stream: sid,
-            bytes: s.payload().to_bytes().into_owned(),
-            arrived,
-        };
-        let _ = self.shards[m.shard].send_async(job).await;
+        // Decoded, corrected and published on the machine's shard, in arrival order (or shed,
+        // counted, when its queue there is full); never waits.
+        self.routes.deliver(&machine, sid, &s, arrived);
     }
 
     fn check_stalls(&mut self) {
@@ -1016,71 +1096,83 @@ impl State {
         if self.answered_elsewhere(&machine) {
             return;
         }
-        let snap = self.snaps(Some(&machine)).await.remove(&machine);
-        let body = match (self.machines.get(&machine), snap) {
-            (Some(m), Some(snap)) => {
-                let c = snap.core.as_ref();
-                let (stats, version, pending, wm) = match c {
-                    Some(c) => (
-                        Some(c.stats.clone()),
-                        Some(c.version),
-                        c.pending,
-                        c.watermarks,
-                    ),
-                    None => (None, None, [0; 4], [None; 4]),
-                };
-                let mut extra = snap.extra.clone();
-                extra.not_corrected = m.not_corrected;
-                let stalled: Vec<&str> = (0..4)
-                    .filter(|k| m.stalled[*k])
-                    .map(|k| scancorr_core::sample::StreamId::ALL[k].name())
-                    .collect();
-                json!({
-                    "machine": machine,
-                    "served": true,
-                    "quarantined": m.quarantined,
-                    "calibration_version": version,
-                    "samples_in": stats.as_ref().map(|s| s.samples()).unwrap_or(0),
-                    "points_out": stats.as_ref().map(|s| s.points_out).unwrap_or(0),
-                    "points_flagged": stats.as_ref().map(|s| s.points_invalid).unwrap_or(0),
-                    "dropped": stats.as_ref().map(|s| s.dropped_by_name().into_iter().map(|(k, v)| (k.to_string(), v)).collect::<BTreeMap<_, _>>()).unwrap_or_default(),
-                    "alarms_raised": stats.as_ref().map(|s| s.alarms_raised).unwrap_or(0),
-                    "clock_resets": stats.as_ref().map(|s| s.clock_resets).unwrap_or(0),
-                    "seq_resets": stats.as_ref().map(|s| s.seq_resets).unwrap_or(0),
-                    // Samples missing in the streams' seq (lost on the way: a router down, a
-                    // link dropped), per stream.
-                    "samples_missing": stats.as_ref().map(|s| json!({"command": s.samples_missing[0], "scale": s.samples_missing[1], "probe": s.samples_missing[2], "temperature": s.samples_missing[3]})),
-                    "seq_gaps": stats.as_ref().map(|s| json!({"command": s.seq_gaps[0], "scale": s.seq_gaps[1], "probe": s.seq_gaps[2], "temperature": s.seq_gaps[3]})),
-                    "effect_points": snap.ids.iter().cloned().zip(stats.as_ref().map(|s| s.effect_points.clone()).unwrap_or_default()).collect::<BTreeMap<_, _>>(),
-                    "inactive_effects": c.map(|c| c.inactive.clone()).unwrap_or_default(),
-                    "messages": extra,
-                    "output": m.outbox.figures(),
-                    "pending": {"command": pending[0], "scale": pending[1], "probe": pending[2], "temperature": pending[3]},
-                    "watermarks_ns": wm,
-                    "stalled": stalled,
-                    // In the controller's own clock (which need not be wall time): how far
-                    // the newest point lags the newest sample taken in (samples waiting for
-                    // the other streams to join them).
-                    "stream_lag_ms": match (wm.iter().flatten().max(), snap.last_point_t_ns) {
-                        (Some(newest), Some(point)) => Some((newest - point).max(0) as f64 * 1e-6),
-                        _ => None,
-                    },
-                    // Wall time since the newest raw message arrived, ms.
-                    "last_sample_age_ms": self.routes.last_arrival(&machine).iter().flatten().map(|t| t.elapsed()).min().map(|d| d.as_secs_f64() * 1e3),
-                    "state_bytes": c.map(|c| c.state_bytes).unwrap_or(0),
-                    "max_pending": c.map(|c| c.max_pending),
-                    "worker": m.shard,
-                })
-            }
-            _ => json!({"machine": machine, "served": false, "refused": self.refused}),
+        let Some(m) = self.machines.get(&machine) else {
+            let body = json!({"machine": machine, "served": false, "refused": self.refused_now()});
+            let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
+            return;
         };
-        let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
+        if q.parameters().contains_key("input") {
+            // Only what arrived of the machine's input, read where it is counted, at once:
+            // what `replay` asks to learn that its messages arrived, and to pace itself.
+            let body = json!({"machine": machine, "served": true, "input": m.input.figures()});
+            let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
+            return;
+        }
+        let stalled: Vec<&str> = (0..4)
+            .filter(|k| m.stalled[*k])
+            .map(|k| scancorr_core::sample::StreamId::ALL[k].name())
+            .collect();
+        let base = json!({
+            "machine": machine,
+            "served": true,
+            "quarantined": m.quarantined,
+            "output": m.outbox.figures(),
+            // Raw messages that reached the service, and those it shed (its shard fell
+            // behind real time with them, or their queue there was full).
+            "input": m.input.figures(),
+            // What its calibration costs per point, measured on a reference point when it was
+            // put or loaded, and the limit a put is held to (0: none).
+            "point_cost_us": m.point_cost_us.map(|c| (c * 100.0).round() / 100.0),
+            "max_point_cost_us": self.cfg.max_point_cost_us,
+            "stalled": stalled,
+            // Wall time since the newest raw message arrived, ms.
+            "last_sample_age_ms": self.routes.last_arrival(&machine).iter().flatten().map(|t| t.elapsed()).min().map(|d| d.as_secs_f64() * 1e3),
+            "worker": m.shard,
+        });
+        let not_corrected = m.not_corrected;
+        let h = &self.shards[m.shard];
+        let (jobs, board, asked, slot) = (
+            h.jobs.clone(),
+            h.board.clone(),
+            h.snaps_asked.clone(),
+            m.slot,
+        );
+        // The snapshot is taken on the machine's shard after the messages routed before this
+        // query (so a status after a put or a replay sees them), awaited by a task of its
+        // own: this loop never waits on a shard. A shard that does not answer within
+        // STATUS_WAIT (or already has many snapshots to take) is answered for with its latest
+        // published snapshot, its age said.
+        tokio::spawn(async move {
+            let fresh = if asked.fetch_add(1, std::sync::atomic::Ordering::AcqRel) < MAX_SNAPS_ASKED
+            {
+                let (tx, rx) = tokio::sync::oneshot::channel();
+                match jobs.send(Job::Snap(machine.clone(), tx)) {
+                    Ok(()) => tokio::time::timeout(STATUS_WAIT, rx)
+                        .await
+                        .ok()
+                        .and_then(|r| r.ok()),
+                    Err(_) => None,
+                }
+            } else {
+                asked.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
+                None
+            };
+            let is_fresh = fresh.is_some();
+            let snap = fresh.or_else(|| board.get(slot));
+            let body = status_body(base, snap.as_ref(), not_corrected, is_fresh);
+            let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
+        });
     }
 
     async fn on_calibration(&mut self, q: zenoh::query::Query) {
         let key = q.key_expr().as_str().to_string();
-        let Some(machine) = scancorr_proto::machine_of(&self.cfg.prefix, &key, "calibration")
-        else {
+        let write = key.ends_with("/calibration/write");
+        let suffix = if write {
+            "calibration/write"
+        } else {
+            "calibration"
+        };
+        let Some(machine) = scancorr_proto::machine_of(&self.cfg.prefix, &key, suffix) else {
             self.refuse(Refusal::BadQuery, &key);
             let _ = q
                 .reply_err(format!(
@@ -1094,6 +1186,18 @@ impl State {
         };
         let machine = machine.to_string();
         if self.answered_elsewhere(&machine) {
+            return;
+        }
+        // Changes (put, rollback) on the write key only, reads on the other: access control
+        // gives them to different roles.
+        if write != (q.payload().is_some() || q.parameters().contains_key("rollback")) {
+            let _ = q
+                .reply_err(scancorr_proto::calibration_keys_misused(
+                    &self.cfg.prefix,
+                    &machine,
+                    write,
+                ))
+                .await;
             return;
         }
         if q.payload().is_some()
@@ -1196,7 +1300,21 @@ impl State {
             .map_err(|_| "the calibration document is not UTF-8 text".to_string())?;
         let cal = Calibration::from_json(text).map_err(|e| e.to_string())?;
         cal.check_machine(machine).map_err(|e| e.to_string())?;
-        cal.build().map_err(|e| e.to_string())?;
+        let built = cal.build().map_err(|e| e.to_string())?;
+        // What a point would cost, measured on a reference point: a calibration the service
+        // could not run in real time is refused here, before it is stored or swapped in.
+        let cost_us = crate::cost::point_cost_us(&built, crate::cost::AT_PUT);
+        drop(built);
+        let limit = self.cfg.max_point_cost_us;
+        if limit > 0.0 && cost_us > limit {
+            warn!(
+                machine,
+                point_cost_us = cost_us.round(),
+                limit_us = limit,
+                "calibration refused: it costs more CPU per point than `max_point_cost_us`"
+            );
+            return Err(crate::cost::refusal(&cal, cost_us, limit));
+        }
         if !self.cfg.serves(machine) {
             return Err(format!("this service does not serve machine `{machine}`"));
         }
@@ -1220,13 +1338,94 @@ impl State {
         // Swapped on the machine's shard between two messages: every message routed before
         // is corrected with the old model, every one after with the new.
         self.shards[m.shard]
-            .send_async(Job::Model(machine.to_string(), model))
-            .await
+            .jobs
+            .send(Job::Model(machine.to_string(), model))
             .map_err(|_| "the correcting workers have stopped".to_string())?;
         m.puts += 1;
+        m.point_cost_us = Some(cost_us);
         info!(machine, version = stored.version, parent = ?stored.parent_version, "calibration applied");
         Ok(json!({"machine": machine, "version": stored.version, "parent_version": stored.parent_version}).to_string())
     }
+}
+
+/// Samples in, points out and samples dropped over every machine of `boards`.
+fn totals(boards: &[Arc<crate::shard::Board>]) -> (u64, u64, u64) {
+    let mut t = (0, 0, 0);
+    for b in boards {
+        for (_, s) in b.all() {
+            if let Some(c) = &s.core {
+                t.0 += c.stats.samples();
+                t.1 += c.stats.points_out;
+                t.2 += c.stats.dropped_total();
+            }
+        }
+    }
+    t
+}
+
+/// How long a status query waits for its machine's shard to take a snapshot before it is
+/// answered with the latest published one.
+const STATUS_WAIT: Duration = Duration::from_millis(1000);
+
+/// At most this many snapshots asked of one shard and not taken yet (a shard that does not
+/// turn is not sent more).
+const MAX_SNAPS_ASKED: usize = 32;
+
+/// A served machine's status: `base` (what the control task knows) with its shard's snapshot
+/// (`fresh`: taken for this query; else the latest published, or none yet).
+fn status_body(
+    mut base: serde_json::Value,
+    snap: Option<&Snap>,
+    not_corrected: u64,
+    fresh: bool,
+) -> serde_json::Value {
+    let c = snap.and_then(|s| s.core.as_ref());
+    let stats = c.map(|c| &c.stats);
+    let (version, pending, wm) = match c {
+        Some(c) => (Some(c.version), c.pending, c.watermarks),
+        None => (None, [0; 4], [None; 4]),
+    };
+    let mut extra = snap.map(|s| s.extra.clone()).unwrap_or_default();
+    extra.not_corrected = not_corrected;
+    let more = json!({
+        "calibration_version": version,
+        "samples_in": stats.map(|s| s.samples()).unwrap_or(0),
+        "points_out": stats.map(|s| s.points_out).unwrap_or(0),
+        "points_flagged": stats.map(|s| s.points_invalid).unwrap_or(0),
+        "dropped": stats.map(|s| s.dropped_by_name().into_iter().map(|(k, v)| (k.to_string(), v)).collect::<BTreeMap<_, _>>()).unwrap_or_default(),
+        "alarms_raised": stats.map(|s| s.alarms_raised).unwrap_or(0),
+        "clock_resets": stats.map(|s| s.clock_resets).unwrap_or(0),
+        "seq_resets": stats.map(|s| s.seq_resets).unwrap_or(0),
+        // Samples missing in the streams' seq (lost on the way: a router down, a link
+        // dropped; or shed by this service, see `input`), per stream.
+        "samples_missing": stats.map(|s| json!({"command": s.samples_missing[0], "scale": s.samples_missing[1], "probe": s.samples_missing[2], "temperature": s.samples_missing[3]})),
+        "seq_gaps": stats.map(|s| json!({"command": s.seq_gaps[0], "scale": s.seq_gaps[1], "probe": s.seq_gaps[2], "temperature": s.seq_gaps[3]})),
+        "effect_points": snap.map(|s| s.ids.iter().cloned().zip(stats.map(|s| s.effect_points.clone()).unwrap_or_default()).collect::<BTreeMap<_, _>>()).unwrap_or_default(),
+        "inactive_effects": c.map(|c| c.inactive.clone()).unwrap_or_default(),
+        "messages": extra,
+        "pending": {"command": pending[0], "scale": pending[1], "probe": pending[2], "temperature": pending[3]},
+        "watermarks_ns": wm,
+        // In the controller's own clock (which need not be wall time): how far the newest
+        // point lags the newest sample taken in (samples waiting for the other streams to
+        // join them).
+        "stream_lag_ms": match (wm.iter().flatten().max(), snap.and_then(|s| s.last_point_t_ns)) {
+            (Some(newest), Some(point)) => Some((newest - point).max(0) as f64 * 1e-6),
+            _ => None,
+        },
+        "state_bytes": c.map(|c| c.state_bytes).unwrap_or(0),
+        "max_pending": c.map(|c| c.max_pending),
+        // The shard's measure of the machine's correction: CPU time, the cost of a point now
+        // (µs, a running mean), how long its newest message waited on the shard (ms).
+        "cpu_s": snap.map(|s| (s.busy_s * 1e3).round() / 1e3),
+        "cost_us_per_point": snap.map(|s| (s.cost_us_per_point * 100.0).round() / 100.0),
+        "queue_wait_ms": snap.map(|s| (s.wait_ms * 10.0).round() / 10.0),
+        // False: the shard did not answer in time; these figures are its latest published.
+        "snapshot_fresh": fresh,
+    });
+    if let (Some(b), serde_json::Value::Object(m)) = (base.as_object_mut(), more) {
+        b.extend(m);
+    }
+    base
 }
 
 /// The audit record of a request: now (the service's clock), the identity the requester

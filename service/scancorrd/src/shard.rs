@@ -1,12 +1,21 @@
 //! The correcting workers: each shard is a thread that owns its machines' correctors and
-//! takes, in order, the jobs the control task routes to it — a machine's raw messages (decoded,
+//! takes, in order per machine, the work routed to it — a machine's raw messages (decoded,
 //! corrected, encoded and handed to the machine's [`Outbox`] here), calibration swaps, status
 //! snapshots, the flush at shutdown. A machine lives on one shard for its lifetime, so its
 //! samples are corrected in the order they arrived (live equals offline to the bit) and a
-//! swap lands between two messages (no sample lost). Nothing on this path takes a lock shared
+//! swap lands between two messages (no sample lost).
+//!
+//! Nothing waits on a shard: its queue is unbounded (each machine's share is bounded where
+//! its messages arrive, see [`Input`]); it sorts what arrives into its machines' queues and
+//! serves the machines with work by deficit round robin on time, so a machine whose messages
+//! take long (a costly model) waits behind the others instead of holding them up, and its own
+//! messages that waited longer than `shed_after_ms` are shed, counted and said. It publishes
+//! its machines' snapshots ([`Board`]) and beats as it turns ([`Beat`], what feeds the
+//! watchdog). Nothing on this path takes a lock shared
 //! with another shard or with the control task; the outbox's lock is the machine's own,
 //! shared only with its publishing thread.
 
+use crate::routes::Input;
 use scancorr_core::calib::Model;
 use scancorr_core::sample::StreamId;
 use scancorr_core::wire;
@@ -14,7 +23,7 @@ use scancorr_core::{Corrector, Output, Stats};
 use scancorr_proto::Message;
 use serde_json::json;
 use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tracing::{info, warn};
@@ -42,7 +51,8 @@ pub(crate) struct Extra {
 /// [`Lanes`] drain, so that a zenoh `put` never holds up the correcting thread.
 ///
 /// Points and alarms are published with `CongestionControl::Block`, so a subscriber that is
-/// only busy loses nothing. A subscriber that stops reading holds up the drain of the machines
+/// only busy loses nothing (behind a router, the router forwards them to each subscriber
+/// droppable: `deploy/router.json5`; the one link to the router stays lossless). A subscriber that stops reading holds up the drain of the machines
 /// it subscribes to (zenoh waits up to 5 s, then closes that link); their outboxes fill, and
 /// past `max_queued_bytes_per_machine` the newest batches are dropped and counted. Other
 /// machines are not affected: a lane held up in a `put` for [`STUCK`] while other output
@@ -97,6 +107,7 @@ impl Alarms {
         self.session
             .put(key, b)
             .congestion_control(CongestionControl::Block)
+            .express(true)
             .wait()
     }
 }
@@ -454,6 +465,55 @@ pub(crate) struct Core {
     pub(crate) outbox: Arc<Outbox>,
     /// Points encoded during the current batch of jobs, not yet handed to the outbox.
     pub(crate) pending: Pending,
+    /// Its input's counters, shared with its route and the control task.
+    pub(crate) input: Arc<Input>,
+    /// Its work waiting on the shard, in arrival order.
+    pub(crate) work: VecDeque<Work>,
+    /// Its share of the shard's time (deficit round robin): ns it may still take this round;
+    /// negative after a message that took longer.
+    pub(crate) deficit: i64,
+    /// In the shard's round.
+    pub(crate) active: bool,
+    /// What its correction costs: CPU time spent, points, and a running mean per point.
+    pub(crate) busy_ns: u64,
+    pub(crate) cost_ns_per_point: f64,
+    /// How long the newest message it corrected waited on the shard, ms.
+    pub(crate) wait_ms: f64,
+    /// When the log last said that it is shed.
+    pub(crate) told_shed: Option<Instant>,
+    /// Changed since its snapshot was last published.
+    pub(crate) dirty: bool,
+}
+
+impl Core {
+    /// A machine's state before any message.
+    pub(crate) fn new(
+        corrector: Option<Corrector>,
+        outbox: Arc<Outbox>,
+        input: Arc<Input>,
+    ) -> Core {
+        let ids = corrector
+            .as_ref()
+            .map(|c| c.effect_ids())
+            .unwrap_or_default();
+        Core {
+            corrector,
+            ids,
+            extra: Extra::default(),
+            last_point_t_ns: None,
+            outbox,
+            pending: Pending::default(),
+            input,
+            work: VecDeque::new(),
+            deficit: 0,
+            active: false,
+            busy_ns: 0,
+            cost_ns_per_point: 0.0,
+            wait_ms: 0.0,
+            told_shed: None,
+            dirty: true,
+        }
+    }
 }
 
 /// A machine's points of one batch of jobs: published as one message.
@@ -487,9 +547,15 @@ pub(crate) struct Snap {
     pub(crate) ids: Vec<String>,
     pub(crate) extra: Extra,
     pub(crate) last_point_t_ns: Option<i64>,
+    /// CPU time its correction took, s.
+    pub(crate) busy_s: f64,
+    /// What a point costs it now (a running mean), µs.
+    pub(crate) cost_us_per_point: f64,
+    /// How long the newest message corrected waited on the shard, ms.
+    pub(crate) wait_ms: f64,
 }
 
-/// What the control task sends a shard.
+/// What the control task (and zenoh's callback) send a shard.
 pub(crate) enum Job {
     /// Serve a new machine, in slot `slot` of the shard: machines are added in order and
     /// never removed, so the control task, which counts each shard's machines, names the
@@ -510,13 +576,23 @@ pub(crate) enum Job {
     },
     /// A new calibration (the first, or a swap between two messages).
     Model(String, Arc<Model>),
-    /// Snapshots of the named machines (all of this shard's when `None`).
-    Snap(
-        Option<String>,
-        tokio::sync::oneshot::Sender<Vec<(String, Snap)>>,
-    ),
-    /// Flush every machine's buffered samples (shutdown).
+    /// A snapshot of the named machine, after the messages routed before this job.
+    Snap(String, tokio::sync::oneshot::Sender<Snap>),
+    /// Flush every machine's buffered samples (shutdown), once its queued messages are done.
     Flush(tokio::sync::oneshot::Sender<()>),
+    /// Publish the snapshots of the machines that changed now (health's totals).
+    Publish(tokio::sync::oneshot::Sender<()>),
+}
+
+/// A machine's work waiting on its shard, in order.
+pub(crate) enum Work {
+    Raw {
+        stream: StreamId,
+        bytes: Vec<u8>,
+        arrived: Instant,
+    },
+    Model(Arc<Model>),
+    Snap(tokio::sync::oneshot::Sender<Snap>),
 }
 
 /// A shard's settings.
@@ -524,6 +600,8 @@ pub(crate) enum Job {
 pub(crate) struct Limits {
     pub(crate) max_pending_samples: usize,
     pub(crate) tags: wire::Tags,
+    /// A message that waited longer than this on its shard is shed when its turn comes.
+    pub(crate) shed_after: Duration,
 }
 
 /// A corrector under the service's limits.
@@ -538,51 +616,146 @@ pub(crate) fn corrector(model: Arc<Model>, limits: &Limits) -> Corrector {
 /// become one publication, and one wake-up of a lane serves many machines.
 const BATCH_JOBS: usize = 64;
 
-/// Starts shard `k`: a thread that runs jobs until every sender is gone.
+/// Each machine with work gets this much of its shard's time per round (deficit round robin):
+/// a machine whose messages take long (a costly model) waits its turn behind the others
+/// instead of holding them up, and its own messages age and are shed when the shard cannot
+/// keep up with it.
+const QUANTUM_NS: i64 = 2_000_000;
+
+/// How often a shard publishes the snapshots of the machines that changed.
+const PUBLISH_EVERY: Duration = Duration::from_millis(200);
+
+/// A shard's latest snapshots, by slot: what status, health and metrics read, so the
+/// control task never waits on a shard.
+#[derive(Default)]
+pub(crate) struct Board {
+    snaps: Mutex<Vec<Option<(String, Snap)>>>,
+}
+
+impl Board {
+    /// Every machine's latest snapshot.
+    pub(crate) fn all(&self) -> Vec<(String, Snap)> {
+        let s = self.snaps.lock().unwrap_or_else(|e| e.into_inner());
+        s.iter().flatten().cloned().collect()
+    }
+
+    /// The latest snapshot of the machine in `slot`.
+    pub(crate) fn get(&self, slot: usize) -> Option<Snap> {
+        let s = self.snaps.lock().unwrap_or_else(|e| e.into_inner());
+        s.get(slot).and_then(|x| x.as_ref()).map(|(_, s)| s.clone())
+    }
+}
+
+/// Proof of progress: when a loop last turned (ms since `epoch`).
+pub(crate) struct Beat {
+    epoch: Instant,
+    ms: AtomicU64,
+}
+
+impl Beat {
+    pub(crate) fn new() -> Arc<Beat> {
+        Arc::new(Beat {
+            epoch: Instant::now(),
+            ms: AtomicU64::new(0),
+        })
+    }
+
+    pub(crate) fn beat(&self) {
+        let ms = self.epoch.elapsed().as_millis() as u64;
+        self.ms.fetch_max(ms, Ordering::Relaxed);
+    }
+
+    /// How long since the last beat.
+    pub(crate) fn age(&self) -> Duration {
+        let ms = self.epoch.elapsed().as_millis() as u64;
+        Duration::from_millis(ms.saturating_sub(self.ms.load(Ordering::Relaxed)))
+    }
+}
+
+/// What the control task keeps of a running shard.
+pub(crate) struct Handle {
+    pub(crate) jobs: flume::Sender<Job>,
+    pub(crate) board: Arc<Board>,
+    pub(crate) beat: Arc<Beat>,
+    /// Snapshots asked of the shard and not taken yet.
+    pub(crate) snaps_asked: Arc<AtomicUsize>,
+}
+
+/// Starts shard `k`: a thread that runs jobs until every sender is gone. Its job queue is
+/// unbounded (nothing that sends to it ever waits); each machine's share is bounded where its
+/// messages arrive (see [`Input`]).
 pub(crate) fn spawn(
     k: usize,
     limits: Limits,
-    jobs: flume::Receiver<Job>,
-) -> std::io::Result<std::thread::JoinHandle<()>> {
-    std::thread::Builder::new()
+) -> std::io::Result<(Handle, std::thread::JoinHandle<()>)> {
+    let (tx, jobs) = flume::unbounded();
+    let board = Arc::new(Board::default());
+    let beat = Beat::new();
+    let snaps_asked = Arc::new(AtomicUsize::new(0));
+    let handle = Handle {
+        jobs: tx,
+        board: board.clone(),
+        beat: beat.clone(),
+        snaps_asked: snaps_asked.clone(),
+    };
+    let thread = std::thread::Builder::new()
         .name(format!("shard-{k}"))
         .spawn(move || {
             let mut shard = Shard {
+                k,
                 machines: Vec::new(),
                 index: HashMap::new(),
+                active: VecDeque::new(),
                 touched: Vec::new(),
                 ready: Vec::new(),
                 lanes: Lanes::new(k),
                 out: Output::default(),
                 limits,
+                flush: None,
+                board,
+                published: Instant::now(),
+                snaps_asked,
             };
             loop {
-                let job = match jobs.recv_timeout(STUCK) {
-                    Ok(job) => job,
-                    Err(flume::RecvTimeoutError::Timeout) => {
-                        shard.lanes.check();
-                        continue;
+                beat.beat();
+                if shard.active.is_empty() {
+                    if let Some(done) = shard.flush.take() {
+                        shard.flush_all();
+                        let _ = done.send(());
                     }
-                    Err(flume::RecvTimeoutError::Disconnected) => break,
-                };
-                shard.run(job);
-                // One job at a time, not `drain()`: each job taken lets one routing thread held
-                // up by a full queue put its job in, in the order they waited. A drain would
-                // empty the queue without letting them in, and a later job (a swap, a flush at
-                // shutdown) could then overtake theirs.
-                for job in jobs.try_iter().take(BATCH_JOBS) {
-                    shard.run(job);
+                    // Nothing queued: wait for a job.
+                    match jobs.recv_timeout(STUCK) {
+                        Ok(job) => shard.take(job),
+                        Err(flume::RecvTimeoutError::Timeout) => {
+                            shard.lanes.check();
+                            shard.publish(false);
+                            continue;
+                        }
+                        Err(flume::RecvTimeoutError::Disconnected) => break,
+                    }
                 }
+                // Everything that waits, to its machine's queue (a few ns each), then a round
+                // of the machines with work.
+                for job in jobs.try_iter() {
+                    shard.take(job);
+                }
+                shard.round(&beat);
                 shard.hand_over();
+                shard.publish(false);
             }
+            shard.publish(true);
             shard.lanes.close();
-        })
+        })?;
+    Ok((handle, thread))
 }
 
 /// A shard's machines, what it has for its lanes, and scratch space.
 struct Shard {
+    k: usize,
     machines: Vec<(String, Core)>,
     index: HashMap<String, usize>,
+    /// Machines with work, in round order.
+    active: VecDeque<usize>,
     /// Machines with pending points.
     touched: Vec<usize>,
     /// Outboxes to hand to the lanes.
@@ -590,86 +763,208 @@ struct Shard {
     lanes: Arc<Lanes>,
     out: Output,
     limits: Limits,
+    /// A flush asked for: done once every queued message is.
+    flush: Option<tokio::sync::oneshot::Sender<()>>,
+    board: Arc<Board>,
+    published: Instant,
+    snaps_asked: Arc<AtomicUsize>,
 }
 
 impl Shard {
-    fn get(&mut self, name: &str) -> Option<&mut Core> {
-        let k = *self.index.get(name)?;
-        Some(&mut self.machines[k].1)
-    }
-
-    fn run(&mut self, job: Job) {
-        match job {
+    /// Sorts a job to its machine's queue (or runs it, when it is not a machine's).
+    fn take(&mut self, job: Job) {
+        let (k, w) = match job {
             Job::Add { slot, name, core } => {
                 debug_assert_eq!(slot, self.machines.len(), "slots are given in order");
                 self.index.insert(name.clone(), self.machines.len());
                 self.machines.push((name, *core));
+                return;
             }
             Job::Raw {
-                slot: k,
+                slot,
                 stream,
                 bytes,
                 arrived,
             } => {
-                let Some((machine, m)) = self.machines.get_mut(k) else {
+                if slot >= self.machines.len() {
                     return;
+                }
+                (
+                    slot,
+                    Work::Raw {
+                        stream,
+                        bytes,
+                        arrived,
+                    },
+                )
+            }
+            Job::Model(name, model) => match self.index.get(&name) {
+                Some(&k) => (k, Work::Model(model)),
+                None => return,
+            },
+            Job::Snap(name, reply) => match self.index.get(&name) {
+                Some(&k) => (k, Work::Snap(reply)),
+                None => {
+                    // Dropping the reply tells the asker there is none.
+                    self.snaps_asked.fetch_sub(1, Ordering::AcqRel);
+                    return;
+                }
+            },
+            Job::Flush(done) => {
+                self.flush = Some(done);
+                return;
+            }
+            Job::Publish(done) => {
+                self.snaps_asked.fetch_sub(1, Ordering::AcqRel);
+                self.publish(true);
+                let _ = done.send(());
+                return;
+            }
+        };
+        let m = &mut self.machines[k].1;
+        m.work.push_back(w);
+        if !m.active {
+            m.active = true;
+            self.active.push_back(k);
+        }
+    }
+
+    /// One round of the machines with work (deficit round robin on time), at most
+    /// [`BATCH_JOBS`] messages: each gets [`QUANTUM_NS`] of the shard's time, and one whose
+    /// message took longer waits until the others had as much.
+    fn round(&mut self, beat: &Beat) {
+        let mut done = 0;
+        let mut turns = self.active.len();
+        while done < BATCH_JOBS && turns > 0 {
+            turns -= 1;
+            let Some(k) = self.active.pop_front() else {
+                break;
+            };
+            let (machine, m) = &mut self.machines[k];
+            m.deficit = (m.deficit + QUANTUM_NS).min(QUANTUM_NS);
+            while m.deficit > 0 && done < BATCH_JOBS {
+                let Some(w) = m.work.pop_front() else {
+                    break;
                 };
-                on_raw(
-                    m,
-                    machine,
-                    stream,
-                    &bytes,
-                    arrived,
-                    &self.limits,
-                    &mut self.out,
-                    &mut self.ready,
-                );
+                m.dirty = true;
+                match w {
+                    Work::Raw {
+                        stream,
+                        bytes,
+                        arrived,
+                    } => {
+                        m.input.taken(bytes.len());
+                        let waited = arrived.elapsed();
+                        if waited > self.limits.shed_after {
+                            shed_late(self.k, machine, m, waited, self.limits.shed_after);
+                            continue;
+                        }
+                        done += 1;
+                        let t0 = Instant::now();
+                        let before = m.pending.points;
+                        on_raw(
+                            m,
+                            machine,
+                            stream,
+                            &bytes,
+                            arrived,
+                            &self.limits,
+                            &mut self.out,
+                            &mut self.ready,
+                        );
+                        let ns = t0.elapsed().as_nanos() as u64;
+                        m.deficit -= ns as i64;
+                        m.busy_ns += ns;
+                        m.wait_ms = waited.as_secs_f64() * 1e3;
+                        let points = m.pending.points.saturating_sub(before);
+                        if points > 0 {
+                            let per = ns as f64 / points as f64;
+                            m.cost_ns_per_point = if m.cost_ns_per_point == 0.0 {
+                                per
+                            } else {
+                                0.9 * m.cost_ns_per_point + 0.1 * per
+                            };
+                        }
+                        if m.pending.points > 0 && !self.touched.contains(&k) {
+                            self.touched.push(k);
+                        }
+                        beat.beat();
+                    }
+                    Work::Model(model) => {
+                        match m.corrector.as_mut() {
+                            Some(c) => c.set_model(model),
+                            None => m.corrector = Some(corrector(model, &self.limits)),
+                        }
+                        m.ids = m
+                            .corrector
+                            .as_ref()
+                            .map(|c| c.effect_ids())
+                            .unwrap_or_default();
+                        // A new model's cost is its own.
+                        m.cost_ns_per_point = 0.0;
+                    }
+                    Work::Snap(reply) => {
+                        self.snaps_asked.fetch_sub(1, Ordering::AcqRel);
+                        let _ = reply.send(snap(m));
+                    }
+                }
+            }
+            if m.work.is_empty() {
+                // Idle: its debt is forgotten (it is owed only while it competes).
+                m.active = false;
+                m.deficit = 0;
+            } else {
+                self.active.push_back(k);
+            }
+        }
+    }
+
+    /// Flushes every machine's buffered samples and hands their points over.
+    fn flush_all(&mut self) {
+        for (k, (name, m)) in self.machines.iter_mut().enumerate() {
+            if let Some(c) = m.corrector.as_mut() {
+                c.flush(&mut self.out);
+                if let Some(p) = self.out.points.last() {
+                    m.last_point_t_ns = Some(p.t_ns);
+                }
+                publish(m, &mut self.out, name, None, &mut self.ready);
+                m.dirty = true;
                 if m.pending.points > 0 && !self.touched.contains(&k) {
                     self.touched.push(k);
                 }
             }
-            Job::Model(name, model) => {
-                let limits = self.limits.clone();
-                if let Some(m) = self.get(&name) {
-                    match m.corrector.as_mut() {
-                        Some(c) => c.set_model(model),
-                        None => m.corrector = Some(corrector(model, &limits)),
-                    }
-                    m.ids = m
-                        .corrector
-                        .as_ref()
-                        .map(|c| c.effect_ids())
-                        .unwrap_or_default();
-                }
-            }
-            Job::Snap(which, reply) => {
-                let v = match which {
-                    Some(n) => self.get(&n).map(|m| vec![(n, snap(m))]).unwrap_or_default(),
-                    None => self
-                        .machines
-                        .iter()
-                        .map(|(n, m)| (n.clone(), snap(m)))
-                        .collect(),
-                };
-                let _ = reply.send(v);
-            }
-            Job::Flush(done) => {
-                for (k, (name, m)) in self.machines.iter_mut().enumerate() {
-                    if let Some(c) = m.corrector.as_mut() {
-                        c.flush(&mut self.out);
-                        if let Some(p) = self.out.points.last() {
-                            m.last_point_t_ns = Some(p.t_ns);
-                        }
-                        publish(m, &mut self.out, name, None, &mut self.ready);
-                        if m.pending.points > 0 && !self.touched.contains(&k) {
-                            self.touched.push(k);
-                        }
-                    }
-                }
-                // Handed over before the control task is told, so that it waits for them.
-                self.hand_over();
-                let _ = done.send(());
-            }
+        }
+        // Handed over before the control task is told, so that it waits for them.
+        self.hand_over();
+        self.publish(true);
+    }
+
+    /// Publishes the snapshots of the machines that changed, at most every
+    /// [`PUBLISH_EVERY`] (or now, when `now`).
+    fn publish(&mut self, now: bool) {
+        if !now && self.published.elapsed() < PUBLISH_EVERY {
+            return;
+        }
+        self.published = Instant::now();
+        let fresh: Vec<(usize, String, Snap)> = self
+            .machines
+            .iter_mut()
+            .enumerate()
+            .filter(|(_, (_, m))| m.dirty)
+            .map(|(k, (name, m))| {
+                m.dirty = false;
+                (k, name.clone(), snap(m))
+            })
+            .collect();
+        if fresh.is_empty() {
+            return;
+        }
+        let mut b = self.board.snaps.lock().unwrap_or_else(|e| e.into_inner());
+        if b.len() < self.machines.len() {
+            b.resize(self.machines.len(), None);
+        }
+        for (k, name, s) in fresh {
+            b[k] = Some((name, s));
         }
     }
 
@@ -681,6 +976,26 @@ impl Shard {
         }
         // Even with nothing new: what waits is looked at again (a lane may be held up).
         self.lanes.hand(self.ready.drain(..));
+    }
+}
+
+/// A message of `machine` that waited too long on its shard: shed, counted, and said in the
+/// log (at most once per 10 s per machine).
+fn shed_late(shard: usize, machine: &str, m: &mut Core, waited: Duration, limit: Duration) {
+    let n = m.input.shed_late.fetch_add(1, Ordering::Relaxed) + 1;
+    if m.told_shed
+        .is_none_or(|t| t.elapsed() >= Duration::from_secs(10))
+    {
+        m.told_shed = Some(Instant::now());
+        warn!(
+            machine,
+            shard,
+            waited_ms = (waited.as_secs_f64() * 1e3).round(),
+            shed_late = n,
+            cost_us_per_point = (m.cost_ns_per_point * 1e-3).round(),
+            "the machine's shard fell behind real time with its work: its messages that waited longer than {:.1} s are shed (counted as `input.shed_late` on its status); the other machines are not affected",
+            limit.as_secs_f64()
+        );
     }
 }
 
@@ -698,6 +1013,9 @@ fn snap(m: &Core) -> Snap {
         ids: m.ids.clone(),
         extra: m.extra.clone(),
         last_point_t_ns: m.last_point_t_ns,
+        busy_s: m.busy_ns as f64 * 1e-9,
+        cost_us_per_point: m.cost_ns_per_point * 1e-3,
+        wait_ms: m.wait_ms,
     }
 }
 

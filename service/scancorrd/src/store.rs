@@ -108,6 +108,15 @@ pub enum StoreError {
     /// A machine id that does not follow the name grammar.
     #[error("calibration store: {0}")]
     Name(#[from] names::NameError),
+    /// Free text of the document (its note, its creation time) holding a control,
+    /// bidirectional-override or zero-width character.
+    #[error("calibration store: the calibration document for `{machine}`: {msg}")]
+    Text {
+        /// Machine.
+        machine: String,
+        /// The field, the character and where ([`scancorr_core::calib::check_text`]).
+        msg: String,
+    },
     /// The folder cannot be created.
     #[error("calibration store folder {0}: {1}")]
     Folder(String, std::io::Error),
@@ -144,7 +153,10 @@ pub struct VersionInfo {
     pub audit: Option<Audit>,
 }
 
-/// Who put a version, when, and how.
+/// Who put a version, when, and how. Stored and listed with every control,
+/// bidirectional-override and zero-width character written as `<U+XXXX>`
+/// ([`scancorr_core::calib::escape_text`]): a claimed identity is shown as it came, and reads
+/// as it is stored.
 #[derive(Debug, Clone, Serialize, PartialEq, Default)]
 pub struct Audit {
     /// When it was stored (RFC 3339, UTC, the service's clock).
@@ -154,6 +166,18 @@ pub struct Audit {
     pub by: String,
     /// `put`, or `rollback to vN`.
     pub action: String,
+}
+
+impl Audit {
+    /// The record with its hidden characters shown (see [`Audit`]).
+    pub fn shown(&self) -> Audit {
+        use scancorr_core::calib::escape_text;
+        Audit {
+            at: escape_text(&self.at),
+            by: escape_text(&self.by),
+            action: escape_text(&self.action),
+        }
+    }
 }
 
 /// The store.
@@ -307,6 +331,15 @@ impl Store {
     ) -> Result<Calibration, StoreError> {
         names::check_machine(&cal.machine_id)?;
         let machine = cal.machine_id.clone();
+        for (field, text, lines) in [("note", &cal.note, true), ("created", &cal.created, false)] {
+            scancorr_core::calib::check_text(field, text, lines).map_err(|msg| {
+                StoreError::Text {
+                    machine: machine.clone(),
+                    msg,
+                }
+            })?;
+        }
+        let audit = audit.map(Audit::shown);
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -351,7 +384,7 @@ impl Store {
             "INSERT INTO current (machine, version) VALUES (?1, ?2)",
             params![machine, next as i64],
         )?;
-        if let Some(a) = audit {
+        if let Some(a) = &audit {
             tx.execute(
                 "INSERT INTO audit (machine, version, at, by, action) VALUES (?1, ?2, ?3, ?4, ?5)",
                 params![machine, next as i64, a.at, a.by, a.action],
@@ -537,7 +570,8 @@ impl Store {
                 ))
             }) {
                 for (v, at, by, action) in rows.flatten() {
-                    trail.insert(v as u64, Audit { at, by, action });
+                    // (Shown again: a record stored before they were.)
+                    trail.insert(v as u64, Audit { at, by, action }.shown());
                 }
             }
         }
@@ -567,6 +601,13 @@ impl Store {
                 }
             };
             let (note, created) = (text("note", note), text("created", created));
+            // Stored before free text was checked: shown, not hidden.
+            let (note, created) = (
+                scancorr_core::calib::escape_text(&note)
+                    .replace("<U+000A>", "\n")
+                    .replace("<U+0009>", "\t"),
+                scancorr_core::calib::escape_text(&created),
+            );
             if let Err(e) = self.get_inner(machine, version) {
                 let e = corrupt_is_damage(machine, version, e);
                 damage.insert(
@@ -863,6 +904,48 @@ mod tests {
         let mut s = s;
         let e = s.put(Calibration::example("m1")).unwrap_err();
         assert!(matches!(e, StoreError::VersionsExhausted { .. }), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// Issue 44: the audit's author is free text the requester claims: bidirectional
+    /// overrides and zero-width characters passed into the history. They are written as
+    /// `<U+XXXX>` (stored and listed); a document's note or creation time holding one is
+    /// refused naming the field.
+    #[test]
+    fn hidden_characters_are_shown_in_the_audit_and_refused_in_a_note() {
+        let dir = fresh("hidden");
+        let mut s = Store::open(&dir).unwrap();
+        let who = Audit {
+            at: "2026-01-01T00:00:00Z".into(),
+            by: "eve\u{202E}nimda\u{200B}@host (claimed)".into(),
+            action: "put".into(),
+        };
+        s.put_audited(Calibration::example("m1"), Some(&who))
+            .unwrap();
+        let h = s.history("m1").unwrap();
+        let by = &h[0].audit.as_ref().unwrap().by;
+        assert_eq!(by, "eve<U+202E>nimda<U+200B>@host (claimed)");
+        for (field, bad) in [("note", "ok \u{2067}x"), ("created", "\u{FEFF}2026")] {
+            let mut c = Calibration::example("m1");
+            if field == "note" {
+                c.note = bad.into();
+            } else {
+                c.created = bad.into();
+            }
+            let e = s.put_audited(c, Some(&who)).unwrap_err();
+            assert!(matches!(e, StoreError::Text { .. }), "{e}");
+            assert!(e.to_string().contains(field), "{e}");
+        }
+        assert_eq!(s.history("m1").unwrap().len(), 1);
+        // Rows stored before the check are listed with their hidden characters shown.
+        s.raw_sql_for_tests(
+            "UPDATE calibration SET note = 'a' || char(8238) || 'b' || char(10) || 'c' WHERE machine = 'm1';
+             UPDATE audit SET by = 'x' || char(8203) || 'y' WHERE machine = 'm1';",
+        )
+        .unwrap();
+        let h = s.history("m1").unwrap();
+        assert_eq!(h[0].note, "a<U+202E>b\nc");
+        assert_eq!(h[0].audit.as_ref().unwrap().by, "x<U+200B>y");
         std::fs::remove_dir_all(&dir).ok();
     }
 

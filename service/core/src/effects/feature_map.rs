@@ -147,6 +147,9 @@ impl Config {
         if self.segments.is_empty() {
             return Err("segments: list the command segment ids the map applies to".into());
         }
+        if let Some(f) = &self.feature {
+            crate::calib::check_text("feature", f, false)?;
+        }
         check_finite("head_deg", &self.head_deg)?;
         let (speed, tol) = match (self.speed_mm_s, self.speed_tolerance_mm_s) {
             (None, None) => (0.0, f64::INFINITY),

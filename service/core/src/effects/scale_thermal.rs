@@ -8,6 +8,7 @@
 //! fixed point.
 
 use super::{temp, Effect, SensorTable};
+use crate::calib::in_range;
 use crate::sample::{PointContext, Vec3};
 use serde::{Deserialize, Serialize};
 
@@ -18,15 +19,15 @@ pub struct Config {
     /// Optional name.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub id: Option<String>,
-    /// Expansion coefficient per axis (x, y, z), 1/K.
+    /// Expansion coefficient per axis (x, y, z), 1/K; within ±10⁻³ 1/K.
     pub alpha_per_k: [f64; 3],
-    /// Reference temperature, °C.
+    /// Reference temperature, °C; −273.15 … 2000 °C.
     #[serde(default = "twenty")]
     pub reference_temp_c: f64,
     /// Sensors of the x, y, z scales.
     #[serde(default = "default_sensors")]
     pub sensors: [String; 3],
-    /// Zero point of each scale, mm.
+    /// Zero point of each scale, mm; within ±10⁶ mm.
     #[serde(default)]
     pub origin_mm: [f64; 3],
 }
@@ -61,10 +62,20 @@ impl Config {
     /// Validates.
     pub fn build(&self, sensors: &mut SensorTable) -> Result<Model, String> {
         super::check_finite("alpha_per_k", &self.alpha_per_k)?;
-        super::check_finite("origin_mm", &self.origin_mm)?;
-        if !self.reference_temp_c.is_finite() {
-            return Err("reference_temp_c: must be a finite number".into());
+        for (i, a) in self.alpha_per_k.iter().enumerate() {
+            in_range(&format!("alpha_per_k[{i}]"), *a, -1e-3, 1e-3, "1/K")?;
         }
+        super::check_finite("origin_mm", &self.origin_mm)?;
+        for (i, o) in self.origin_mm.iter().enumerate() {
+            in_range(&format!("origin_mm[{i}]"), *o, -1e6, 1e6, "mm")?;
+        }
+        in_range(
+            "reference_temp_c",
+            self.reference_temp_c,
+            -273.15,
+            2000.0,
+            "°C",
+        )?;
         let mut slots = [0; 3];
         for (i, s) in self.sensors.iter().enumerate() {
             slots[i] = sensors.slot(s).map_err(|e| format!("sensors[{i}]: {e}"))?;

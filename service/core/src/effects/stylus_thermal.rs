@@ -28,12 +28,13 @@ pub struct Config {
     /// Optional name.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub id: Option<String>,
-    /// Expansion coefficient of the shank l1, 1/K.
+    /// Expansion coefficient of the shank l1, 1/K; this and every other coefficient within
+    /// ±10⁻³ 1/K.
     pub alpha_shank_per_k: f64,
     /// Expansion coefficient of the bent limbs, 1/K; absent: same as the shank.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alpha_bent_per_k: Option<f64>,
-    /// Temperature at which the stylus lengths were calibrated, °C.
+    /// Temperature at which the stylus lengths were calibrated, °C; −273.15 … 2000 °C.
     #[serde(default = "twenty")]
     pub reference_temp_c: f64,
     /// Temperature sensor.
@@ -97,11 +98,18 @@ impl Config {
             if !v.is_finite() {
                 return Err(format!("{n}: must be a finite number"));
             }
+            let (lo, hi, unit) = if n == "reference_temp_c" {
+                (-273.15, 2000.0, "°C")
+            } else {
+                (-1e-3, 1e-3, "1/K")
+            };
+            crate::calib::in_range(n, v, lo, hi, unit)?;
         }
         for (t, a) in &self.alpha_per_tip {
             if !a.is_finite() {
                 return Err(format!("alpha_per_tip.{t}: must be a finite number"));
             }
+            crate::calib::in_range(&format!("alpha_per_tip.{t}"), *a, -1e-3, 1e-3, "1/K")?;
         }
         let slot = sensors
             .slot(&self.sensor)

@@ -23,6 +23,7 @@
 //! same [`Lag`] over the recorded temperatures.
 
 use super::{temp, Effect, SensorTable};
+use crate::calib::in_range;
 use crate::sample::{PointContext, Vec3};
 use serde::{Deserialize, Serialize};
 
@@ -32,10 +33,10 @@ use serde::{Deserialize, Serialize};
 pub struct Term {
     /// Temperature sensor name.
     pub sensor: String,
-    /// Time constant of the first-order lag, s (0: no lag).
+    /// Time constant of the first-order lag, s (0: no lag); 0 … 10⁶ s.
     #[serde(default)]
     pub tau_s: f64,
-    /// Temperature at which this term contributes nothing, °C.
+    /// Temperature at which this term contributes nothing, °C; −273.15 … 2000 °C.
     #[serde(default = "twenty")]
     pub reference_c: f64,
     /// Displacement per kelvin of the lagged temperature along x, y, z, mm/K.
@@ -73,6 +74,9 @@ pub struct Model {
     terms: Vec<(usize, f64, Vec3)>,
 }
 
+/// Longest lag of a term, s (11.6 days).
+pub const MAX_TAU_S: f64 = 1e6;
+
 /// Most terms of one thermal-drift effect (each takes a slot of the point's temperatures).
 pub const MAX_TERMS: usize = 8;
 
@@ -109,12 +113,14 @@ impl Config {
         let mut terms = Vec::with_capacity(self.terms.len());
         for (j, t) in self.terms.iter().enumerate() {
             super::check_finite(&format!("terms[{j}].k_mm_per_k"), &t.k_mm_per_k)?;
-            if !(t.tau_s.is_finite() && t.tau_s >= 0.0) {
-                return Err(format!("terms[{j}].tau_s: must be a finite number ≥ 0 (s)"));
-            }
-            if !t.reference_c.is_finite() {
-                return Err(format!("terms[{j}].reference_c: must be a finite number"));
-            }
+            in_range(&format!("terms[{j}].tau_s"), t.tau_s, 0.0, MAX_TAU_S, "s")?;
+            in_range(
+                &format!("terms[{j}].reference_c"),
+                t.reference_c,
+                -273.15,
+                2000.0,
+                "°C",
+            )?;
             if self.terms[..j]
                 .iter()
                 .any(|o| o.sensor == t.sensor && o.tau_s == t.tau_s)

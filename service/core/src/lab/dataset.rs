@@ -282,6 +282,7 @@ fn drop_advice(r: DropReason) -> &'static str {
         DropReason::NoCommand | DropReason::CommandGap => "the command stream is missing or has gaps",
         DropReason::NoProbe | DropReason::ProbeGap => "the probe stream is missing or has gaps",
         DropReason::Implausible | DropReason::ImplausibleOutput => "values outside the calibration's `limits`",
+        DropReason::ImplausibleJump => "scale or probe samples that left their stream's track and came back, faster than `limits.max_speed_mm_s`, `max_accel_mm_s2` or `max_head_rate_deg_s` allow (a damaged stream, or limits below the machine's)",
         DropReason::NonFinite => "NaN or infinite values",
         DropReason::BufferOverflow => "a stream stalled while the others went on",
         DropReason::UnknownSensor | DropReason::BadName => "temperature sensors with unknown or invalid names",
