@@ -115,19 +115,7 @@ fn a_calibration_too_costly_for_real_time_is_refused_at_put() {
     );
     eprintln!("{}", err.trim());
     // Nothing was stored; a calibration that keeps real time is taken, its cost on status.
-    ok(
-        &d,
-        &[
-            "calib",
-            "put",
-            "--machine",
-            "m1",
-            "--file",
-            "v1.json",
-            "--connect",
-            &bus,
-        ],
-    );
+    calib_put(&d, "m1", "v1.json", &bus);
     let s = status(&d, &bus, "m1");
     assert_eq!(s["calibration_version"], 1, "{s}");
     let cost = s["point_cost_us"].as_f64().unwrap();

@@ -228,19 +228,7 @@ fn simulator_publishes_live_and_the_service_corrects() {
     sim_ring(&d, "v1.json");
     let svc = Service::start(&d, port);
     // Text by default, the service's reply with --json.
-    let put = ok(
-        &d,
-        &[
-            "calib",
-            "put",
-            "--machine",
-            "m1",
-            "--file",
-            "v1.json",
-            "--connect",
-            &ep,
-        ],
-    );
+    let put = calib_put(&d, "m1", "v1.json", &ep);
     assert!(
         put.starts_with("m1: stored and made current") && !put.contains('{'),
         "{put}"

@@ -93,19 +93,7 @@ fn metrics_audit_trail_and_rollback() {
     );
     sim_ring(&d, "v1.json");
     for _ in 0..2 {
-        ok(
-            &d,
-            &[
-                "calib",
-                "put",
-                "--machine",
-                "m1",
-                "--file",
-                "v1.json",
-                "--connect",
-                &bus,
-            ],
-        );
+        calib_put(&d, "m1", "v1.json", &bus);
     }
     ok(
         &d,

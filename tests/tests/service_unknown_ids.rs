@@ -69,19 +69,7 @@ fn a_wildcard_liveliness_token_claims_no_machine() {
         .unwrap();
     std::thread::sleep(Duration::from_millis(300));
     sim_ring(&d, "v1.json");
-    ok(
-        &d,
-        &[
-            "calib",
-            "put",
-            "--machine",
-            "m1",
-            "--file",
-            "v1.json",
-            "--connect",
-            &bus,
-        ],
-    );
+    calib_put(&d, "m1", "v1.json", &bus);
     let st: Value = serde_json::from_str(&ok(
         &d,
         &["status", "--machine", "m1", "--connect", &bus, "--json"],

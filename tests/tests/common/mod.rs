@@ -112,6 +112,23 @@ pub fn ok(dir: &Path, args: &[&str]) -> String {
     String::from_utf8(o.stdout).unwrap()
 }
 
+/// `scancorr calib put --machine M --file F --connect BUS`, expected to succeed: its output.
+pub fn calib_put(dir: &Path, machine: &str, file: &str, bus: &str) -> String {
+    ok(
+        dir,
+        &[
+            "calib",
+            "put",
+            "--machine",
+            machine,
+            "--file",
+            file,
+            "--connect",
+            bus,
+        ],
+    )
+}
+
 /// Runs and expects failure with a message containing every needle; no panic.
 pub fn fails(dir: &Path, args: &[&str], needles: &[&str]) -> String {
     let o = run(dir, args);
