@@ -85,6 +85,10 @@ impl Campaign {
         json(&ok(&self.dir, &a))
     }
     fn discover(&self, calib: &str, out: &str) -> serde_json::Value {
+        self.discover_stride(calib, out, 4)
+    }
+    /// `lab discover` keeping every `stride`-th point of a scan (4 is the default).
+    fn discover_stride(&self, calib: &str, out: &str, stride: usize) -> serde_json::Value {
         self.lab(&[
             "discover",
             "--calib",
@@ -93,6 +97,8 @@ impl Campaign {
             out,
             "--report",
             &format!("{out}.html"),
+            "--stride",
+            &stride.to_string(),
         ])
     }
     /// Library kinds the simulated machine has switched on (judging only).
@@ -140,6 +146,20 @@ fn confounded_kinds(d: &serde_json::Value) -> BTreeSet<String> {
 /// has, finds each of `expected` (or names it in a confounded pair), and leaves a chain of
 /// versions on disk, each naming its parent.
 fn check_outcome(c: &Campaign, d: &serde_json::Value, out: &str, expected: &[&str]) {
+    check_outcome_within(c, d, out, expected, 1.5, &[]);
+}
+
+/// [`check_outcome`] with the held-out RMS within `limit`× the noise floor, and `beyond` the
+/// kinds allowed besides the machine's library effects (for physics outside the library:
+/// `custom`, and `rigid_body` where the machine has squareness).
+fn check_outcome_within(
+    c: &Campaign,
+    d: &serde_json::Value,
+    out: &str,
+    expected: &[&str],
+    limit: f64,
+    beyond: &[&str],
+) {
     let f = &d["final"];
     let (held, floor) = (
         f["heldout_rms_um"].as_f64().unwrap(),
@@ -165,14 +185,27 @@ fn check_outcome(c: &Campaign, d: &serde_json::Value, out: &str, expected: &[&st
         kinds(d)
     );
     assert!(
-        floor > 0.0 && held <= 1.5 * floor,
-        "held-out {held} µm vs noise floor {floor} µm: {d:#}"
+        floor > 0.0 && held <= limit * floor,
+        "held-out {held} µm vs noise floor {floor} µm (limit {limit}×): {d:#}"
     );
     let active = c.active();
     let found = kinds(d);
-    for k in &found {
+    // Squareness named from a guide table's ramp (a rigid body with only the squareness, id
+    // `squareness`): by ISO 230-1 the straightness table's linear part is squareness, which a
+    // machine with guide errors of long wavelength (the simulator's 300–800 mm) has.
+    let squareness_only = f["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(f["kinds"].as_array().unwrap())
+        .any(|(e, k)| e == "squareness" && k == "rigid_body");
+    for k in found.iter().filter(|k| {
+        !(*k == "rigid_body"
+            && squareness_only
+            && (active.contains("guide_straightness") || active.contains("squareness")))
+    }) {
         assert!(
-            active.contains(k),
+            active.contains(k) || beyond.contains(&k.as_str()),
             "{k} added but the machine does not have it (active: {active:?})"
         );
     }
@@ -311,6 +344,120 @@ fn from_nominal_with_probe_lobing() {
     check_outcome(&c, &d, "steps", &["probe_lobing"]);
 }
 
+/// No step makes the held-out bag worse (by more than 1 % + 0.02 of the floor, the loop's
+/// own tolerance): a move that does is refused (issue 45: two such moves were accepted).
+fn check_no_step_worse(d: &serde_json::Value) {
+    let floor = d["final"]["noise_floor_um"].as_f64().unwrap();
+    for s in d["steps"].as_array().unwrap() {
+        let (b, a) = (
+            s["heldout_rms_before_um"].as_f64().unwrap(),
+            s["heldout_rms_um"].as_f64().unwrap(),
+        );
+        assert!(
+            a <= 1.01 * b + 0.02 * floor + 1e-9,
+            "step made held-out worse: {s:#}"
+        );
+    }
+}
+
+/// The custom effects `discover` added by itself, as (step effect, what it found).
+fn custom_steps(d: &serde_json::Value) -> Vec<(String, String)> {
+    d["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|s| s["effect"].as_str().unwrap().contains("custom:"))
+        .map(|s| {
+            (
+                s["effect"].as_str().unwrap().to_string(),
+                s["found"].as_str().unwrap_or("").to_string(),
+            )
+        })
+        .collect()
+}
+
+/// A cyclic error outside the library (issue 45: the simulator's x-encoder cyclic error, on a
+/// machine no other test uses), from a nominal start: the structure search finds the period,
+/// `discover` adds it as a custom effect by itself (named for what it is) and ends within
+/// 1.2× the noise floor. Before issue 45 it stopped at 12.9× printing the command.
+#[test]
+fn from_nominal_with_cyclic_error() {
+    cyclic_error_case(CI_STRIDE);
+}
+
+/// Several effects outside the library at once (issue 45): the simulator's cyclic error,
+/// probe lobing, squareness and backlash, from a nominal start: `discover` ends within 1.5×
+/// the noise floor by itself, adding the custom effects and no physics the machine lacks.
+///
+/// Not yet met, so not in CI (run with `-- --ignored`): 1.26× before the lab's folds changed
+/// (alternate scans as the two folds when there is no held-out bag); after it, at this stride,
+/// 1.51× (0.159 µm, floor 0.105 µm), with `servo_gain` (named confounded with
+/// `accel_deflection`) and a spline `rigid_body` each taken while the held-out RMS moved by
+/// under 1 %.
+#[test]
+#[ignore]
+fn from_nominal_with_four_extras_at_once() {
+    extras_case(CI_STRIDE, 1.5);
+}
+
+/// The two cases above at the lab's default stride (every 4th point): the full study, about
+/// 3 and 4 minutes on a loaded 2-core machine (`cargo test --release --test lab_discover --
+/// --ignored`). Measured at stride 4: cyclic error 1.05× the floor (machine 23); the four
+/// extras 1.26× on machine 31 (run seed 8). At the CI stride: 1.06× and, before the folds
+/// changed, 1.26× (machine 41).
+#[test]
+#[ignore]
+fn extras_at_the_default_stride() {
+    cyclic_error_case(4);
+    extras_case(4, 1.5);
+}
+
+/// Every 12th scan point in CI (3× fewer than the default: about 1 and 1.7 minutes instead of
+/// 3 and 4); the outcome is the same within 0.07× the floor (measured on both cases).
+const CI_STRIDE: usize = 12;
+
+fn cyclic_error_case(stride: usize) {
+    let c = Campaign::new("cyclic", 23, 4, &["cyclic_error"]);
+    let d = c.discover_stride("nominal.json", "steps", stride);
+    check_outcome_within(&c, &d, "steps", &[], 1.2, &["custom"]);
+    check_no_step_worse(&d);
+    let cyc = custom_steps(&d);
+    assert!(
+        cyc.iter().any(|(e, f)| e.starts_with("custom:cyclic_x_")
+            && f.starts_with("cyclic error along x, period ")),
+        "the x encoder's cyclic error is added as a custom effect: {cyc:?}"
+    );
+    // The final model has it, under the name it was added with.
+    let effects: Vec<&str> = d["final"]["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e.as_str().unwrap())
+        .collect();
+    assert!(
+        effects.iter().any(|e| e.starts_with("cyclic_x_")),
+        "{effects:?}"
+    );
+}
+
+fn extras_case(stride: usize, limit: f64) {
+    let c = Campaign::new(
+        "extras",
+        EXTRAS_MACHINE,
+        EXTRAS_SEED,
+        &["cyclic_error", "probe_lobing", "squareness", "backlash"],
+    );
+    let d = c.discover_stride("nominal.json", "steps", stride);
+    check_outcome_within(&c, &d, "steps", &[], limit, &["custom"]);
+    check_no_step_worse(&d);
+    assert!(!custom_steps(&d).is_empty(), "{d:#}");
+}
+
+/// Machine and run seeds of [`from_nominal_with_four_extras_at_once`] (no other test uses
+/// machine 41).
+const EXTRAS_MACHINE: u64 = 41;
+const EXTRAS_SEED: u64 = 6;
+
 /// Rigid-body geometry hidden from a fitted calibration (issue 10's case): the machine has
 /// the 21 wavy rigid-body errors. The user's calibration is what the lab fitted on the
 /// campaign, with the rigid body taken out (`lab remove`). With a ring stepped along each axis
@@ -319,21 +466,24 @@ fn from_nominal_with_probe_lobing() {
 #[test]
 fn rigid_body_hidden_from_a_fitted_calibration() {
     let c = Campaign::new("rigid", 1, 5, &["rigid_body"]);
-    let d0 = c.discover("nominal.json", "first");
-    let fitted = if kinds(&d0).contains("rigid_body") {
-        let out = c.path("fitted.json");
-        c.lab(&[
-            "remove",
-            "rigid_body",
-            "--calib",
-            "first/calibration.json",
-            "--out",
-            &out,
-        ]);
-        out
-    } else {
-        "first/calibration.json".to_string()
-    };
+    // The user's fitted start (every 12th point: it is only the start).
+    c.discover_stride("nominal.json", "first", CI_STRIDE);
+    // Take out the rigid body and whatever stood in for it without the geometry run (custom
+    // terms the loop added for the wavy errors' periods), one `lab remove` each.
+    let mut fitted = c.path("first/calibration.json");
+    let doc0 = json(&std::fs::read_to_string(&fitted).unwrap());
+    let stand_ins: Vec<String> = doc0["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["kind"] == "rigid_body" || e["kind"] == "custom")
+        .map(|e| e["id"].as_str().unwrap_or("rigid_body").to_string())
+        .collect();
+    for (i, id) in stand_ins.iter().enumerate() {
+        let out = c.path(&format!("fitted{i}.json"));
+        c.lab(&["remove", id, "--calib", &fitted, "--out", &out]);
+        fitted = out;
+    }
     let doc = json(&std::fs::read_to_string(&fitted).unwrap());
     assert!(
         doc["effects"]

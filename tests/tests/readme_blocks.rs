@@ -56,6 +56,12 @@ const EXCLUDED: &[(&str, Option<&str>, &str)] = &[
         Some("cargo run --release --bin scancorr -- bench procedures --runs 1 --procedure tips"),
         "a benchmark of minutes: the same subcommand runs, one procedure, one run",
     ),
+    (
+        "cargo run --release --bin scancorr -- bench discover  # lab discover on the default campaign from nominal: time, steps, memory",
+        Some("cargo run --release --bin scancorr -- bench discover --max-steps 1"),
+        "the whole loop runs in the README's lab block above and in `scancorr demo`: the same \
+         benchmark runs here for its first step",
+    ),
 ];
 
 /// How the blocks' `cargo run --release --bin NAME -- ARGS` (and `--example NAME`) lines run:

@@ -155,7 +155,7 @@ fn report(
 }
 
 /// y less its least-squares line over x.
-fn detrend(x: &[f64], y: &[f64]) -> Vec<f64> {
+pub(crate) fn detrend(x: &[f64], y: &[f64]) -> Vec<f64> {
     let n = x.len().max(1) as f64;
     let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
     let sxx: f64 = x.iter().map(|a| (a - mx).powi(2)).sum();

@@ -28,7 +28,7 @@ pub fn run(with: &[String], dir: Option<PathBuf>, json: bool) -> Result<()> {
     let keep = true;
     let dir = dir.unwrap_or_else(|| PathBuf::from("scancorr-demo"));
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let result = run_in(with, &dir, keep, json);
+    let result = run_in(with, &dir, keep, json, 20);
     if json {
         outln!("{}", result?)?;
         return Ok(());
@@ -38,9 +38,9 @@ pub fn run(with: &[String], dir: Option<PathBuf>, json: bool) -> Result<()> {
 
 /// `scancorr bench discover`: the demo's loop (default campaign, ≈ 330 k samples per stream,
 /// from the nominal model), timed; prints seconds, steps, the final error and peak memory.
-pub fn bench(json: bool) -> Result<()> {
+pub fn bench(json: bool, max_steps: usize) -> Result<()> {
     let dir = crate::output::private_dir("scancorr-bench-discover")?;
-    let r = run_in(&[], &dir, false, true);
+    let r = run_in(&[], &dir, false, true, max_steps);
     std::fs::remove_dir_all(&dir).ok();
     let mut v = r?;
     let rss_kb = std::fs::read_to_string("/proc/self/status")
@@ -69,7 +69,13 @@ pub fn bench(json: bool) -> Result<()> {
     Ok(())
 }
 
-fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_json::Value> {
+fn run_in(
+    with: &[String],
+    dir: &Path,
+    keep: bool,
+    json: bool,
+    max_steps: usize,
+) -> Result<serde_json::Value> {
     let say = |s: String| -> Result<()> {
         if !json {
             outln!("{s}")?;
@@ -147,7 +153,7 @@ fn run_in(with: &[String], dir: &Path, keep: bool, json: bool) -> Result<serde_j
     let t0 = std::time::Instant::now();
     let opts = discover::Options {
         build,
-        max_steps: 20,
+        max_steps,
         created: String::new(),
     };
     let out_dir = p("steps");

@@ -15,8 +15,14 @@ use scancorr_core::sample::Axis;
 use scancorr_core::Calibration;
 use std::path::{Path, PathBuf};
 
+use crate::plancmd;
+
 #[derive(Subcommand)]
 pub enum LabCmd {
+    /// Plan a campaign before measuring it: the scans that make every effect of the model
+    /// (and the candidates it is confounded with) identifiable, each parameter's predicted σ;
+    /// writes a program record `scancorr sim --program FILE` runs.
+    Plan(plancmd::PlanArgs),
     /// Compare the model with measurements of known artifacts: deviation and where it fails.
     Compare {
         #[command(flatten)]
@@ -337,6 +343,7 @@ pub(crate) fn put(o: &Option<AtomicOutput>, text: impl AsRef<[u8]>) -> Result<()
 pub fn run(cmd: LabCmd) -> Result<()> {
     crate::output::started();
     match cmd {
+        LabCmd::Plan(a) => plancmd::exec(a),
         LabCmd::Compare {
             data,
             before,
@@ -494,6 +501,7 @@ pub fn run(cmd: LabCmd) -> Result<()> {
             };
             let _ = refit_all;
             let applied = analysis::apply(&ds, cands, only_new)?;
+            let advice = applied.advice.clone();
             let o = applied.outcome;
             let vname = match &applied.candidate.replaces {
                 Some(r) => format!("{} (replacing {r})", applied.candidate.effect),
@@ -539,8 +547,14 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                 "params": o.params.last(),
                 "unidentifiable": o.unidentifiable,
                 "heldout_improved": after.rms_held_um < prep.rms_held_um,
+                "cv_rms_before_um": o.cv_rms_before_um,
+                "cv_rms_after_um": o.cv_rms_after_um,
+                "advice": advice,
                 "out": out,
             });
+            for a in &advice {
+                eprintln!("note: {a}");
+            }
             if after.rms_held_um >= prep.rms_held_um && prep.rms_held_um > 0.0 {
                 eprintln!(
                     "warning: {vname} does not improve the held-out data ({} → {} µm): `lab diagnose` would not propose it; keep the parent version",
@@ -568,13 +582,24 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                     um(after.rms_held_um),
                     um(ds.noise_floor_um)
                 )?;
+                if data.validate.is_empty() {
+                    outln!(
+                        "  (no --validate: the alternate scans held out above are fitted too; each half predicted by the other: {} → {} µm)",
+                        um(o.cv_rms_before_um),
+                        um(o.cv_rms_after_um)
+                    )?;
+                }
                 let ps = o.params.last().map(Vec::as_slice).unwrap_or_default();
                 for p in ps.iter().take(12) {
                     match p.sigma {
                         Some(_) => outln!(
-                            "    {:<44} {}",
+                            "    {:<44} {}{}",
                             p.name,
-                            report::value_sigma(p.value, p.sigma)
+                            report::value_sigma(p.value, p.sigma),
+                            p.note
+                                .as_deref()
+                                .map(|n| format!("  ({n})"))
+                                .unwrap_or_default()
                         )?,
                         None => outln!(
                             "    {:<44} {} (not determined by this data)",
@@ -738,6 +763,9 @@ pub fn run(cmd: LabCmd) -> Result<()> {
                         st.version,
                         path.display()
                     );
+                    if let Some(f) = &st.found {
+                        let _ = outln!("            found: {f}");
+                    }
                 }
                 Ok(())
             };
@@ -1219,6 +1247,9 @@ fn print_discovery(d: &scancorr_core::lab::discover::Discovery, dir: &Path) -> R
         for s in &c.separate_by {
             outln!("    · {s}")?;
         }
+    }
+    for r in &d.refused {
+        outln!("  not taken (held-out data worse): {r}")?;
     }
     if !d.unidentifiable.is_empty() {
         outln!("  {} parameter(s) the campaign cannot determine (kept at their minimum-norm values), e.g. {}", d.unidentifiable.len(), d.unidentifiable.iter().take(3).cloned().collect::<Vec<_>>().join("; "))?;

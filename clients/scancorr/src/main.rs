@@ -8,6 +8,7 @@
 mod output;
 mod bench;
 mod benchfleet;
+mod benchlab;
 mod benchlive;
 mod benchproc;
 mod bus;
@@ -20,6 +21,7 @@ mod importcmd;
 mod labcmd;
 mod nominalcmd;
 mod offline;
+mod plancmd;
 mod platecmd;
 mod platefile;
 mod plotdata;
@@ -335,12 +337,33 @@ enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
+    /// Honesty of the lab's uncertainties: on `--machines` simulated machines (seeds no test
+    /// uses), the lab's fitted parameters (`lab fit` of the true effect list from zero, `lab
+    /// add` of the ranked-first move with one effect hidden, `lab discover` from nominal)
+    /// against the simulator's truth: the share within 2σ and within max(3σ, 5 %).
+    LabCoverage {
+        /// Machines (seeds --first-seed …).
+        #[arg(long, default_value_t = 10)]
+        machines: u64,
+        /// The first machine seed.
+        #[arg(long, default_value_t = 101)]
+        first_seed: u64,
+        /// Paths: fit, add, discover (comma-separated; discover takes about a minute per machine).
+        #[arg(long, default_values_t = ["discover".to_string(), "add".to_string(), "fit".to_string()], value_delimiter = ',')]
+        paths: Vec<String>,
+        /// Print JSON per path (`within_2sigma`, `within_3sigma_or_5pct`, `worst`, …).
+        #[arg(long)]
+        json: bool,
+    },
     /// `lab discover` on the default campaign from the nominal model: time, steps, final
     /// error, peak memory.
     Discover {
         /// Print JSON (`seconds`, `steps`, `final`, `peak_rss_kb`).
         #[arg(long)]
         json: bool,
+        /// Most moves of the loop (the default runs it to the end; fewer times its first steps).
+        #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u16).range(1..))]
+        max_steps: u16,
     },
     /// Throughput of the pure core (one thread): every effect and the campaign's, or a calibration
     /// of yours; with `--per-effect`, what each effect costs.
@@ -563,7 +586,18 @@ fn run(cli: Cli) -> Result<()> {
             json,
         }),
         Cmd::Bench(BenchCmd::Correct { json, repeat }) => bench::correct(repeat, json),
-        Cmd::Bench(BenchCmd::Discover { json }) => demo::bench(json),
+        Cmd::Bench(BenchCmd::Discover { json, max_steps }) => demo::bench(json, max_steps.into()),
+        Cmd::Bench(BenchCmd::LabCoverage {
+            machines,
+            first_seed,
+            paths,
+            json,
+        }) => benchlab::run(&benchlab::Options {
+            machines,
+            first_seed,
+            paths: benchlab::paths(&paths),
+            json,
+        }),
         Cmd::Bench(BenchCmd::Procedures {
             procedure,
             runs,

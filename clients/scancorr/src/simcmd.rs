@@ -37,6 +37,15 @@ pub fn parse_position(s: &str) -> Result<[f64; 3]> {
     }
 }
 
+/// The program record file `--program` names: a value that is not a built-in program and
+/// ends in `.json` or names an existing file.
+pub fn program_file(program: &str) -> Option<PathBuf> {
+    let builtin = scancorr_sim::program::PROGRAMS.contains(&program)
+        || scancorr_sim::straightness::PROGRAMS.contains(&program);
+    let p = Path::new(program);
+    (!builtin && (program.ends_with(".json") || p.is_file())).then(|| p.to_path_buf())
+}
+
 /// Parses `EFFECT=SCALE` or `EFFECT`.
 pub fn parse_effect(s: &str) -> Result<(String, f64)> {
     match s.split_once('=') {
@@ -113,7 +122,22 @@ pub fn run_quiet(a: SimArgs) -> Result<()> {
 /// Runs the simulator: every output goes to a temporary file next to its final name, made
 /// before the simulation starts (so an unwritable folder fails at once) and committed by
 /// [`Written::commit`]. On an error nothing that existed is touched.
-pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
+pub fn simulate(mut a: SimArgs, report: bool) -> Result<Written> {
+    let record = program_file(&a.options.program);
+    if let Some(path) = &record {
+        if a.options.program_record.is_none() {
+            anyhow::ensure!(
+                a.options.position.is_none(),
+                "--position: the program record {} places its own artifacts",
+                path.display()
+            );
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("--program {}: reading", path.display()))?;
+            let p = scancorr_core::lab::plan::Program::from_json(&text)
+                .map_err(|e| anyhow::anyhow!("--program {}: {e}", path.display()))?;
+            a.options.program_record = Some(p);
+        }
+    }
     {
         let mut outs: Vec<(&str, &Path)> = vec![("--out", a.out.as_path())];
         if let Some(p) = &a.truth {
@@ -128,7 +152,12 @@ pub fn simulate(a: SimArgs, report: bool) -> Result<Written> {
         if let Some(p) = &a.catalogue_out {
             outs.push(("--catalogue-out", p));
         }
-        crate::output::refuse_same_file(&outs, &[])?;
+        let ins: Vec<(&str, &Path)> = record
+            .as_deref()
+            .map(|p| ("--program", p))
+            .into_iter()
+            .collect();
+        crate::output::refuse_same_file(&outs, &ins)?;
     }
     crate::output::check_machine("--machine", &a.options.machine_id)?;
     crate::output::check_prefix(&a.prefix)?;

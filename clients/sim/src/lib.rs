@@ -115,6 +115,10 @@ pub struct Options {
     /// controller that interpolates arcs itself). The machine moves the same.
     #[serde(default)]
     pub no_arcs: bool,
+    /// A program record to run instead of the named `program` (`sim --program FILE.json`,
+    /// what `lab plan` writes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program_record: Option<scancorr_core::lab::plan::Program>,
 }
 
 impl Default for Options {
@@ -133,6 +137,7 @@ impl Default for Options {
             fault_at_s: None,
             minutes: None,
             no_arcs: false,
+            program_record: None,
         }
     }
 }
@@ -641,8 +646,13 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
     }
     let factors = effect_factors(o)?;
     let m = scaled_machine(o.machine_seed, &factors);
-    let plan: Plan =
-        program::plan(&o.program, &m, o.position.map(V3::from)).map_err(SimError::Options)?;
+    let plan: Plan = match &o.program_record {
+        Some(p) => program::plan_record(p, &m)
+            .map_err(|e| SimError::Options(format!("program {}: {e}", o.program)))?,
+        None => {
+            program::plan(&o.program, &m, o.position.map(V3::from)).map_err(SimError::Options)?
+        }
+    };
     let period = 1.0 / o.rate_hz;
     let plan_d = plan.duration();
     let reps = match o.minutes {

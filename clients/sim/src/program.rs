@@ -7,6 +7,7 @@
 use crate::machine::{head_rotation, Stylus, TrueMachine, V3};
 use serde::{Deserialize, Serialize};
 // What the bag says about the program is the lab's contract: the same types, not a copy.
+use scancorr_core::lab::plan::{Artifact as RecordArtifact, Program, ScanKind};
 pub use scancorr_core::lab::program::{
     FeatureKind, FeatureSpec as FeatureInfo, ProgramSpec as ProgramInfo, SegmentKind,
     SegmentSpec as SegmentInfo,
@@ -90,7 +91,7 @@ impl Feature {
             }
             FeatureKind::Face => {
                 let n = V3::from(self.normal);
-                let along = n.cross(&V3::z()).normalize();
+                let along = face_along(&n);
                 let s = (tip - self.c()).dot(&along);
                 let h = (tip - self.c()).dot(&n) - self.form_at(s) - r;
                 if h < 0.0 {
@@ -130,6 +131,20 @@ pub enum Path {
         /// Waves per turn.
         wave_cycles: f64,
     },
+    /// The probe held at `at` while the carriage oscillates along `dir` (unit):
+    /// `at + dir·amplitude·sin(s/amplitude)` at path length s, so a cruise speed v is a peak
+    /// speed v and a peak acceleration v²/amplitude (as an arc of that radius), at
+    /// f = v/(2π·amplitude); `cycles` whole periods.
+    Weave {
+        /// Mean carriage position.
+        at: V3,
+        /// Unit direction of the oscillation (a face's normal).
+        dir: V3,
+        /// Amplitude, mm.
+        amplitude: f64,
+        /// Periods.
+        cycles: f64,
+    },
     /// Standing still.
     Dwell {
         /// Where.
@@ -144,6 +159,9 @@ impl Path {
         match self {
             Path::Line { from, to } => (to - from).norm(),
             Path::Arc { radius, sweep, .. } => radius * sweep.abs(),
+            Path::Weave {
+                amplitude, cycles, ..
+            } => TAU * amplitude * cycles,
             Path::Dwell { .. } => 0.0,
         }
     }
@@ -169,6 +187,9 @@ impl Path {
                 let r = radius + wave_mm * (wave_cycles * (th - start)).sin();
                 center + V3::new(r * th.cos(), r * th.sin(), 0.0)
             }
+            Path::Weave {
+                at, dir, amplitude, ..
+            } => at + dir * (amplitude * (s / amplitude).sin()),
             Path::Dwell { at, .. } => at,
         }
     }
@@ -476,7 +497,7 @@ impl<'a> Builder<'a> {
     fn face_line(&mut self, fid: u32, s0: f64, s1: f64, speed: f64, defl: f64) {
         let f = self.features[fid as usize - 1].clone();
         let n = V3::from(f.normal);
-        let along = n.cross(&V3::z()).normalize();
+        let along = face_along(&n);
         let r_tip = self.stylus(self.tip).radius_mm;
         let off = self.offset(self.tip, self.a1, self.a2);
         let base = f.c() + n * (r_tip - defl) - off;
@@ -486,6 +507,35 @@ impl<'a> Builder<'a> {
         };
         self.scan(path, speed, 0.4, fid, defl);
     }
+    /// The probe pressed on a face by `defl` at `at` along it while the carriage oscillates
+    /// along the face's normal with amplitude `amp` at `freq` Hz for `cycles` periods (the
+    /// deflection swings defl ∓ amp; the acceleration amp·(2π·freq)² lies along the normal).
+    fn face_weave(&mut self, fid: u32, at: f64, amp: f64, freq: f64, cycles: f64, defl: f64) {
+        let f = self.features[fid as usize - 1].clone();
+        let n = V3::from(f.normal);
+        let along = face_along(&n);
+        let r_tip = self.stylus(self.tip).radius_mm;
+        let off = self.offset(self.tip, self.a1, self.a2);
+        let path = Path::Weave {
+            at: f.c() + n * (r_tip - defl) - off + along * at,
+            dir: n,
+            amplitude: amp,
+            cycles,
+        };
+        self.scan(
+            path,
+            TAU * freq * amp,
+            scancorr_core::lab::plan::WEAVE_RAMP_S,
+            fid,
+            defl,
+        );
+    }
+}
+
+/// The direction along a face of normal `n` (n × z; x for a face whose normal is z), as the
+/// lab takes it.
+fn face_along(n: &V3) -> V3 {
+    n.cross(&V3::z()).try_normalize(1e-9).unwrap_or(V3::x())
 }
 
 fn ring_feature(at: V3, form_seed: f64) -> Feature {
@@ -522,29 +572,41 @@ fn dynamic_map_scans(b: &mut Builder, f: u32, like_part: bool) {
     }
 }
 
+/// Where every program starts and ends: the carriage high over the middle of the table.
+const HOME: V3 = V3::new(500.0, 400.0, -100.0);
+
+impl<'a> Builder<'a> {
+    /// A program's start: the carriage at its home, tip 1 at head angles 0°, half a second's
+    /// dwell.
+    fn at_home(m: &'a TrueMachine) -> Builder<'a> {
+        let home = HOME;
+        let mut b = Builder {
+            m,
+            features: vec![],
+            segs: vec![],
+            carriage: home,
+            tip: 1,
+            a1: 0.0,
+            a2: 0.0,
+        };
+        b.push(
+            SegmentKind::Move,
+            Path::Dwell {
+                at: home,
+                seconds: 0.5,
+            },
+            0.0,
+            0.0,
+            None,
+            0.0,
+        );
+        b
+    }
+}
+
 /// Plans a program. `position` places the program's main artifact.
 pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, String> {
-    let home = V3::new(500.0, 400.0, -100.0);
-    let mut b = Builder {
-        m,
-        features: vec![],
-        segs: vec![],
-        carriage: home,
-        tip: 1,
-        a1: 0.0,
-        a2: 0.0,
-    };
-    b.push(
-        SegmentKind::Move,
-        Path::Dwell {
-            at: home,
-            seconds: 0.5,
-        },
-        0.0,
-        0.0,
-        None,
-        0.0,
-    );
+    let mut b = Builder::at_home(m);
     match name {
         "ring" => {
             let f = b.feature(ring_feature(
@@ -879,7 +941,7 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
             ))
         }
     }
-    b.move_to(home);
+    b.move_to(HOME);
     let mut starts = vec![];
     let mut t = 0.0;
     for s in &b.segs {
@@ -888,6 +950,138 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
     }
     Ok(Plan {
         name: name.to_string(),
+        features: b.features,
+        segments: b.segs,
+        starts,
+    })
+}
+
+/// Plans a program record (`scancorr sim --program FILE.json`, what `lab plan` writes):
+/// its artifacts placed where it says (rings and spheres of their certified size with a few
+/// tens of nm of form, straightedges calibrated), its scans in order with the same moves,
+/// dwells and ramps as the built-in programs. Refused, naming the scan, when a tip is not on
+/// the machine or a carriage path leaves the travel ([`crate::TRAVEL_MM`]).
+pub fn plan_record(p: &Program, m: &TrueMachine) -> Result<Plan, String> {
+    p.validate()?;
+    let mut b = Builder::at_home(m);
+    let mut ids = vec![];
+    for (i, f) in p.features.iter().enumerate() {
+        let c = V3::from(f.center_mm);
+        let seed = 0.37 + 0.61 * i as f64;
+        let d_true = f.certified_diameter_mm.unwrap_or(f.nominal_diameter_mm);
+        let feat = match f.artifact {
+            RecordArtifact::Ring => Feature {
+                id: 0,
+                artifact: "ring".into(),
+                kind: FeatureKind::Bore,
+                center: c.into(),
+                radius_mm: d_true / 2.0,
+                nominal_diameter_mm: f.nominal_diameter_mm,
+                certificate_diameter_mm: f.certified_diameter_mm,
+                normal: [0.0; 3],
+                form: vec![
+                    [2.0, 0.02e-3, seed],
+                    [3.0, 0.015e-3, 2.0 * seed],
+                    [5.0, 0.01e-3, 0.3],
+                ],
+            },
+            RecordArtifact::Sphere => Feature {
+                id: 0,
+                artifact: "sphere".into(),
+                kind: FeatureKind::Boss,
+                center: c.into(),
+                radius_mm: d_true / 2.0,
+                nominal_diameter_mm: f.nominal_diameter_mm,
+                certificate_diameter_mm: f.certified_diameter_mm,
+                normal: [0.0; 3],
+                form: vec![[2.0, 0.01e-3, seed]],
+            },
+            RecordArtifact::Straightedge => Feature {
+                id: 0,
+                artifact: "straightedge".into(),
+                kind: FeatureKind::Face,
+                center: c.into(),
+                radius_mm: 0.0,
+                nominal_diameter_mm: 0.0,
+                certificate_diameter_mm: None,
+                normal: V3::from(f.normal.unwrap_or([0.0, -1.0, 0.0]))
+                    .normalize()
+                    .into(),
+                // A calibrated straightedge: its form (a few tens of nm) is below the noise.
+                form: vec![[300.0, 0.03e-3, 0.5 + seed], [170.0, 0.015e-3, 1.1]],
+            },
+        };
+        ids.push(b.feature(feat));
+    }
+    let mut scan_segs = vec![];
+    for (i, s) in p.scans.iter().enumerate() {
+        if m.stylus(s.tip).is_none() {
+            return Err(format!(
+                "scans[{i}].tip: the machine has no tip {} (its tips: {})",
+                s.tip,
+                m.styli
+                    .iter()
+                    .map(|t| t.id.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        b.set_tip(s.tip, s.a1_deg, s.a2_deg);
+        let fid = ids[s.feature];
+        let first = b.segs.len();
+        match s.kind {
+            ScanKind::Circle => {
+                let start = if s.direction > 0 { 0.0 } else { PI };
+                b.circle(
+                    fid,
+                    s.speed_mm_s,
+                    s.direction as f64,
+                    s.deflection_mm,
+                    start,
+                )
+            }
+            ScanKind::FaceLine => {
+                b.face_line(fid, s.from_mm, s.to_mm, s.speed_mm_s, s.deflection_mm)
+            }
+            ScanKind::FaceWeave => b.face_weave(
+                fid,
+                s.at_mm,
+                s.amplitude_mm,
+                s.frequency_hz,
+                s.cycles,
+                s.deflection_mm,
+            ),
+        }
+        scan_segs.push((i, first, b.segs.len()));
+    }
+    b.set_tip(1, 0.0, 0.0);
+    b.move_to(HOME);
+    let mut starts = vec![];
+    let mut t = 0.0;
+    for s in &b.segs {
+        starts.push(t);
+        t += s.duration_s;
+    }
+    // Every carriage position of every scan (and its approach) within the travel.
+    for &(i, a, z) in &scan_segs {
+        for seg in &b.segs[a..z] {
+            let n = (seg.duration_s / 0.01).ceil().max(1.0) as usize;
+            for k in 0..=n {
+                let q = seg.at(seg.duration_s * k as f64 / n as f64);
+                for (ax, [lo, hi]) in crate::TRAVEL_MM.iter().enumerate() {
+                    if !(*lo..=*hi).contains(&q[ax]) {
+                        return Err(format!(
+                            "scans[{i}]: the carriage leaves the machine's travel ({} = {:.1} mm, travel {lo}…{hi} mm)",
+                            ["x", "y", "z"][ax],
+                            q[ax]
+                        ));
+                    }
+                }
+            }
+        }
+    }
+    Ok(Plan {
+        name: p.name.clone(),
         features: b.features,
         segments: b.segs,
         starts,

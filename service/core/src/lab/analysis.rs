@@ -143,14 +143,35 @@ fn columns(
 }
 
 /// A fitted parameter.
+///
+/// `sigma` is honest about what moved the value: σ² = max(σ_stat², spread²) + shift², with
+/// σ_stat from the penalised normal matrix (scaled by the residual, inflated for correlated
+/// residuals), spread half the difference of the two folds' own fits (a second estimate of
+/// the statistical part that sees model error), and shift the change the penalties (ridge,
+/// smoothness) make against the least-penalised fit of their ladders — a ridge estimator's
+/// covariance omits its bias. A parameter the data does not determine has no σ and is
+/// listed in `unidentifiable`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Param {
     /// Name with unit.
     pub name: String,
     /// Value.
     pub value: f64,
-    /// Standard uncertainty (inflated for correlated residuals); absent when not identifiable.
+    /// Standard uncertainty (see above); absent when not identifiable.
     pub sigma: Option<f64>,
+    /// Its statistical part from the normal matrix alone.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_stat: Option<f64>,
+    /// |value − least-penalised value| (when a penalty above the ladders' least was used).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub penalty_shift: Option<f64>,
+    /// Half the difference of the two folds' fits.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fold_spread: Option<f64>,
+    /// What determines it, when not the data alone: a penalty, only its correlation with
+    /// other parameters, or nothing (not determined).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
 }
 
 /// The fitted parameters of one effect.
@@ -284,10 +305,53 @@ pub fn library_candidates(ds: &Dataset) -> Vec<(String, EffectConfig)> {
         .collect()
 }
 
-/// The variant structure of a config: its parameter names (two configs with the same names
-/// are the same variant).
+/// The variant of a config, by its configuration: the kind and the options that change what
+/// it models (a guide's axis, the axis its angular term turns about and which tables it has; a
+/// rigid body's chain, order, spline or polynomial and its errors; for every other kind its
+/// parameters' names, which spell its order, split, per-tip and powers), never its values nor
+/// sizes that follow the data's span (a table's knots). Parameter names alone do not say
+/// which axis a guide's pitch turns about, so `about=y` and `about=z` looked alike.
+pub fn variant_key(c: &EffectConfig) -> String {
+    match c {
+        EffectConfig::GuideStraightness(g) => {
+            let about = g.pitch_about.unwrap_or(match g.axis {
+                Axis::X => Axis::Y,
+                Axis::Y => Axis::X,
+                Axis::Z => Axis::Y,
+            });
+            let tables: Vec<&str> = g.straightness.keys().map(|a| a.name()).collect();
+            format!(
+                "guide_straightness:axis={},straightness={},{}",
+                g.axis.name(),
+                tables.join("+"),
+                if g.pitch_rad.is_some() {
+                    format!("about={}", about.name())
+                } else {
+                    "no pitch".into()
+                }
+            )
+        }
+        EffectConfig::RigidBody(r) => {
+            let errors: Vec<String> = r.errors.keys().map(|e| e.name().to_string()).collect();
+            format!(
+                "rigid_body:chain={:?},order={},{},errors={}",
+                r.chain,
+                r.order,
+                if r.spline_segments.is_some() {
+                    "spline"
+                } else {
+                    "polynomial"
+                },
+                errors.join("+")
+            )
+        }
+        _ => format!("{}:{}", c.kind(), c.param_names().join("|")),
+    }
+}
+
+/// Two configs are the same variant when their [`variant_key`]s agree.
 fn same_variant(a: &EffectConfig, b: &EffectConfig) -> bool {
-    a.kind() == b.kind() && a.param_names() == b.param_names()
+    a.kind() == b.kind() && variant_key(a) == variant_key(b)
 }
 
 fn guide_axis(c: &EffectConfig) -> Option<Axis> {
@@ -534,7 +598,8 @@ pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
                 a => return Err(bad(format!("axis `{a}` (x, y or z)"))),
             };
             let (lo, hi) = axis_span(ds, axis);
-            if !(hi - lo > 1.0) {
+            // Not more than 1 mm, or no points at all (the span is then not finite).
+            if (hi - lo).partial_cmp(&1.0) != Some(std::cmp::Ordering::Greater) {
                 return Err(bad(format!(
                     "the data does not move along {} (scan along the axis' travel)",
                     axis.name()
@@ -759,6 +824,52 @@ fn significant(
         }
         Move::Drop => (gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise) && held_ok,
     }
+}
+
+/// The width of a near-tie of [`rank_key`]: keys in one bucket of this width are ranked by
+/// the information criterion.
+const RANK_TIE: f64 = 0.002;
+
+/// What a scored move is ranked by (see [`rank_order`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RankItem<'a> {
+    /// Significant moves come first.
+    pub significant: bool,
+    /// [`rank_key`]: smaller is better.
+    pub key: f64,
+    /// Change of the information criterion (the near-ties' tie-breaker).
+    pub delta_bic: f64,
+    /// Parameters fitted (fewer first).
+    pub k: usize,
+    /// The move's effect and what it replaces (a stable last key).
+    pub name: &'a str,
+    /// The model effect replaced or dropped.
+    pub replaces: Option<&'a str>,
+}
+
+/// The bucket of a rank key: keys within one bucket are a near-tie. Not finite: last.
+fn rank_bucket(key: f64) -> i64 {
+    if key.is_finite() {
+        // `as` saturates: a huge key falls in the last bucket, never wraps.
+        (key / RANK_TIE).floor() as i64
+    } else {
+        i64::MAX
+    }
+}
+
+/// The ranking of moves, best first: significant first, then the rank key quantised into
+/// buckets of [`RANK_TIE`] (a near-tie), then ΔBIC, the number of parameters, the name and
+/// the raw key. Each step compares by a total order, and so does the lexicographic whole —
+/// unlike "within 0.002 is a tie", which is not transitive (Rust's sort may panic on it).
+pub fn rank_order(a: &RankItem, b: &RankItem) -> std::cmp::Ordering {
+    b.significant
+        .cmp(&a.significant)
+        .then(rank_bucket(a.key).cmp(&rank_bucket(b.key)))
+        .then(a.delta_bic.total_cmp(&b.delta_bic))
+        .then(a.k.cmp(&b.k))
+        .then(a.name.cmp(b.name))
+        .then(a.replaces.cmp(&b.replaces))
+        .then(a.key.total_cmp(&b.key))
 }
 
 /// How well a candidate model generalises, smaller is better: the cross-validated mean square
@@ -1070,6 +1181,9 @@ pub struct Applied {
     pub effects: Vec<EffectConfig>,
     /// The fit.
     pub outcome: FitOutcome,
+    /// When the data alone could not choose the move (a near-tie with another): why, and
+    /// what measurement would choose.
+    pub advice: Vec<String>,
 }
 
 /// Makes the best of `cands` (by cross-validated error) on the dataset's model: adds, swaps or
@@ -1086,12 +1200,40 @@ pub fn apply(ds: &Dataset, cands: Vec<Candidate>, only_new: bool) -> Result<Appl
     let mut ranked = vec![];
     for (c, b, spec, score) in sc.moves {
         let o = sc.space.fit(&prep, &spec, &score, &sc.base)?;
-        ranked.push((rank_key(&sc.base, &score, &o, base_held), c, b, spec, score));
+        let sig = significant(
+            &c.action,
+            &sc.base,
+            &score,
+            &o,
+            base_held,
+            ds.noise_floor_um,
+        );
+        let key = rank_key(&sc.base, &score, &o, base_held);
+        ranked.push(((sig, key, o.delta_bic), c, b, spec, score));
     }
-    let Some((_, c, b, spec, score)) = ranked
-        .into_iter()
-        .min_by(|a, b| a.0.total_cmp(&b.0).then(a.4.k.cmp(&b.4.k)))
-    else {
+    // The same order as `diagnose`'s, so `lab add KIND` makes the variant it ranks first.
+    ranked.sort_by(|a, b| {
+        rank_order(
+            &RankItem {
+                significant: a.0 .0,
+                key: a.0 .1,
+                delta_bic: a.0 .2,
+                k: a.4.k,
+                name: &a.1.effect,
+                replaces: a.1.replaces.as_deref(),
+            },
+            &RankItem {
+                significant: b.0 .0,
+                key: b.0 .1,
+                delta_bic: b.0 .2,
+                k: b.4.k,
+                name: &b.1.effect,
+                replaces: b.1.replaces.as_deref(),
+            },
+        )
+    });
+    let advice = choice_advice(ds, &prep, &ranked);
+    let Some((_, c, b, spec, score)) = ranked.into_iter().next() else {
         return Err(LabError::Data(match sc.skipped.first() {
             Some(s) => s.clone(),
             None => "nothing to add".into(),
@@ -1127,7 +1269,61 @@ pub fn apply(ds: &Dataset, cands: Vec<Candidate>, only_new: bool) -> Result<Appl
         candidate: c,
         effects,
         outcome: o,
+        advice,
     })
+}
+
+/// When the first two of `ranked` (best first) are different moves that the data scores
+/// within a near-tie (the cross-validated error within 1 % and the significance the same),
+/// the choice between them is not the data's: say so, and what would decide it — held-out
+/// data at another position when there is none, or the separating measurements.
+#[allow(clippy::type_complexity)]
+fn choice_advice(
+    ds: &Dataset,
+    prep: &Prepared,
+    ranked: &[((bool, f64, f64), Candidate, Option<usize>, Spec, Score)],
+) -> Vec<String> {
+    let [first, second, ..] = ranked else {
+        return vec![];
+    };
+    let (a, b) = (&first.4, &second.4);
+    let near =
+        first.0 .0 == second.0 .0 && a.cv_ss > 0.0 && (b.cv_ss - a.cv_ss).abs() <= 0.01 * a.cv_ss;
+    if !near {
+        return vec![];
+    }
+    let independent = prep.held_mask.iter().any(|h| *h) && {
+        let bags_fit: std::collections::BTreeSet<usize> = ds
+            .points
+            .iter()
+            .zip(&prep.fit_mask)
+            .filter(|(_, m)| **m)
+            .map(|(p, _)| p.bag)
+            .collect();
+        !ds.points
+            .iter()
+            .zip(&prep.held_mask)
+            .any(|(p, m)| *m && bags_fit.contains(&p.bag))
+    };
+    let mut v = vec![format!(
+        "`{}` and `{}` predict the other scans equally well (cross-validated {:.3} vs {:.3} µm): this data does not choose between them",
+        first.1.effect,
+        second.1.effect,
+        a.rms_um(),
+        b.rms_um()
+    )];
+    if independent {
+        v.push(format!(
+            "the held-out bags chose `{}`; to confirm, measure what separates them: {}",
+            first.1.effect,
+            separating(&first.1.effect, &second.1.effect, &coverage(ds)).join("; ")
+        ));
+    } else {
+        v.push(
+            "held-out data is needed to choose: measure the artifact at another position in the volume (another run, e.g. a ring at speeds elsewhere on the table) and pass it with --validate".into(),
+        );
+    }
+    v
 }
 
 /// The moves `lab add NAME` considers: a variant (`kind:options`) or every variant of a kind,
@@ -1183,18 +1379,33 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         results.push((c.clone(), *b, spec.clone(), score.clone(), o, sig));
     }
     results.sort_by(|a, b| {
-        let (ka, kb) = (
-            rank_key(&sc.base, &a.3, &a.4, base_held),
-            rank_key(&sc.base, &b.3, &b.4, base_held),
-        );
-        let tie = (ka - kb).abs() < 0.002;
-        b.5.cmp(&a.5).then(if tie {
-            a.4.delta_bic
-                .total_cmp(&b.4.delta_bic)
-                .then(a.3.k.cmp(&b.3.k))
-        } else {
-            ka.total_cmp(&kb)
-        })
+        let item = |r: &(Candidate, Option<usize>, Spec, Score, FitOutcome, bool)| {
+            (
+                rank_key(&sc.base, &r.3, &r.4, base_held),
+                r.4.delta_bic,
+                r.3.k,
+                r.5,
+            )
+        };
+        let (ia, ib) = (item(a), item(b));
+        rank_order(
+            &RankItem {
+                significant: ia.3,
+                key: ia.0,
+                delta_bic: ia.1,
+                k: ia.2,
+                name: &a.0.effect,
+                replaces: a.0.replaces.as_deref(),
+            },
+            &RankItem {
+                significant: ib.3,
+                key: ib.0,
+                delta_bic: ib.1,
+                k: ib.2,
+                name: &b.0.effect,
+                replaces: b.0.replaces.as_deref(),
+            },
+        )
     });
     // Confounding: the best addition against additions of other kinds that explain nearly as
     // much, each judged by its own correction.

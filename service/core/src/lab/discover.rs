@@ -6,13 +6,22 @@
 //!    each candidate model refitted as a whole and scored on scans it was not fitted on.
 //! 3. Make the best significant move exactly as `lab add` / `lab remove` would
 //!    ([`super::analysis::apply`]), correct the bags again with the new version and measure.
-//! 4. Repeat until no move is significant (or a model would come back that the loop already
-//!    had, or the step limit).
+//!    A move whose measured held-out RMS is worse than before (by more than 1 % + 0.02 of the
+//!    noise floor) is refused and the next significant one tried.
+//! 4. When no library move is taken: the structure the diagnosis found (a period, a reversal,
+//!    a harmonic of the probing direction) is added as a custom effect named for what it is
+//!    ([`super::beyond`]) when it passes the same significance test; then squareness alone;
+//!    then, with the residual above 1.5× the floor, pairs of the best candidates fitted
+//!    together and the structure left after the best two; before stopping, a guide table's
+//!    linear ramp is named squareness (a squareness-only `rigid_body`).
+//! 5. Repeat until nothing is significant (or a model would come back that the loop already
+//!    had, or the step limit); the reason given names the largest component left unexplained.
 //!
 //! Each step is a calibration version (parent, note, before/after figures), handed to the
 //! caller as it is made, so a user can stop, inspect and go on by hand.
 
-use super::analysis::{self, Confounded, Move, Structure};
+use super::analysis::{self, Candidate, Confounded, Diagnosis, Move, Prepared, Structure};
+use super::beyond;
 use super::dataset::{self, BagData, BuildOptions};
 use super::nominal::{fit_nominal, AxisFit};
 use super::version;
@@ -57,6 +66,10 @@ pub struct Step {
     /// Confounded with the effect added, as the diagnosis found.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub confounded_with: Vec<String>,
+    /// What the step found beyond the library, in words (a structure made a custom effect,
+    /// squareness taken from a guide table, several effects added at once and why).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub found: Option<String>,
     /// The axis refits of step 0.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub nominal: Vec<AxisFit>,
@@ -101,6 +114,9 @@ pub struct Discovery {
     pub confounded: Vec<Confounded>,
     /// Structure the library does not explain, left at the end.
     pub unexplained: Vec<Structure>,
+    /// Moves that were significant but not taken, and why (the held-out data got worse).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub refused: Vec<String>,
     /// Parameters the data cannot determine in the final model.
     pub unidentifiable: Vec<String>,
     /// Why the loop stopped.
@@ -119,6 +135,363 @@ fn signature(effects: &[EffectConfig]) -> Vec<String> {
         .collect();
     v.sort();
     v
+}
+
+/// Significant moves tried in turn per step (each is applied and measured).
+const MAX_TRIED: usize = 4;
+/// Above this many times the noise floor, a loop with no significant single move tries moves
+/// together.
+const STALL_FACTOR: f64 = 1.5;
+/// Candidates combined in pairs.
+const PAIR_OF: usize = 4;
+
+/// A structure in words.
+pub fn describe_structure(s: &Structure) -> String {
+    match (s.kind.as_str(), s.period_mm, s.harmonic) {
+        ("probe_direction", _, Some(k)) => {
+            format!("the {k}θ harmonic of the probing direction (probe lobing)")
+        }
+        (_, Some(p), _) => format!("a period of {p:.4} mm along {}", s.axis),
+        ("reversal", _, _) => format!("the sign of the {} velocity (reversal)", s.axis),
+        (k, _, _) => format!("{k} along {}", s.axis),
+    }
+}
+
+/// A model measured: the version, its dataset and figures.
+struct Tried {
+    next: Calibration,
+    ds: dataset::Dataset,
+    prep: Prepared,
+}
+
+/// The move a step makes.
+struct Chosen {
+    tried: Tried,
+    action: String,
+    effect: String,
+    replaces: Option<String>,
+    cv: f64,
+    conf: Vec<Confounded>,
+    found: Option<String>,
+}
+
+/// What a step works from.
+struct Ctx<'a> {
+    bags: &'a [BagData],
+    o: &'a Options,
+    cal: &'a Calibration,
+    prep: &'a Prepared,
+    index: usize,
+}
+
+impl Ctx<'_> {
+    /// The model `effects` as the next version, measured; refused (Err) when its held-out RMS
+    /// is worse than the current model's (by more than 1 % + 0.02 of the noise floor).
+    fn trial(
+        &self,
+        effects: Vec<EffectConfig>,
+        what: &str,
+    ) -> Result<Result<Tried, String>, LabError> {
+        let mut next = version::next(self.cal, effects, &self.o.created);
+        let ds = dataset::build(self.bags, &next, &self.o.build)?;
+        let prep = analysis::prepare(&ds)?;
+        let noise = ds.noise_floor_um;
+        let (b, a) = (self.prep.rms_held_um, prep.rms_held_um);
+        if !a.is_finite() || (b > 0.0 && a > 1.01 * b + 0.02 * noise) {
+            return Ok(Err(format!(
+                "{what}: the held-out RMS would go from {b:.3} to {a:.3} µm"
+            )));
+        }
+        version::describe(
+            &mut next,
+            &format!("lab discover step {}: {what}", self.index),
+            noise,
+            self.prep,
+            &prep,
+        );
+        Ok(Ok(Tried { next, ds, prep }))
+    }
+
+    /// Adds `ce` (with `with`, configs added alongside) when it passes the significance test of
+    /// a library move and the held-out data does not get worse.
+    #[allow(clippy::too_many_arguments)]
+    fn try_custom(
+        &self,
+        ds: &dataset::Dataset,
+        dg: &Diagnosis,
+        ce: &beyond::CustomEffect,
+        with: &[(String, EffectConfig)],
+        seen: &[Vec<String>],
+        noise: f64,
+        on_progress: &mut dyn FnMut(&str),
+        refused: &mut Vec<String>,
+    ) -> Result<Option<Chosen>, LabError> {
+        let id = ce.config.id();
+        if self.cal.effects.iter().any(|e| e.id() == id) {
+            return Ok(None);
+        }
+        let name = if ce.config.kind() == "custom" {
+            format!("custom:{id}")
+        } else {
+            format!("{}:{id}", ce.config.kind())
+        };
+        let (effects, cv) = if with.is_empty() {
+            let cand = Candidate {
+                action: Move::Add,
+                effect: name.clone(),
+                replaces: None,
+                config: Some(ce.config.clone()),
+            };
+            let applied = match analysis::apply(ds, vec![cand], false) {
+                Ok(a) => a,
+                Err(e) => {
+                    on_progress(&format!(
+                        "step {}: {name} cannot be fitted: {e}",
+                        self.index
+                    ));
+                    return Ok(None);
+                }
+            };
+            if !beyond::significant(&applied.outcome, dg.cv_rms_um, self.prep.rms_held_um, noise) {
+                return Ok(None);
+            }
+            (applied.effects, applied.outcome.cv_rms_after_um)
+        } else {
+            let mut all = self.cal.effects.clone();
+            all.extend(with.iter().map(|w| w.1.clone()));
+            all.push(ce.config.clone());
+            let o = match analysis::fit_effects(ds, self.prep, &all) {
+                Ok(o) => o,
+                Err(_) => return Ok(None),
+            };
+            if !beyond::significant(&o, dg.cv_rms_um, self.prep.rms_held_um, noise) {
+                return Ok(None);
+            }
+            (o.configs, o.cv_rms_after_um)
+        };
+        if seen.contains(&signature(&effects)) {
+            return Ok(None);
+        }
+        let mut effect = name;
+        for w in with.iter().rev() {
+            effect = format!("{} + {effect}", w.0);
+        }
+        on_progress(&format!(
+            "step {}: adding {effect} — {}",
+            self.index, ce.what
+        ));
+        match self.trial(effects, &format!("add {effect} ({})", ce.what))? {
+            Err(r) => {
+                on_progress(&format!("step {}: not taken — {r}", self.index));
+                refused.push(r);
+                Ok(None)
+            }
+            Ok(t) => Ok(Some(Chosen {
+                tried: t,
+                action: "add".into(),
+                effect,
+                replaces: None,
+                cv,
+                conf: vec![],
+                found: Some(ce.what.clone()),
+            })),
+        }
+    }
+
+    /// No single move is significant: pairs of the best candidates fitted together, then the
+    /// structure left after the best candidates as a custom effect (with them and alone).
+    /// Returns the move and the structure left after the best candidates.
+    #[allow(clippy::too_many_arguments)]
+    fn try_together(
+        &self,
+        ds: &dataset::Dataset,
+        dg: &Diagnosis,
+        moves: &[Candidate],
+        seen: &[Vec<String>],
+        noise: f64,
+        on_progress: &mut dyn FnMut(&str),
+        refused: &mut Vec<String>,
+    ) -> Result<(Option<Chosen>, Vec<Structure>), LabError> {
+        // The best additions (of different kinds), with their configs.
+        let mut best: Vec<(String, EffectConfig)> = vec![];
+        for c in dg
+            .candidates
+            .iter()
+            .filter(|c| c.action == Move::Add && c.explained > 0.0)
+        {
+            let Some(m) = moves
+                .iter()
+                .find(|m| m.effect == c.effect && m.action == Move::Add)
+            else {
+                continue;
+            };
+            let Some(cfg) = &m.config else { continue };
+            if best.iter().any(|b| b.1.kind() == cfg.kind()) {
+                continue;
+            }
+            best.push((c.effect.clone(), cfg.clone()));
+            if best.len() == PAIR_OF {
+                break;
+            }
+        }
+        on_progress(&format!(
+            "step {}: no single move is significant at {:.2}× the noise floor: trying pairs of {}",
+            self.index,
+            self.prep.rms_held_um / noise.max(1e-9),
+            best.iter()
+                .map(|b| b.0.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+        let mut pairs: Vec<(FitOutcomeLite, String)> = vec![];
+        for i in 0..best.len() {
+            for j in i + 1..best.len() {
+                let mut all = self.cal.effects.clone();
+                all.push(best[i].1.clone());
+                all.push(best[j].1.clone());
+                let Ok(o) = analysis::fit_effects(ds, self.prep, &all) else {
+                    continue;
+                };
+                let name = format!("{} + {}", best[i].0, best[j].0);
+                if beyond::significant(&o, dg.cv_rms_um, self.prep.rms_held_um, noise)
+                    && !seen.contains(&signature(&o.configs))
+                {
+                    pairs.push((
+                        FitOutcomeLite {
+                            cv: o.cv_rms_after_um,
+                            configs: o.configs,
+                        },
+                        name,
+                    ));
+                }
+            }
+        }
+        pairs.sort_by(|a, b| a.0.cv.total_cmp(&b.0.cv).then(a.1.cmp(&b.1)));
+        for (o, name) in pairs.into_iter().take(2) {
+            on_progress(&format!("step {}: adding {name} together", self.index));
+            match self.trial(o.configs, &format!("add {name} (together)"))? {
+                Err(r) => {
+                    on_progress(&format!("step {}: not taken — {r}", self.index));
+                    refused.push(r);
+                }
+                Ok(t) => {
+                    return Ok((
+                        Some(Chosen {
+                            tried: t,
+                            action: "add".into(),
+                            effect: name.clone(),
+                            replaces: None,
+                            cv: o.cv,
+                            conf: vec![],
+                            found: Some(format!(
+                                "no single move was significant; {name} together are"
+                            )),
+                        }),
+                        vec![],
+                    ))
+                }
+            }
+        }
+        // The structure left after the best candidates.
+        let with: Vec<(String, EffectConfig)> = best.iter().take(2).cloned().collect();
+        let mut all = self.cal.effects.clone();
+        all.extend(with.iter().map(|w| w.1.clone()));
+        let Ok(o) = analysis::fit_effects(ds, self.prep, &all) else {
+            return Ok((None, vec![]));
+        };
+        let resid: Vec<f64> = self
+            .prep
+            .art
+            .residual
+            .iter()
+            .zip(&o.predicted)
+            .map(|(e, d)| e + d)
+            .collect();
+        let found = super::structure::structure(ds, self.prep, &resid)?;
+        for s in found.iter().take(2) {
+            let Some(ce) = beyond::custom_effect(s) else {
+                continue;
+            };
+            on_progress(&format!(
+                "step {}: left after {}: {}",
+                self.index,
+                with.iter()
+                    .map(|w| w.0.as_str())
+                    .collect::<Vec<_>>()
+                    .join(" + "),
+                ce.what
+            ));
+            for w in [&[][..], &with[..1.min(with.len())], &with[..]] {
+                if let Some(c) =
+                    self.try_custom(ds, dg, &ce, w, seen, noise, on_progress, refused)?
+                {
+                    return Ok((Some(c), found));
+                }
+            }
+        }
+        Ok((None, found))
+    }
+
+    /// After a guide was added: its tables' ramps moved into a squareness term, kept when the
+    /// ramp is more than the noise can make and the model fits as well (see [`beyond`]).
+    fn try_squareness(
+        &self,
+        ds: &dataset::Dataset,
+        on_progress: &mut dyn FnMut(&str),
+        refused: &mut Vec<String>,
+    ) -> Result<Option<(Tried, String)>, LabError> {
+        let Some(sq) = beyond::squareness_from_guides(ds, &self.cal.effects) else {
+            return Ok(None);
+        };
+        let noise = ds.noise_floor_um;
+        if sq.ramp_um < 0.5 * noise {
+            return Ok(None);
+        }
+        // The ramp matters: without it (and without squareness) the fit gets worse by more
+        // than half the noise floor in quadrature.
+        let plain: Vec<EffectConfig> = sq
+            .effects
+            .iter()
+            .filter(|e| e.kind() != "rigid_body")
+            .cloned()
+            .collect();
+        let mut bare = self.cal.clone();
+        bare.effects = plain;
+        let dsb = dataset::build(self.bags, &bare, &self.o.build)?;
+        let pb = analysis::prepare(&dsb)?;
+        let cost2 = pb.rms_fit_um.powi(2) - self.prep.rms_fit_um.powi(2);
+        if !(cost2 > 0.0 && cost2.sqrt() >= 0.5 * noise.max(0.01)) {
+            return Ok(None);
+        }
+        on_progress(&format!(
+            "step {}: naming the guide's ramp squareness: {}",
+            self.index, sq.what
+        ));
+        let what = format!("add rigid_body:squareness ({})", sq.what);
+        match self.trial(sq.effects, &what)? {
+            Err(r) => {
+                refused.push(r);
+                Ok(None)
+            }
+            Ok(t) => {
+                // Without loss: the fit RMS within 1 % (+0.002 µm).
+                if t.prep.rms_fit_um > 1.01 * self.prep.rms_fit_um + 0.002 {
+                    refused.push(format!(
+                        "{what}: the fit RMS would go from {:.3} to {:.3} µm",
+                        self.prep.rms_fit_um, t.prep.rms_fit_um
+                    ));
+                    return Ok(None);
+                }
+                Ok(Some((t, sq.what)))
+            }
+        }
+    }
+}
+
+/// What a pair's fit leaves to choose by.
+struct FitOutcomeLite {
+    cv: f64,
+    configs: Vec<EffectConfig>,
 }
 
 /// Runs the loop. `on_step` sees every step as soon as its version exists (to write it and
@@ -179,6 +552,7 @@ pub fn discover(
         heldout_rms_before_um: p0.rms_held_um,
         heldout_rms_um: prep.rms_held_um,
         confounded_with: vec![],
+        found: None,
         nominal: axes,
         calibration: cal.clone(),
     };
@@ -186,8 +560,10 @@ pub fn discover(
     steps.push(s0);
     let mut seen = vec![signature(&cal.effects)];
     let mut confounded: Vec<Confounded> = vec![];
+    let mut refused: Vec<String> = vec![];
     let stopped;
     let last_dg;
+    let mut left: Vec<Structure>;
     loop {
         on_progress(&format!(
             "step {}: diagnosing v{} ({} effects, held-out {} µm, noise floor {} µm)",
@@ -198,111 +574,225 @@ pub fn discover(
             um(ds.noise_floor_um)
         ));
         let dg = analysis::diagnose(&ds)?;
+        left = dg.unexplained.clone();
         if steps.len() > o.max_steps {
             stopped = format!("the step limit ({}) was reached", o.max_steps);
             last_dg = dg;
             break;
         }
-        // The best significant move that does not bring back a model the loop had.
+        let index = steps.len();
+        let cx = Ctx {
+            bags,
+            o,
+            cal: &cal,
+            prep: &prep,
+            index,
+        };
+        let noise = ds.noise_floor_um;
+        let mut chosen: Option<Chosen> = None;
+        // 1. The best significant library move that does not bring back a model the loop had
+        //    and does not make the held-out data worse.
         let moves = analysis::moves(&ds, &cal.effects);
-        let pick = dg
+        let mut any_new = false;
+        for c in dg
             .candidates
             .iter()
             .filter(|c| c.significant)
-            .find_map(|c| {
-                let cand = moves.iter().find(|m| {
-                    m.effect == c.effect && m.action == c.action && m.replaces == c.replaces
-                })?;
-                let mut next: Vec<EffectConfig> = cal
-                    .effects
-                    .iter()
-                    .filter(|e| Some(e.id()) != cand.replaces)
-                    .cloned()
-                    .collect();
-                next.extend(cand.config.clone());
-                (!seen.contains(&signature(&next))).then(|| cand.clone())
-            });
-        let Some(cand) = pick else {
-            stopped = if dg.candidates.iter().any(|c| c.significant) {
-                "every significant move leads back to a model already tried".into()
-            } else {
-                "no candidate is significant".into()
+            .take(MAX_TRIED)
+        {
+            let Some(cand) = moves
+                .iter()
+                .find(|m| m.effect == c.effect && m.action == c.action && m.replaces == c.replaces)
+            else {
+                continue;
             };
-            last_dg = dg;
-            break;
-        };
-        on_progress(&format!(
-            "step {}: {} {}{}",
-            steps.len(),
-            match cand.action {
+            let mut next: Vec<EffectConfig> = cal
+                .effects
+                .iter()
+                .filter(|e| Some(e.id()) != cand.replaces)
+                .cloned()
+                .collect();
+            next.extend(cand.config.clone());
+            if seen.contains(&signature(&next)) {
+                continue;
+            }
+            // Squareness named from a guide's ramp is not dropped while a guide table can
+            // take the ramp back (the drop would cost nothing and leave it unnamed).
+            if cand.action == Move::Drop
+                && cand.effect == "squareness"
+                && cal.effects.iter().any(|e| e.kind() == "guide_straightness")
+            {
+                continue;
+            }
+            any_new = true;
+            let verb = match cand.action {
                 Move::Add => "adding",
                 Move::Swap => "swapping in",
                 Move::Drop => "dropping",
-            },
-            cand.effect,
-            cand.replaces
-                .as_ref()
-                .filter(|_| cand.action == Move::Swap)
-                .map(|r| format!(" for {r}"))
-                .unwrap_or_default()
-        ));
-        let conf: Vec<Confounded> = dg
-            .confounded
-            .iter()
-            .filter(|c| c.effects[0] == cand.effect)
-            .cloned()
-            .collect();
-        let applied = analysis::apply(&ds, vec![cand.clone()], false)?;
+            };
+            on_progress(&format!(
+                "step {index}: {verb} {}{}",
+                cand.effect,
+                cand.replaces
+                    .as_ref()
+                    .filter(|_| cand.action == Move::Swap)
+                    .map(|r| format!(" for {r}"))
+                    .unwrap_or_default()
+            ));
+            let mut cand = cand.clone();
+            if cand.replaces.as_deref() == Some("squareness") {
+                // A full rigid body in place of the squareness is named by its kind.
+                if let Some(c) = cand.config.as_mut() {
+                    c.set_id(None);
+                }
+            }
+            let applied = analysis::apply(&ds, vec![cand.clone()], false)?;
+            let action = serde_json::to_value(&cand.action)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_string))
+                .unwrap_or_default();
+            let what = format!(
+                "{action} {}{}",
+                cand.effect,
+                cand.replaces
+                    .as_ref()
+                    .filter(|_| cand.action == Move::Swap)
+                    .map(|r| format!(" (replaces {r})"))
+                    .unwrap_or_default()
+            );
+            match cx.trial(applied.effects, &what)? {
+                Err(r) => {
+                    on_progress(&format!("step {index}: not taken — {r}"));
+                    refused.push(r);
+                }
+                Ok(t) => {
+                    chosen = Some(Chosen {
+                        tried: t,
+                        action,
+                        effect: cand.effect.clone(),
+                        replaces: cand.replaces.clone().filter(|_| cand.action == Move::Swap),
+                        cv: applied.outcome.cv_rms_after_um,
+                        conf: dg
+                            .confounded
+                            .iter()
+                            .filter(|k| k.effects[0] == cand.effect)
+                            .cloned()
+                            .collect(),
+                        found: None,
+                    });
+                    break;
+                }
+            }
+        }
+        // 2. Structure the library does not have, as a custom effect.
+        if chosen.is_none() {
+            for s in left.iter().take(2) {
+                let Some(ce) = beyond::custom_effect(s) else {
+                    continue;
+                };
+                if let Some(c) =
+                    cx.try_custom(&ds, &dg, &ce, &[], &seen, noise, on_progress, &mut refused)?
+                {
+                    chosen = Some(c);
+                    break;
+                }
+            }
+        }
+        // 3. Squareness on its own (a rigid body's three angles, no axis errors).
+        if chosen.is_none() && !cal.effects.iter().any(|e| e.kind() == "rigid_body") {
+            if let Some(cfg) = beyond::squareness_config(&ds, [0.0; 3]) {
+                let what = "squareness of the axes (rigid_body, squareness only)".to_string();
+                let ce = beyond::CustomEffect { config: cfg, what };
+                if let Some(c) =
+                    cx.try_custom(&ds, &dg, &ce, &[], &seen, noise, on_progress, &mut refused)?
+                {
+                    chosen = Some(c);
+                }
+            }
+        }
+        // 4. Several effects at once: pairs of the best candidates, and the structure left
+        //    after them, when the residual is still far above the floor.
+        if chosen.is_none() && prep.rms_held_um.max(dg.cv_rms_um) > STALL_FACTOR * noise {
+            let (c, after_best) =
+                cx.try_together(&ds, &dg, &moves, &seen, noise, on_progress, &mut refused)?;
+            chosen = c;
+            if chosen.is_none() && !after_best.is_empty() {
+                left = after_best;
+            }
+        }
+        // 5. Before stopping: a guide table that carries a ramp carries squareness (with
+        //    every other effect in, the ramp is no longer standing in for them): name it.
+        if chosen.is_none() {
+            if let Some((t, what)) = cx.try_squareness(&ds, on_progress, &mut refused)? {
+                chosen = Some(Chosen {
+                    cv: dg.cv_rms_um,
+                    tried: t,
+                    action: "add".into(),
+                    effect: "rigid_body:squareness".into(),
+                    replaces: None,
+                    conf: vec![],
+                    found: Some(what),
+                });
+            }
+        }
+        let Some(ch) = chosen else {
+            let largest = left
+                .first()
+                .map(|s| {
+                    format!(
+                        "the largest component left unexplained: {} ({:.3} µm, {:.0} % of the residual)",
+                        describe_structure(s),
+                        s.amplitude_um,
+                        s.explained * 100.0
+                    )
+                })
+                .unwrap_or_else(|| {
+                    format!(
+                        "what is left ({} µm held out, {:.2}× the noise floor) shows no period, reversal or probing-direction harmonic",
+                        um(prep.rms_held_um),
+                        prep.rms_held_um / noise.max(1e-9)
+                    )
+                });
+            let why = if !any_new && dg.candidates.iter().any(|c| c.significant) {
+                "every significant move leads back to a model already tried"
+            } else if dg.candidates.iter().any(|c| c.significant) {
+                "every significant move makes the held-out data worse"
+            } else if prep.rms_held_um.max(dg.cv_rms_um) > STALL_FACTOR * noise {
+                "no candidate is significant, alone, in pairs of the best, or as structure left after them"
+            } else {
+                "no candidate is significant"
+            };
+            stopped = format!("{why}; {largest}");
+            last_dg = dg;
+            break;
+        };
         let before = prep.clone();
-        let mut next = version::next(&cal, applied.effects, &o.created);
-        let ds_next = dataset::build(bags, &next, &o.build)?;
-        let prep_next = analysis::prepare(&ds_next)?;
-        let action = serde_json::to_value(&cand.action)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_string))
-            .unwrap_or_default();
-        let what = format!(
-            "lab discover step {}: {action} {}{}",
-            steps.len(),
-            cand.effect,
-            cand.replaces
-                .as_ref()
-                .filter(|_| cand.action == Move::Swap)
-                .map(|r| format!(" (replaces {r})"))
-                .unwrap_or_default()
-        );
-        version::describe(
-            &mut next,
-            &what,
-            ds_next.noise_floor_um,
-            &before,
-            &prep_next,
-        );
         let step = Step {
-            index: steps.len(),
-            action,
-            effect: cand.effect.clone(),
-            replaces: cand.replaces.clone().filter(|_| cand.action == Move::Swap),
-            version: next.version,
-            rms_um: prep_next.rms_fit_um,
-            cv_rms_um: applied.outcome.cv_rms_after_um,
+            index,
+            action: ch.action,
+            effect: ch.effect,
+            replaces: ch.replaces,
+            version: ch.tried.next.version,
+            rms_um: ch.tried.prep.rms_fit_um,
+            cv_rms_um: ch.cv,
             heldout_rms_before_um: before.rms_held_um,
-            heldout_rms_um: prep_next.rms_held_um,
-            confounded_with: conf.iter().map(|c| c.effects[1].clone()).collect(),
+            heldout_rms_um: ch.tried.prep.rms_held_um,
+            confounded_with: ch.conf.iter().map(|c| c.effects[1].clone()).collect(),
+            found: ch.found,
             nominal: vec![],
-            calibration: next.clone(),
+            calibration: ch.tried.next.clone(),
         };
         on_step(&step)?;
         steps.push(step);
-        for c in conf {
+        for c in ch.conf {
             if !confounded.iter().any(|k| k.effects == c.effects) {
                 confounded.push(c);
             }
         }
-        seen.push(signature(&next.effects));
-        cal = next;
-        ds = ds_next;
-        prep = prep_next;
+        seen.push(signature(&ch.tried.next.effects));
+        cal = ch.tried.next;
+        ds = ch.tried.ds;
+        prep = ch.tried.prep;
     }
     let fin = analysis::fit_effects(&ds, &prep, &cal.effects)?;
     let fin_params = fin.by_effect();
@@ -311,7 +801,8 @@ pub fn discover(
         start_rms_um: p0.rms_fit_um,
         steps,
         confounded,
-        unexplained: last_dg.unexplained.clone(),
+        unexplained: left,
+        refused,
         unidentifiable: fin.unidentifiable,
         stopped,
         r#final: Final {

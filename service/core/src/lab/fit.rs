@@ -295,8 +295,8 @@ impl Normal {
                 continue;
             }
             self.b[i] += di * y;
-            for j in 0..=i {
-                self.m[(i, j)] += di * dense[j];
+            for (j, dj) in dense[..=i].iter().enumerate() {
+                self.m[(i, j)] += di * dj;
             }
             for &(c, v) in sparse {
                 self.m[(c + k, i)] += v * di;

@@ -7,10 +7,12 @@
 //! [`analysis`] (compare, diagnose, add, structure of unexplained residuals).
 
 pub mod analysis;
+pub mod beyond;
 pub mod dataset;
 pub mod discover;
 pub mod fit;
 pub mod nominal;
+pub mod plan;
 pub mod program;
 pub mod select;
 pub mod structure;

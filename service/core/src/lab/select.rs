@@ -148,6 +148,9 @@ pub struct Space {
     /// Columns far weaker than their effect's strongest (e.g. z acceleration when every scan
     /// is horizontal): numerical noise, not fitted, reported as undetermined.
     weak: Vec<bool>,
+    /// The held-out points are the fit bags' alternate scans, scored as fold 1 (see
+    /// [`folds`]): the held-out figures are then the cross-validated ones.
+    internal: bool,
 }
 
 /// Second-difference rows of each table of an effect, grouped by the tables that share one
@@ -181,10 +184,44 @@ fn smooth_rows(cfg: &EffectConfig) -> Vec<Vec<Vec<(usize, f64)>>> {
     }
 }
 
+/// Whether the held-out points are alternate scans of the fit bags (no validation bag was
+/// given) rather than bags of their own: some bag has both fit and held-out points.
+pub fn held_within_fit_bags(ds: &Dataset, prep: &Prepared) -> bool {
+    let mut fit = std::collections::BTreeSet::new();
+    let mut held = std::collections::BTreeSet::new();
+    for (i, p) in ds.points.iter().enumerate() {
+        if prep.fit_mask[i] {
+            fit.insert(p.bag);
+        } else if prep.held_mask[i] {
+            held.insert(p.bag);
+        }
+    }
+    fit.intersection(&held).next().is_some()
+}
+
 /// Fold of every point: 0 or 1 for fit points (alternate scans of each placement; for a
 /// placement scanned once, alternate blocks of 32 kept points along the scan), 2 for held-out
 /// points, `None` for points not used.
+///
+/// Without validation bags the held-out points are the alternate scans of the same bags
+/// ([`held_within_fit_bags`]); then those scans are fold 1 and the others fold 0, and no
+/// point is fold 2: the folds are scored against each other (each half predicts the other)
+/// and the final fit uses both. Scoring on quarters and fitting on a half would choose a
+/// penalty for a quarter of the data and cost the final fit half its leverage.
 pub fn folds(ds: &Dataset, prep: &Prepared) -> Vec<Option<u8>> {
+    if held_within_fit_bags(ds, prep) {
+        return (0..ds.points.len())
+            .map(|i| {
+                if prep.fit_mask[i] {
+                    Some(0)
+                } else if prep.held_mask[i] {
+                    Some(1)
+                } else {
+                    None
+                }
+            })
+            .collect();
+    }
     let mut scans: std::collections::BTreeMap<usize, std::collections::BTreeSet<(usize, u32)>> =
         Default::default();
     for (i, p) in ds.points.iter().enumerate() {
@@ -338,6 +375,7 @@ impl Space {
         }
         Ok(Space {
             weak,
+            internal: held_within_fit_bags(ds, prep),
             blocks: out,
             n_fx,
             n_nu,
@@ -491,6 +529,23 @@ impl Space {
         (ss - r.dot(&(&self.nn_pinv[e] * &r))).max(0.0)
     }
 
+    /// The parameters' change fitted on grams `gs` with smoothness `lambda` per fitted block
+    /// and `ridge` (see [`solve_ridge`]), for the fitted columns `cols`.
+    fn solve_at(
+        &self,
+        gs: &[usize],
+        cols: &[usize],
+        fixed: &[(usize, f64)],
+        fitted: &[usize],
+        lambda: &[f64],
+        ridge: f64,
+    ) -> Vec<f64> {
+        let (mut a, mut b, _, _) = self.system(gs, cols, fixed);
+        self.penalise(&mut a, &mut b, fitted, lambda);
+        let x = solve_ridge(&a, &b, cols.len(), ridge);
+        x.iter().take(cols.len()).copied().collect()
+    }
+
     /// Scores a candidate model by cross-validation, choosing the tables' smoothness.
     pub fn score(&self, spec: &Spec) -> Score {
         let cols = self.cols(&spec.fitted);
@@ -568,6 +623,7 @@ impl Space {
         for i in 0..k {
             a[(i, i)] *= 1.0 + score.ridge;
         }
+        let diag: Vec<f64> = (0..k).map(|i| a[(i, i)]).collect();
         let mut ne = Normal::new(a.nrows());
         ne.m = a;
         ne.b = b;
@@ -581,6 +637,43 @@ impl Space {
             self.eval(2, &cols, &theta, &fixed),
             self.g[2].n,
         );
+        // What the penalties and the fold split do to each parameter (see `Param`): the fit
+        // with the least penalties of the ladders, and each fold's own fit.
+        let least_lambda: Vec<f64> = score
+            .lambda
+            .iter()
+            .map(|l| l.min(SMOOTHNESS_LADDER[0]))
+            .collect();
+        let penalised = score.ridge > RIDGE_LADDER[0] || least_lambda != score.lambda;
+        let less = if penalised {
+            self.solve_at(
+                &[0, 1],
+                &cols,
+                &fixed,
+                &spec.fitted,
+                &least_lambda,
+                RIDGE_LADDER[0],
+            )
+        } else {
+            theta.clone()
+        };
+        let per_fold: Vec<Vec<f64>> = if self.g[0].n > 0 && self.g[1].n > 0 {
+            [0usize, 1]
+                .iter()
+                .map(|f| {
+                    self.solve_at(
+                        &[*f],
+                        &cols,
+                        &fixed,
+                        &spec.fitted,
+                        &score.lambda,
+                        score.ridge,
+                    )
+                })
+                .collect()
+        } else {
+            vec![]
+        };
         let n_eff = (n as f64 * (1.0 - prep.rho) / (1.0 + prep.rho)).max(k as f64 + 2.0);
         let dof = (n as f64 - (k + self.n_nu) as f64).max(1.0);
         let sigma2 = ss1 / dof * (n as f64 / n_eff);
@@ -604,21 +697,54 @@ impl Space {
                         name: name.clone(),
                         value: cur[j],
                         sigma: None,
+                        sigma_stat: None,
+                        penalty_shift: None,
+                        fold_spread: None,
+                        note: Some("its column is numerical noise on this data: not fitted".into()),
                     });
                     continue;
                 }
                 let col = c;
                 c += 1;
                 cur[j] += theta[col];
-                let ident = !sol.unidentifiable.contains(&col);
-                if !ident {
+                let stat = (sol.cov[(col, col)] * sigma2).sqrt();
+                let shift = (theta[col] - less[col]).abs();
+                let spread = match per_fold.as_slice() {
+                    [f0, f1] => (f0[col] - f1[col]).abs() / 2.0,
+                    _ => 0.0,
+                };
+                // σ² = max(σ_stat², spread²) + shift²: the fold-to-fold spread is a second
+                // estimate of the statistical part (it sees correlated residuals and model
+                // error the normal matrix does not); the penalty's shift is a bias.
+                let total = (stat.max(spread).powi(2) + shift.powi(2)).sqrt();
+                let r2 = 1.0 - 1.0 / (sol.cov[(col, col)] * diag[col]).max(1.0);
+                let ident = !sol.unidentifiable.contains(&col) && total.is_finite();
+                let moved = ident && shift > stat.max(spread);
+                let note = if !ident {
                     unidentifiable.push(format!("{}: {name}", block.config.id()));
-                }
-                let s = (sol.cov[(col, col)] * sigma2).sqrt();
+                    Some("not determined by this data: kept at the minimum-norm value".into())
+                } else if moved {
+                    Some(format!(
+                        "set by the {} more than by the data (the least-penalised fit moves it by {shift:.3e}, more than its statistical σ): σ includes that shift",
+                        if score.ridge > RIDGE_LADDER[0] { "ridge" } else { "smoothness penalty" }
+                    ))
+                } else if r2 > 0.99 {
+                    Some(format!(
+                        "determined only jointly with the other parameters ({:.2} % of its column follows theirs): σ is the joint one, the value moves with theirs",
+                        100.0 * r2
+                    ))
+                } else {
+                    None
+                };
+                let finite = |x: f64| (ident && x.is_finite()).then_some(x);
                 ps.push(Param {
                     name: name.clone(),
                     value: cur[j],
-                    sigma: (ident && s.is_finite()).then_some(s),
+                    sigma: finite(total),
+                    sigma_stat: finite(stat),
+                    penalty_shift: finite(shift).filter(|_| penalised),
+                    fold_spread: finite(spread).filter(|_| !per_fold.is_empty()),
+                    note,
                 });
             }
             configs.push(block.config.with_params(&cur).map_err(LabError::Data)?);
@@ -643,8 +769,18 @@ impl Space {
             k,
             rms_before_um: rms(ss0, n),
             rms_after_um: rms(ss1, n),
-            heldout_rms_before_um: rms(ssh0, nh),
-            heldout_rms_after_um: rms(ssh1, nh),
+            // Without validation bags the held-out scans are a fold: their figures are the
+            // cross-validated ones (each half predicted by the other), as the fit used both.
+            heldout_rms_before_um: if self.internal {
+                base.rms_um()
+            } else {
+                rms(ssh0, nh)
+            },
+            heldout_rms_after_um: if self.internal {
+                score.rms_um()
+            } else {
+                rms(ssh1, nh)
+            },
             explained,
             explained_component_um: rms((base.cv_ss - score.cv_ss).max(0.0), score.cv_n),
             cv_rms_before_um: base.rms_um(),
