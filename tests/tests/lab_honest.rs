@@ -1,7 +1,8 @@
 //! One answer whichever path, with an honest σ (issue 45, items 1–2).
 //!
 //! A machine and runs no other test uses (machine seed 83; campaign seed 84, held-out ring
-//! seed 85): the campaign with `scale_thermal` left out of an otherwise fitted calibration,
+//! seed 85): the campaign with `scale_thermal` left out of an otherwise fitted calibration
+//! (the nominal model and the other effects at zero, fitted by `lab fit` on the campaign),
 //! then `lab add scale_thermal` as the README's hand loop reads — with the campaign bag only,
 //! and with `--validate` of a ring at another position. Both must give each expansion
 //! coefficient within max(3σ, 5 %) of the machine's (the truth only judges), with a σ that
@@ -55,9 +56,53 @@ fn lab_add_gives_the_same_honest_expansion_with_or_without_validation() {
             "--out",
             "c.mcap",
             "--calib-out",
-            "start.json",
+            "sim.json",
+            "--datasheet-out",
+            "ds.json",
             "--truth",
             "t.json",
+        ],
+    );
+    // The user's start: the nominal model from the data sheet with the other effects' list
+    // (what an earlier lab session chose), every parameter at zero, fitted on the campaign.
+    ok(
+        &d,
+        &[
+            "calib",
+            "nominal",
+            "--datasheet",
+            "ds.json",
+            "--tips-from",
+            "sim.json",
+            "--out",
+            "nominal.json",
+        ],
+    );
+    let listed = scancorr_core::Calibration::from_json(
+        &std::fs::read_to_string(d.join("sim.json")).unwrap(),
+    )
+    .unwrap();
+    let mut start = scancorr_core::Calibration::from_json(
+        &std::fs::read_to_string(d.join("nominal.json")).unwrap(),
+    )
+    .unwrap();
+    start.effects = listed
+        .effects
+        .iter()
+        .map(|e| e.with_params(&vec![0.0; e.params().len()]).unwrap())
+        .collect();
+    std::fs::write(d.join("unfitted.json"), start.to_json()).unwrap();
+    ok(
+        &d,
+        &[
+            "lab",
+            "fit",
+            "--bag",
+            "c.mcap",
+            "--calib",
+            "unfitted.json",
+            "--out",
+            "start.json",
         ],
     );
     ok(

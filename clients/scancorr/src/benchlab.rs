@@ -90,21 +90,7 @@ struct Tally {
     failed: usize,
 }
 
-fn exe(dir: &Path, args: &[&str]) -> Result<String> {
-    let out = std::process::Command::new(std::env::current_exe()?)
-        .current_dir(dir)
-        .args(args)
-        .output()
-        .context("running scancorr")?;
-    if !out.status.success() {
-        bail!(
-            "scancorr {}: {}",
-            args.join(" "),
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
-}
+use crate::benchproc::exe;
 
 /// Runs the benchmark.
 pub fn run(o: &Options) -> Result<()> {

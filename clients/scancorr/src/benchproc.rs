@@ -11,7 +11,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::Command;
 
-fn exe(dir: &Path, args: &[&str]) -> Result<String> {
+/// Runs this `scancorr` in `dir` with `args`; its stdout, or its stderr as the error.
+pub(crate) fn exe(dir: &Path, args: &[&str]) -> Result<String> {
     let out = Command::new(std::env::current_exe()?)
         .current_dir(dir)
         .args(args)
