@@ -143,8 +143,10 @@ fn record_records_every_raw_message_the_simulator_publishes() {
     assert!(expected > 500, "{expected}");
 
     // scancorrd on its defaults (a peer, listening), a recorder and the simulator, each a
-    // CLI process connected to it.
+    // CLI process connected to it; the machine calibrated (a live run to a machine without
+    // one fails: nothing would be corrected).
     let svc = Service::start(&d, port);
+    calib_put(&d, "m1", "v1.json", &ep);
     let rec = Command::new(scancorr())
         .args([
             "record",

@@ -29,7 +29,9 @@ impl Case {
             "--out",
             "c.mcap",
             "--calib-out",
-            "start.json",
+            "sim.json",
+            "--datasheet-out",
+            "ds.json",
             "--truth",
             "t.json",
         ]
@@ -63,6 +65,8 @@ impl Case {
             v.extend(["--with".to_string(), w.to_string()]);
         }
         ok(&dir, &v.iter().map(|s| s.as_str()).collect::<Vec<_>>());
+        // The user's start: nominal with the other effects' list, fitted on the campaign.
+        fitted_start(&dir, "sim.json", "ds.json", "c.mcap", "start.json");
         Case { dir }
     }
     fn lab(&self, args: &[&str]) -> serde_json::Value {
@@ -139,8 +143,11 @@ fn library_case(hidden: &str, wrong: &str) {
     );
     // The new version names its parent.
     let next = json(&std::fs::read_to_string(c.dir.join("next.json")).unwrap());
-    assert_eq!(next["parent_version"], 1);
-    assert_eq!(next["version"], 2);
+    let from = json(&std::fs::read_to_string(c.dir.join("start.json")).unwrap())["version"]
+        .as_u64()
+        .unwrap();
+    assert_eq!(next["parent_version"], from);
+    assert_eq!(next["version"], from + 1);
     // A wrong effect does not pass the held-out check.
     let mut start = json(&std::fs::read_to_string(c.dir.join("start.json")).unwrap());
     // (remove the wrong effect from the start so it can be added)
@@ -342,9 +349,12 @@ fn rings_alone_confound_accel_deflection_and_servo_gain() {
             "--out",
             "r.mcap",
             "--calib-out",
-            "s.json",
+            "sim.json",
+            "--datasheet-out",
+            "ds.json",
         ],
     );
+    fitted_start(&dir, "sim.json", "ds.json", "r.mcap", "s.json");
     let d: serde_json::Value = serde_json::from_str(&ok(
         &dir,
         &[

@@ -26,11 +26,18 @@ fn compare_diagnose_add_fit_history() {
             "--out",
             "c.mcap",
             "--calib-out",
-            "v1.json",
+            "sim.json",
+            "--datasheet-out",
+            "ds.json",
             "--truth",
             "t.json",
         ],
     );
+    // The user's start: nominal with the other effects' list, fitted on the campaign.
+    fitted_start(&d, "sim.json", "ds.json", "c.mcap", "v1.json");
+    let from = json(&std::fs::read_to_string(d.join("v1.json")).unwrap())["version"]
+        .as_u64()
+        .unwrap();
     let cmp = json(&ok(
         &d,
         &[
@@ -138,7 +145,7 @@ fn compare_diagnose_add_fit_history() {
     }
     assert!(c0["significant"].as_bool().unwrap() && c0["params"].as_array().unwrap().len() == 6);
     assert!(dg["confounded"].is_array() && dg["unexplained"].is_array());
-    // Add → v2, fit → v3, history shows the fall.
+    // Add → the next version, fit → the one after, history shows the fall.
     std::fs::create_dir_all(d.join("cals")).unwrap();
     std::fs::copy(d.join("v1.json"), d.join("cals/v1.json")).unwrap();
     let add = json(&ok(
@@ -176,7 +183,7 @@ fn compare_diagnose_add_fit_history() {
             "--json",
         ],
     ));
-    assert_eq!(fit["version"], 3);
+    assert_eq!(fit["version"], from + 2);
     let nominal = fit["nominal"].as_array().unwrap();
     assert_eq!(nominal.len(), 3);
     for a in nominal {
@@ -203,7 +210,7 @@ fn compare_diagnose_add_fit_history() {
         rows.iter()
             .map(|r| r["version"].as_u64().unwrap())
             .collect::<Vec<_>>(),
-        vec![1, 2, 3]
+        vec![from, from + 1, from + 2]
     );
     assert!(
         rows[1]["heldout_rms_um"].as_f64().unwrap()

@@ -65,46 +65,7 @@ fn lab_add_gives_the_same_honest_expansion_with_or_without_validation() {
     );
     // The user's start: the nominal model from the data sheet with the other effects' list
     // (what an earlier lab session chose), every parameter at zero, fitted on the campaign.
-    ok(
-        &d,
-        &[
-            "calib",
-            "nominal",
-            "--datasheet",
-            "ds.json",
-            "--tips-from",
-            "sim.json",
-            "--out",
-            "nominal.json",
-        ],
-    );
-    let listed = scancorr_core::Calibration::from_json(
-        &std::fs::read_to_string(d.join("sim.json")).unwrap(),
-    )
-    .unwrap();
-    let mut start = scancorr_core::Calibration::from_json(
-        &std::fs::read_to_string(d.join("nominal.json")).unwrap(),
-    )
-    .unwrap();
-    start.effects = listed
-        .effects
-        .iter()
-        .map(|e| e.with_params(&vec![0.0; e.params().len()]).unwrap())
-        .collect();
-    std::fs::write(d.join("unfitted.json"), start.to_json()).unwrap();
-    ok(
-        &d,
-        &[
-            "lab",
-            "fit",
-            "--bag",
-            "c.mcap",
-            "--calib",
-            "unfitted.json",
-            "--out",
-            "start.json",
-        ],
-    );
+    fitted_start(&d, "sim.json", "ds.json", "c.mcap", "start.json");
     ok(
         &d,
         &[

@@ -4,7 +4,11 @@
 //! with no missed `seq` and the same values as `scancorr correct` offline; calibrations
 //! round-trip; `read_bag` reads every channel of a campaign bag; the example app measures the
 //! ring within 1 µm; the shape fits match the NIST reference circles and `scancorr shape fit`;
-//! the generated protobuf modules are current.
+//! the generated protobuf modules are current. Python = CLI (`test_errors.py`): each error the
+//! CLI reports and its twin in the package say the same thing — nothing listening, a bad
+//! endpoint, an unserved machine, a line fitted as a circle — and `connect()` never returns to
+//! nothing: a missing TLS file, a refused TLS handshake, a query a router's access control
+//! denies each raise their own `ScancorrError`; a bag's metadata records are all kept.
 //!
 //! The suite finds the binaries through `SCANCORR_BIN_DIR`. Nothing may be skipped: a skip
 //! fails this test.
@@ -71,5 +75,5 @@ fn the_python_package_passes_its_pytest_suite() {
         .find(|(_, w)| w.trim_end_matches(',') == "passed")
         .and_then(|(n, _)| n.parse().ok())
         .unwrap_or(0);
-    assert!(passed >= 40, "{summary}");
+    assert!(passed >= 70, "{summary}");
 }

@@ -2,9 +2,11 @@
 //! loads `deploy/router.json5` as shipped — only its certificate paths and its port are
 //! replaced — with the certificates `scripts/make-certs.sh` makes. scancorrd joins it with
 //! `deploy/scancorrd.json5` and `deploy/zenoh-client-tls.json5`; every other role connects
-//! with `deploy/zenoh-operator-tls.json5` carrying that role's certificate. Each right and
-//! each refusal is checked against the service's state afterwards (its status and calibration
-//! history, asked as an operator), not against what the refused client believes.
+//! with its own shipped file (`deploy/zenoh-{operator,auditor,app,controller,lab}-tls.json5`).
+//! Each right and each refusal is checked against the service's state afterwards (its status
+//! and calibration history, asked as an operator), not against what the refused client
+//! believes; the router's log names each denial (key, peer, rule) and each failed TLS
+//! handshake.
 
 mod common;
 use common::*;
@@ -60,6 +62,13 @@ fn deployed(dir: &Path, name: &str, port: u16, certs: &Path) -> String {
         )
 }
 
+/// A role's shipped client file (`deploy/zenoh-<role>-tls.json5`), as `name.json5`.
+fn role_file(dir: &Path, file: &str, name: &str, port: u16, certs: &Path) -> PathBuf {
+    let p = dir.join(format!("{name}.json5"));
+    std::fs::write(&p, deployed(dir, file, port, certs)).unwrap();
+    p
+}
+
 /// The operator's client file with `role`'s certificate (`role-cert.pem`, `role-key.pem`).
 fn role(dir: &Path, role: &str, port: u16, certs: &Path) -> PathBuf {
     let text = deployed(dir, "zenoh-operator-tls.json5", port, certs)
@@ -67,6 +76,41 @@ fn role(dir: &Path, role: &str, port: u16, certs: &Path) -> PathBuf {
     let p = dir.join(format!("{role}.json5"));
     std::fs::write(&p, text).unwrap();
     p
+}
+
+/// A certificate for `cn` from the test CA in `certs` (`scripts/make-certs.sh` makes none for
+/// the lab).
+fn leaf_cert(certs: &Path, cn: &str) {
+    let sh = format!(
+        "set -e; cd '{}'
+openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out {cn}-key.pem
+openssl req -new -key {cn}-key.pem -out {cn}.csr -subj /CN={cn}
+printf 'basicConstraints=critical,CA:FALSE\\nkeyUsage=critical,digitalSignature,keyEncipherment\\nextendedKeyUsage=serverAuth,clientAuth\\nsubjectAltName=DNS:{cn}\\n' > {cn}.ext
+openssl x509 -req -in {cn}.csr -CA ca.pem -CAkey ca-key.pem -CAcreateserial -out {cn}-cert.pem -days 2 -extfile {cn}.ext",
+        certs.display()
+    );
+    let out = Command::new("bash").args(["-c", &sh]).output().unwrap();
+    assert!(
+        out.status.success(),
+        "a certificate for {cn}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// Waits (at most 10 s) for a line of `p`'s log with every needle; returns it.
+fn logged(p: &Proc, needles: &[&str]) -> String {
+    let t0 = Instant::now();
+    loop {
+        let log = p.log();
+        if let Some(l) = log.lines().find(|l| needles.iter().all(|n| l.contains(n))) {
+            return l.to_string();
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "no line with {needles:?} in the log:\n{log}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 fn cli(dir: &Path, cfg: &Path, args: &[&str]) -> std::process::Output {
@@ -196,10 +240,19 @@ fn roles_can_do_exactly_what_the_router_allows() {
         )
     };
 
-    let op = role(&d, "operator", port, &certs);
-    let auditor = role(&d, "auditor", port, &certs);
-    let app = role(&d, "app-shape-analysis", port, &certs);
-    let c1 = role(&d, "controller-m1", port, &certs);
+    // Each role with its shipped file (the lab's certificate made here).
+    leaf_cert(&certs, "lab-metrology");
+    let op = role_file(&d, "zenoh-operator-tls.json5", "operator", port, &certs);
+    let auditor = role_file(&d, "zenoh-auditor-tls.json5", "auditor", port, &certs);
+    let app = role_file(&d, "zenoh-app-tls.json5", "app", port, &certs);
+    let c1 = role_file(
+        &d,
+        "zenoh-controller-tls.json5",
+        "controller-m1",
+        port,
+        &certs,
+    );
+    let lab = role_file(&d, "zenoh-lab-tls.json5", "lab", port, &certs);
     let rogue = role(&d, "rogue", port, &certs);
 
     // The operator puts a calibration per machine (it waits for the service's route).
@@ -253,10 +306,12 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         String::from_utf8_lossy(&out.stdout).trim().to_string()
     };
     assert_eq!(py_run(&op), "1", "the operator's history through Python");
-    assert_eq!(
-        py_run(&app),
-        "refused NoService",
-        "the app's query through Python"
+    // (`Refused` where the package tells a denied query of a served machine from no service,
+    // `NoService` where it does not.)
+    let app_py = py_run(&app);
+    assert!(
+        ["refused Refused", "refused NoService"].contains(&app_py.as_str()),
+        "the app's query through Python: {app_py}"
     );
     // … nor read one (only operators).
     assert!(!cli(&d, &app, &["calib", "get", "--machine", "m1"])
@@ -322,6 +377,31 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         "operator calib rollback",
     );
     assert_eq!(versions(&d, &op, "m1"), 3);
+    // The lab reads the history as an operator does.
+    assert_eq!(versions(&d, &lab, "m1"), 3, "the lab's history");
+    // A controller asks its own machine's status, not another's, and reads no calibration.
+    let c1_s = session(&c1).expect("controller-m1 connects");
+    let answered = |key: &str| {
+        c1_s.get(key)
+            .timeout(Duration::from_secs(1))
+            .wait()
+            .unwrap()
+            .recv()
+            .is_ok_and(|r| r.result().is_ok())
+    };
+    let t0 = Instant::now();
+    while !answered("cmm/m1/status") {
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "controller-m1: its own status"
+        );
+    }
+    assert!(!answered("cmm/m2/status"), "controller-m1 got m2's status");
+    assert!(
+        !answered("cmm/m1/calibration?history"),
+        "controller-m1 read the calibration history"
+    );
+    drop(c1_s);
     // The router said what it refused: the key expression, the peer and the rule.
     let t0 = Instant::now();
     let denied = loop {
@@ -453,6 +533,12 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     op_s.put("cmm/m1/raw/scale", b"FORGED".to_vec())
         .wait()
         .unwrap();
+    // Nor may the lab (its rights are an operator's).
+    let lab_s = session(&lab).expect("the lab connects");
+    lab_s
+        .put("cmm/m1/raw/probe", b"FORGED".to_vec())
+        .wait()
+        .unwrap();
     std::thread::sleep(Duration::from_millis(1000));
     let forged = got_op.lock().unwrap()[before..]
         .iter()
@@ -470,6 +556,25 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         !listed.contains("m9"),
         "an app declared the service's liveliness token: {listed}"
     );
+    // Each denial named in the router's log: the key, the peer's certificate and the rule.
+    let l = logged(
+        &router,
+        &[
+            "WARN",
+            "ACL denied put (ingress) on cmm/m1/raw/probe",
+            "`lab-metrology`",
+        ],
+    );
+    assert!(l.contains("no rule of subject operators allows it"), "{l}");
+    logged(
+        &router,
+        &[
+            "WARN",
+            "ACL denied query (ingress) on cmm/m1/calibration",
+            "`controller-m1`",
+        ],
+    );
+    drop(lab_s);
 
     // The app's forged put is in the router's log; a flood of denied puts writes at most 20
     // lines per 10 s, and one line counts the rest.
@@ -554,6 +659,16 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     assert!(
         !out.status.success(),
         "plain TCP to the TLS port got an answer"
+    );
+    // The router named the failed handshakes as such (not zenoh-link-tls' accept error with
+    // its hint about the open-file limit).
+    // (A TCP probe that closes at once is a failed handshake too: `tls handshake eof`.)
+    let l = logged(&router, &["WARN", "TLS handshake failed", "certificate"]);
+    assert!(
+        !router
+            .log()
+            .contains("Hint: increase the system open file limit"),
+        "{l}"
     );
     assert_eq!(versions(&d, &op, "m1"), 3);
     drop(svc);

@@ -177,11 +177,20 @@ fn metrics_audit_trail_and_rollback() {
         .map(|v| v["audit"]["action"].as_str().unwrap())
         .collect();
     assert_eq!(actions, ["put", "put", "rollback to v1"]);
-    let user = std::env::var("USER").unwrap_or_else(|_| "unknown".into());
+    // The requester's claim, or `unnamed` when it named no user ($USER and $LOGNAME unset):
+    // never a made-up `unknown`.
+    let user = std::env::var("USER")
+        .or_else(|_| std::env::var("LOGNAME"))
+        .ok()
+        .filter(|u| !u.is_empty())
+        .unwrap_or_else(|| "unnamed".into());
     for v in h {
         let a = &v["audit"];
+        let by = a["by"].as_str().unwrap();
         assert!(
-            a["by"].as_str().unwrap().starts_with(&format!("{user}@")),
+            by.starts_with(&format!("{user}@"))
+                && by.contains("(claimed")
+                && !by.contains("unknown"),
             "{a}"
         );
         let at = a["at"].as_str().unwrap();

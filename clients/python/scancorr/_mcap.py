@@ -1,4 +1,4 @@
-"""A verifying MCAP reader: the Python twin of the Rust bag reader (`clients/bag/src/reader.rs`).
+"""A verifying MCAP reader: the Python twin of the Rust bag reader (`clients/bag/src/reader/`).
 
 Every checksum the file carries is verified: the summary CRC (a damaged summary is not used:
 the data section is scanned instead), the data-section CRC (one pass over the file), each
@@ -24,6 +24,8 @@ import io
 import zlib
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Tuple
+
+from .errors import ScancorrError
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -62,7 +64,7 @@ LOOSE_RUN_LIMIT = 4 << 20
 HASH_BLOCK = 1 << 20
 
 
-class BagError(ValueError):
+class BagError(ScancorrError, ValueError):
     """A bag that cannot be read as it is. `kind` is `not_mcap` (empty, too short, wrong magic),
     `corrupt` (starts like MCAP, but its header or indexes cannot be used) or `damaged` (a
     checksum does not match, or a record of a finished file is malformed: `what` is `chunk`,

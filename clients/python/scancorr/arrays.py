@@ -28,6 +28,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
+from .errors import ScancorrError
 from .v1 import scancorr_pb2 as pb
 
 POINT_DTYPE = np.dtype(
@@ -84,7 +85,7 @@ ALARM_DTYPE = np.dtype(
 )
 
 
-class DecodeError(ValueError):
+class DecodeError(ScancorrError, ValueError):
     """A payload that does not decode as the message its key or channel promises."""
 
 

@@ -99,6 +99,10 @@ class Bag:
                     (only with `skip_damaged=True`; otherwise damage raises `BagError`)
     damage_notes:   damage that cost no message (a damaged summary: the data section was
                     scanned and verified instead) or, skipping, a data-section CRC mismatch
+    metadata:       the last metadata record of each name (as the Rust reader's
+                    `metadata_named`): name → its entries
+    metadata_records: every metadata record, a list per name in file order: a bag of five
+                    features has five `scancorr.artifact` records (`Bag.artifacts()`)
     """
 
     path: str
@@ -110,6 +114,7 @@ class Bag:
     truncation: Optional[Truncation] = None
     damaged_chunks: List[DamagedChunk] = field(default_factory=list)
     damage_notes: List[str] = field(default_factory=list)
+    metadata_records: Dict[str, List[Dict[str, str]]] = field(default_factory=dict)
 
     def problems(self) -> List[str]:
         """What was not read, one line each (empty when the whole bag was read): the
@@ -127,6 +132,11 @@ class Bag:
             for topic, n in sorted(counts.items()):
                 out.append(f"{self.path}: {n} message(s) on {topic} {what}: skipped")
         return out
+
+    def artifacts(self) -> List[Dict[str, str]]:
+        """Every `scancorr.artifact` record (one per measured artifact or feature), in file
+        order."""
+        return list(self.metadata_records.get("scancorr.artifact", []))
 
     def __getitem__(self, topic: str) -> np.ndarray:
         return self.channels[topic].data
@@ -267,7 +277,8 @@ def _message_class(data: bytes, name: str) -> Any:
 def read_bag(path: Union[str, "PathLike[str]"], *, skip_damaged: bool = False) -> Bag:
     """Every channel of a scancorr bag as numpy arrays: raw samples per stream, corrected
     points (`arrays.POINT_DTYPE`), alarms (`arrays.ALARM_DTYPE`); the bag's metadata records
-    as dicts. Samples are in log-time order (file order on equal times).
+    as dicts: every one in `metadata_records` (a list per name), the last of each name in
+    `metadata`. Samples are in log-time order (file order on equal times).
 
     Every checksum is verified and every length checked, as the Rust reader does: a damaged
     bag raises `BagError` (`<file>: damaged bag: chunk at byte offset N: CRC mismatch …`), or,
@@ -360,6 +371,7 @@ def read_bag(path: Union[str, "PathLike[str]"], *, skip_damaged: bool = False) -
         )
     for name, entries in cat.metadata:
         bag.metadata[name] = dict(entries)
+        bag.metadata_records.setdefault(name, []).append(dict(entries))
     bag.truncation = cat.truncation
     bag.damaged_chunks = list(cat.damaged)
     bag.damage_notes = list(cat.notes)

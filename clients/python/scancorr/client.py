@@ -1,7 +1,7 @@
 """The scancorr bus: corrected points and alarms as numpy arrays, calibrations, status.
 
     import scancorr
-    with scancorr.connect("tcp/127.0.0.1:7447") as bus:          # or zenoh_config="app.json5"
+    with scancorr.connect("tcp/127.0.0.1:7447") as bus:          # or zenoh_config="deploy/zenoh-app-tls.json5"
         with bus.subscribe_points("m1") as sub:
             for batch in sub.batches(idle=5):
                 print(batch.points["surface"].mean(axis=0), sub.missed)
@@ -33,24 +33,19 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Unio
 import numpy as np
 
 from . import arrays
+from .errors import (
+    BadEndpoint,
+    ConfigError,
+    NoService,
+    NotConnected,
+    NotServed,
+    Refused,
+    ScancorrError,
+    ServiceError,
+    TlsError,
+)
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
-
-
-class ScancorrError(RuntimeError):
-    """Base of this package's errors."""
-
-
-class ServiceError(ScancorrError):
-    """The service refused a request; the message is the service's own."""
-
-
-class NotServed(ServiceError):
-    """The service does not serve the machine asked about."""
-
-
-class NoService(ScancorrError, TimeoutError):
-    """No scancorrd answered (not running, not reachable, or serving another prefix)."""
 
 
 def check_name(what: str, name: str) -> str:
@@ -255,13 +250,17 @@ class Client:
         return AlarmSubscription(self.session, self._key(machine, "alarms/estimator"), callback)
 
     # -- queries
-    def _ask(self, selector: str, payload: Optional[bytes] = None, who: bool = False) -> str:
+    def _ask(self, selector: str, payload: Optional[bytes] = None, who: bool = False,
+             machine: Optional[str] = None) -> str:
         """One query; the reply text, or `ServiceError` with the service's message. The
         route to the queryable may take a moment after connecting: retried for
-        `query_timeout` seconds before `NoService`."""
+        `query_timeout` seconds. Then `Refused` when `machine` is seen served (its scancorrd's
+        liveliness token answers: the query was dropped on its way, as a router's access
+        control drops a denied query), else `NoService`."""
         t0 = time.monotonic()
         while True:
-            kw: Dict[str, Any] = {"timeout": 3.0}
+            left = self.query_timeout - (time.monotonic() - t0)
+            kw: Dict[str, Any] = {"timeout": min(3.0, max(left, 0.5))}
             if payload is not None:
                 kw["payload"] = payload
             if who:
@@ -273,13 +272,30 @@ class Client:
                 msg = err.payload.to_string() if err is not None else "error"
                 raise ServiceError(msg)
             if time.monotonic() - t0 > self.query_timeout:
+                if machine is not None and self._served(machine):
+                    raise Refused(
+                        f"no answer on `{selector}` although scancorrd serves machine `{machine}` "
+                        f"(its liveliness token `{self.prefix}/{machine}/scancorrd` is seen): the query "
+                        "was refused on its way: a router's access control drops a denied query "
+                        "without telling the asker (check its rules for this session's certificate "
+                        "role, deploy/router.json5)"
+                    )
                 raise NoService(
-                    f"no scancorrd answered on `{selector}` (is it running, reachable and serving prefix `{self.prefix}`?)"
+                    f"no scancorrd answered on `{selector}` (is it running, reachable and serving this prefix?)"
                 )
             time.sleep(0.25)
 
-    def _json(self, selector: str, payload: Optional[bytes] = None, who: bool = False) -> Any:
-        text = self._ask(selector, payload, who)
+    def _served(self, machine: str, timeout: float = 1.0) -> bool:
+        """Whether a scancorrd's liveliness token for `machine` is seen."""
+        try:
+            replies = self.session.liveliness().get(self._key(machine, "scancorrd"), timeout=timeout)
+            return any(r.ok is not None for r in replies)
+        except Exception:  # a session closed meanwhile: not seen
+            return False
+
+    def _json(self, selector: str, payload: Optional[bytes] = None, who: bool = False,
+              machine: Optional[str] = None) -> Any:
+        text = self._ask(selector, payload, who, machine)
         try:
             return json.loads(text)
         except json.JSONDecodeError as e:
@@ -292,7 +308,7 @@ class Client:
             if not isinstance(version, int) or isinstance(version, bool) or version < 0:
                 raise ValueError(f"version {version!r}: must be a non-negative integer")
             key = f"{key}?version={version}"
-        return self._json(key)
+        return self._json(key, machine=machine)
 
     def put_calibration(self, machine: str, doc: Union[Dict[str, Any], str, bytes, "PathLike[str]"],
                         note: Optional[str] = None) -> Dict[str, Any]:
@@ -313,22 +329,23 @@ class Client:
             raise ValueError("the calibration document must be a JSON object")
         if note is not None:
             doc = dict(doc, note=note)
-        return self._json(self._key(machine, "calibration/write"), json.dumps(doc).encode(), who=True)
+        return self._json(self._key(machine, "calibration/write"), json.dumps(doc).encode(), who=True,
+                          machine=machine)
 
     def rollback(self, machine: str, to: int) -> Dict[str, Any]:
         """Makes version `to` of `machine`'s calibration current again, as a new version
         (its parent the current one). Returns `{"machine", "version", "parent_version"}`."""
         if not isinstance(to, int) or isinstance(to, bool) or to < 1:
             raise ValueError(f"to {to!r}: must be a version number (>= 1)")
-        return self._json(f"{self._key(machine, 'calibration/write')}?rollback={to}", who=True)
+        return self._json(f"{self._key(machine, 'calibration/write')}?rollback={to}", who=True, machine=machine)
 
     def history(self, machine: str) -> List[Dict[str, Any]]:
         """Every stored version of `machine`'s calibration, oldest first."""
-        return self._json(f"{self._key(machine, 'calibration')}?history")
+        return self._json(f"{self._key(machine, 'calibration')}?history", machine=machine)
 
     def status(self, machine: str) -> Dict[str, Any]:
         """`machine`'s status document; `NotServed` when the service does not serve it."""
-        v = self._json(self._key(machine, "status"))
+        v = self._json(self._key(machine, "status"), machine=machine)
         if isinstance(v, dict) and v.get("served") is False:
             raise NotServed(
                 f"scancorrd does not serve machine `{machine}` (no calibration stored for it and no samples accepted); put a calibration to start serving it"
@@ -377,34 +394,200 @@ def _looks_like_json(doc: Union[str, bytes]) -> bool:
     return s in ("{", b"{")
 
 
+#: Zenoh's link protocols (as the `scancorr` CLI lists them).
+PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock", "quic_datagram")
+
+#: The TLS files a zenoh configuration may name (under `transport/link/tls/`).
+TLS_FILES = ("root_ca_certificate", "connect_certificate", "connect_private_key",
+             "listen_certificate", "listen_private_key")
+
+_HINT = "is scancorrd or a zenoh router running and listening on it?"
+
+
+def _shown(text: object) -> str:
+    """A name from outside, quoted, escaped and cut to 40 characters (as the CLI shows it)."""
+    t = str(text)
+    s = t[:40] + ("…" if len(t) > 40 else "")
+    return json.dumps(s, ensure_ascii=False)
+
+
+def _one_line(text: object) -> str:
+    """A zenoh error on one line, without the source location zenoh appends."""
+    s = str(text)
+    i = s.rfind(" at /")
+    if i >= 0 and s.rstrip().endswith("."):
+        s = s[:i]
+    s = " ".join(s.split())
+    return s if len(s) <= 300 else s[:300] + "…"
+
+
+def check_endpoint(endpoint: object) -> str:
+    """Returns `endpoint` when it is `PROTOCOL/ADDRESS` with a protocol zenoh knows; raises
+    `BadEndpoint` with the words of `scancorr --connect` otherwise."""
+    if not isinstance(endpoint, str):
+        raise BadEndpoint(f"endpoint {endpoint!r}: must be a string, e.g. tcp/127.0.0.1:7447", endpoint)
+    shown = _shown(endpoint)
+    proto, sep, addr = endpoint.partition("/")
+    if sep and proto in PROTOCOLS:
+        if not addr or addr[0] in "?#":
+            raise BadEndpoint(
+                f"endpoint {shown}: no address after `{proto}/`; use {proto}/HOST:PORT, e.g. tcp/127.0.0.1:7447",
+                endpoint,
+            )
+        return endpoint
+    if sep:
+        raise BadEndpoint(
+            f"endpoint {shown}: unknown protocol `{proto}` (zenoh knows {', '.join(PROTOCOLS)}); "
+            "use tcp/HOST:PORT, e.g. tcp/127.0.0.1:7447",
+            endpoint,
+        )
+    example = endpoint if ":" in endpoint else "127.0.0.1:7447"
+    raise BadEndpoint(f"endpoint {shown}: an endpoint names its protocol; use tcp/HOST:PORT, e.g. tcp/{example}",
+                      endpoint)
+
+
+def _conf_value(conf: Any, key: str) -> Any:
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # absent key, or not JSON
+        return None
+
+
+def _file_endpoints(conf: Any) -> List[str]:
+    """The configuration's `connect/endpoints`: a list, or per-mode lists."""
+    v = _conf_value(conf, "connect/endpoints")
+    if isinstance(v, dict):
+        mode = _conf_value(conf, "mode") or "peer"
+        v = v.get(mode, [])
+    return [e for e in v if isinstance(e, str)] if isinstance(v, list) else []
+
+
+def _check_tls_files(conf: Any, source: str) -> None:
+    """Each TLS certificate and key the configuration names must be a readable file."""
+    for name in TLS_FILES:
+        key = f"transport/link/tls/{name}"
+        path = _conf_value(conf, key)
+        if not isinstance(path, str) or not path:
+            continue
+        try:
+            with open(path, "rb") as f:
+                f.read(1)
+        except OSError as e:
+            why = e.strerror or str(e)
+            raise TlsError(
+                f"{source}: `{key}`: cannot read the TLS certificate or key file {path}: {why}",
+                key, path,
+            ) from None
+
+
+def _listening(endpoint: str, timeout: float = 0.5) -> bool:
+    """Whether a TCP connection to the endpoint's HOST:PORT is accepted (tcp, tls, ws, quic
+    endpoints; False for others)."""
+    import socket
+
+    proto, _, addr = endpoint.partition("/")
+    if proto not in ("tcp", "tls", "ws"):
+        return False
+    addr = re.split(r"[?#]", addr, maxsplit=1)[0]
+    host, _, port = addr.rpartition(":")
+    host = host.strip("[]")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+        return True
+    except (OSError, ValueError):
+        return False
+
+
 def connect(endpoint: Union[str, Sequence[str], None] = None, *,
             zenoh_config: Union[str, "PathLike[str]", None] = None,
             prefix: str = "cmm", mode: Optional[str] = None,
-            query_timeout: float = 6.0) -> Client:
-    """Opens a session to the scancorr bus.
+            query_timeout: float = 6.0, timeout: float = 3.0) -> Client:
+    """Opens a session to the scancorr bus and checks that something answers.
 
     endpoint:     zenoh endpoint(s) to connect to, e.g. `"tcp/127.0.0.1:7447"`
     zenoh_config: a zenoh configuration file (JSON5), as zenoh's own tools take one — how a
                   TLS deployment is reached (`deploy/`: certificates, mode `client`)
-    mode:         `peer` (the default without a file, like the `scancorr` CLI) or `client`
+    mode:         `peer` (the default without a file) or `client`
+    timeout:      seconds to wait for a zenoh session at the endpoint(s)
     Multicast scouting is off unless the file turns it on: endpoints are given explicitly.
+
+    Raises, with the words of the `scancorr` CLI: `BadEndpoint` (not PROTOCOL/HOST:PORT),
+    `ConfigError` (a file that does not load), `TlsError` (a certificate or key it names is
+    missing or unreadable: the key and the path), `NotConnected` (nothing answers there
+    within `timeout`), `Refused` (something listens there but no zenoh session was
+    established: e.g. the router refused the TLS handshake).
     """
     import zenoh
 
+    if endpoint is None and zenoh_config is None:
+        raise BadEndpoint("connect: give an endpoint (e.g. 'tcp/127.0.0.1:7447') or zenoh_config=FILE")
+    check_prefix(prefix)
+    if not (isinstance(timeout, (int, float)) and timeout > 0):
+        raise ValueError(f"timeout {timeout!r}: must be a positive number of seconds")
+    eps: Optional[List[str]] = None
+    if endpoint is not None:
+        eps = [endpoint] if isinstance(endpoint, str) else list(endpoint)
+        if not eps:
+            raise BadEndpoint("connect: an empty list of endpoints; give e.g. 'tcp/127.0.0.1:7447'")
+        for e in eps:
+            check_endpoint(e)
     if zenoh_config is not None:
+        source = f"zenoh configuration {zenoh_config}"
         try:
             conf = zenoh.Config.from_file(str(zenoh_config))
         except Exception as e:
-            raise ValueError(f"zenoh configuration {zenoh_config}: {e}") from e
+            raise ConfigError(f"{source}: {_one_line(e)}") from None
     else:
+        source = "connect"
         conf = zenoh.Config()
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("mode", json.dumps(mode or "peer"))
     if mode is not None and zenoh_config is not None:
         conf.insert_json5("mode", json.dumps(mode))
-    if endpoint is not None:
-        eps = [endpoint] if isinstance(endpoint, str) else list(endpoint)
-        conf.insert_json5("connect/endpoints", json.dumps(eps))
-    if endpoint is None and zenoh_config is None:
-        raise ValueError("connect: give an endpoint (e.g. 'tcp/127.0.0.1:7447') or zenoh_config=FILE")
-    return Client(zenoh.open(conf), prefix=prefix, query_timeout=query_timeout)
+    if eps is not None:
+        try:
+            conf.insert_json5("connect/endpoints", json.dumps(eps))
+        except Exception as e:
+            raise BadEndpoint(f"endpoint {_shown(', '.join(eps))}: {_one_line(e)}", endpoint) from None
+    else:
+        eps = _file_endpoints(conf)
+        for e in eps:
+            try:
+                check_endpoint(e)
+            except BadEndpoint as b:
+                raise BadEndpoint(f"{source}: {b}", e) from None
+    _check_tls_files(conf, source)
+    # Fail when no endpoint answers within `timeout` (zenoh retries until then), instead of
+    # a session that retries in the background while every call finds nothing.
+    conf.insert_json5("connect/timeout_ms", json.dumps(int(timeout * 1000)))
+    conf.insert_json5("connect/exit_on_failure", "true")
+    where = ", ".join(eps) if eps else "the configuration's endpoints (it names none)"
+    try:
+        session = zenoh.open(conf)
+    except Exception as e:
+        raise _open_error(eps, where, _one_line(e)) from None
+    # Something must answer: a peer or a router (with no endpoint to connect to, one found by
+    # scouting).
+    deadline = time.monotonic() + timeout
+    while not (list(session.info.peers_zid()) or list(session.info.routers_zid())):
+        if time.monotonic() > deadline:
+            try:
+                session.close()
+            except Exception:
+                pass
+            raise _open_error(eps, where, f"no zenoh peer or router within {timeout:g} s")
+        time.sleep(0.02)
+    return Client(session, prefix=prefix, query_timeout=query_timeout)
+
+
+def _open_error(eps: List[str], where: str, why: str) -> ScancorrError:
+    """`Refused` when something accepts TCP connections at an endpoint (no zenoh session was
+    established there), else `NotConnected`."""
+    listening = [e for e in eps if _listening(e)]
+    if listening:
+        return Refused(
+            f"cannot connect to {where}: something listens at {', '.join(listening)} but no zenoh session "
+            "was established (for tls/: the router refused the TLS handshake — a certificate it does not "
+            f"accept, or none; or no zenoh there) [zenoh: {why}]"
+        )
+    return NotConnected(f"cannot connect to {where}: nothing answers there ({_HINT}) [zenoh: {why}]", eps)

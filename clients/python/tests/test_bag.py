@@ -61,6 +61,24 @@ def test_read_bag_reads_the_corrected_points(campaign: pathlib.Path) -> None:
     assert {"surface_x", "surface_y", "surface_z", "valid"} <= set(f.columns)
 
 
+def test_every_metadata_record_is_kept(campaign: pathlib.Path) -> None:
+    """A campaign bag has five `scancorr.artifact` records (one per feature): all read, in
+    file order, as an independent reader (the `mcap` package) reads them."""
+    b = scancorr.read_bag(campaign / "c.mcap")
+    arts = b.metadata_records["scancorr.artifact"]
+    assert [a["feature_id"] for a in arts] == ["1", "2", "3", "4", "5"]
+    assert [a["kind"] for a in arts] == ["ring", "ring", "ring", "sphere", "straightedge"]
+    assert b.artifacts() == arts
+    assert b.metadata["scancorr.artifact"] == arts[-1]  # the last, as the Rust reader's metadata_named
+    assert b.metadata_records["scancorr.run"] == [b.metadata["scancorr.run"]]
+    from mcap.reader import make_reader
+
+    with open(campaign / "c.mcap", "rb") as fh:
+        theirs = [(m.name, dict(m.metadata)) for m in make_reader(fh).iter_metadata()]
+    ours = [(n, r) for n, rs in b.metadata_records.items() for r in rs]
+    assert sorted(ours, key=repr) == sorted(theirs, key=repr) and len(theirs) == 8
+
+
 def test_a_file_that_is_not_a_bag_is_refused(tmp_path: pathlib.Path) -> None:
     p = tmp_path / "x.mcap"
     p.write_bytes(b"not an mcap file")

@@ -204,13 +204,13 @@ impl DataSheet {
             .map_err(|e| bad("machine_id", &e.to_string()))?;
         // The calibration's ranges (it must build from the sheet).
         let in_range = |field: &str, v: f64, [lo, hi]: [f64; 2]| {
-            crate::calib::in_range(field, v, lo, hi, "s")
+            crate::checks::in_range(field, v, lo, hi, "s")
                 .map_err(|r| bad(field, r.split_once(": ").map_or(r.as_str(), |(_, r)| r)))
         };
         in_range(
             "sample_period_s",
             self.sample_period_s,
-            crate::calib::SAMPLE_PERIOD_S,
+            crate::checks::SAMPLE_PERIOD_S,
         )?;
         for (name, a) in self.axes.each() {
             positive(DOC, format!("axes.{name}.tau_s"), a.tau_s)?;
@@ -220,7 +220,7 @@ impl DataSheet {
                     "must be below 10 s (a time constant in seconds, not milliseconds)",
                 ));
             }
-            in_range(&format!("axes.{name}.tau_s"), a.tau_s, crate::calib::TAU_S)?;
+            in_range(&format!("axes.{name}.tau_s"), a.tau_s, crate::checks::TAU_S)?;
             let [lo, hi] = a.travel_mm;
             if !(lo.is_finite() && hi.is_finite() && lo < hi) {
                 return Err(bad(

@@ -24,6 +24,7 @@
 pub mod biquad;
 pub mod calib;
 pub mod calibrate;
+pub mod checks;
 pub mod corrector;
 pub mod datasheet;
 pub mod effects;

@@ -76,7 +76,7 @@ impl TipGeometry {
             ("l3_mm", self.l3_mm, 0.0, MAX_LENGTH_MM, "mm"),
             ("beta2_deg", self.beta2_deg, -360.0, 360.0, "°"),
         ] {
-            crate::calib::in_range(&format!("{field}.{name}"), v, lo, hi, unit)?;
+            crate::checks::in_range(&format!("{field}.{name}"), v, lo, hi, unit)?;
         }
         Ok(())
     }

@@ -27,7 +27,7 @@ pub enum TransferFunction {
     Unity,
     /// G(s) = 1/(τ s + 1): a servo with one dominant time constant.
     FirstOrder {
-        /// Time constant τ, s; 10 µs … 10 s ([`crate::calib::TAU_S`]).
+        /// Time constant τ, s; 10 µs … 10 s ([`crate::checks::TAU_S`]).
         tau_s: f64,
     },
     /// G(s) = ωn²/(s² + 2ζωn s + ωn²), ωn = 2π·natural_freq_hz.
@@ -75,8 +75,8 @@ impl TransferFunction {
                 den: vec![1.0],
             }),
             TransferFunction::FirstOrder { tau_s } => {
-                let [lo, hi] = crate::calib::TAU_S;
-                crate::calib::in_range("tau_s", *tau_s, lo, hi, "s")
+                let [lo, hi] = crate::checks::TAU_S;
+                crate::checks::in_range("tau_s", *tau_s, lo, hi, "s")
                     .map_err(TransferError::Invalid)?;
                 Ok(Rational {
                     num: vec![1.0],
@@ -88,10 +88,10 @@ impl TransferFunction {
                 damping,
             } => {
                 let [lo, hi] = NATURAL_FREQ_HZ;
-                crate::calib::in_range("natural_freq_hz", *natural_freq_hz, lo, hi, "Hz")
+                crate::checks::in_range("natural_freq_hz", *natural_freq_hz, lo, hi, "Hz")
                     .map_err(TransferError::Invalid)?;
                 let [lo, hi] = DAMPING;
-                crate::calib::in_range("damping", *damping, lo, hi, "")
+                crate::checks::in_range("damping", *damping, lo, hi, "")
                     .map_err(TransferError::Invalid)?;
                 let wn = 2.0 * std::f64::consts::PI * natural_freq_hz;
                 Ok(Rational {
@@ -119,7 +119,7 @@ impl TransferFunction {
                 }
                 if r.num.len() == r.den.len() {
                     let d = r.num[0] / r.den[0];
-                    crate::calib::in_range(
+                    crate::checks::in_range(
                         "num[0]/den[0] (the gain at high frequency)",
                         d,
                         -MAX_FEEDTHROUGH,
@@ -131,7 +131,7 @@ impl TransferFunction {
                 if r.den.len() - 1 <= MAX_ORDER {
                     let [lo, hi] = POLE_RAD_S;
                     for p in poles(&r.den) {
-                        crate::calib::in_range("den: a pole's magnitude |p|", p, lo, hi, "rad/s")
+                        crate::checks::in_range("den: a pole's magnitude |p|", p, lo, hi, "rad/s")
                             .map_err(TransferError::Invalid)?;
                     }
                 }

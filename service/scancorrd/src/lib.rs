@@ -7,6 +7,7 @@
 
 pub mod config;
 mod cost;
+mod input;
 pub mod latency;
 pub mod metrics;
 pub mod notify;

@@ -54,7 +54,9 @@ fn main() {
     }
 }
 
-/// Logs on stderr: text (colour only when stderr is a terminal) or JSON lines.
+/// Logs on stderr: text (colour only when stderr is a terminal and `NO_COLOR` is not set: never
+/// in a file or a pipe) or JSON lines (never colour; values typed: numbers and booleans as
+/// JSON's, see the fields of `server`).
 fn init_logs(format: &str) {
     use std::io::IsTerminal;
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -63,9 +65,11 @@ fn init_logs(format: &str) {
         .with_env_filter(filter)
         .with_writer(std::io::stderr);
     if format == "json" {
-        b.json().flatten_event(true).init();
+        b.json().flatten_event(true).with_ansi(false).init();
     } else {
-        b.with_ansi(std::io::stderr().is_terminal()).init();
+        let colour = std::io::stderr().is_terminal()
+            && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
+        b.with_ansi(colour).init();
     }
 }
 

@@ -15,7 +15,7 @@
 //! with another shard or with the control task; the outbox's lock is the machine's own,
 //! shared only with its publishing thread.
 
-use crate::routes::Input;
+use crate::input::Input;
 use scancorr_core::calib::Model;
 use scancorr_core::sample::StreamId;
 use scancorr_core::wire;
@@ -40,6 +40,9 @@ pub(crate) struct Extra {
     /// Batches without the v1.1 stream tag (refused unless `accept_untagged_batches`).
     pub(crate) untagged: u64,
     pub(crate) wrong_machine: u64,
+    /// Samples that arrived while the machine had no calibration in use (never put, or
+    /// quarantined): counted, not corrected (its status also shows them as
+    /// `uncorrected_samples`).
     pub(crate) no_calibration: u64,
     pub(crate) messages: u64,
     /// Messages on the machine's raw streams the service does not correct (v1.2
@@ -481,6 +484,8 @@ pub(crate) struct Core {
     pub(crate) wait_ms: f64,
     /// When the log last said that it is shed.
     pub(crate) told_shed: Option<Instant>,
+    /// Streaming with no calibration in use: when it was last said, and its alarm.
+    pub(crate) uncalibrated: Uncalibrated,
     /// Changed since its snapshot was last published.
     pub(crate) dirty: bool,
 }
@@ -511,7 +516,82 @@ impl Core {
             cost_ns_per_point: 0.0,
             wait_ms: 0.0,
             told_shed: None,
+            uncalibrated: Uncalibrated::default(),
             dirty: true,
+        }
+    }
+}
+
+/// A machine that streams while it has no calibration in use (never put, or quarantined) is
+/// a loud state: its samples are counted (`uncorrected_samples` on its status, the health
+/// reply and the metrics), the log says so at most once per [`UNCALIBRATED_LOG_EVERY`], and
+/// one alarm is raised on its alarm key (cleared when a calibration is put): an
+/// `EstimatorAlarm` with `calibration_version` 0 and no axis, which no estimator alarm has
+/// (every estimator alarm names its axis and the version it was judged with).
+#[derive(Debug, Default)]
+pub(crate) struct Uncalibrated {
+    /// When the log last said so, and the samples since.
+    told: Option<Instant>,
+    since_told: u64,
+    /// Its alarm is raised.
+    alarm_raised: bool,
+    /// Controller time of the newest sample it had no calibration for, ns.
+    newest_t_ns: Option<i64>,
+}
+
+/// The log says that a machine streams with no calibration at most this often.
+pub(crate) const UNCALIBRATED_LOG_EVERY: Duration = Duration::from_secs(10);
+
+/// The alarm of a machine streaming with no calibration (see [`Uncalibrated`]), raised or
+/// cleared at controller time `t_ns`.
+pub(crate) fn no_calibration_alarm(machine: &str, raised: bool, t_ns: i64) -> Vec<u8> {
+    scancorr_proto::v1::EstimatorAlarm {
+        machine_id: machine.to_string(),
+        seq: 0,
+        t_ns,
+        raised,
+        axis: scancorr_proto::v1::Axis::Unspecified as i32,
+        action: scancorr_proto::v1::AlarmAction::Unspecified as i32,
+        calibration_version: 0,
+        ..Default::default()
+    }
+    .encode_to_vec()
+}
+
+/// `n` samples of `machine` arrived with no calibration in use (the newest at `t_ns`):
+/// said at most once per [`UNCALIBRATED_LOG_EVERY`], and the machine's alarm raised once.
+fn uncalibrated(
+    m: &mut Core,
+    machine: &str,
+    n: u64,
+    t_ns: Option<i64>,
+    ready: &mut Vec<Arc<Outbox>>,
+) {
+    let u = &mut m.uncalibrated;
+    u.since_told += n;
+    if u.told.is_none_or(|t| t.elapsed() >= UNCALIBRATED_LOG_EVERY) {
+        warn!(
+            machine,
+            uncorrected_samples = m.extra.no_calibration,
+            since_last = u.since_told,
+            "machine streams with no calibration in use: its samples are counted (`uncorrected_samples` on its status), not corrected, and no point is published until one is put (`scancorr calib put`); said at most once per {} s",
+            UNCALIBRATED_LOG_EVERY.as_secs()
+        );
+        u.told = Some(Instant::now());
+        u.since_told = 0;
+    }
+    if !u.alarm_raised {
+        u.alarm_raised = true;
+        warn!(
+            machine,
+            "no-calibration alarm raised on the machine's alarm key"
+        );
+        if m.outbox.send(Outgoing::Alarm(no_calibration_alarm(
+            machine,
+            true,
+            t_ns.unwrap_or(0),
+        ))) {
+            ready.push(m.outbox.clone());
         }
     }
 }
@@ -891,6 +971,17 @@ impl Shard {
                         beat.beat();
                     }
                     Work::Model(model) => {
+                        if std::mem::take(&mut m.uncalibrated.alarm_raised) {
+                            // Corrected from the next message on: the alarm is cleared.
+                            info!(machine = %machine, "calibration in use: the no-calibration alarm is cleared");
+                            let t = m.uncalibrated.newest_t_ns.unwrap_or(0);
+                            if m.outbox
+                                .send(Outgoing::Alarm(no_calibration_alarm(machine, false, t)))
+                            {
+                                self.ready.push(m.outbox.clone());
+                            }
+                        }
+                        m.uncalibrated.told = None;
                         match m.corrector.as_mut() {
                             Some(c) => c.set_model(model),
                             None => m.corrector = Some(corrector(model, &self.limits)),
@@ -1036,6 +1127,7 @@ fn on_raw(
     // Decoded straight into the corrector (nothing is handed over unless the whole batch
     // decodes); without a calibration, only counted.
     let mut uncorrected = 0u64;
+    let mut newest_t_ns = None;
     let mut corr = m.corrector.as_mut();
     let (resets, seq_resets) = corr
         .as_ref()
@@ -1043,7 +1135,10 @@ fn on_raw(
     let decoded =
         wire::decode_machine_each(sid, bytes, machine, limits.tags, |x| match corr.as_mut() {
             Some(c) => c.push(x, out),
-            None => uncorrected += 1,
+            None => {
+                uncorrected += 1;
+                newest_t_ns = Some(newest_t_ns.unwrap_or(i64::MIN).max(x.t_ns()));
+            }
         });
     match decoded {
         Ok(f) => m.extra.wrong_machine += f,
@@ -1062,6 +1157,10 @@ fn on_raw(
     }
     let Some(corr) = m.corrector.as_mut() else {
         m.extra.no_calibration += uncorrected;
+        if uncorrected > 0 {
+            m.uncalibrated.newest_t_ns = newest_t_ns.or(m.uncalibrated.newest_t_ns);
+            uncalibrated(m, machine, uncorrected, newest_t_ns, ready);
+        }
         return;
     };
     // What waits for the other streams keeps its room; the room of a batch gone through is

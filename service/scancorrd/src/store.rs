@@ -161,8 +161,10 @@ pub struct VersionInfo {
 pub struct Audit {
     /// When it was stored (RFC 3339, UTC, the service's clock).
     pub at: String,
-    /// Who asked: the identity the requester gave (`user@host`), marked as claimed; the
-    /// router's access control has already checked the requester's certificate role.
+    /// Who asked: the identity the requester gave (`user@host`), marked as claimed (`unnamed`
+    /// when it gave no user, never a made-up one); the router's access control has already
+    /// checked the requester's certificate role. zenoh's query API gives the service neither
+    /// the requester's zenoh id nor its certificate (see `server::queries::audit_of`).
     pub by: String,
     /// `put`, or `rollback to vN`.
     pub action: String,

@@ -501,3 +501,46 @@ pub fn calibrate_json(
     assert!(!out.contains("NaN"), "{out}");
     serde_json::from_str(&out).unwrap_or_else(|e| panic!("not JSON ({e}): {out}"))
 }
+
+/// The user's start for a lab test, written to `to` in `dir`: the nominal model from the data
+/// sheet `datasheet` (`scancorr calib nominal`, the styli from `listed` as a qualification
+/// would find them) with the list of effects an earlier lab session chose — `listed`'s kinds
+/// and variants, never its values: every parameter starts at zero — fitted by `scancorr lab
+/// fit` on `bag`. The simulator's calibration only names the effects; the truth only judges.
+#[allow(dead_code)]
+pub fn fitted_start(dir: &Path, listed: &str, datasheet: &str, bag: &str, to: &str) {
+    let nominal = format!("{to}.nominal.json");
+    ok(
+        dir,
+        &[
+            "calib",
+            "nominal",
+            "--datasheet",
+            datasheet,
+            "--tips-from",
+            listed,
+            "--out",
+            &nominal,
+        ],
+    );
+    let listed =
+        scancorr_core::Calibration::from_json(&std::fs::read_to_string(dir.join(listed)).unwrap())
+            .unwrap();
+    let mut start = scancorr_core::Calibration::from_json(
+        &std::fs::read_to_string(dir.join(&nominal)).unwrap(),
+    )
+    .unwrap();
+    start.effects = listed
+        .effects
+        .iter()
+        .map(|e| e.with_params(&vec![0.0; e.params().len()]).unwrap())
+        .collect();
+    let unfitted = format!("{to}.unfitted.json");
+    std::fs::write(dir.join(&unfitted), start.to_json()).unwrap();
+    ok(
+        dir,
+        &[
+            "lab", "fit", "--bag", bag, "--calib", &unfitted, "--out", to,
+        ],
+    );
+}

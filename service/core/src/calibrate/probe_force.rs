@@ -1,5 +1,6 @@
-//! `probe-force`: extrapolation to zero probing force, variant (a) — the same circles on the
-//! master sphere scanned at two or more deflections.
+//! One concern, kept whole: the `probe-force` procedure, extrapolation to zero probing force
+//! (one least squares over all points, [`run`]). Variant (a): the same circles on the master
+//! sphere scanned at two or more deflections.
 //!
 //! Equations. A scanning probe's stylus bends with the probing force, which grows with the
 //! deflection d, so the probe reports the tip short of where it is by K_t·d (K_t = diag(k_u,

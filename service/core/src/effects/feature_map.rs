@@ -148,7 +148,7 @@ impl Config {
             return Err("segments: list the command segment ids the map applies to".into());
         }
         if let Some(f) = &self.feature {
-            crate::calib::check_text("feature", f, false)?;
+            crate::checks::check_text("feature", f, false)?;
         }
         check_finite("head_deg", &self.head_deg)?;
         let (speed, tol) = match (self.speed_mm_s, self.speed_tolerance_mm_s) {

@@ -8,7 +8,7 @@
 //! fixed point.
 
 use super::{temp, Effect, SensorTable};
-use crate::calib::in_range;
+use crate::checks::in_range;
 use crate::sample::{PointContext, Vec3};
 use serde::{Deserialize, Serialize};
 

@@ -103,13 +103,13 @@ impl Config {
             } else {
                 (-1e-3, 1e-3, "1/K")
             };
-            crate::calib::in_range(n, v, lo, hi, unit)?;
+            crate::checks::in_range(n, v, lo, hi, unit)?;
         }
         for (t, a) in &self.alpha_per_tip {
             if !a.is_finite() {
                 return Err(format!("alpha_per_tip.{t}: must be a finite number"));
             }
-            crate::calib::in_range(&format!("alpha_per_tip.{t}"), *a, -1e-3, 1e-3, "1/K")?;
+            crate::checks::in_range(&format!("alpha_per_tip.{t}"), *a, -1e-3, 1e-3, "1/K")?;
         }
         let slot = sensors
             .slot(&self.sensor)

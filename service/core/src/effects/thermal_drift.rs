@@ -23,7 +23,7 @@
 //! same [`Lag`] over the recorded temperatures.
 
 use super::{temp, Effect, SensorTable};
-use crate::calib::in_range;
+use crate::checks::in_range;
 use crate::sample::{PointContext, Vec3};
 use serde::{Deserialize, Serialize};
 

@@ -1,104 +1,18 @@
 //! Compare, diagnose and add: the lab's questions answered on a [`Dataset`].
 
 use super::dataset::Dataset;
-use super::fit::{fit_artifacts, nuisance_row, ArtifactFit, Normal};
+use super::fit::{nuisance_row, ArtifactFit, Normal};
 use super::program::FeatureKind;
 use super::select::{predicted, Score, Space, Spec};
 use super::LabError;
-use crate::effects::{self as fx, Effect, EffectConfig};
-use crate::sample::{Axis, Vec3};
+use crate::effects::{Effect, EffectConfig};
+use crate::sample::Vec3;
 use serde::Serialize;
 
-/// The dataset prepared for fitting: artifact fit, masks, baseline figures.
-#[derive(Debug, Clone)]
-pub struct Prepared {
-    /// Artifact fit on all points.
-    pub art: ArtifactFit,
-    /// Points used for fitting.
-    pub fit_mask: Vec<bool>,
-    /// Held-out points.
-    pub held_mask: Vec<bool>,
-    /// Residual RMS on the fit set after refitting placements, µm.
-    pub rms_fit_um: f64,
-    /// Same on the held-out set (its own placements), µm.
-    pub rms_held_um: f64,
-    /// Lag-1 autocorrelation of the residuals (for the effective number of points).
-    pub rho: f64,
-}
-
-fn nuisance_ss(ds: &Dataset, art: &ArtifactFit, y: &[f64], mask: &[bool]) -> (f64, usize) {
-    let mut ne = Normal::new(art.n_cols);
-    let mut row = vec![];
-    for (i, p) in ds.points.iter().enumerate() {
-        if mask[i] && art.features[p.feature].is_some() {
-            nuisance_row(art, p, &p.surface, &mut row);
-            ne.add(&[], &row, y[i]);
-        }
-    }
-    let n = ne.n;
-    if n == 0 {
-        return (0.0, 0);
-    }
-    (ne.solve().ss, n)
-}
-
-fn rms_um(ss: f64, n: usize) -> f64 {
-    if n == 0 {
-        0.0
-    } else {
-        (ss / n as f64).sqrt() * 1e3
-    }
-}
-
-/// Fits the artifacts and the baseline.
-pub fn prepare(ds: &Dataset) -> Result<Prepared, LabError> {
-    let surfaces: Vec<Vec3> = ds.points.iter().map(|p| p.surface).collect();
-    let all = vec![true; ds.points.len()];
-    let art = fit_artifacts(ds, &surfaces, &all);
-    if art.features.iter().all(|f| f.is_none()) {
-        return Err(LabError::Data(
-            "no artifact could be fitted: a circle needs at least 3 points around its circumference, a face 3 points along it".into(),
-        ));
-    }
-    let fit_mask: Vec<bool> = ds
-        .points
-        .iter()
-        .map(|p| !p.held_out && art.features[p.feature].is_some())
-        .collect();
-    let held_mask: Vec<bool> = ds
-        .points
-        .iter()
-        .map(|p| p.held_out && art.features[p.feature].is_some())
-        .collect();
-    if fit_mask.iter().filter(|m| **m).count() < 50 {
-        return Err(LabError::Data("too few points to fit (fewer than 50 scan points in contact): scan the artifact longer".into()));
-    }
-    let (ssf, nf) = nuisance_ss(ds, &art, &art.residual, &fit_mask);
-    let (ssh, nh) = nuisance_ss(ds, &art, &art.residual, &held_mask);
-    let mut num = 0.0;
-    let mut den = 0.0;
-    for i in 1..ds.points.len() {
-        if ds.points[i].segment == ds.points[i - 1].segment
-            && ds.points[i].bag == ds.points[i - 1].bag
-        {
-            num += art.residual[i] * art.residual[i - 1];
-            den += art.residual[i] * art.residual[i];
-        }
-    }
-    let rho = if den > 0.0 {
-        (num / den).clamp(0.0, 0.99)
-    } else {
-        0.0
-    };
-    Ok(Prepared {
-        art,
-        fit_mask,
-        held_mask,
-        rms_fit_um: rms_um(ssf, nf),
-        rms_held_um: rms_um(ssh, nh),
-        rho,
-    })
-}
+pub use super::candidates::{candidate, library_candidates, moves, moves_named, variant_key};
+pub use super::compare::{compare, Bin, Comparison, Harmonics};
+pub use super::select::fit_effects;
+pub use super::types::{prepare, Candidate, EffectParams, FitOutcome, Move, Param, Prepared};
 
 /// Columns g_i·r_ik of effect configs for every point (row-major, `k` per point).
 fn columns(
@@ -142,519 +56,6 @@ fn columns(
     Ok((cols, k, models))
 }
 
-/// A fitted parameter.
-///
-/// `sigma` is honest about what moved the value: σ² = max(σ_stat², spread²) + shift², with
-/// σ_stat from the penalised normal matrix (scaled by the residual, inflated for correlated
-/// residuals), spread half the difference of the two folds' own fits (a second estimate of
-/// the statistical part that sees model error), and shift the change the penalties (ridge,
-/// smoothness) make against the least-penalised fit of their ladders — a ridge estimator's
-/// covariance omits its bias. A parameter the data does not determine has no σ and is
-/// listed in `unidentifiable`.
-#[derive(Debug, Clone, Serialize)]
-pub struct Param {
-    /// Name with unit.
-    pub name: String,
-    /// Value.
-    pub value: f64,
-    /// Standard uncertainty (see above); absent when not identifiable.
-    pub sigma: Option<f64>,
-    /// Its statistical part from the normal matrix alone.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub sigma_stat: Option<f64>,
-    /// |value − least-penalised value| (when a penalty above the ladders' least was used).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub penalty_shift: Option<f64>,
-    /// Half the difference of the two folds' fits.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub fold_spread: Option<f64>,
-    /// What determines it, when not the data alone: a penalty, only its correlation with
-    /// other parameters, or nothing (not determined).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub note: Option<String>,
-}
-
-/// The fitted parameters of one effect.
-#[derive(Debug, Clone, Serialize)]
-pub struct EffectParams {
-    /// The effect's id.
-    pub effect: String,
-    /// Its parameters, in the effect's order.
-    pub params: Vec<Param>,
-}
-
-/// The outcome of fitting some effects' parameters jointly with the artifact placements.
-#[derive(Debug, Clone, Serialize)]
-pub struct FitOutcome {
-    /// Fitted configs (parameters = current + fitted change).
-    #[serde(skip)]
-    pub configs: Vec<EffectConfig>,
-    /// Parameters of each config.
-    pub params: Vec<Vec<Param>>,
-    /// Parameters this data cannot determine (given the minimum-norm value).
-    pub unidentifiable: Vec<String>,
-    /// Number of fitted parameters.
-    pub k: usize,
-    /// RMS on the fit set before and after, µm.
-    pub rms_before_um: f64,
-    /// After.
-    pub rms_after_um: f64,
-    /// RMS on held-out data before and after (placements refitted there), µm.
-    pub heldout_rms_before_um: f64,
-    /// After.
-    pub heldout_rms_after_um: f64,
-    /// Fraction of the held-out residual's sum of squares explained.
-    pub explained: f64,
-    /// RMS of the residual component removed on held-out data, µm.
-    pub explained_component_um: f64,
-    /// Cross-validated RMS (alternate scans predicted from the others) before, µm.
-    pub cv_rms_before_um: f64,
-    /// After.
-    pub cv_rms_after_um: f64,
-    /// Change of the Bayesian information criterion on the fit set (negative: better).
-    pub delta_bic: f64,
-    /// Fitted correction per point (for confounding checks), projected on the normal.
-    #[serde(skip)]
-    pub predicted: Vec<f64>,
-}
-
-/// Fits the parameters of `configs` (their current values are the starting point; the
-/// change is fitted) jointly with the artifact placements, every effect refitted, tables
-/// smoothed as cross-validation chooses. `configs` are the model's effects (already in the
-/// data) and possibly new ones with zero parameters.
-pub fn fit_effects(
-    ds: &Dataset,
-    prep: &Prepared,
-    configs: &[EffectConfig],
-) -> Result<FitOutcome, LabError> {
-    let space = Space::build(
-        ds,
-        prep,
-        configs.iter().map(|c| (c.id(), c.clone(), true)).collect(),
-    )?;
-    let spec = Spec {
-        fitted: (0..configs.len()).collect(),
-        removed: vec![],
-    };
-    let base = space.score(&Spec::default());
-    let score = space.score(&spec);
-    let mut o = space.fit(prep, &spec, &score, &base)?;
-    let pairs: Vec<(EffectConfig, Vec<f64>)> = configs
-        .iter()
-        .zip(&o.configs)
-        .map(|(b, a)| (a.clone(), delta(b, a)))
-        .collect();
-    o.predicted = predicted(ds, prep, &pairs)?;
-    Ok(o)
-}
-
-impl FitOutcome {
-    /// The parameters of each fitted effect, by id.
-    pub fn by_effect(&self) -> Vec<EffectParams> {
-        self.configs
-            .iter()
-            .zip(&self.params)
-            .map(|(c, p)| EffectParams {
-                effect: c.id(),
-                params: p.clone(),
-            })
-            .collect()
-    }
-}
-
-fn delta(before: &EffectConfig, after: &EffectConfig) -> Vec<f64> {
-    after
-        .params()
-        .iter()
-        .zip(before.params())
-        .map(|(a, b)| a - b)
-        .collect()
-}
-
-/// A change to the model: what `lab diagnose` proposes and `lab add` / `lab remove` make.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Move {
-    /// Add a library effect (with variant).
-    Add,
-    /// Replace a model effect (by id) with another variant.
-    Swap,
-    /// Take a model effect (by id) out.
-    Drop,
-}
-
-/// A candidate move with the configuration it brings in.
-#[derive(Debug, Clone)]
-pub struct Candidate {
-    /// The move.
-    pub action: Move,
-    /// The effect brought in (name with variant) or dropped (id).
-    pub effect: String,
-    /// The model effect replaced or dropped (its id).
-    pub replaces: Option<String>,
-    /// The configuration brought in (zero parameters); none for a drop.
-    pub config: Option<EffectConfig>,
-}
-
-/// The candidate effects of the library not in the calibration, with their variants.
-pub fn library_candidates(ds: &Dataset) -> Vec<(String, EffectConfig)> {
-    moves(ds, &ds.calibration.effects)
-        .into_iter()
-        .filter(|c| c.action == Move::Add)
-        .filter_map(|c| c.config.map(|cfg| (c.effect, cfg)))
-        .collect()
-}
-
-/// The variant of a config, by its configuration: the kind and the options that change what
-/// it models (a guide's axis, the axis its angular term turns about and which tables it has; a
-/// rigid body's chain, order, spline or polynomial and its errors; for every other kind its
-/// parameters' names, which spell its order, split, per-tip and powers), never its values nor
-/// sizes that follow the data's span (a table's knots). Parameter names alone do not say
-/// which axis a guide's pitch turns about, so `about=y` and `about=z` looked alike.
-pub fn variant_key(c: &EffectConfig) -> String {
-    match c {
-        EffectConfig::GuideStraightness(g) => {
-            let about = g.pitch_about.unwrap_or(match g.axis {
-                Axis::X => Axis::Y,
-                Axis::Y => Axis::X,
-                Axis::Z => Axis::Y,
-            });
-            let tables: Vec<&str> = g.straightness.keys().map(|a| a.name()).collect();
-            format!(
-                "guide_straightness:axis={},straightness={},{}",
-                g.axis.name(),
-                tables.join("+"),
-                if g.pitch_rad.is_some() {
-                    format!("about={}", about.name())
-                } else {
-                    "no pitch".into()
-                }
-            )
-        }
-        EffectConfig::RigidBody(r) => {
-            let errors: Vec<String> = r.errors.keys().map(|e| e.name().to_string()).collect();
-            format!(
-                "rigid_body:chain={:?},order={},{},errors={}",
-                r.chain,
-                r.order,
-                if r.spline_segments.is_some() {
-                    "spline"
-                } else {
-                    "polynomial"
-                },
-                errors.join("+")
-            )
-        }
-        _ => format!("{}:{}", c.kind(), c.param_names().join("|")),
-    }
-}
-
-/// Two configs are the same variant when their [`variant_key`]s agree.
-fn same_variant(a: &EffectConfig, b: &EffectConfig) -> bool {
-    a.kind() == b.kind() && variant_key(a) == variant_key(b)
-}
-
-fn guide_axis(c: &EffectConfig) -> Option<Axis> {
-    match c {
-        EffectConfig::GuideStraightness(g) => Some(g.axis),
-        _ => None,
-    }
-}
-
-/// Every move the lab considers from `model`: library effects (all variants) not in it,
-/// other variants of those in it, and dropping each.
-pub fn moves(ds: &Dataset, model: &[EffectConfig]) -> Vec<Candidate> {
-    let mut v = vec![];
-    for kind in fx::KINDS {
-        if kind == "custom" {
-            continue;
-        }
-        let present: Vec<&EffectConfig> = model.iter().filter(|e| e.kind() == kind).collect();
-        for name in variants(kind, ds) {
-            let Ok(mut cfg) = candidate(&name, ds) else {
-                continue;
-            };
-            // Guides of different axes are different effects; every other kind is one.
-            let same: Vec<&&EffectConfig> = present
-                .iter()
-                .filter(|e| guide_axis(e) == guide_axis(&cfg))
-                .collect();
-            match same.first() {
-                None => {
-                    if !present.is_empty() {
-                        if let Some(a) = guide_axis(&cfg) {
-                            cfg.set_id(Some(format!("guide_straightness_{}", a.name())));
-                        }
-                    }
-                    if model.iter().any(|e| e.id() == cfg.id()) {
-                        continue;
-                    }
-                    v.push(Candidate {
-                        action: Move::Add,
-                        effect: name,
-                        replaces: None,
-                        config: Some(cfg),
-                    });
-                }
-                Some(e) if !same_variant(e, &cfg) => {
-                    let id = e.id();
-                    cfg.set_id((id != cfg.kind()).then(|| id.clone()));
-                    v.push(Candidate {
-                        action: Move::Swap,
-                        effect: name,
-                        replaces: Some(id),
-                        config: Some(cfg),
-                    });
-                }
-                Some(_) => {}
-            }
-        }
-    }
-    for e in model {
-        v.push(Candidate {
-            action: Move::Drop,
-            effect: e.id(),
-            replaces: Some(e.id()),
-            config: None,
-        });
-    }
-    v
-}
-
-fn tips(ds: &Dataset) -> Vec<u32> {
-    let t: std::collections::BTreeSet<u32> = ds.points.iter().map(|p| p.ctx.tip_id).collect();
-    t.into_iter().collect()
-}
-
-fn variants(kind: &str, ds: &Dataset) -> Vec<String> {
-    let several_tips = tips(ds).len() > 1;
-    let mut v: Vec<String> = match kind {
-        "accel_deflection" => vec![
-            "accel_deflection".into(),
-            "accel_deflection:full".into(),
-            "accel_deflection:full,order=1".into(),
-        ],
-        "servo_gain" => vec!["servo_gain".into(), "servo_gain:powers=1+2".into()],
-        "servo_phase" => vec![
-            "servo_phase".into(),
-            "servo_phase:static".into(),
-            "servo_phase:static,direction".into(),
-        ],
-        "stylus_thermal" => vec!["stylus_thermal".into(), "stylus_thermal:split".into()],
-        "probe_force" => vec!["probe_force".into()],
-        "guide_straightness" => Axis::ALL
-            .iter()
-            .filter(|a| axis_span(ds, **a).1 - axis_span(ds, **a).0 > 100.0)
-            .flat_map(|a| {
-                Axis::ALL
-                    .iter()
-                    .filter(|r| *r != a)
-                    .map(|r| format!("guide_straightness:axis={},about={}", a.name(), r.name()))
-                    .collect::<Vec<_>>()
-            })
-            .collect(),
-        "rigid_body" => vec![
-            "rigid_body:order=2".into(),
-            "rigid_body:order=3".into(),
-            "rigid_body:spline".into(),
-        ],
-        "probe_lobing" => vec!["probe_lobing".into()],
-        k => vec![k.to_string()],
-    };
-    if several_tips && matches!(kind, "probe_force" | "stylus_thermal") {
-        v.push(format!("{kind}:per_tip"));
-    }
-    v
-}
-
-pub(crate) fn axis_span(ds: &Dataset, a: Axis) -> (f64, f64) {
-    ds.points.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
-        (
-            lo.min(p.ctx.scale[a.index()]),
-            hi.max(p.ctx.scale[a.index()]),
-        )
-    })
-}
-
-/// A zero-parameter effect from a candidate name: `kind[:option,option=value…]`.
-/// Options: accel_deflection `full`, `order=0|1|2`; servo_gain `powers=1+2`; stylus_thermal
-/// `split`, `per_tip`; probe_force `per_tip`; guide_straightness `axis=x|y|z`, `about=x|y|z`
-/// (rotation axis of its angular term), `knots=N`; servo_phase `order=0|1`, `static` (the
-/// term that keeps its sign with the scan direction), `static,direction` (both); rigid_body
-/// `order=1…4`, `spline` (cubic B-spline tables, `step=MM` between knots, default 50),
-/// `chain=moving_bridge|fixed_bridge|cantilever|horizontal_arm`; probe_lobing
-/// `harmonics=2…8`.
-pub fn candidate(name: &str, ds: &Dataset) -> Result<EffectConfig, LabError> {
-    let (kind, opts) = name.split_once(':').unwrap_or((name, ""));
-    let mut o = std::collections::BTreeMap::new();
-    for kv in opts.split(',').filter(|s| !s.is_empty()) {
-        let (k, v) = kv.split_once('=').unwrap_or((kv, ""));
-        o.insert(k.to_string(), v.to_string());
-    }
-    let bad = |m: String| LabError::Data(format!("effect `{name}`: {m}"));
-    let order = |o: &std::collections::BTreeMap<String, String>| -> Result<u8, LabError> {
-        match o.get("order").map(|s| s.as_str()) {
-            None => Ok(0),
-            Some(s) => s
-                .parse::<u8>()
-                .ok()
-                .filter(|v| *v <= 2)
-                .ok_or_else(|| bad("order must be 0, 1 or 2".into())),
-        }
-    };
-    let cfg = match kind {
-        "accel_deflection" => EffectConfig::AccelDeflection(fx::accel_deflection::Config::zeros(
-            order(&o)?,
-            !o.contains_key("full"),
-        )),
-        "servo_phase" => EffectConfig::ServoPhase(fx::servo_phase::Config::zeros_variant(
-            order(&o)?,
-            !o.contains_key("static") || o.contains_key("direction"),
-            o.contains_key("static"),
-        )),
-        "servo_gain" => {
-            let powers = match o.get("powers") {
-                None => vec![2],
-                Some(s) => s
-                    .split('+')
-                    .map(|p| p.parse::<u32>().map_err(|_| bad("powers like 1+2".into())))
-                    .collect::<Result<_, _>>()?,
-            };
-            EffectConfig::ServoGain(fx::servo_gain::Config::zeros(order(&o)?, powers))
-        }
-        "stylus_thermal" => EffectConfig::StylusThermal(if o.contains_key("per_tip") {
-            fx::stylus_thermal::Config::zeros_per_tip(&tips(ds), o.contains_key("split"))
-        } else {
-            fx::stylus_thermal::Config::zeros(o.contains_key("split"))
-        }),
-        "scale_thermal" => EffectConfig::ScaleThermal(fx::scale_thermal::Config::zeros()),
-        "probe_force" => EffectConfig::ProbeForce(if o.contains_key("per_tip") {
-            fx::probe_force::Config::zeros_per_tip(&tips(ds))
-        } else {
-            fx::probe_force::Config::zeros()
-        }),
-        "probe_lobing" => {
-            let h = match o.get("harmonics") {
-                None => 5,
-                Some(s) => s
-                    .parse::<u8>()
-                    .ok()
-                    .filter(|h| (2..=8).contains(h))
-                    .ok_or_else(|| bad("harmonics must be 2…8".into()))?,
-            };
-            EffectConfig::ProbeLobing(fx::probe_lobing::Config::zeros(h, 0))
-        }
-        "rigid_body" => {
-            let ord = match o.get("order") {
-                None => 2,
-                Some(s) => s
-                    .parse::<u8>()
-                    .ok()
-                    .filter(|v| (1..=4).contains(v))
-                    .ok_or_else(|| bad("order must be 1…4".into()))?,
-            };
-            let chain = match o
-                .get("chain")
-                .map(|s| s.as_str())
-                .unwrap_or("moving_bridge")
-            {
-                "moving_bridge" => fx::rigid_body::Chain::MovingBridge,
-                "fixed_bridge" => fx::rigid_body::Chain::FixedBridge,
-                "cantilever" => fx::rigid_body::Chain::Cantilever,
-                "horizontal_arm" => fx::rigid_body::Chain::HorizontalArm,
-                c => {
-                    return Err(bad(format!(
-                        "chain `{c}` (moving_bridge, fixed_bridge, cantilever, horizontal_arm)"
-                    )))
-                }
-            };
-            let ranges = Axis::ALL.map(|a| {
-                let (lo, hi) = axis_span(ds, a);
-                if hi - lo > 1.0 {
-                    [lo.floor(), hi.ceil()]
-                } else {
-                    [lo.floor() - 1.0, lo.floor() + 1.0]
-                }
-            });
-            if o.contains_key("spline") {
-                let step = match o.get("step") {
-                    None => 50.0,
-                    Some(s) => s
-                        .parse::<f64>()
-                        .ok()
-                        .filter(|v| (5.0..=1000.0).contains(v))
-                        .ok_or_else(|| bad("step must be 5…1000 (mm between knots)".into()))?,
-                };
-                EffectConfig::RigidBody(fx::rigid_body::Config::zeros_spline(chain, ranges, step))
-            } else {
-                EffectConfig::RigidBody(fx::rigid_body::Config::zeros(chain, ord, ranges))
-            }
-        }
-        "guide_straightness" => {
-            let axis = match o.get("axis").map(|s| s.as_str()).unwrap_or("x") {
-                "x" => Axis::X,
-                "y" => Axis::Y,
-                "z" => Axis::Z,
-                a => return Err(bad(format!("axis `{a}` (x, y or z)"))),
-            };
-            let (lo, hi) = axis_span(ds, axis);
-            // Not more than 1 mm, or no points at all (the span is then not finite).
-            if (hi - lo).partial_cmp(&1.0) != Some(std::cmp::Ordering::Greater) {
-                return Err(bad(format!(
-                    "the data does not move along {} (scan along the axis' travel)",
-                    axis.name()
-                )));
-            }
-            let n = match o.get("knots") {
-                Some(s) => s
-                    .parse::<usize>()
-                    .map_err(|_| bad("knots must be a number".into()))?,
-                None => (((hi - lo) / 20.0).round() as usize + 1).clamp(3, 61),
-            };
-            let mut g = fx::guide_straightness::Config::zeros(axis, lo.floor(), hi.ceil(), n, true);
-            if let Some(r) = o.get("about") {
-                let r = match r.as_str() {
-                    "x" => Axis::X,
-                    "y" => Axis::Y,
-                    "z" => Axis::Z,
-                    r => return Err(bad(format!("about `{r}` (x, y or z)"))),
-                };
-                if r == axis {
-                    return Err(bad(
-                        "the angular error turns about an axis other than the moving one".into(),
-                    ));
-                }
-                g.pitch_about = Some(r);
-            }
-            EffectConfig::GuideStraightness(g)
-        }
-        "custom" => return Err(bad("a custom effect needs terms (--term AXIS:EXPR)".into())),
-        "feature_map" => {
-            return Err(LabError::Data(
-                "feature_map: a scan's dynamic map is measured, not fitted by the lab: \
-                 `scancorr calibrate dynamic-map` (slow and fast scans of the feature at two \
-                 deflections, e.g. `scancorr sim --program dynamic-map`)"
-                    .into(),
-            ))
-        }
-        "thermal_drift" => {
-            return Err(LabError::Data(
-                "thermal_drift: its sensors and lags are found from a drift recording (the \
-                 displacement of the tool against the part with the structure's temperatures, \
-                 over hours), not from artifact scans: `scancorr calibrate thermal-drift`"
-                    .into(),
-            ))
-        }
-        k => {
-            return Err(LabError::Data(format!(
-                "unknown effect `{k}` (known: {})",
-                fx::KINDS.join(", ")
-            )))
-        }
-    };
-    Ok(cfg)
-}
-
 /// A measurement that makes an effect visible — counted only where it acts along the
 /// measured direction (a circle fit sees radial errors, a face its normal).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -691,7 +92,7 @@ fn levers(kind: &str) -> &'static [Lever] {
     }
 }
 
-fn lever_text(l: Lever, a: &str, b: &str, covered: bool) -> String {
+fn lever_text(l: Lever, a: &str, b: &str, covered: bool, positions: &str) -> String {
     let more = if covered { "more " } else { "" };
     let (with, without) = (a, b);
     match l {
@@ -699,7 +100,7 @@ fn lever_text(l: Lever, a: &str, b: &str, covered: bool) -> String {
         Lever::Radius => format!("{more}circles of another diameter at the same speeds (a smaller ring or a sphere's equator: the rotation frequency v/2πr and the acceleration v²/r scale differently, which separates a term of {without} in f¹ from {with}; a term in f² follows v²/r as {with} does at any diameter, and only the scans of a face accelerated along its normal separate it)"),
         Lever::Speed => format!("scans at {more}other speeds (the effects grow differently with speed)"),
         Lever::Direction => format!("scans in {more}both directions, CW and CCW ({with} changes sign with direction)"),
-        Lever::Position => format!("the artifact at {more}other positions in the volume ({with} depends on position)"),
+        Lever::Position => format!("the artifact at {more}other positions in the volume ({with} depends on position; {positions}; `scancorr lab plan` chooses them and predicts each parameter's σ)"),
         Lever::Temperature => format!("a {more}temperature change during the campaign ({with} depends on temperature)"),
         Lever::Deflection => format!("scans at {more}other probe deflections ({with} depends on the deflection)"),
         Lever::Stylus => format!("{more}other styli or head angles ({with} depends on the stylus)"),
@@ -811,19 +212,53 @@ fn significant(
     noise_um: f64,
 ) -> bool {
     let n = s.cv_n.max(1) as f64;
-    let noise = noise_um.max(0.01) * 1e-3;
-    let gain = base.cv_ss - s.cv_ss;
-    // Held-out data at another position or run (when given) must not get worse than with the
-    // model refitted as it is: an effect that only predicts the alternate scans of the same
-    // placements is not kept.
-    let held_ok =
-        o.heldout_rms_after_um <= 1.01 * base_held_um + 0.02 * noise_um || base_held_um == 0.0;
+    let rms = |ss: f64| (ss.max(0.0) / n).sqrt() * 1e3;
     match action {
-        Move::Add | Move::Swap => {
-            gain > 0.0 && (gain / n).sqrt() >= 0.5 * noise && gain >= 0.01 * base.cv_ss && held_ok
+        Move::Add | Move::Swap => significant_gain(
+            rms(base.cv_ss),
+            rms(s.cv_ss),
+            base_held_um,
+            o.heldout_rms_after_um,
+            noise_um,
+        ),
+        Move::Drop => {
+            let noise = noise_um.max(0.01) * 1e-3;
+            let gain = base.cv_ss - s.cv_ss;
+            (gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise)
+                && held_not_worse(base_held_um, o.heldout_rms_after_um, noise_um)
         }
-        Move::Drop => (gain >= 0.0 || ((-gain) / n).sqrt() < 0.15 * noise) && held_ok,
     }
+}
+
+/// The significance test of an addition (a library move, a swap, or a structure made a
+/// custom effect): from `base_cv_um` to `after_cv_um` cross-validated RMS (scans predicted
+/// from the others, the same points before and after), the move removes a component of at
+/// least half the noise floor and at least 1 % of the sum of squares, and held-out data at
+/// another position or run (`base_held_um` → `after_held_um`; 0 before when there is none)
+/// does not get worse than with the model refitted as it is: an effect that only predicts the
+/// alternate scans of the same placements is not kept.
+pub fn significant_gain(
+    base_cv_um: f64,
+    after_cv_um: f64,
+    base_held_um: f64,
+    after_held_um: f64,
+    noise_um: f64,
+) -> bool {
+    let noise = noise_um.max(0.01);
+    let (b, a) = (base_cv_um, after_cv_um);
+    if !(a.is_finite() && b.is_finite()) {
+        return false;
+    }
+    let gain2 = b * b - a * a;
+    gain2 > 0.0
+        && gain2.sqrt() >= 0.5 * noise
+        && gain2 >= 0.01 * b * b
+        && held_not_worse(base_held_um, after_held_um, noise_um)
+}
+
+fn held_not_worse(base_held_um: f64, after_held_um: f64, noise_um: f64) -> bool {
+    base_held_um == 0.0
+        || (after_held_um.is_finite() && after_held_um <= 1.01 * base_held_um + 0.02 * noise_um)
 }
 
 /// The width of a near-tie of [`rank_key`]: keys in one bucket of this width are ranked by
@@ -979,19 +414,66 @@ fn temperature_range(ds: &Dataset) -> f64 {
     t.iter().cloned().fold(f64::MIN, f64::max) - t.iter().cloned().fold(f64::MAX, f64::min)
 }
 
-fn separating(a: &str, b: &str, cov: &[Lever]) -> Vec<String> {
+/// The positions a campaign measured, in words: how many distinct artifact centres and the
+/// span of the centres along each axis (a rigid body of order k needs k + 1 distinct
+/// positions along each axis it depends on, spread over the travel).
+fn positions_text(ds: &Dataset) -> String {
+    let mut centres: Vec<[f64; 3]> = vec![];
+    for (_, f) in &ds.features {
+        let c = f.nominal_center;
+        if !centres
+            .iter()
+            .any(|o| (0..3).all(|i| (o[i] - c[i]).abs() < 1.0))
+        {
+            centres.push(c);
+        }
+    }
+    let span = |i: usize| {
+        let lo = centres.iter().map(|c| c[i]).fold(f64::MAX, f64::min);
+        let hi = centres.iter().map(|c| c[i]).fold(f64::MIN, f64::max);
+        hi - lo
+    };
+    let axes: Vec<&str> = (0..3)
+        .filter(|&i| span(i) < 100.0)
+        .map(|i| ["x", "y", "z"][i])
+        .collect();
+    let unvaried = if axes.is_empty() {
+        String::new()
+    } else {
+        format!(", none apart by 100 mm along {}", axes.join(", "))
+    };
+    format!(
+        "this campaign has {} artifact position(s), their centres spanning {:.0} × {:.0} × {:.0} mm{unvaried}; an effect of order k in position needs k + 1 positions apart along each axis it depends on, spread over the travel",
+        centres.len(),
+        span(0),
+        span(1),
+        span(2)
+    )
+}
+
+/// Measurements that would separate `a` from `b`: the levers one responds to and the other
+/// does not. A lever the campaign already has (`cov`) did not separate them: it is named
+/// ("more …") only when no lever the campaign lacks would.
+fn separating(a: &str, b: &str, cov: &[Lever], ds: &Dataset) -> Vec<String> {
     let (ka, kb) = (
         a.split(':').next().unwrap_or(a),
         b.split(':').next().unwrap_or(b),
     );
     let (la, lb) = (levers(ka), levers(kb));
-    let mut out = vec![];
+    let positions = positions_text(ds);
+    let mut levers: Vec<(Lever, &str, &str)> = vec![];
     for l in la.iter().filter(|l| !lb.contains(l)) {
-        out.push(lever_text(*l, ka, kb, cov.contains(l)));
+        levers.push((*l, ka, kb));
     }
     for l in lb.iter().filter(|l| !la.contains(l)) {
-        out.push(lever_text(*l, kb, ka, cov.contains(l)));
+        levers.push((*l, kb, ka));
     }
+    let missing = levers.iter().any(|(l, _, _)| !cov.contains(l));
+    let mut out: Vec<String> = levers
+        .iter()
+        .filter(|(l, _, _)| !(missing && cov.contains(l)))
+        .map(|(l, x, y)| lever_text(*l, x, y, cov.contains(l), &positions))
+        .collect();
     if [ka, kb].contains(&"guide_straightness") {
         // A measurement outside the artifacts' scans determines the guide on its own.
         out.push(
@@ -1161,7 +643,7 @@ fn move_prediction(
         if only_new && blk.in_model {
             continue;
         }
-        pairs.push((after.clone(), delta(&blk.config, after)));
+        pairs.push((after.clone(), super::select::delta(&blk.config, after)));
     }
     if !only_new {
         for &r in &spec.removed {
@@ -1316,7 +798,7 @@ fn choice_advice(
         v.push(format!(
             "the held-out bags chose `{}`; to confirm, measure what separates them: {}",
             first.1.effect,
-            separating(&first.1.effect, &second.1.effect, &coverage(ds)).join("; ")
+            separating(&first.1.effect, &second.1.effect, &coverage(ds), ds).join("; ")
         ));
     } else {
         v.push(
@@ -1324,39 +806,6 @@ fn choice_advice(
         );
     }
     v
-}
-
-/// The moves `lab add NAME` considers: a variant (`kind:options`) or every variant of a kind,
-/// each an addition or, when the model has that effect, a swap.
-pub fn moves_named(ds: &Dataset, name: &str) -> Result<Vec<Candidate>, LabError> {
-    let model = &ds.calibration.effects;
-    let all = moves(ds, model);
-    let picked: Vec<Candidate> = all
-        .into_iter()
-        .filter(|c| c.action != Move::Drop)
-        .filter(|c| {
-            if name.contains(':') {
-                c.effect == name
-            } else {
-                c.effect.split(':').next() == Some(name)
-            }
-        })
-        .collect();
-    if !picked.is_empty() {
-        return Ok(picked);
-    }
-    let cfg = candidate(name, ds)?; // names the problem (unknown effect, bad option)
-    if model.iter().any(|e| same_variant(e, &cfg)) {
-        return Err(LabError::Data(format!(
-            "`{name}` is already in the model in this variant (use `lab fit` to refit it)"
-        )));
-    }
-    Ok(vec![Candidate {
-        action: Move::Add,
-        effect: name.to_string(),
-        replaces: None,
-        config: Some(cfg),
-    }])
 }
 
 /// Diagnoses the residual of the dataset's calibration: tries every library effect not in the
@@ -1432,7 +881,7 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
                     confounded.push(Confounded {
                         effects: [bc.effect.clone(), c.effect.clone()],
                         r2: [r_ab, r_ba],
-                        separate_by: separating(&bc.effect, &c.effect, &cov),
+                        separate_by: separating(&bc.effect, &c.effect, &cov, ds),
                     });
                 }
             }
@@ -1527,373 +976,5 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         points: npts,
         skipped: sc.skipped,
         prediction,
-    })
-}
-
-/// A bin of a residual breakdown.
-#[derive(Debug, Clone, Serialize)]
-pub struct Bin {
-    /// Feature binned by.
-    pub feature: String,
-    /// Bin label.
-    pub bin: String,
-    /// Points.
-    pub n: usize,
-    /// Residual RMS, µm.
-    pub rms_um: f64,
-    /// Mean residual, µm.
-    pub mean_um: f64,
-    /// Stands out from the rest.
-    pub failing: bool,
-    /// A worse failing bin of another feature holding (≥ 80 % of the smaller's) points: this
-    /// one is those scans seen another way (`feature bin`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub same_points_as: Option<String>,
-}
-
-/// |a ∩ b| / min(|a|, |b|) of two sorted index lists (the overlap coefficient).
-fn overlap(a: &[u32], b: &[u32]) -> f64 {
-    let (mut i, mut j, mut both) = (0, 0, 0usize);
-    while i < a.len() && j < b.len() {
-        match a[i].cmp(&b[j]) {
-            std::cmp::Ordering::Less => i += 1,
-            std::cmp::Ordering::Greater => j += 1,
-            std::cmp::Ordering::Equal => {
-                both += 1;
-                i += 1;
-                j += 1;
-            }
-        }
-    }
-    let small = a.len().min(b.len());
-    if small == 0 {
-        0.0
-    } else {
-        both as f64 / small as f64
-    }
-}
-
-/// Harmonics of a circle feature's residual.
-#[derive(Debug, Clone, Serialize)]
-pub struct Harmonics {
-    /// Feature index.
-    pub feature: usize,
-    /// Artifact name.
-    pub artifact: String,
-    /// Amplitudes of 1θ…5θ, µm.
-    pub amplitude_um: [f64; 5],
-}
-
-/// A comparison of the model with the artifacts.
-#[derive(Debug, Clone, Serialize)]
-pub struct Comparison {
-    /// Residual RMS (all points, shared placements), µm.
-    pub rms_um: f64,
-    /// Peak-to-valley, µm.
-    pub pv_um: f64,
-    /// Noise floor, µm.
-    pub noise_floor_um: f64,
-    /// Bins that stand out, worst first.
-    pub failures: Vec<Bin>,
-    /// Every bin.
-    pub bins: Vec<Bin>,
-    /// Harmonics per circle feature.
-    pub harmonics: Vec<Harmonics>,
-    /// Tracking residual of the nominal model by segment: (bag, segment, µm), worst first.
-    pub tracking: Vec<(usize, u32, f64)>,
-    /// Points.
-    pub points: usize,
-    /// One trace per circle feature, direction and speed (see [`super::traces`]).
-    pub traces: Vec<super::traces::Trace>,
-    /// Residual per point, µm (for plots).
-    #[serde(skip)]
-    pub residual_um: Vec<f64>,
-}
-
-impl Comparison {
-    /// The failing bins that hold (nearly) the points of failing bin `b`, seen through another
-    /// feature (`feature bin` labels).
-    pub fn same_points(&self, b: &Bin) -> Vec<String> {
-        let label = format!("{} {}", b.feature, b.bin);
-        self.failures
-            .iter()
-            .filter(|o| o.same_points_as.as_deref() == Some(label.as_str()))
-            .map(|o| format!("{} {}", o.feature, o.bin))
-            .collect()
-    }
-}
-
-/// Compares the dataset's corrected points with their artifacts.
-pub fn compare(ds: &Dataset) -> Result<Comparison, LabError> {
-    let prep = prepare(ds)?;
-    let art = &prep.art;
-    let all: Vec<bool> = ds
-        .points
-        .iter()
-        .map(|p| art.features[p.feature].is_some())
-        .collect();
-    let (ss, n) = nuisance_ss(ds, art, &art.residual, &all);
-    let res_um: Vec<f64> = art.residual.iter().map(|e| e * 1e3).collect();
-    let (mn, mx) = res_um
-        .iter()
-        .zip(&all)
-        .filter(|(_, a)| **a)
-        .fold((f64::MAX, f64::MIN), |(a, b), (r, _)| {
-            (a.min(*r), b.max(*r))
-        });
-    let rms = rms_um(ss, n);
-    let noise = ds.noise_floor_um;
-    let mut bins = vec![];
-    type Key = Box<dyn Fn(&super::dataset::LabPoint) -> Option<String>>;
-    let q = |v: f64, edges: &[f64], unit: &str| -> String {
-        let i = edges.partition_point(|e| *e <= v);
-        match i {
-            0 => format!("< {}{unit}", fmt(edges[0])),
-            i if i == edges.len() => format!("≥ {}{unit}", fmt(edges[edges.len() - 1])),
-            i => format!("{}–{}{unit}", fmt(edges[i - 1]), fmt(edges[i])),
-        }
-    };
-    /// Three significant digits (no bin edge prints as 0.000 or as its neighbour).
-    fn fmt(x: f64) -> String {
-        let a = x.abs();
-        if a == 0.0 || !a.is_finite() {
-            "0".to_string()
-        } else if a >= 100.0 {
-            format!("{x:.0}")
-        } else {
-            let d = (2 - a.log10().floor() as i32).clamp(0, 9) as usize;
-            format!("{x:.d$}")
-        }
-    }
-    // Bins in value order: "< a", "a–b" by a, "≥ b"; categories alphabetically.
-    fn order(label: &str) -> (f64, String) {
-        let num = |t: &str| {
-            t.split_whitespace()
-                .next()
-                .and_then(|x| x.parse::<f64>().ok())
-        };
-        if let Some(r) = label.strip_prefix("< ") {
-            (num(r).map(|_| f64::MIN).unwrap_or(0.0), label.to_string())
-        } else if let Some(r) = label.strip_prefix("≥ ") {
-            (num(r).map(|_| f64::MAX).unwrap_or(0.0), label.to_string())
-        } else if let Some(a) = label
-            .split_once('–')
-            .and_then(|(a, _)| a.parse::<f64>().ok())
-        {
-            (a, label.to_string())
-        } else {
-            (0.0, label.to_string())
-        }
-    }
-    let quantiles = |vals: Vec<f64>| -> Vec<f64> {
-        let mut v: Vec<f64> = vals.into_iter().filter(|x| x.is_finite()).collect();
-        v.sort_by(|a, b| a.total_cmp(b));
-        if v.is_empty() {
-            return vec![0.0];
-        }
-        let mut e: Vec<f64> = (1..5)
-            .map(|k| v[(v.len() * k / 5).min(v.len() - 1)])
-            .collect();
-        // Edges that print alike would make a bin that reads `a–a`.
-        e.dedup_by(|a, b| fmt(*a) == fmt(*b));
-        e
-    };
-    let edges_speed = quantiles(ds.points.iter().map(|p| p.ctx.est_vel.norm()).collect());
-    let edges_acc = quantiles(ds.points.iter().map(|p| p.ctx.est_acc.norm()).collect());
-    let edges_f = quantiles(
-        ds.points
-            .iter()
-            .filter(|p| p.ctx.f_hz > 0.0)
-            .map(|p| p.ctx.f_hz)
-            .collect(),
-    );
-    let edges_t = quantiles(ds.points.iter().map(|p| p.ctx.t_ns as f64 * 1e-9).collect());
-    let edges_temp = quantiles(
-        ds.points
-            .iter()
-            .filter(|p| p.ctx.temps_valid & 1 != 0)
-            .map(|p| p.ctx.temps[0])
-            .collect(),
-    );
-    let edges_defl = quantiles(ds.points.iter().map(|p| p.ctx.deflection.norm()).collect());
-    let sensor0 = ds.sensors.names().first().cloned().unwrap_or_default();
-    let centers: Vec<[f64; 3]> = ds.features.iter().map(|(_, f)| f.nominal_center).collect();
-    let names: Vec<String> = ds
-        .features
-        .iter()
-        .map(|(_, f)| f.artifact.clone())
-        .collect();
-    let keys: Vec<(String, Key)> = vec![
-        (
-            "speed".into(),
-            Box::new(move |p| Some(q(p.ctx.est_vel.norm(), &edges_speed, " mm/s"))),
-        ),
-        (
-            "acceleration".into(),
-            Box::new(move |p| Some(q(p.ctx.est_acc.norm(), &edges_acc, " mm/s²"))),
-        ),
-        (
-            "rotation frequency".into(),
-            Box::new(move |p| (p.ctx.f_hz > 0.0).then(|| q(p.ctx.f_hz, &edges_f, " Hz"))),
-        ),
-        (
-            "direction".into(),
-            Box::new(|p| {
-                Some(match p.direction {
-                    1 => "CCW".into(),
-                    -1 => "CW".into(),
-                    _ => "line".into(),
-                })
-            }),
-        ),
-        (
-            "phase".into(),
-            Box::new(|p| Some(format!("{:?}", p.phase).to_lowercase())),
-        ),
-        (
-            "position".into(),
-            Box::new(move |p| {
-                let c = centers[p.feature];
-                Some(format!(
-                    "{} {} at ({:.0}, {:.0}, {:.0})",
-                    names[p.feature],
-                    p.feature + 1,
-                    c[0],
-                    c[1],
-                    c[2]
-                ))
-            }),
-        ),
-        (
-            format!("temperature ({sensor0})"),
-            Box::new(move |p| {
-                (p.ctx.temps_valid & 1 != 0).then(|| q(p.ctx.temps[0], &edges_temp, " °C"))
-            }),
-        ),
-        (
-            "deflection".into(),
-            Box::new(move |p| Some(q(p.ctx.deflection.norm(), &edges_defl, " mm"))),
-        ),
-        (
-            "stylus/head".into(),
-            Box::new(|p| {
-                Some(format!(
-                    "tip {} A1={:.0}° A2={:.0}°",
-                    p.ctx.tip_id, p.ctx.head_a1_deg, p.ctx.head_a2_deg
-                ))
-            }),
-        ),
-        (
-            "time".into(),
-            Box::new(move |p| Some(q(p.ctx.t_ns as f64 * 1e-9, &edges_t, " s"))),
-        ),
-    ];
-    // The points of each failing bin, to tell bins that are the same scans seen through
-    // correlated features (speed, acceleration, rotation frequency on one ring).
-    let mut members: Vec<Vec<u32>> = vec![];
-    for (name, key) in &keys {
-        type Acc = (usize, f64, f64, Vec<u32>);
-        let mut acc: std::collections::BTreeMap<String, Acc> = Default::default();
-        for (i, p) in ds.points.iter().enumerate() {
-            if !all[i] {
-                continue;
-            }
-            if let Some(k) = key(p) {
-                let a = acc.entry(k).or_default();
-                a.0 += 1;
-                a.1 += res_um[i];
-                a.2 += res_um[i] * res_um[i];
-                a.3.push(i as u32);
-            }
-        }
-        let mut acc: Vec<(String, Acc)> = acc.into_iter().collect();
-        acc.sort_by(|a, b| {
-            let (oa, ob) = (order(&a.0), order(&b.0));
-            oa.0.total_cmp(&ob.0).then(oa.1.cmp(&ob.1))
-        });
-        for (k, (cnt, s, s2, idx)) in acc {
-            let r = (s2 / cnt as f64).sqrt();
-            let failing = cnt >= 30 && r > 1.3 * rms && r > 2.0 * noise;
-            bins.push(Bin {
-                feature: name.clone(),
-                bin: k,
-                n: cnt,
-                rms_um: r,
-                mean_um: s / cnt as f64,
-                failing,
-                same_points_as: None,
-            });
-            members.push(if failing { idx } else { vec![] });
-        }
-    }
-    let mut order_fail: Vec<usize> = (0..bins.len()).filter(|&b| bins[b].failing).collect();
-    order_fail.sort_by(|a, b| bins[*b].rms_um.total_cmp(&bins[*a].rms_um));
-    // Greedy groups: a failing bin that shares ≥ 80 % of the smaller one's points with a
-    // worse one of another feature is that one seen another way.
-    let mut leaders: Vec<usize> = vec![];
-    for &b in &order_fail {
-        let lead = leaders.iter().copied().find(|&l| {
-            bins[l].feature != bins[b].feature && overlap(&members[l], &members[b]) >= 0.8
-        });
-        match lead {
-            Some(l) => {
-                bins[b].same_points_as = Some(format!("{} {}", bins[l].feature, bins[l].bin))
-            }
-            None => leaders.push(b),
-        }
-    }
-    let failures: Vec<Bin> = order_fail.iter().map(|&b| bins[b].clone()).collect();
-    // Harmonics of circle features.
-    let mut harmonics = vec![];
-    for (fi, f) in art.features.iter().enumerate() {
-        let Some(f) = f else { continue };
-        if f.kind == FeatureKind::Face {
-            continue;
-        }
-        let mut amp = [0.0; 5];
-        let idx: Vec<usize> = (0..ds.points.len())
-            .filter(|&i| ds.points[i].feature == fi)
-            .collect();
-        for (k, a) in amp.iter_mut().enumerate() {
-            let kk = (k + 1) as f64;
-            let th = |i: usize| {
-                (ds.points[i].surface.y - f.center.y).atan2(ds.points[i].surface.x - f.center.x)
-                    * kk
-            };
-            let (mut cc, mut cs, mut ss_, mut bc, mut bs) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            for &i in &idx {
-                let (s, c) = th(i).sin_cos();
-                cc += c * c;
-                cs += c * s;
-                ss_ += s * s;
-                bc += c * res_um[i];
-                bs += s * res_um[i];
-            }
-            let det = cc * ss_ - cs * cs;
-            if det > 1e-12 {
-                let (x, y) = ((ss_ * bc - cs * bs) / det, (cc * bs - cs * bc) / det);
-                *a = x.hypot(y);
-            }
-        }
-        harmonics.push(Harmonics {
-            feature: fi,
-            artifact: ds.features[fi].1.artifact.clone(),
-            amplitude_um: amp,
-        });
-    }
-    let mut tracking = ds.tracking.clone();
-    tracking.sort_by(|a, b| b.2.total_cmp(&a.2));
-    tracking.truncate(20);
-    Ok(Comparison {
-        rms_um: rms,
-        pv_um: if mx >= mn { mx - mn } else { 0.0 },
-        noise_floor_um: noise,
-        failures,
-        bins,
-        harmonics,
-        tracking,
-        points: n,
-        traces: super::traces::traces(ds, &res_um),
-        residual_um: res_um,
     })
 }

@@ -17,12 +17,11 @@
 //!   towards y (δy = m·x) is the same correction as S_xy = −m up to a rotation of the whole
 //!   volume about z, which the artifacts' placements take (likewise x towards z: S_xz = −m,
 //!   y towards z: S_yz = −m). The constant m·s̄_a left over is a translation (placements).
-//! * Significance: the test of a library move (see `analysis::diagnose`): on scans it was not
-//!   fitted on, the move removes a component of at least half the noise floor and at least
-//!   1 % of the cross-validated sum of squares, and the held-out data does not get worse.
+//! * Significance: the one test of a library move, `analysis::significant_gain`.
 
-use super::analysis::{FitOutcome, Structure};
 use super::dataset::Dataset;
+use super::structure::Structure;
+use super::types::FitOutcome;
 use crate::effects::{custom, rigid_body, EffectConfig};
 use crate::sample::Axis;
 
@@ -84,20 +83,17 @@ pub fn custom_effect(s: &Structure) -> Option<CustomEffect> {
     Some(CustomEffect { config, what })
 }
 
-/// The significance test of a library addition, on a fitted move: `o` its fit (every effect
-/// refitted), `base_cv_um` the cross-validated RMS of the model refitted as it is,
-/// `base_held_um` the held-out RMS before, `noise_um` the noise floor.
+/// The significance test of a library addition ([`super::analysis::significant_gain`]) on a
+/// fitted move: `o` its fit (every effect refitted), `base_cv_um` the cross-validated RMS of
+/// the model refitted as it is, `base_held_um` the held-out RMS before, `noise_um` the floor.
 pub fn significant(o: &FitOutcome, base_cv_um: f64, base_held_um: f64, noise_um: f64) -> bool {
-    let noise = noise_um.max(0.01);
-    let (b, a) = (base_cv_um, o.cv_rms_after_um);
-    if !(a.is_finite() && b.is_finite()) {
-        return false;
-    }
-    let gain2 = b * b - a * a;
-    let held_ok = base_held_um == 0.0
-        || (o.heldout_rms_after_um.is_finite()
-            && o.heldout_rms_after_um <= 1.01 * base_held_um + 0.02 * noise_um);
-    gain2 > 0.0 && gain2.sqrt() >= 0.5 * noise && gain2 >= 0.01 * b * b && held_ok
+    super::analysis::significant_gain(
+        base_cv_um,
+        o.cv_rms_after_um,
+        base_held_um,
+        o.heldout_rms_after_um,
+        noise_um,
+    )
 }
 
 /// Squareness taken from the guide tables' ramps.
@@ -135,7 +131,7 @@ fn slope(x: &[f64], v: &[f64]) -> Option<f64> {
 /// A squareness-only rigid body (the 18 axis errors not modelled) over the data's travel.
 pub fn squareness_config(ds: &Dataset, s_rad: [f64; 3]) -> Option<EffectConfig> {
     let EffectConfig::RigidBody(mut r) =
-        super::analysis::candidate("rigid_body:order=1", ds).ok()?
+        super::candidates::candidate("rigid_body:order=1", ds).ok()?
     else {
         return None;
     };

@@ -4,7 +4,7 @@ use super::program::{FeatureKind, FeatureSpec, ProgramSpec, SegmentKind, Segment
 use super::LabError;
 use crate::calib::{Calibration, Model};
 use crate::corrector::{Corrector, DropReason};
-use crate::sample::{PointContext, Sample, Vec3};
+use crate::sample::{Axis, PointContext, Sample, Vec3};
 use std::sync::Arc;
 
 /// Where a point lies in its scan's speed profile.
@@ -495,5 +495,15 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
         tracking,
         calibration: cal.clone(),
         warnings,
+    })
+}
+
+/// The span (min, max) of the scale readings along axis `a` over the dataset's points, mm.
+pub(crate) fn axis_span(ds: &Dataset, a: Axis) -> (f64, f64) {
+    ds.points.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+        (
+            lo.min(p.ctx.scale[a.index()]),
+            hi.max(p.ctx.scale[a.index()]),
+        )
     })
 }

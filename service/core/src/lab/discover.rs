@@ -639,13 +639,7 @@ pub fn discover(
                     .map(|r| format!(" for {r}"))
                     .unwrap_or_default()
             ));
-            let mut cand = cand.clone();
-            if cand.replaces.as_deref() == Some("squareness") {
-                // A full rigid body in place of the squareness is named by its kind.
-                if let Some(c) = cand.config.as_mut() {
-                    c.set_id(None);
-                }
-            }
+            let cand = cand.clone();
             let applied = analysis::apply(&ds, vec![cand.clone()], false)?;
             let action = serde_json::to_value(&cand.action)
                 .ok()

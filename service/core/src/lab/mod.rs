@@ -8,6 +8,8 @@
 
 pub mod analysis;
 pub mod beyond;
+pub mod candidates;
+pub mod compare;
 pub mod dataset;
 pub mod discover;
 pub mod fit;
@@ -17,6 +19,7 @@ pub mod program;
 pub mod select;
 pub mod structure;
 pub mod traces;
+pub mod types;
 pub mod version;
 
 /// Why the lab cannot answer.

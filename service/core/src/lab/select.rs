@@ -18,9 +18,9 @@
 //! Source idea: cross-validated model selection (Stone 1974) and smoothing splines /
 //! Tikhonov regularisation of tables (Whittaker 1923; Reinsch 1967).
 
-use super::analysis::{FitOutcome, Param, Prepared};
 use super::dataset::Dataset;
 use super::fit::{nuisance_row, Normal};
+use super::types::{FitOutcome, Param, Prepared};
 use super::LabError;
 use crate::effects::{Effect, EffectConfig};
 use crate::sample::Vec3;
@@ -875,13 +875,52 @@ fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>, k_fx: usize, ridge: f64) -> D
     DVector::from_iterator(k, (0..k).map(|i| z[i] * s[i]))
 }
 
+/// Fits the parameters of `configs` (their current values are the starting point; the
+/// change is fitted) jointly with the artifact placements, every effect refitted, tables
+/// smoothed as cross-validation chooses. `configs` are the model's effects (already in the
+/// data) and possibly new ones with zero parameters.
+pub fn fit_effects(
+    ds: &Dataset,
+    prep: &Prepared,
+    configs: &[EffectConfig],
+) -> Result<FitOutcome, LabError> {
+    let space = Space::build(
+        ds,
+        prep,
+        configs.iter().map(|c| (c.id(), c.clone(), true)).collect(),
+    )?;
+    let spec = Spec {
+        fitted: (0..configs.len()).collect(),
+        removed: vec![],
+    };
+    let base = space.score(&Spec::default());
+    let score = space.score(&spec);
+    let mut o = space.fit(prep, &spec, &score, &base)?;
+    let pairs: Vec<(EffectConfig, Vec<f64>)> = configs
+        .iter()
+        .zip(&o.configs)
+        .map(|(b, a)| (a.clone(), delta(b, a)))
+        .collect();
+    o.predicted = predicted(ds, prep, &pairs)?;
+    Ok(o)
+}
+
+pub(crate) fn delta(before: &EffectConfig, after: &EffectConfig) -> Vec<f64> {
+    after
+        .params()
+        .iter()
+        .zip(before.params())
+        .map(|(a, b)| a - b)
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::effects::{custom, guide_straightness};
-    use crate::lab::analysis::prepare;
     use crate::lab::dataset::{LabPoint, Phase};
     use crate::lab::program::{FeatureKind, FeatureSpec};
+    use crate::lab::types::prepare;
     use crate::sample::{Axis, PointContext};
     use crate::Calibration;
     use std::f64::consts::TAU;

@@ -44,9 +44,10 @@
 //! probing direction that kinematic touch-trigger and scanning probes show (pre-travel
 //! variation, ISO 10360-5 form tests).
 
-use super::analysis::{axis_span, Prepared};
+use super::dataset::axis_span;
 use super::dataset::Dataset;
 use super::fit::{golden_max, nuisance_row, ArtifactFit, Normal};
+use super::types::Prepared;
 use super::LabError;
 use crate::sample::Axis;
 use nalgebra::{DMatrix, DVector};
@@ -698,9 +699,10 @@ mod tests {
     use super::*;
     use crate::calib::Calibration;
     use crate::effects::{custom, EffectConfig, SensorTable};
-    use crate::lab::analysis::{fit_effects, prepare};
     use crate::lab::dataset::{LabPoint, Phase};
     use crate::lab::program::{FeatureKind, FeatureSpec};
+    use crate::lab::select::fit_effects;
+    use crate::lab::types::prepare;
     use crate::sample::{PointContext, Vec3};
 
     /// Deterministic noise: xorshift64*, uniform in (−√3, √3)·sigma (unit variance · sigma).

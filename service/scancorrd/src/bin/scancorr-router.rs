@@ -13,6 +13,14 @@
 //! 10 s and each denial of one peer, message and key once a minute; the rest are counted in
 //! one line. What it withholds from a peer (egress) is at DEBUG
 //! (`RUST_LOG=warn,scancorr_router::acl=debug`).
+//!
+//! A TLS handshake that fails (a peer with no certificate, one of another CA, plain TCP on
+//! the TLS port, a handshake timeout) is a WARN line `TLS handshake failed: …` with rustls'
+//! reason (zenoh-link-tls 1.10.2 says it as an accept error with a hint about the open-file
+//! limit, which is dropped), under the same budget of lines.
+//!
+//! `--log-format json` writes one JSON object per line (values typed); text has colour only
+//! on a terminal (never in a file or a pipe, nor with `NO_COLOR` set).
 
 use clap::Parser;
 use std::path::PathBuf;
@@ -30,6 +38,9 @@ struct Args {
     /// Replace the file's listen endpoints.
     #[arg(long)]
     listen: Vec<String>,
+    /// Log lines as `text` (colour only on a terminal) or `json` (one object per line).
+    #[arg(long, default_value = "text", value_parser = ["text", "json"])]
+    log_format: String,
 }
 
 /// zenoh's runtimes unless `ZENOH_RUNTIME` says otherwise: four transmit and four receive
@@ -67,13 +78,31 @@ async fn run(a: Args) -> Result<(), String> {
     let env =
         tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into());
     let (tap, tap_filter, tapped, off) = acl_tap();
-    tracing_subscriber::registry()
-        .with(
+    let json = a.log_format == "json";
+    type Fmt = Box<dyn Layer<tracing_subscriber::Registry> + Send + Sync>;
+    let fmt: Fmt = if json {
+        Box::new(
+            tracing_subscriber::fmt::layer()
+                .json()
+                .flatten_event(true)
+                .with_ansi(false)
+                .with_writer(std::io::stderr),
+        )
+    } else {
+        Box::new(
             tracing_subscriber::fmt::layer()
                 .with_writer(std::io::stderr)
-                .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-                .with_filter(env),
+                .with_ansi(
+                    std::io::IsTerminal::is_terminal(&std::io::stderr())
+                        && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty()),
+                ),
         )
+    };
+    tracing_subscriber::registry()
+        .with(fmt.with_filter(tracing_subscriber::filter::FilterExt::and(
+            env,
+            NotHandshakeHint,
+        )))
         .with(tap.with_filter(tap_filter))
         .init();
     let mut cfg =
@@ -91,17 +120,33 @@ async fn run(a: Args) -> Result<(), String> {
         cfg.insert_json5("listen/endpoints", &eps)
             .map_err(|e| format!("--listen: {e}"))?;
     }
+    // Installed before the session opens: a SIGTERM while it opens (peers may already be
+    // routed) stops it cleanly once open, not by the signal's default action.
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(|e| e.to_string())?;
     let session = zenoh::open(cfg)
         .await
         .map_err(|e| format!("{}: {e}", a.config.display()))?;
-    eprintln!(
-        "scancorr-router {}: routing (zid {}) with {}",
-        env!("CARGO_PKG_VERSION"),
-        session.zid(),
-        a.config.display()
-    );
-    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| e.to_string())?;
+    if json {
+        eprintln!(
+            "{}",
+            serde_json::json!({
+                "level": "INFO",
+                "target": "scancorr_router",
+                "message": "routing",
+                "version": env!("CARGO_PKG_VERSION"),
+                "zid": session.zid().to_string(),
+                "config": a.config.display().to_string(),
+            })
+        );
+    } else {
+        eprintln!(
+            "scancorr-router {}: routing (zid {}) with {}",
+            env!("CARGO_PKG_VERSION"),
+            session.zid(),
+            a.config.display()
+        );
+    }
     tokio::select! {
         _ = term.recv() => {}
         _ = tokio::signal::ctrl_c() => {}
@@ -133,6 +178,41 @@ use tracing_subscriber::layer::{Context, Filter, Layer};
 
 /// zenoh's access-control module (the target of its events).
 const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+/// zenoh's TLS link (its listener's accept loop says a failed handshake as an accept error).
+const TLS_TARGET: &str = "zenoh_link_tls::unicast";
+/// What zenoh-link-tls 1.10.2 appends to every accept error, a failed handshake included.
+const ACCEPT_HINT: &str = ". Hint: increase the system open file limit.";
+
+/// A failed TLS handshake in zenoh-link-tls' accept-error line: rustls' reason. An error
+/// of the listening socket itself (out of file descriptors) is not one.
+fn handshake_failure(target: &str, msg: &str) -> Option<String> {
+    if target != TLS_TARGET {
+        return None;
+    }
+    let reason = msg.strip_suffix(ACCEPT_HINT)?;
+    if reason.contains("os error 24") || reason.contains("Too many open files") {
+        return None;
+    }
+    Some(reason.to_string())
+}
+
+/// The log's filter that drops zenoh-link-tls' accept-error line for a failed handshake (its
+/// hint about the open-file limit misleads): the tap writes it as a handshake failure.
+struct NotHandshakeHint;
+
+impl<S: Subscriber> Filter<S> for NotHandshakeHint {
+    fn enabled(&self, _: &Metadata<'_>, _: &Context<'_, S>) -> bool {
+        true
+    }
+    fn event_enabled(&self, e: &Event<'_>, _: &Context<'_, S>) -> bool {
+        if e.metadata().target() != TLS_TARGET {
+            return true;
+        }
+        let mut m = Message(String::new());
+        e.record(&mut m);
+        handshake_failure(TLS_TARGET, &m.0).is_none()
+    }
+}
 /// At most this many denial lines per [`WINDOW`]...
 const MAX_LINES: u32 = 20;
 /// ...the rest counted in one line when the window ends.
@@ -210,6 +290,8 @@ enum Tapped {
     },
     /// An event site that reports no denial (allowed messages, …): switched off.
     Off(Identifier),
+    /// A TLS handshake that failed, with rustls' reason.
+    Tls(String),
 }
 
 /// `ACL (ingress): caching permissions for `K` ...`: zenoh computes every message kind's
@@ -240,7 +322,8 @@ struct AclFilter {
 
 impl AclFilter {
     fn wanted(&self, m: &Metadata<'_>) -> bool {
-        m.target() == ACL_TARGET
+        (m.target() == ACL_TARGET
+            || (m.target() == TLS_TARGET && *m.level() <= tracing::Level::WARN))
             && m.is_event()
             && !self
                 .allowed
@@ -282,6 +365,15 @@ impl<S: Subscriber> Layer<S> for AclTap {
     fn on_event(&self, e: &Event<'_>, _: Context<'_, S>) {
         let mut m = Message(String::new());
         e.record(&mut m);
+        if e.metadata().target() == TLS_TARGET {
+            // Only the failed handshakes; the link's other warnings are the log's own.
+            if let Some(reason) = handshake_failure(TLS_TARGET, &m.0) {
+                if let Err(TrySendError::Full(_)) = self.tx.try_send(Tapped::Tls(reason)) {
+                    LOST.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
+            }
+            return;
+        }
         if let Some(c) = parse_caching(&m.0) {
             CACHING.with(|x| *x.borrow_mut() = Some(c));
             return;
@@ -547,6 +639,10 @@ enum Line {
         zid: String,
         rule: String,
     },
+    /// A TLS handshake failed.
+    Tls {
+        reason: String,
+    },
     /// Denials not written in the last window.
     Suppressed {
         count: u64,
@@ -599,6 +695,16 @@ impl Writer {
             count: n,
             window_s: WINDOW.as_secs(),
         })
+    }
+
+    /// The line for a failed TLS handshake, or none (rate limit).
+    fn tls(&mut self, reason: String) -> Option<Line> {
+        if self.written >= MAX_LINES {
+            self.suppressed += 1;
+            return None;
+        }
+        self.written += 1;
+        Some(Line::Tls { reason })
     }
 
     /// The line for one event, or none (rate limit, a repeat).
@@ -680,7 +786,7 @@ fn write_line(l: Line) {
             repeats,
         } => tracing::warn!(
             target: "scancorr_router::acl",
-            key_expr = %key, peer = %peer, zid = %zid, message, flow, rule = %rule,
+            key_expr = %key, peer = %peer, zid = %zid, kind = message, flow, rule = %rule,
             repeats_since_last = repeats,
             "ACL denied {message} ({flow}) on {key} from {peer}: {rule}"
         ),
@@ -694,13 +800,18 @@ fn write_line(l: Line) {
             ..
         } => tracing::debug!(
             target: "scancorr_router::acl",
-            key_expr = %key, peer = %peer, zid = %zid, message, flow, rule = %rule,
+            key_expr = %key, peer = %peer, zid = %zid, kind = message, flow, rule = %rule,
             "ACL withheld {message} ({flow}) on {key} from {peer}: {rule}"
         ),
         Line::NoSubject { zid, rule } => tracing::warn!(
             target: "scancorr_router::acl",
             zid = %zid, rule = %rule,
             "ACL: peer {zid} connected: {rule}, every message it sends is denied"
+        ),
+        Line::Tls { reason } => tracing::warn!(
+            target: "scancorr_router::tls",
+            reason = %reason,
+            "TLS handshake failed: {reason} (a peer without a certificate of this CA, plain TCP on the TLS port, or a handshake timeout: refused)"
         ),
         Line::Suppressed { count, window_s } => tracing::warn!(
             target: "scancorr_router::acl",
@@ -729,6 +840,11 @@ fn spawn_writer(rx: Receiver<Tapped>, allowed: Arc<RwLock<HashSet<Identifier>>>,
                         }
                     }
                     Ok(Tapped::Peer { zid, subject }) => w.peer(zid, subject),
+                    Ok(Tapped::Tls(reason)) => {
+                        if let Some(l) = w.tls(reason) {
+                            write_line(l);
+                        }
+                    }
                     Ok(Tapped::Off(id)) => {
                         let new = allowed.write().map(|mut a| a.insert(id)).unwrap_or(false);
                         if new {

@@ -1,0 +1,224 @@
+//! `scancorr calibrate …`: the measuring procedures' I/O — reading the bags and the starting
+//! calibration, printing every parameter with its uncertainty, writing the new version. The
+//! logic is `scancorr_core::calibrate`.
+
+mod dynamic_map;
+mod dynamics;
+pub mod plate;
+mod platefile;
+mod probe_force;
+mod procedure;
+pub mod straightness;
+pub mod thermal;
+mod tips;
+
+use anyhow::Result;
+use clap::Subcommand;
+use std::path::PathBuf;
+
+#[derive(Subcommand)]
+pub enum CalibrateCmd {
+    /// Thermal drift from a recording of hours (ISO 230-3): the measured displacement of the
+    /// tool or probe against the part with the structure's temperatures (and the spindle
+    /// speed), fitted on the first part and judged on a later held-out period; the drift
+    /// from the temperatures through their heat paths' lags, each coefficient ± σ.
+    ThermalDrift(thermal::Args),
+    /// Qualify the styli on a master sphere: the offset of each tip and head angle from the
+    /// reference tip gives the stylus lengths, the sphere's apparent size each tip's effective
+    /// radius, the drift with temperature each stylus's expansion coefficient.
+    Tips {
+        /// Bags of the qualification (the master sphere measured by every tip).
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (catalogue styli or an earlier qualification).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// The reference tip (default: the lowest tip id measured at head angles 0, 0).
+        #[arg(long)]
+        reference_tip: Option<u32>,
+        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `settings`, …).
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: each setting against the reference before and after, the
+        /// reference's drift in time, every parameter.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Extrapolation to zero probing force: the same circles on the master sphere scanned
+    /// at two or more deflections by each tip give that tip's force coefficients (stylus
+    /// bending per mm of deflection along each probe axis).
+    ProbeForce {
+        /// Bags of the measurement (each tip on the sphere at ≥ 2 deflections).
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (its probe_force effect is replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `settings`, …).
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: each setting's radius against deflection before and after,
+        /// every parameter.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// The S1/F1/F2 joint method: a circle scanned slowly at deflection d1 (S1) and fast at
+    /// d2 (F1) and at d1 (F2), in one direction, gives a per-point map of the fast scan's error
+    /// (extrapolated to zero deflection against the slow scan) for that feature and speed; the
+    /// map corrects later fast scans of like parts by the same part program (same segment ids).
+    DynamicMap {
+        /// Bags of the measurement (S1, F1 and F2 of one circle).
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (its maps of these scans are replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Angle bins (the map's knots) around the circle.
+        #[arg(long, default_value_t = 72)]
+        bins: usize,
+        /// Speed search: the slow/fast difference (RMS over the bins of F2 − S1, µm) a speed
+        /// may show without a map; speeds are taken rising, maps stored only where it is left.
+        #[arg(long)]
+        tolerance_um: Option<f64>,
+        /// Print JSON (`params` and `uncertainty`, `maps` with every bin's S1, F1, F2, HSZD,
+        /// LSZD, e1, e2 and their σ in µm).
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: the scans, the extrapolations to zero deflection and e2 per
+        /// map.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// The ring-gauge procedure: one ring at ≥ 5 positions along X (and along Y and Z), each
+    /// at several speeds in both directions, gives the nominal time constants, the deflection
+    /// matrix P(x, y, z) with cross-coupling, the servo phase with position-dependent
+    /// coefficients and the servo gain in the form held-out rings prefer.
+    Dynamics {
+        /// Bags of the ring measurement.
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (its dynamic effects are replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `positions`, …).
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: ΔR against acceleration per position before and after, the
+        /// fitted compliance along each line of positions, every parameter.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Error separation of a guide's straightness from a straightedge's, without a perfect
+    /// reference: distance probes on the carriage stepped along the travel (three probes
+    /// with pitch, two probes, or one probe on a shear micro-stage). Writes the axis's
+    /// guide_straightness (and pitch) table with its uncertainties.
+    Straightness {
+        /// three-probe, two-probe or shear-stage.
+        #[arg(long)]
+        method: String,
+        /// Bag of the measurement (scales, distance probes, and the stage).
+        #[arg(long)]
+        bag: PathBuf,
+        /// Bag of the reversal measurement (three probes: the straightedge turned over),
+        /// which separates the probes' zero offsets (otherwise a parabola is not seen).
+        #[arg(long)]
+        reversal: Option<PathBuf>,
+        /// The calibration to start from (the axis's guide table is replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The guide's axis (the carriage's travel).
+        #[arg(long, default_value = "x")]
+        axis: String,
+        /// The axis the probes read along (default: y for x, x for y and z).
+        #[arg(long)]
+        toward: Option<String>,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON: per station `stations_mm`, `guide_straightness_mm`,
+        /// `part_straightness_mm`, `pitch_rad`, each with `…_u`, and `cannot_see`.
+        #[arg(long)]
+        json: bool,
+        /// Write an HTML report: guide and part profiles with uncertainty bands, the pitch.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// A plate's features (holes) measured against nominal: the similarity (offset,
+    /// rotation, scale), the anisotropic scale/shear (quadrupole; scale per axis and
+    /// squareness), higher-order terms chosen by cross-validation over holes, each ± σ, and
+    /// the original plug-plate tool's fit. Reports only.
+    Plate(plate::PlateArgs),
+}
+
+/// Runs a procedure.
+pub fn exec(cmd: CalibrateCmd) -> Result<()> {
+    crate::shared::output::started();
+    match cmd {
+        CalibrateCmd::Plate(a) => plate::run(a),
+        CalibrateCmd::ThermalDrift(a) => thermal::run(a),
+        CalibrateCmd::DynamicMap {
+            bag,
+            calib,
+            out,
+            bins,
+            tolerance_um,
+            json,
+            report,
+        } => dynamic_map::exec(bag, calib, out, bins, tolerance_um, json, report),
+        CalibrateCmd::Straightness {
+            method,
+            bag,
+            reversal,
+            calib,
+            axis,
+            toward,
+            out,
+            json,
+            report,
+        } => straightness::run(straightness::Args {
+            method,
+            bag,
+            reversal,
+            calib,
+            axis,
+            toward,
+            out,
+            json,
+            report,
+        }),
+        CalibrateCmd::ProbeForce {
+            bag,
+            calib,
+            out,
+            json,
+            report,
+        } => probe_force::exec(bag, calib, out, json, report),
+        CalibrateCmd::Dynamics {
+            bag,
+            calib,
+            out,
+            json,
+            report,
+        } => dynamics::exec(bag, calib, out, json, report),
+        CalibrateCmd::Tips {
+            bag,
+            calib,
+            out,
+            reference_tip,
+            json,
+            report,
+        } => tips::exec(bag, calib, out, reference_tip, json, report),
+    }
+}

@@ -1,0 +1,176 @@
+//! `scancorr calibrate probe-force`: extrapolation to zero force — its text and JSON output.
+
+use super::procedure::{open, outcome_json, points_without, Opened};
+use crate::shared::calib::{closing, commit_version, now_rfc3339};
+use anyhow::Result;
+use scancorr_core::calibrate::probe_force;
+use scancorr_core::lab::version;
+use std::path::PathBuf;
+
+/// Runs the procedure.
+pub(super) fn exec(
+    bag: Vec<PathBuf>,
+    calib: PathBuf,
+    out: PathBuf,
+    json: bool,
+    report: Option<PathBuf>,
+) -> Result<()> {
+    let Opened {
+        out_file,
+        report_file,
+        start,
+        bags,
+    } = open(&bag, &calib, &out, report.as_deref())?;
+    // The force correction and the static maps are what this procedure measures: the points
+    // are taken without (the new maps replace the start's of the same tip and segments).
+    let ds = points_without(&bags, &start, &["probe_force", "feature_map"], 2)?;
+    let o = probe_force::run(&ds, &start)?;
+    let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
+    new.geometry = o.calibration.geometry.clone();
+    new.note = format!(
+        "calibrate probe-force: {} settings; residual about each circle's static map {:.3} → \
+         {:.3} µm (noise floor {:.3} µm)",
+        o.settings.len(),
+        o.rms_before_um,
+        o.rms_after_um,
+        ds.noise_floor_um
+    );
+    commit_version(
+        &mut new,
+        vec![
+            ("probe_force_rms_before_um", o.rms_before_um),
+            ("probe_force_rms_after_um", o.rms_after_um),
+            ("noise_floor_um", ds.noise_floor_um),
+        ],
+        out_file,
+        report_file,
+        || crate::report::probe_force(&start, &o, ds.noise_floor_um),
+    )?;
+    if json {
+        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
+        outln!("{}", serde_json::to_string_pretty(&v)?)?;
+        return Ok(());
+    }
+    outln!(
+        "extrapolation to zero force: {} settings; residual about each circle's static map {:.3} → {:.3} µm (noise floor {:.3} µm)",
+        o.settings.len(),
+        o.rms_before_um,
+        o.rms_after_um,
+        ds.noise_floor_um
+    )?;
+    outln!(
+        "consistency of the circles × deflections after the fit: reduced χ² {:.2}{}",
+        o.cell_chi2,
+        if o.cell_chi2 > 1.0 {
+            " (the σ are scaled by it)"
+        } else {
+            ""
+        }
+    )?;
+    outln!("sphere radius − certified per deflection (before → after the force correction, µm; without a sphere fit: along the probing direction from the zero-force surface):")?;
+    for s in &o.settings {
+        let lv: Vec<String> = s
+            .deflections_mm
+            .iter()
+            .enumerate()
+            .map(|(k, d)| {
+                format!(
+                    "{d:.2} mm {:+.2}→{:+.2}",
+                    s.radius_error_before_um[k], s.radius_error_after_um[k]
+                )
+            })
+            .collect();
+        let zero = if s.sphere_fitted {
+            format!(
+                "at zero force {:+.3} ± {:.3}; static map's form {:.3} µm RMS",
+                s.radius_error_at_zero_um[0], s.radius_error_at_zero_um[1], s.static_form_um
+            )
+        } else {
+            "no sphere fit (too little of the sphere)".to_string()
+        };
+        outln!(
+            "  tip {} at ({}, {})°: {}; {zero}; left after the fit {:.3} µm RMS",
+            s.tip,
+            s.head_deg[0],
+            s.head_deg[1],
+            lv.join("  "),
+            s.fit_rms_um
+        )?;
+    }
+    print_static_maps(&o)?;
+    print_real_time(&o)?;
+    outln!("parameters (± standard uncertainty):")?;
+    for p in &o.params {
+        if p.name.ends_with("_mm") {
+            outln!(
+                "  {:<28} {:>9.5} mm ± {:.3} µm (statistical)",
+                p.name,
+                p.value,
+                p.sigma * 1e3
+            )?;
+        } else {
+            outln!(
+                "  {:<28} {:>9.3} ± {:.3} µm per mm of deflection",
+                p.name,
+                p.value * 1e3,
+                p.sigma * 1e3
+            )?;
+        }
+    }
+    for u in &o.undetermined {
+        outln!("  not determined: {u}")?;
+    }
+    closing(&o.notes, &out, &new, &start)
+}
+
+/// Prints the static error maps, if any.
+fn print_static_maps(o: &probe_force::Outcome) -> Result<()> {
+    if !o.static_maps.is_empty() {
+        outln!("static error maps (zero-force radius − certified around each circle; stored as feature_map effects, apart from the geometry, applied at every speed to scans of that circle; --json: static_maps):")?;
+        for m in &o.static_maps {
+            let (lo, hi) = m
+                .radial_um
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+                    (a.min(*v), b.max(*v))
+                });
+            let u = m.radial_u_um.iter().cloned().fold(0.0, f64::max);
+            outln!(
+                "  tip {} latitude {:+.0}°: {:+.3} to {:+.3} µm over {} knots (σ ≤ {:.3} µm)",
+                m.tip,
+                m.latitude_deg,
+                lo,
+                hi,
+                m.radial_um.len(),
+                u
+            )?;
+        }
+    }
+    Ok(())
+}
+
+/// Prints the real-time form per segment, if any.
+fn print_real_time(o: &probe_force::Outcome) -> Result<()> {
+    if !o.real_time.is_empty() {
+        outln!("real-time form, R0 = R1 − (R2 − R1)·F1/(F2 − F1) per wave of the deflection, against the fit's zero-force values:")?;
+        for rt in &o.real_time {
+            outln!(
+                "  tip {} segment {} (latitude {:+.0}°, {:.2}–{:.2} mm): {} waves, {} extrapolated, {} at a force below significance, {} alike; R1 {:.3} µm RMS from the fit's zero force → R0 {:.3} µm RMS (statistical σ {:.3} µm); radial acceleration {:+.1} mm/s² per mm of deflection",
+                rt.tip,
+                rt.segment,
+                rt.latitude_deg,
+                rt.deflection_mm[0],
+                rt.deflection_mm[1],
+                rt.waves,
+                rt.extrapolated,
+                rt.force_zero,
+                rt.alike,
+                rt.before_um,
+                rt.rms_um,
+                rt.sigma_um,
+                rt.accel_per_deflection_s2
+            )?;
+        }
+    }
+    Ok(())
+}

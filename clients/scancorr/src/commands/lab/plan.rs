@@ -1,0 +1,397 @@
+//! `scancorr lab plan`: a campaign planned before it is measured — arguments, printing and
+//! files. The design and the prediction are `scancorr_core::lab::plan`; with `--program` and
+//! `--bag` the lab's own fit on the measured bags is set beside the prediction.
+
+use crate::shared::bags::{load_bags, SENSORS};
+use crate::shared::output::commit_all;
+use crate::shared::output::{outputs, put};
+use anyhow::{Context, Result};
+use clap::Args;
+use scancorr_core::lab::analysis;
+use scancorr_core::lab::dataset::{self, BuildOptions};
+use scancorr_core::lab::plan::{self, Assumptions, Owned, PlanRequest, Prediction, Program};
+use std::path::{Path, PathBuf};
+
+/// Candidates planned for by default: the physics the lab cannot tell apart on a default
+/// campaign (`accel_deflection` against `servo_gain`, `guide_straightness` against
+/// `rigid_body`).
+pub const DEFAULT_CANDIDATES: [&str; 2] = ["servo_gain:powers=1+2", "rigid_body"];
+
+/// Arguments of `scancorr lab plan`.
+#[derive(Args)]
+pub struct PlanArgs {
+    /// The calibration to plan for (its effects, as fitted, and its noise floor).
+    #[arg(long)]
+    calib: PathBuf,
+    /// An artifact you own: ring:d=50.0012, sphere:d=25.0004, straightedge:l=400 (repeatable).
+    #[arg(long)]
+    artifact: Vec<String>,
+    /// Machine time available, minutes.
+    #[arg(long, default_value_t = 15.0)]
+    minutes: f64,
+    /// The machine's data sheet, for its travel (otherwise the calibration's limits.travel_mm).
+    #[arg(long)]
+    datasheet: Option<PathBuf>,
+    /// A candidate effect to make identifiable as well as the model's (repeatable; default
+    /// servo_gain:powers=1+2 and rigid_body; `none` for the model's effects alone).
+    #[arg(long)]
+    candidate: Vec<String>,
+    /// Noise floor of a point, µm (default: the calibration's `metrics.noise_floor_um`).
+    #[arg(long)]
+    noise_um: Option<f64>,
+    /// Lag-1 correlation of the residuals the lab will see.
+    #[arg(long, default_value_t = 0.0)]
+    rho: f64,
+    /// The lab's `--stride`.
+    #[arg(long, default_value_t = 4)]
+    stride: usize,
+    /// The lab will be given held-out bags (`--validate`): every scan fits.
+    #[arg(long)]
+    validate_separately: bool,
+    /// Room temperature at the start, °C.
+    #[arg(long, default_value_t = 20.5)]
+    temp_c: f64,
+    /// Its rise over the campaign, K.
+    #[arg(long, default_value_t = 1.0)]
+    temp_rise_k: f64,
+    /// Predict an existing program record instead of planning one.
+    #[arg(long)]
+    program: Option<PathBuf>,
+    /// With --program: bags measured with it; the lab fits them and sets its σ beside the
+    /// prediction.
+    #[arg(long)]
+    bag: Vec<PathBuf>,
+    /// Write the planned program record here (`scancorr sim --program FILE`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn sig(x: Option<f64>) -> String {
+    match x {
+        Some(s) => format!("{s:.3e}"),
+        None => "undetermined".into(),
+    }
+}
+
+/// Runs `scancorr lab plan`.
+pub fn exec(a: PlanArgs) -> Result<()> {
+    let mut inputs: Vec<(&str, &Path)> = vec![("--calib", a.calib.as_path())];
+    if let Some(d) = &a.datasheet {
+        inputs.push(("--datasheet", d));
+    }
+    if let Some(p) = &a.program {
+        inputs.push(("--program", p));
+    }
+    inputs.extend(a.bag.iter().map(|b| ("--bag", b.as_path())));
+    let [out] = outputs([("--out", a.out.as_deref())], &inputs)?;
+    let cal = crate::shared::calib::load_calibration(&a.calib)?;
+    let candidates: Vec<String> = if a.candidate.is_empty() {
+        DEFAULT_CANDIDATES.iter().map(|s| s.to_string()).collect()
+    } else {
+        a.candidate
+            .iter()
+            .filter(|c| c.as_str() != "none")
+            .cloned()
+            .collect()
+    };
+    let noise = match a.noise_um {
+        Some(n) => n,
+        None => {
+            let n = Assumptions::noise_from(&cal, f64::NAN);
+            anyhow::ensure!(
+                n.is_finite(),
+                "--calib {}: no noise floor in its metrics (a version the lab wrote has one): give --noise-um",
+                a.calib.display()
+            );
+            n
+        }
+    };
+    anyhow::ensure!(a.stride >= 1, "--stride: at least 1");
+    let assumptions = Assumptions {
+        noise_um: noise,
+        rho: a.rho,
+        stride: a.stride,
+        heldout_alternate: !a.validate_separately,
+        temp_c: a.temp_c,
+        temp_rise_k: a.temp_rise_k,
+    };
+    if let Some(path) = &a.program {
+        anyhow::ensure!(
+            a.artifact.is_empty() && a.out.is_none(),
+            "--program predicts a program record as it is: --artifact and --out are for planning one"
+        );
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("--program {}: reading", path.display()))?;
+        let program = Program::from_json(&text)
+            .map_err(|e| anyhow::anyhow!("--program {}: {e}", path.display()))?;
+        let pred = plan::predict(&cal, &program, &candidates, &assumptions)?;
+        let measured = if a.bag.is_empty() {
+            None
+        } else {
+            Some(measure(&a, &cal, &candidates)?)
+        };
+        // The same design at the noise and residual correlation the bags showed: what the
+        // Jacobian alone predicts, the assumptions set aside.
+        let at_measured = match &measured {
+            Some((_, noise, rho)) if *noise > 0.0 => Some(plan::predict(
+                &cal,
+                &program,
+                &candidates,
+                &Assumptions {
+                    noise_um: *noise,
+                    rho: rho.clamp(0.0, 0.98),
+                    ..assumptions.clone()
+                },
+            )?),
+            _ => None,
+        };
+        return print_prediction(
+            &a,
+            &program,
+            &pred,
+            measured.as_ref(),
+            None,
+            at_measured.as_ref(),
+        );
+    }
+    anyhow::ensure!(
+        a.bag.is_empty(),
+        "--bag: only with --program (the bags measured with a program record)"
+    );
+    anyhow::ensure!(
+        !a.artifact.is_empty(),
+        "--artifact: name the artifacts you own, e.g. --artifact ring:d=50.0012 --artifact sphere:d=25.0004 --artifact straightedge:l=400"
+    );
+    let owned = a
+        .artifact
+        .iter()
+        .map(|s| Owned::parse(s).map_err(|e| anyhow::anyhow!("--artifact {e}")))
+        .collect::<Result<Vec<_>>>()?;
+    let travel = match &a.datasheet {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("--datasheet {}: reading", p.display()))?;
+            let d = scancorr_core::datasheet::DataSheet::from_json(&text)
+                .map_err(|e| anyhow::anyhow!("--datasheet {}: {e}", p.display()))?;
+            [d.axes.x.travel_mm, d.axes.y.travel_mm, d.axes.z.travel_mm]
+        }
+        None => {
+            let t = cal.limits.travel_mm;
+            anyhow::ensure!(
+                t.iter().all(|[lo, hi]| hi - lo < 9000.0),
+                "--calib {}: limits.travel_mm is the default ±5000 mm, not the machine's: give --datasheet (or make the calibration with `calib nominal --datasheet`)",
+                a.calib.display()
+            );
+            t
+        }
+    };
+    let req = PlanRequest {
+        travel_mm: travel,
+        owned,
+        minutes: a.minutes,
+        candidates,
+        assumptions,
+    };
+    let planned = plan::plan(&cal, &req)?;
+    put(&out, planned.program.to_json())?;
+    commit_all([out])?;
+    print_prediction(
+        &a,
+        &planned.program,
+        &planned.prediction,
+        None,
+        Some(&planned),
+        None,
+    )
+}
+
+/// One parameter as the lab measured it.
+#[derive(serde::Serialize)]
+struct Measured {
+    effect: String,
+    name: String,
+    value: f64,
+    sigma: Option<f64>,
+}
+
+/// The lab's fit of the model and the candidates on the bags.
+fn measure(
+    a: &PlanArgs,
+    cal: &scancorr_core::Calibration,
+    candidates: &[String],
+) -> Result<(Vec<Measured>, f64, f64)> {
+    let bags = load_bags(&a.bag, &[], &cal.machine_id)?;
+    let opts = BuildOptions {
+        stride: a.stride,
+        holdout_by_segment: !a.validate_separately,
+        artifact: None,
+        sensors: SENSORS.iter().map(|s| s.to_string()).collect(),
+    };
+    let ds = dataset::build(&bags, cal, &opts)?;
+    let prep = analysis::prepare(&ds)?;
+    let configs = plan::configs_for(&ds, candidates)?;
+    let cfgs: Vec<_> = configs.iter().map(|(_, c)| c.clone()).collect();
+    let o = analysis::fit_effects(&ds, &prep, &cfgs)?;
+    let mut v = vec![];
+    for ((name, c), ps) in configs.iter().zip(&o.params) {
+        let effect = if c.kind() == name || c.id() == *name {
+            c.id()
+        } else {
+            name.clone()
+        };
+        for p in ps {
+            v.push(Measured {
+                effect: effect.clone(),
+                name: p.name.clone(),
+                value: p.value,
+                sigma: p.sigma,
+            });
+        }
+    }
+    Ok((v, ds.noise_floor_um, prep.rho))
+}
+
+fn print_prediction(
+    a: &PlanArgs,
+    program: &Program,
+    pred: &Prediction,
+    measured: Option<&(Vec<Measured>, f64, f64)>,
+    planned: Option<&plan::Planned>,
+    at_measured: Option<&Prediction>,
+) -> Result<()> {
+    if a.json {
+        let mut j = serde_json::json!({
+            "program": program,
+            "prediction": pred,
+        });
+        if let Some(p) = planned {
+            j["minutes"] = serde_json::json!(p.minutes);
+            j["groups"] = serde_json::to_value(&p.groups)?;
+            j["left_out"] = serde_json::to_value(&p.left_out)?;
+            j["out"] = serde_json::json!(a.out);
+        }
+        if let Some((m, noise, rho)) = measured {
+            j["measured"] = serde_json::to_value(m)?;
+            j["measured_noise_floor_um"] = serde_json::json!(noise);
+            j["measured_rho"] = serde_json::json!(rho);
+        }
+        if let Some(p) = at_measured {
+            j["prediction_at_measured_noise"] = serde_json::to_value(p)?;
+        }
+        outln!("{}", serde_json::to_string_pretty(&j)?)?;
+        return Ok(());
+    }
+    if let Some(p) = planned {
+        outln!(
+            "plan: {} scans on {} artifact placements, {:.1} min of machine time{}",
+            program.scans.len(),
+            program.features.len(),
+            p.minutes,
+            a.out
+                .as_ref()
+                .map(|o| format!(" → {}", o.display()))
+                .unwrap_or_default()
+        )?;
+        for g in &p.groups {
+            outln!("  {:5.1} min  {}", g.minutes, g.what)?;
+            outln!("             why: {}", g.why)?;
+        }
+        for g in &p.left_out {
+            outln!(
+                "  left out for time ({:.1} min): {} — {}",
+                g.minutes,
+                g.what,
+                g.why
+            )?;
+        }
+    } else {
+        outln!(
+            "program {}: {} scans on {} artifact placements",
+            program.name,
+            program.scans.len(),
+            program.features.len()
+        )?;
+    }
+    outln!(
+        "predicted from the design alone ({} points fitted, noise {:.3} µm, ρ {:.2}):",
+        pred.points,
+        pred.noise_um,
+        pred.rho
+    )?;
+    let mut last = String::new();
+    for (i, p) in pred.params.iter().enumerate() {
+        if p.sigma.is_none() {
+            continue;
+        }
+        if p.effect != last {
+            outln!("  {}", p.effect)?;
+            last.clone_from(&p.effect);
+        }
+        let rel = match p.sigma {
+            Some(s) if p.value != 0.0 => {
+                format!("  ({:.1} % of its value)", 100.0 * s / p.value.abs())
+            }
+            _ => String::new(),
+        };
+        let ps_m = at_measured
+            .and_then(|q| q.params.get(i))
+            .and_then(|q| q.sigma);
+        let meas = measured
+            .and_then(|(m, _, _)| m.get(i))
+            .map(|m| match (m.sigma, ps_m.or(p.sigma)) {
+                (Some(ms), Some(ps)) if ps > 0.0 => {
+                    format!(
+                        "   measured {:.3e} ± {ms:.3e} ({:.2}× predicted)",
+                        m.value,
+                        ms / ps
+                    )
+                }
+                (ms, _) => format!("   measured {:.3e} ± {}", m.value, sig(ms)),
+            })
+            .unwrap_or_default();
+        outln!(
+            "    {:<28} {:>12.4e}  σ {}{rel}{meas}",
+            p.name,
+            p.value,
+            sig(p.sigma)
+        )?;
+    }
+    if !pred.correlations.is_empty() {
+        outln!("  strongest correlations:")?;
+        for c in &pred.correlations {
+            outln!("    {:+.4}  {}  ~  {}", c.r, c.a, c.b)?;
+        }
+    }
+    if !pred.undetermined.is_empty() {
+        let shown: Vec<&str> = pred
+            .undetermined
+            .iter()
+            .take(8)
+            .map(|s| s.as_str())
+            .collect();
+        outln!(
+            "  {} parameter(s) this design cannot determine, e.g. {}{}",
+            pred.undetermined.len(),
+            shown.join("; "),
+            if pred.undetermined.len() > 8 {
+                "; …"
+            } else {
+                ""
+            }
+        )?;
+    }
+    if let Some((_, noise, rho)) = measured {
+        outln!(
+            "  measured: noise floor {noise:.3} µm, residual lag-1 correlation {rho:.2}{}",
+            if at_measured.is_some() {
+                " (the ratios are to the design's prediction at these)"
+            } else {
+                ""
+            }
+        )?;
+    }
+    Ok(())
+}

@@ -1,0 +1,249 @@
+//! The lab's text output: a comparison, a diagnosis (with the structure found and the
+//! `lab add custom` command that adds it), a discovery's steps.
+
+use super::args::DataArgs;
+use super::data::um;
+use anyhow::Result;
+use scancorr_core::lab::analysis::{self, Comparison, Diagnosis};
+use scancorr_core::Calibration;
+use std::path::Path;
+
+pub(super) fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
+    outln!(
+        "calibration v{} ({} effects): {} points",
+        cal.version,
+        cal.effects.len(),
+        c.points
+    )?;
+    outln!(
+        "  deviation RMS {} µm, peak-to-valley {} µm, noise floor {} µm",
+        um(c.rms_um),
+        um(c.pv_um),
+        um(c.noise_floor_um)
+    )?;
+    if c.failures.is_empty() {
+        outln!("  no bin stands out (every bin within 1.3 × the RMS or 2 × the noise floor)")?;
+    } else {
+        outln!("  where it fails (bins standing out; bins of the same points seen through a correlated feature under the worst):")?;
+        for b in c
+            .failures
+            .iter()
+            .filter(|b| b.same_points_as.is_none())
+            .take(10)
+        {
+            outln!(
+                "    {:<22} {:<28} RMS {:>7} µm  mean {:>7} µm  ({} points)",
+                b.feature,
+                b.bin,
+                um(b.rms_um),
+                um(b.mean_um),
+                b.n
+            )?;
+            let same = c.same_points(b);
+            if !same.is_empty() {
+                outln!("      the same points as {}", same.join(", "))?;
+            }
+        }
+    }
+    let mut features: Vec<usize> = c.traces.iter().map(|t| t.feature).collect();
+    features.dedup();
+    if !features.is_empty() {
+        outln!(
+            "  circularity per direction and speed (each trace about its own centre, 1° means):"
+        )?;
+    }
+    for fi in features {
+        let ts: Vec<String> = c
+            .traces
+            .iter()
+            .filter(|t| t.feature == fi)
+            .map(|t| {
+                format!(
+                    "{} {} mm/s {} µm",
+                    if t.direction > 0 { "CCW" } else { "CW" },
+                    t.speed_mm_s,
+                    um(t.circularity_um)
+                )
+            })
+            .collect();
+        let t0 = c.traces.iter().find(|t| t.feature == fi).expect("listed");
+        outln!(
+            "    {} {} (Ø{} mm): {}",
+            t0.artifact,
+            fi + 1,
+            t0.diameter_mm,
+            ts.join(", ")
+        )?;
+    }
+    for h in &c.harmonics {
+        let a: Vec<String> = h
+            .amplitude_um
+            .iter()
+            .enumerate()
+            .map(|(k, a)| format!("{}θ {:.3}", k + 1, a))
+            .collect();
+        outln!(
+            "  {} {} harmonics (µm; 1θ is the centre, taken out by the fit): {}",
+            h.artifact,
+            h.feature + 1,
+            a.join("  ")
+        )?;
+    }
+    Ok(())
+}
+
+/// What a structure is, in words.
+pub(super) fn structure_text(s: &scancorr_core::lab::analysis::Structure) -> String {
+    match (s.kind.as_str(), s.period_mm, s.harmonic) {
+        ("probe_direction", _, Some(k)) => {
+            format!("the {k}θ harmonic of the probing direction (probe lobing)")
+        }
+        (_, Some(p), _) => format!("a period of {p:.4} mm along {}", s.axis),
+        ("reversal", _, _) => format!("the sign of the {} velocity (reversal)", s.axis),
+        (k, _, _) => format!("{k} along {}", s.axis),
+    }
+}
+
+/// A complete `lab add custom` command for a structure: it runs as it is.
+pub(super) fn custom_command(s: &scancorr_core::lab::analysis::Structure, d: &DataArgs) -> String {
+    let q = |p: &Path| {
+        let t = p.display().to_string();
+        if t.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "._-/+=,".contains(c))
+        {
+            t
+        } else {
+            format!("'{}'", t.replace('\'', "'\\''"))
+        }
+    };
+    let name = match (s.kind.as_str(), s.harmonic) {
+        ("probe_direction", Some(k)) => format!("probe_direction_{k}"),
+        (k, _) => format!("{k}_{}", s.axis),
+    };
+    let mut c = format!("scancorr lab add custom --name {name}");
+    for t in &s.custom_terms {
+        c += &format!(" --term '{t}'");
+    }
+    for b in &d.bag {
+        c += &format!(" --bag {}", q(b));
+    }
+    for b in &d.validate {
+        c += &format!(" --validate {}", q(b));
+    }
+    if let Some(a) = &d.artifact {
+        c += &format!(" --artifact {a}");
+    }
+    if d.stride != 4 {
+        c += &format!(" --stride {}", d.stride);
+    }
+    c += &format!(" --calib {} --out next.json", q(&d.calib));
+    c
+}
+
+pub(super) fn print_diagnosis(d: &Diagnosis, data: &DataArgs) -> Result<()> {
+    outln!(
+        "residual RMS {} µm (cross-validated {} µm, held out {} µm), noise floor {} µm, {} fit / {} held-out points",
+        um(d.rms_um),
+        um(d.cv_rms_um),
+        um(d.heldout_rms_um),
+        um(d.noise_floor_um),
+        d.points[0],
+        d.points[1]
+    )?;
+    outln!(
+        "  {:<34} {:>9} {:>4} {:>11} {:>11} {:>9}",
+        "candidate",
+        "explained",
+        "sig",
+        "held-out µm",
+        "fit µm",
+        "ΔBIC"
+    )?;
+    for c in d.candidates.iter().take(12) {
+        outln!(
+            "  {:<34} {:>8.1}% {:>4} {:>5}→{:<5} {:>5}→{:<5} {:>9.0}",
+            match (&c.action, &c.replaces) {
+                (analysis::Move::Swap, Some(r)) => format!("{} for {r}", c.effect),
+                (analysis::Move::Drop, _) => format!("drop {}", c.effect),
+                _ => c.effect.clone(),
+            },
+            c.explained * 100.0,
+            if c.significant { "yes" } else { "no" },
+            format!("{:.3}", c.heldout_rms_before_um),
+            format!("{:.3}", c.heldout_rms_after_um),
+            format!("{:.3}", c.rms_before_um),
+            format!("{:.3}", c.rms_after_um),
+            c.delta_bic
+        )?;
+    }
+    if !d.candidates.iter().any(|c| c.significant) {
+        outln!("  no candidate is significant (none removes half the noise floor from scans it was not fitted on)")?;
+    }
+    for s in &d.skipped {
+        outln!("  not tested: {s}")?;
+    }
+    for c in &d.confounded {
+        outln!("  confounded: {} and {} (each reproduces {:.0} % / {:.0} % of the other) — to separate them:", c.effects[0], c.effects[1], c.r2[0] * 100.0, c.r2[1] * 100.0)?;
+        for s in &c.separate_by {
+            outln!("    · {s}")?;
+        }
+    }
+    for s in &d.unexplained {
+        outln!(
+            "  unexplained: {}, amplitude {:.3} µm, {:.0} % of the residual →\n    {}",
+            structure_text(s),
+            s.amplitude_um,
+            s.explained * 100.0,
+            custom_command(s, data)
+        )?;
+    }
+    Ok(())
+}
+
+pub(super) fn print_discovery(
+    d: &scancorr_core::lab::discover::Discovery,
+    dir: &Path,
+) -> Result<()> {
+    let f = &d.r#final;
+    outln!(
+        "stopped: {} — held-out RMS {} → {} µm, noise floor {} µm ({:.2}× the floor), cross-validated {} µm",
+        d.stopped,
+        um(d.start_heldout_rms_um),
+        um(f.heldout_rms_um),
+        um(f.noise_floor_um),
+        f.heldout_rms_um / f.noise_floor_um.max(1e-9),
+        um(f.cv_rms_um)
+    )?;
+    outln!(
+        "  final model v{} ({}): {}",
+        f.version,
+        dir.join("calibration.json").display(),
+        f.effects.join(", ")
+    )?;
+    for c in &d.confounded {
+        outln!(
+            "  confounded on this campaign: {} and {} — to separate them:",
+            c.effects[0],
+            c.effects[1]
+        )?;
+        for s in &c.separate_by {
+            outln!("    · {s}")?;
+        }
+    }
+    for r in &d.refused {
+        outln!("  not taken (held-out data worse): {r}")?;
+    }
+    if !d.unidentifiable.is_empty() {
+        outln!("  {} parameter(s) the campaign cannot determine (kept at their minimum-norm values), e.g. {}", d.unidentifiable.len(), d.unidentifiable.iter().take(3).cloned().collect::<Vec<_>>().join("; "))?;
+    }
+    for s in &d.unexplained {
+        outln!(
+            "  left unexplained: {} along {} ({:.3} µm, {:.0} % of the residual)",
+            s.kind,
+            s.axis,
+            s.amplitude_um,
+            s.explained * 100.0
+        )?;
+    }
+    Ok(())
+}

@@ -1,0 +1,14 @@
+//! Self-contained HTML reports (inline SVG, no scripts, no network): polar deviation plots,
+//! residual breakdowns with failing bins highlighted, the candidate ranking, the error fall.
+//!
+//! One module per family (`lab`, `calibrate`, `thermal`), the SVG and HTML primitives in `svg`.
+
+mod calibrate;
+mod lab;
+mod svg;
+pub mod thermal;
+
+pub use calibrate::{dynamic_map, dynamics, probe_force, straightness, tips};
+pub use lab::{add, compare, diagnose, discover, history, history_text, HistoryRow};
+pub use svg::value_sigma;
+pub use thermal::thermal_drift;
