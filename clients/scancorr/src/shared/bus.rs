@@ -677,7 +677,7 @@ impl Conn {
             }
             if let Some(first) = uncorrected.first() {
                 bail!(
-                    "scancorrd has no calibration in use for machine(s) {}: it counted their {sent} message(s) as uncorrected and published no point (`scancorr status --machine {first}`); put one first: `scancorr calib put --machine {first} --file CALIBRATION.json`",
+                    "scancorrd has no calibration in use for machine(s) {}: it counted what they streamed as uncorrected and published no point (`scancorr status --machine {first}`); put one first: `scancorr calib put --machine {first} --file CALIBRATION.json`",
                     uncorrected.iter().map(|m| format!("`{m}`")).collect::<Vec<_>>().join(", ")
                 );
             }

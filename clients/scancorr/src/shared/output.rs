@@ -37,6 +37,11 @@ pub struct AtomicOutput {
 }
 
 impl AtomicOutput {
+    /// [`AtomicOutput::new`] for an optional output flag (`None`: not asked for).
+    pub fn optional(flag: &str, path: Option<&Path>) -> Result<Option<AtomicOutput>> {
+        path.map(|p| AtomicOutput::new(flag, p)).transpose()
+    }
+
     /// Prepares `path` (named `flag` in messages, e.g. `--out`): refuses a folder, creates the
     /// temporary file next to it (so a missing or read-only folder fails now).
     pub fn new(flag: &str, path: &Path) -> Result<AtomicOutput> {
@@ -583,7 +588,7 @@ pub(crate) fn outputs<const N: usize>(
     crate::shared::provenance::register(inputs);
     let mut v = Vec::with_capacity(N);
     for (f, p) in outs {
-        v.push(p.map(|p| AtomicOutput::new(f, p)).transpose()?);
+        v.push(AtomicOutput::optional(f, p)?);
     }
     Ok(v.try_into().unwrap_or_else(|_| unreachable!("N outputs")))
 }

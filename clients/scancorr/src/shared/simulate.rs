@@ -162,26 +162,10 @@ pub fn simulate(mut a: SimArgs, report: bool) -> Result<Written> {
     crate::shared::output::check_machine("--machine", &a.options.machine_id)?;
     crate::shared::output::check_prefix(&a.prefix)?;
     let bag_out = AtomicOutput::new("--out", &a.out)?;
-    let truth_out = a
-        .truth
-        .as_deref()
-        .map(|p| AtomicOutput::new("--truth", p))
-        .transpose()?;
-    let calib_out = a
-        .calib_out
-        .as_deref()
-        .map(|p| AtomicOutput::new("--calib-out", p))
-        .transpose()?;
-    let datasheet_out = a
-        .datasheet_out
-        .as_deref()
-        .map(|p| AtomicOutput::new("--datasheet-out", p))
-        .transpose()?;
-    let catalogue_out = a
-        .catalogue_out
-        .as_deref()
-        .map(|p| AtomicOutput::new("--catalogue-out", p))
-        .transpose()?;
+    let truth_out = AtomicOutput::optional("--truth", a.truth.as_deref())?;
+    let calib_out = AtomicOutput::optional("--calib-out", a.calib_out.as_deref())?;
+    let datasheet_out = AtomicOutput::optional("--datasheet-out", a.datasheet_out.as_deref())?;
+    let catalogue_out = AtomicOutput::optional("--catalogue-out", a.catalogue_out.as_deref())?;
     let machine = a.options.machine_id.clone();
     let mut w = BagWriter::from_file(bag_out.file()?, bag_out.path(), BagHeader::default())
         .with_context(|| format!("creating {}", a.out.display()))?;

@@ -461,15 +461,15 @@ fn separating(a: &str, b: &str, cov: &[Lever], ds: &Dataset) -> Vec<String> {
     );
     let (la, lb) = (levers(ka), levers(kb));
     let positions = positions_text(ds);
-    let mut levers: Vec<(Lever, &str, &str)> = vec![];
+    let mut apart: Vec<(Lever, &str, &str)> = vec![];
     for l in la.iter().filter(|l| !lb.contains(l)) {
-        levers.push((*l, ka, kb));
+        apart.push((*l, ka, kb));
     }
     for l in lb.iter().filter(|l| !la.contains(l)) {
-        levers.push((*l, kb, ka));
+        apart.push((*l, kb, ka));
     }
-    let missing = levers.iter().any(|(l, _, _)| !cov.contains(l));
-    let mut out: Vec<String> = levers
+    let missing = apart.iter().any(|(l, _, _)| !cov.contains(l));
+    let mut out: Vec<String> = apart
         .iter()
         .filter(|(l, _, _)| !(missing && cov.contains(l)))
         .map(|(l, x, y)| lever_text(*l, x, y, cov.contains(l), &positions))

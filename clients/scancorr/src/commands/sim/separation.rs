@@ -51,21 +51,9 @@ pub fn refuse(flags: &[(&str, bool)], program: &str) -> Result<()> {
 pub fn run(a: SepArgs) -> Result<()> {
     check_args(&a)?;
     let bag_out = AtomicOutput::new("--out", &a.out)?;
-    let truth_out = a
-        .truth
-        .as_deref()
-        .map(|p| AtomicOutput::new("--truth", p))
-        .transpose()?;
-    let datasheet_out = a
-        .datasheet_out
-        .as_deref()
-        .map(|p| AtomicOutput::new("--datasheet-out", p))
-        .transpose()?;
-    let catalogue_out = a
-        .catalogue_out
-        .as_deref()
-        .map(|p| AtomicOutput::new("--catalogue-out", p))
-        .transpose()?;
+    let truth_out = AtomicOutput::optional("--truth", a.truth.as_deref())?;
+    let datasheet_out = AtomicOutput::optional("--datasheet-out", a.datasheet_out.as_deref())?;
+    let catalogue_out = AtomicOutput::optional("--catalogue-out", a.catalogue_out.as_deref())?;
     let mut w = BagWriter::from_file(bag_out.file()?, bag_out.path(), BagHeader::default())
         .with_context(|| format!("creating {}", a.out.display()))?;
     let m = a.machine.clone();
