@@ -47,6 +47,8 @@ except ImportError as e:  # pragma: no cover - environment problem
 
 # Repeated fields that hold the samples of a batch message. Any other message counts as one.
 BATCH_FIELDS = ("samples", "points")
+# Schemas of the Foxglove channels `scancorr correct` writes beside scancorr's (no batches).
+FOXGLOVE_SCHEMAS = ("foxglove.", "scancorr.foxglove.")
 MAX_PROBLEMS_SHOWN = 50
 
 
@@ -190,6 +192,9 @@ def read(path, problems):
             t = topic_entry(schema, channel)
             t["messages"] += 1
             if schema is None or schema.encoding != "protobuf":
+                continue
+            if schema.name.startswith(FOXGLOVE_SCHEMAS):
+                # Foxglove's channels beside ours: counted here, read by foxglove_bag.py.
                 continue
             cls = message_class(schema, topic)
             if cls is None:

@@ -148,6 +148,18 @@ fn dynamics_recovers_the_machine_from_the_nominal_model() {
         assert!(html.contains(&format!("data-plot=\"{plot}\"")), "{plot}");
     }
     assert!(!html.contains("NaN"));
+    // The README quotes this run (its command with run seed 3): held to what it prints.
+    let q = readme_figures("every one of its", 1);
+    assert_eq!(
+        (q[0] as usize, in2),
+        (n, n),
+        "README: all {} within 2σ",
+        q[0]
+    );
+    let q = readme_figures("the residual falls from", 3);
+    assert_quoted("the residual before", q[0], before, 3);
+    assert_quoted("the residual after", q[1], after, 3);
+    assert_quoted("the noise floor", q[2], floor, 3);
 }
 
 /// The σ are honest: over a few runs of another machine, most parameters are within 2σ

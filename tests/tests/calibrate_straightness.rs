@@ -275,6 +275,14 @@ fn three_methods_separate_the_guide_from_the_straightedge() {
         us * 1e3
     );
     assert!(gs <= 2.0 * noise && ps <= 2.0 * noise, "{gs} {ps}");
+    // The README's count of readings between the grid nodes (interpolated, not exact).
+    let q = readme_figures("0, 20, 40 mm) put", 2);
+    let quoted = format!("{} of {} readings fall between nodes", q[0], q[1]);
+    assert!(
+        rs["notes"].to_string().contains(&quoted),
+        "{quoted}: {}",
+        rs["notes"]
+    );
 
     // The three-probe (with reversal) and shear-stage guides agree within their uncertainties
     // at the three-probe stations (lines removed over the same stations).

@@ -9,7 +9,10 @@
 //!   or a hard link too) and a --report that is one of the files it writes there;
 //! * effect ids from a bag reach the CSV header sanitised (no line break, comma or quote) and
 //!   a cell that would be a formula (`=HYPERLINK(…)`) neutralised;
-//! * a bag's file name cannot inject a row into the `xyz` header.
+//! * a bag's file name cannot inject a row into the `xyz` header;
+//! * an output flag naming a file that exists is refused (the file untouched) unless
+//!   `--force`; `--out -` writes a text output (a report, a descriptor set, a CSV) to standard
+//!   output and the command's own lines to stderr, and a bag refuses it (issue 47, item 5).
 
 mod common;
 use common::*;
@@ -27,6 +30,7 @@ fn run_with_planted_link(dir: &Path, out: &str, target: &str, args: &[&str]) -> 
         .arg(out)
         .arg(scancorr())
         .args(args)
+        .env("SCANCORR_FORCE", "1")
         .current_dir(dir)
         .output()
         .expect("sh runs");
@@ -439,4 +443,136 @@ fn a_bag_name_cannot_inject_a_row_into_the_xyz_header() {
         assert_eq!(v.len(), 3, "{r}");
     }
     assert!(xyz.contains("# from o\\n1 2 3\\n.mcap"), "{xyz:.300}");
+}
+
+/// `scancorr ARGS` in `dir` without `SCANCORR_FORCE` (which the tests' `run` sets).
+fn run_as_user(dir: &Path, args: &[&str]) -> std::process::Output {
+    Command::new(scancorr())
+        .env_remove("SCANCORR_FORCE")
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("scancorr runs")
+}
+
+#[test]
+fn an_existing_output_needs_force_and_dash_is_standard_output() {
+    let dir = scratch("cli-outputs-force");
+    let old = b"an engineer's file\n";
+    std::fs::write(dir.join("x.bin"), old).unwrap();
+    // Refused, named, untouched, no temporary left behind.
+    let o = run_as_user(&dir, &["proto", "--out", "x.bin"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "an existing --out was replaced");
+    assert!(
+        err.contains("--out x.bin") && err.contains("exists") && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(dir.join("x.bin")).unwrap(), old);
+    assert_eq!(
+        std::fs::read_dir(&dir).unwrap().count(),
+        1,
+        "a temporary was left"
+    );
+    // --force (anywhere on the line) replaces it.
+    let o = run_as_user(&dir, &["proto", "--out", "x.bin", "--force"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let descriptors = std::fs::read(dir.join("x.bin")).unwrap();
+    assert!(descriptors.len() > 100 && descriptors != old);
+
+    // `--out -`: the output on stdout, no file named `-`.
+    let o = run_as_user(&dir, &["proto", "--out", "-"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.stdout, descriptors, "proto --out - differs from the file");
+    assert!(!dir.join("-").exists(), "a file named `-` was written");
+
+    // A report on stdout; what the command prints goes to stderr.
+    sim_ring(&dir, "cal.json");
+    let o = run_as_user(
+        &dir,
+        &[
+            "lab", "compare", "--bag", "r.mcap", "--calib", "cal.json", "--report", "-",
+        ],
+    );
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert!(o.status.success(), "{err}");
+    assert!(
+        out.starts_with("<!doctype html>") && out.trim_end().ends_with("</html>"),
+        "stdout is not the report alone: {}",
+        &out[..200.min(out.len())]
+    );
+    assert!(err.contains("RMS"), "the summary went nowhere: {err}");
+    // A report over an existing file: refused before the work.
+    std::fs::write(dir.join("r.html"), "mine").unwrap();
+    let o = run_as_user(
+        &dir,
+        &[
+            "lab", "compare", "--bag", "r.mcap", "--calib", "cal.json", "--report", "r.html",
+        ],
+    );
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--report r.html"));
+    assert_eq!(std::fs::read_to_string(dir.join("r.html")).unwrap(), "mine");
+    // A bag is written with seeks: `-` is refused, naming why, and nothing is written.
+    let o = run_as_user(&dir, &["sim", "--program", "ring", "--out", "-"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("standard output"),
+        "{err}"
+    );
+    assert!(o.stdout.is_empty() && !dir.join("-").exists());
+}
+
+/// The CLI's connection errors say what is wrong (issue 47, items 2 and 5): a TLS certificate
+/// the zenoh configuration names but that is missing is named with its key; something that
+/// listens but establishes no session (a router refusing the TLS handshake, or no zenoh) is a
+/// refusal, not "nothing answers".
+#[test]
+fn tls_files_are_named_and_a_refusal_is_not_an_absence() {
+    let dir = scratch("cli-tls-errors");
+    std::fs::write(
+        dir.join("c.json5"),
+        r#"{ connect: { endpoints: ["tls/127.0.0.1:9"] },
+             transport: { link: { tls: { root_ca_certificate: "nosuch-ca.pem" } } } }"#,
+    )
+    .unwrap();
+    let o = run_as_user(&dir, &["status", "--zenoh-config", "c.json5"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("--zenoh-config c.json5")
+            && err.contains("`transport/link/tls/root_ca_certificate`")
+            && err.contains("nosuch-ca.pem")
+            && err.contains("cannot read"),
+        "{err}"
+    );
+    // Something listens and hangs up at once: refused.
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = l.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for c in l.incoming() {
+            drop(c);
+        }
+    });
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let o = run_as_user(&dir, &["status", "--connect", &ep]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains(&format!("something listens at {ep}")) && err.contains("TLS handshake"),
+        "{err}"
+    );
+    // Nothing there at all.
+    let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let ep = format!("tcp/127.0.0.1:{}", free.local_addr().unwrap().port());
+    drop(free);
+    let o = run_as_user(&dir, &["status", "--connect", &ep]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("nothing answers there"),
+        "{err}"
+    );
 }

@@ -1,7 +1,8 @@
 //! `scancorr lab plan`: a campaign planned from a fitted calibration before it is measured,
 //! run by the simulator (`sim --program plan.json`), and the lab's fit on its bag set beside
 //! the prediction: σ within 1.5× of predicted for the deflection matrix P, the servo gain and
-//! the rigid-body terms; and on the campaign's bag with the plan's, `accel_deflection` (the
+//! the rigid-body terms the design determines (those confounded with others, over 99.9 % of
+//! their column following theirs, are named and claim no σ); and on the campaign's bag with the plan's, `accel_deflection` (the
 //! simulator's physics) chosen over `servo_gain`. The start is the nominal model with the
 //! effects a `lab discover` reaches, refitted by `lab fit` on the campaign: the truth only
 //! judges. Machine seed 113, run seeds 41 and 42 (no other test uses them).
@@ -102,6 +103,8 @@ fn a_planned_campaign_measures_what_it_predicted() {
             "straightedge:l=400",
             "--minutes",
             "8",
+            "--replicates",
+            "0",
             "--out",
             "plan.json",
             "--json",
@@ -152,7 +155,7 @@ fn a_planned_campaign_measures_what_it_predicted() {
         .unwrap();
     let meas = checked["measured"].as_array().unwrap();
     assert_eq!(pred.len(), meas.len());
-    let mut ratios = std::collections::BTreeMap::<String, Vec<f64>>::new();
+    let mut ratios = std::collections::BTreeMap::<String, Vec<(f64, String)>>::new();
     for (p, m) in pred.iter().zip(meas) {
         let effect = p["effect"].as_str().unwrap();
         let group = match effect {
@@ -165,25 +168,36 @@ fn a_planned_campaign_measures_what_it_predicted() {
         let Some(ps) = p["sigma"].as_f64() else {
             continue;
         };
+        // A parameter confounded with others (99.9 % of its column follows theirs) has its σ
+        // from the lab's ridge and the data's model error: the plan names it, claims no σ.
+        let vif = p["vif"].as_f64().unwrap_or(f64::INFINITY);
+        if vif > scancorr_core::lab::plan::JOINT_VIF {
+            continue;
+        }
         let ms = m["sigma"].as_f64().unwrap_or_else(|| {
             panic!(
                 "{effect}: {}: predicted σ {ps:e}, the lab could not determine it",
                 p["name"]
             )
         });
-        ratios.entry(group.to_string()).or_default().push(ms / ps);
+        ratios
+            .entry(group.to_string())
+            .or_default()
+            .push((ms / ps, p["name"].as_str().unwrap().to_string()));
     }
-    // Per group, the typical ratio of measured to predicted σ (the lab's ridge shrinks the
-    // weakly determined terms' σ, which the prediction leaves out: single terms spread more).
+    eprintln!("lab_plan: measured σ / predicted σ {ratios:?}");
+    // Every parameter the design determines: the lab's σ within 1.5× of the prediction (the
+    // lab's own fit on simulated measurements of the design, at the noise and ρ the bag
+    // showed).
     for g in ["P", "servo gain", "rigid body"] {
-        let mut r = ratios.get(g).cloned().unwrap_or_default();
+        let r = ratios.get(g).cloned().unwrap_or_default();
         assert!(r.len() >= 2, "too few {g} terms determined: {ratios:?}");
-        r.sort_by(f64::total_cmp);
-        let median = r[r.len() / 2];
-        assert!(
-            (1.0 / 2.5..=2.5).contains(&median),
-            "{g}: measured σ / predicted σ median {median:.2} ({r:?})"
-        );
+        for (x, name) in &r {
+            assert!(
+                (1.0 / 1.5..=1.5).contains(x),
+                "{g}: {name}: measured σ / predicted σ {x:.2} ({r:?})"
+            );
+        }
     }
     let compared: Vec<(String, usize)> = ratios.iter().map(|(k, v)| (k.clone(), v.len())).collect();
     // Item 5: on the campaign with the plan, without accel_deflection in the model, the lab
@@ -228,5 +242,160 @@ fn a_planned_campaign_measures_what_it_predicted() {
     eprintln!(
         "lab_plan: {compared:?} in {:.1} s",
         t0.elapsed().as_secs_f64()
+    );
+}
+
+/// Item 5 and the acceptance's last clause: the machine has the simulator's 21 wavy
+/// rigid-body errors (`--with rigid_body`), which the default campaign's three ring positions
+/// cannot determine. From the nominal model with the discovered effects fitted by `lab fit`
+/// on the campaign, `lab plan` names the positions (the ring stepped along each axis) and
+/// predicts the rigid body determined; on the campaign with the plan's bag, `lab add
+/// rigid_body` brings a held-out ring at another position within 1.2× the noise floor.
+/// Machine seed 131, run seeds 4311–4313 (no other test uses them).
+///
+/// Not met yet (ignored: a known gap of issue 45, run with `--ignored`): measured 0.405 →
+/// 0.192 µm against a 0.102 µm floor (1.87×) with the 16-minute plan; 1.55× with the
+/// previous planner's 12-minute plan; the campaign with `sim --program geometry` (the ring
+/// stepped every 50 mm along each axis) reaches 1.21×.
+#[test]
+#[ignore]
+fn the_plan_determines_the_rigid_body_hidden_from_a_nominal_start() {
+    let t0 = std::time::Instant::now();
+    let d = scratch("lab-plan-rigid");
+    let m = ["--machine-seed", "131", "--with", "rigid_body"];
+    let sim = |program: &str, seed: &str, out: &str, extra: &[&str]| {
+        ok(
+            &d,
+            &[
+                &["sim", "--program", program, "--seed", seed, "--out", out][..],
+                &m,
+                extra,
+            ]
+            .concat(),
+        );
+    };
+    sim(
+        "campaign",
+        "4311",
+        "c.mcap",
+        &["--datasheet-out", "ds.json", "--calib-out", "sim.json"],
+    );
+    sim(
+        "ring-speeds",
+        "4313",
+        "v.mcap",
+        &["--position", "550,300,-250"],
+    );
+    ok(
+        &d,
+        &[
+            "calib",
+            "nominal",
+            "--datasheet",
+            "ds.json",
+            "--tips-from",
+            "sim.json",
+            "--out",
+            "nominal.json",
+        ],
+    );
+    let nominal = std::fs::read_to_string(d.join("nominal.json")).unwrap();
+    let mut cal = scancorr_core::Calibration::from_json(&nominal).unwrap();
+    let tips: Vec<u32> = cal.geometry.tips.iter().map(|t| t.id).collect();
+    cal.effects = discovered_effects(&tips);
+    std::fs::write(d.join("start.json"), cal.to_json()).unwrap();
+    ok(
+        &d,
+        &[
+            "lab",
+            "fit",
+            "--bag",
+            "c.mcap",
+            "--calib",
+            "start.json",
+            "--out",
+            "fitted.json",
+        ],
+    );
+    let planned = json(&ok(
+        &d,
+        &[
+            "lab",
+            "plan",
+            "--calib",
+            "fitted.json",
+            "--datasheet",
+            "ds.json",
+            "--artifact",
+            "ring:d=50.0012",
+            "--artifact",
+            "sphere:d=25.0004",
+            "--artifact",
+            "straightedge:l=400",
+            "--minutes",
+            "16",
+            "--candidate",
+            "rigid_body",
+            "--replicates",
+            "0",
+            "--out",
+            "plan.json",
+            "--json",
+        ],
+    ));
+    // The plan steps the ring along each axis, and predicts the rigid body determined.
+    let groups = planned["groups"].as_array().unwrap();
+    assert!(
+        groups.iter().any(|g| g["what"]
+            .as_str()
+            .unwrap()
+            .contains("stepped along x, y and z")),
+        "{groups:?}"
+    );
+    let rb: Vec<&serde_json::Value> = planned["prediction"]["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| p["effect"].as_str().unwrap().starts_with("rigid_body"))
+        .collect();
+    let determined = rb.iter().filter(|p| p["sigma"].is_number()).count();
+    assert!(
+        2 * determined > rb.len(),
+        "{determined} of {} rigid-body terms determined",
+        rb.len()
+    );
+    sim("plan.json", "4312", "p.mcap", &[]);
+    let added = json(&ok(
+        &d,
+        &[
+            "lab",
+            "add",
+            "rigid_body",
+            "--bag",
+            "c.mcap",
+            "--bag",
+            "p.mcap",
+            "--calib",
+            "fitted.json",
+            "--validate",
+            "v.mcap",
+            "--out",
+            "rb.json",
+            "--json",
+        ],
+    ));
+    let (before, after, floor) = (
+        added["heldout_rms_before_um"].as_f64().unwrap(),
+        added["heldout_rms_after_um"].as_f64().unwrap(),
+        added["noise_floor_um"].as_f64().unwrap(),
+    );
+    eprintln!(
+        "lab_plan rigid: held-out {before:.3} → {after:.3} µm, floor {floor:.3} µm ({:.2}×) in {:.1} s",
+        after / floor,
+        t0.elapsed().as_secs_f64()
+    );
+    assert!(
+        floor > 0.0 && after <= 1.2 * floor,
+        "held-out ring {after:.3} µm against a floor of {floor:.3} µm (from {before:.3} µm)"
     );
 }

@@ -294,7 +294,10 @@ window.addEventListener('load', function () {
         visible: w.getComputedStyle(s).visibility === 'visible' && w.getComputedStyle(s).display !== 'none',
         paths: Array.prototype.map.call(s.querySelectorAll('path'), function (p) {
           var b = p.getBBox();
-          return { stroke: w.getComputedStyle(p).stroke, length: p.getTotalLength(), width: b.width, height: b.height };
+          var cs = w.getComputedStyle(p);
+          return { stroke: cs.stroke, dash: cs.strokeDasharray, layer: p.getAttribute('data-layer'),
+                   direction: p.getAttribute('data-direction'), run: p.getAttribute('data-trace'),
+                   length: p.getTotalLength(), width: b.width, height: b.height };
         }),
         rects: Array.prototype.map.call(s.querySelectorAll('rect'), function (p) {
           var b = p.getBBox();
@@ -382,6 +385,80 @@ fn check_polars(name: &str, polars: &[&Value]) -> Vec<usize> {
             paths.len()
         })
         .collect()
+}
+
+/// `rgb(r, g, b)` as the browser computes a colour.
+fn rgb(c: &str) -> [f64; 3] {
+    let v: Vec<f64> = c
+        .trim_start_matches("rgba(")
+        .trim_start_matches("rgb(")
+        .trim_end_matches(')')
+        .split(',')
+        .filter_map(|x| x.trim().parse().ok())
+        .collect();
+    assert!(v.len() >= 3, "not a colour: {c}");
+    [v[0], v[1], v[2]]
+}
+
+/// The colours the browser paints the traces of each polar plot with: every run of a plot
+/// (a speed, a setting, a direction) has its own colour, no two closer than a plainly visible
+/// step, the measured layer under a prediction excepted (it repeats its run's colour, faint);
+/// clockwise runs are dashed, counter-clockwise ones solid. Returns the most runs in one plot.
+fn check_trace_colours(name: &str, polars: &[&Value]) -> usize {
+    let mut most = 0;
+    for (i, p) in polars.iter().enumerate() {
+        let paths: Vec<&Value> = p["paths"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|c| c["layer"] != "measured")
+            .collect();
+        most = most.max(paths.len());
+        for (a, pa) in paths.iter().enumerate() {
+            let dashed = pa["dash"].as_str().unwrap_or("none") != "none";
+            assert_eq!(
+                dashed,
+                pa["direction"] == "cw",
+                "{name}: polar plot {i}: {} dashed {dashed}",
+                pa["run"]
+            );
+            for pb in &paths[a + 1..] {
+                let (ca, cb) = (
+                    rgb(pa["stroke"].as_str().unwrap()),
+                    rgb(pb["stroke"].as_str().unwrap()),
+                );
+                let d =
+                    ((ca[0] - cb[0]).powi(2) + (ca[1] - cb[1]).powi(2) + (ca[2] - cb[2]).powi(2))
+                        .sqrt();
+                assert!(
+                    d >= 20.0,
+                    "{name}: polar plot {i}: `{}` ({}) and `{}` ({}) are painted alike",
+                    pa["run"],
+                    pa["stroke"],
+                    pb["run"],
+                    pb["stroke"]
+                );
+            }
+        }
+    }
+    most
+}
+
+/// The largest deviation a polar plot draws, in its divisions: the farthest any point of a
+/// curve lies from the certified circle (radius 100 px at the centre (200, 200); 20 px a
+/// division).
+fn drawn_divisions(svg: &str) -> f64 {
+    svg.split("<path ")
+        .skip(1)
+        .filter(|p| !p.contains("data-layer=\"measured\""))
+        .filter_map(|p| p.split(" d=\"").nth(1)?.split('"').next())
+        .flat_map(|d| d.split_whitespace())
+        .filter_map(|xy| {
+            let (x, y) = xy.trim_start_matches(['M', 'L']).split_once(',')?;
+            let (x, y): (f64, f64) = (x.parse().ok()?, y.parse().ok()?);
+            Some((((x - 200.0).powi(2) + (y - 200.0).powi(2)).sqrt() - 100.0).abs() / 20.0)
+        })
+        .fold(0.0, f64::max)
 }
 
 /// Bar charts: every bar has a size; returns (fills of failing bars, fills of others).
@@ -531,6 +608,16 @@ fn reports_render_in_headless_chromium() {
         let path = d.join(name);
         let html = std::fs::read_to_string(&path).unwrap();
         assert_self_contained(name, &html);
+        // Every fitted parameter named with a unit of the one table (issue 47, item 4).
+        for table in html.split("<table data-params=\"1\">").skip(1) {
+            let table = table.split("</table>").next().unwrap();
+            for row in table.split("<tr><td>").skip(1) {
+                let name = row.split("</td>").next().unwrap().replace("&amp;", "&");
+                if let Err(e) = scancorr_core::units::check_name(&name) {
+                    panic!("{name}: {e}");
+                }
+            }
+        }
 
         // (a) The DOM Chromium built from the file.
         let dom = dump_dom(&chrome, &d, &format!("dom-{name}"), &path, &[]);
@@ -571,6 +658,32 @@ fn reports_render_in_headless_chromium() {
                 assert!(
                     check_polars(name, &polars).iter().all(|&n| n >= 1),
                     "{name}: a polar plot without a curve"
+                );
+                let most = check_trace_colours(name, &polars);
+                eprintln!("{name}: up to {most} runs in one polar plot, each its own colour");
+                // The sphere, scanned with two styli and one of them at two head angles, is
+                // one trace per setting: never tip 1 and tip 2 pooled in one curve.
+                let settings = |svg: &str| -> std::collections::BTreeSet<String> {
+                    svg.split("<path ")
+                        .skip(1)
+                        .filter_map(|p| {
+                            let a = |k: &str| p.split(&format!("{k}=\"")).nth(1)?.split('"').next();
+                            Some(format!(
+                                "{}/{}/{}",
+                                a("data-tip")?,
+                                a("data-a1-deg")?,
+                                a("data-a2-deg")?
+                            ))
+                        })
+                        .collect()
+                };
+                assert!(
+                    of_kind(&p, "polar").iter().any(|s| settings(s).len() >= 2),
+                    "{name}: no plot separates the sphere's styli or head angles"
+                );
+                assert!(
+                    html.contains("data-trace=\"CCW") && html.contains(", tip "),
+                    "{name}: traces not labelled with their setting"
                 );
                 let (hot, cold) = check_bars(name, &laid_out(name, &lay, "residual"));
                 assert!(!hot.is_empty(), "{name}: no failing bar laid out");
@@ -641,7 +754,32 @@ fn reports_render_in_headless_chromium() {
                         .to_string()
                 };
                 assert_eq!(polar.len() % 2, 0, "{name}: before/after pairs");
+                // The before plots on one scale, the after plots on their own, finer one (the
+                // residual left magnified, the magnification stated), each drawing what is
+                // left over at least one division.
                 let scale = attr(polar[0], "data-um-per-div");
+                let after_scale = attr(polar[1], "data-um-per-div");
+                let (b, a): (f64, f64) = (scale.parse().unwrap(), after_scale.parse().unwrap());
+                assert!(a < b, "{name}: after {a} µm/div, before {b} µm/div");
+                let ms = attr(polar[1], "data-magnification");
+                let m: f64 = ms.parse().unwrap();
+                assert!((m - b / a).abs() < 0.01 * m, "{name}: magnification {m}");
+                assert!(
+                    html.contains(&format!("magnified {ms}× against the before's")),
+                    "{name}: the after's caption does not state its scale"
+                );
+                for pair in polar.chunks(2) {
+                    assert_eq!(
+                        attr(pair[1], "data-um-per-div"),
+                        after_scale,
+                        "{name}: one after scale"
+                    );
+                    let drawn = drawn_divisions(pair[1]);
+                    assert!(
+                        drawn >= 1.0,
+                        "{name}: the after plot draws the residual over {drawn:.2} division(s): unreadable"
+                    );
+                }
                 for pair in polar.chunks(2) {
                     assert_eq!(
                         (
@@ -651,9 +789,11 @@ fn reports_render_in_headless_chromium() {
                         ("before", "after"),
                         "{name}: a before and an after plot per ring"
                     );
-                    for s in pair {
-                        assert_eq!(attr(s, "data-um-per-div"), scale, "{name}: one scale");
-                    }
+                    assert_eq!(
+                        attr(pair[0], "data-um-per-div"),
+                        scale,
+                        "{name}: one before scale"
+                    );
                     let traces = |s: &str| s.matches("data-trace=").count();
                     assert!(
                         traces(pair[0]) >= 2 && traces(pair[0]) == traces(pair[1]),
@@ -668,6 +808,7 @@ fn reports_render_in_headless_chromium() {
                         "{name}: polar plot {i}: a curve per direction and speed"
                     );
                 }
+                check_trace_colours(name, &polars);
                 let (_, bars) = check_bars(name, &laid_out(name, &lay, "error-fall"));
                 assert!(
                     bars.len() >= 2,
@@ -812,7 +953,7 @@ fn compare_report_draws_one_trace_per_direction_and_speed() {
     );
     for (svg, (f, ts)) in polar.iter().zip(&rings) {
         // One path per trace, each its own direction and speed; the axes and scale labelled.
-        let drawn: Vec<(String, String, f64)> = svg
+        let drawn: Vec<(String, String, f64, String)> = svg
             .split("<path ")
             .skip(1)
             .map(|s| {
@@ -829,27 +970,38 @@ fn compare_report_draws_one_trace_per_direction_and_speed() {
                     a("data-direction"),
                     a("data-speed-mm-s"),
                     a("data-circularity-um").parse().unwrap(),
+                    format!(
+                        "{}/{}/{}/{}",
+                        a("data-tip"),
+                        a("data-a1-deg"),
+                        a("data-a2-deg"),
+                        a("data-deflection-mm")
+                    ),
                 )
             })
             .collect();
         assert_eq!(drawn.len(), ts.len(), "ring {f}: {drawn:?}");
-        let mut keys: Vec<_> = drawn.iter().map(|x| (x.0.clone(), x.1.clone())).collect();
+        // One trace per run: direction, speed and setting (tip, head angles, deflection).
+        let mut keys: Vec<_> = drawn
+            .iter()
+            .map(|x| (x.0.clone(), x.1.clone(), x.3.clone()))
+            .collect();
         keys.sort();
         keys.dedup();
-        assert_eq!(
-            keys.len(),
-            drawn.len(),
-            "ring {f}: a trace per direction and speed"
-        );
+        assert_eq!(keys.len(), drawn.len(), "ring {f}: a trace per run");
         assert!(
             svg.contains("+X") && svg.contains("+Y") && svg.contains("µm/div"),
             "ring {f}"
         );
         assert!(svg.contains("data-um-per-div"), "ring {f}");
-        for (dir, v, c) in &drawn {
+        for (dir, v, c, _) in &drawn {
             let t = ts
                 .iter()
-                .find(|t| (t.0 == 1) == (dir == "ccw") && format!("{}", t.1) == *v)
+                .find(|t| {
+                    (t.0 == 1) == (dir == "ccw")
+                        && format!("{}", t.1) == *v
+                        && (t.2 - c).abs() < 1e-3
+                })
                 .unwrap_or_else(|| panic!("ring {f}: {dir} {v} not in the JSON"));
             assert!(
                 (t.2 - c).abs() < 1e-3,
@@ -895,7 +1047,7 @@ fn compare_report_draws_one_trace_per_direction_and_speed() {
             .iter()
             .filter(|(li, _)| li.contains(" 60 mm/s") || li.contains(" 90 mm/s"))
             .collect();
-        assert_eq!(fast.len(), 4, "{legend:?}");
+        assert!(fast.len() >= 4 && fast.len() % 2 == 0, "{legend:?}");
         for (li, c) in fast {
             assert!(
                 *c > 5.0 && li.contains("circularity") && li.contains("µm"),
@@ -906,7 +1058,10 @@ fn compare_report_draws_one_trace_per_direction_and_speed() {
     assert_eq!(n_ring_figures, rings.len());
     // Laid out: every trace drawn with a length and extent.
     let lay = layout(&chrome, &d, "compare.html");
-    for n in check_polars("compare.html", &laid_out("compare.html", &lay, "polar")) {
+    let polars = laid_out("compare.html", &lay, "polar");
+    for n in check_polars("compare.html", &polars) {
         assert!(n >= 2);
     }
+    let most = check_trace_colours("compare.html", &polars);
+    assert!(most >= 8, "compare.html: at most {most} runs in a plot");
 }

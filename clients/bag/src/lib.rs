@@ -23,6 +23,9 @@
 //! [`measure`] reads the measurement streams the corrector does not use (v1.2 distance probes
 //! and micro-stage) of one machine as plain readings, for calibration procedures.
 //!
+//! [`foxglove`] encodes corrected points, the nominal features, alarms and the machine frame
+//! in Foxglove's schemas, as channels beside scancorr's (`<prefix>/<machine>/foxglove/…`).
+//!
 //! [`import`] reads a user's recorded table (CSV or whitespace columns) into samples of the
 //! raw streams through a column mapping, and writes a bag's raw streams as such a table.
 #![forbid(unsafe_code)]
@@ -32,6 +35,7 @@ mod artifact;
 mod batch;
 mod crc;
 mod error;
+pub mod foxglove;
 pub mod import;
 mod layout;
 pub mod measure;

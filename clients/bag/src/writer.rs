@@ -73,6 +73,8 @@ pub struct BagWriter {
     last: usize,
     scratch: Vec<u8>,
     writeback: Option<Writeback>,
+    /// Channels beside scancorr's streams (e.g. [`crate::foxglove`]'s): id and sequence.
+    extra: Vec<(u16, u32)>,
 }
 
 /// Payload bytes between two early syncs of a bag's file.
@@ -211,6 +213,7 @@ impl BagWriter {
             last: 0,
             scratch: Vec::new(),
             writeback,
+            extra: Vec::new(),
         })
     }
 
@@ -327,6 +330,58 @@ impl BagWriter {
         let header = MessageHeader {
             channel_id: slot.id,
             sequence: slot.sequence,
+            log_time: log_time_ns,
+            publish_time: publish_time_ns,
+        };
+        let r = self.writer()?.write_to_known_channel(&header, payload);
+        r.map_err(|e| self.mcap_err(e))?;
+        if let Some(wb) = &mut self.writeback {
+            wb.wrote(payload.len());
+        }
+        Ok(())
+    }
+
+    /// Registers a protobuf channel that is not one of scancorr's streams (e.g. the
+    /// [`crate::foxglove`] channels): `schema_data` is the encoded `FileDescriptorSet` holding
+    /// `schema_name`. Its messages are written with [`BagWriter::write_extra`]; readers list
+    /// it among the unknown channels and skip it.
+    pub fn add_extra_channel(
+        &mut self,
+        topic: &str,
+        schema_name: &str,
+        schema_data: &[u8],
+    ) -> Result<u16> {
+        let schema = self
+            .writer()?
+            .add_schema(schema_name, ENCODING, schema_data);
+        let schema = schema.map_err(|e| self.mcap_err(e))?;
+        let id = self
+            .writer()?
+            .add_channel(schema, topic, ENCODING, &BTreeMap::new());
+        let id = id.map_err(|e| self.mcap_err(e))?;
+        self.extra.push((id, 0));
+        Ok(id)
+    }
+
+    /// Records one message on a channel of [`BagWriter::add_extra_channel`].
+    pub fn write_extra(
+        &mut self,
+        channel: u16,
+        log_time_ns: u64,
+        publish_time_ns: u64,
+        payload: &[u8],
+    ) -> Result<()> {
+        let Some(slot) = self.extra.iter_mut().find(|(id, _)| *id == channel) else {
+            return Err(BagError::InvalidKey {
+                prefix: String::new(),
+                machine: String::new(),
+                reason: format!("channel {channel} was not added by add_extra_channel"),
+            });
+        };
+        slot.1 = slot.1.wrapping_add(1);
+        let header = MessageHeader {
+            channel_id: channel,
+            sequence: slot.1,
             log_time: log_time_ns,
             publish_time: publish_time_ns,
         };

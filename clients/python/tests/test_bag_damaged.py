@@ -94,7 +94,7 @@ def zstd_bomb(total: int) -> bytes:
 def correct(d: pathlib.Path, bag: pathlib.Path, calib: str, out: str) -> Tuple[int, str, Optional[dict]]:
     """`scancorr correct` of `bag` (the Rust reader): exit code, stderr, its JSON summary."""
     r = subprocess.run(
-        [str(binary("scancorr")), "correct", "--bag", str(bag), "--calib", calib, "--out", out, "--json"],
+        [str(binary("scancorr")), "correct", "--bag", str(bag), "--calib", calib, "--out", out, "--force", "--json"],
         cwd=d,
         capture_output=True,
         text=True,

@@ -24,6 +24,10 @@ use std::path::PathBuf;
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
+    /// Let output flags (--out, --report, …) replace files that exist (also SCANCORR_FORCE=1);
+    /// without it an existing file is refused. `--out -` writes a text output to stdout.
+    #[arg(long, global = true)]
+    force: bool,
 }
 
 #[derive(Subcommand)]
@@ -168,6 +172,8 @@ enum Cmd {
         #[command(flatten)]
         bus: bus::Bus,
     },
+    /// Serve the bus's corrected points and alarms to Foxglove (WebSocket on localhost).
+    View(commands::view::Args),
     /// Simulate a CMM scanning a program; write a bag, the ground truth and a calibration.
     Sim(SimCli),
     /// Correct a bag offline through the core; write points and alarms to a bag.
@@ -184,11 +190,17 @@ enum Cmd {
         /// Print the summary as JSON (`samples`, `points`, `dropped`, `alarms`).
         #[arg(long)]
         json: bool,
+        /// Leave out the Foxglove channels (`<prefix>/<machine>/foxglove/…`: points coloured
+        /// by deviation, the nominal features, alarms, the machine frame).
+        #[arg(long)]
+        no_foxglove: bool,
     },
 }
 
 fn main() -> std::process::ExitCode {
-    match run(Cli::parse()) {
+    let cli = Cli::parse();
+    shared::output::set_force(cli.force);
+    match run(cli) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         // The reader of stdout went away (`scancorr … | head`): stop quietly, as a command
         // whose output is no longer wanted. Every file was committed before printing.
@@ -244,12 +256,14 @@ fn run(cli: Cli) -> Result<()> {
             json,
             bus,
         } => commands::bus::tail(machine, seconds, count, json, bus),
+        Cmd::View(a) => commands::view::exec(a),
         Cmd::Sim(a) => commands::sim::exec(a),
         Cmd::Correct {
             bag,
             calib,
             out,
             json,
-        } => commands::correct::exec(bag, calib, out, json),
+            no_foxglove,
+        } => commands::correct::exec(bag, calib, out, json, no_foxglove),
     }
 }

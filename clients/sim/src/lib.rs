@@ -20,6 +20,7 @@ pub mod machine;
 pub mod program;
 pub mod rng;
 pub mod straightness;
+pub mod wall;
 
 use machine::{head_rotation, profile, TrueMachine, V3};
 use program::{FeatureInfo, Path, Plan, ProgramInfo, SegmentInfo, SegmentKind};
@@ -238,6 +239,10 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
         for (a, k) in ["u", "v", "w"].iter().zip(m.probe_k) {
             p.insert(format!("{t}.probe_k_{a}"), k * s.bend_scale);
         }
+    }
+    // The scales' expansion, as `calibrate scales` prints it.
+    for (a, alpha) in ["x", "y", "z"].iter().zip(m.scale_alpha) {
+        p.insert(format!("scale_{a}.alpha_per_k"), alpha);
     }
     p
 }
@@ -798,6 +803,17 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
                 plan.features[fid as usize - 1].push(&tip_free, stylus.radius_mm)
             }
             _ => V3::zeros(),
+        };
+        // A thin wall gives under the probing force (`wall`).
+        let d_total = match seg.feature {
+            Some(fid) => wall::yielded(
+                &plan.features[fid as usize - 1],
+                &tip_free,
+                d_total,
+                &rot,
+                m.probe_k.map(|k| k * stylus.bend_scale),
+            ),
+            None => d_total,
         };
         let mut d_probe = rot.transpose() * d_total;
         if lobing {

@@ -782,6 +782,113 @@ impl Program {
     }
 }
 
+impl Expr {
+    /// The dimension of the expression, given each variable's (see the units table):
+    /// constants take the dimension they are added to (`T_air - 20`); a trigonometric,
+    /// exponential or logarithmic function gives a number (the constants in its argument carry
+    /// the unit: `sin(2*pi*x/4)`, a period of 4 mm); `None` when quantities of different
+    /// units are added or compared, a variable has no known unit, or a power is not a whole
+    /// constant (a square root of a square is whole again).
+    pub fn dimension(
+        &self,
+        unit_of: &dyn Fn(&str) -> Option<crate::dim::Dim>,
+    ) -> Option<crate::dim::Dim> {
+        use crate::dim::Dim;
+        // (dimension, the constant value when the operand is a constant)
+        let mut st: Vec<(Dim, Option<f64>)> = Vec::with_capacity(self.depth.max(4));
+        let same = |a: (Dim, Option<f64>), b: (Dim, Option<f64>)| -> Option<Dim> {
+            match (a.1, b.1) {
+                (Some(_), _) => Some(b.0),
+                (_, Some(_)) => Some(a.0),
+                _ if a.0 == b.0 => Some(a.0),
+                _ => None,
+            }
+        };
+        let scale = |d: Dim, num: i32, den: i32| -> Option<Dim> {
+            let f = |p: i8| -> Option<i8> {
+                let v = p as i32 * num;
+                (v % den == 0).then(|| (v / den) as i8)
+            };
+            Some(Dim {
+                mm: f(d.mm)?,
+                s: f(d.s)?,
+                k: f(d.k)?,
+            })
+        };
+        for op in &self.ops {
+            let two = |f: Func2, a: (Dim, Option<f64>), b: (Dim, Option<f64>)| {
+                let c = match (a.1, b.1) {
+                    (Some(x), Some(y)) => Some(f.apply(x, y)),
+                    _ => None,
+                };
+                let d = match f {
+                    Func2::Add | Func2::Sub | Func2::Min | Func2::Max => same(a, b)?,
+                    Func2::Mul => Dim {
+                        mm: a.0.mm + b.0.mm,
+                        s: a.0.s + b.0.s,
+                        k: a.0.k + b.0.k,
+                    },
+                    Func2::Div => Dim {
+                        mm: a.0.mm - b.0.mm,
+                        s: a.0.s - b.0.s,
+                        k: a.0.k - b.0.k,
+                    },
+                    Func2::Pow => {
+                        if a.0 == Dim::ONE {
+                            Dim::ONE
+                        } else {
+                            let e = b.1?;
+                            let twice = (2.0 * e).round();
+                            if (2.0 * e - twice).abs() > 1e-9 || twice.abs() > 16.0 {
+                                return None;
+                            }
+                            scale(a.0, twice as i32, 2)?
+                        }
+                    }
+                    Func2::Atan2 => {
+                        same(a, b)?;
+                        Dim::ONE
+                    }
+                };
+                Some((d, c))
+            };
+            let v = match *op {
+                Op::Num(x) => (Dim::ONE, Some(x)),
+                Op::Var(i) => (unit_of(self.vars.get(i)?)?, None),
+                Op::Neg => {
+                    let a = st.pop()?;
+                    (a.0, a.1.map(|x| -x))
+                }
+                Op::F1(f) => {
+                    let a = st.pop()?;
+                    let d = match f {
+                        Func1::Neg | Func1::Abs | Func1::Floor | Func1::Ceil => a.0,
+                        Func1::Sqrt => scale(a.0, 1, 2)?,
+                        _ => Dim::ONE,
+                    };
+                    (d, a.1.map(|x| f.apply(x)))
+                }
+                Op::Add | Op::Sub | Op::Mul | Op::Div | Op::Pow | Op::F2(_) => {
+                    let b = st.pop()?;
+                    let a = st.pop()?;
+                    let f = match *op {
+                        Op::Add => Func2::Add,
+                        Op::Sub => Func2::Sub,
+                        Op::Mul => Func2::Mul,
+                        Op::Div => Func2::Div,
+                        Op::Pow => Func2::Pow,
+                        Op::F2(f) => f,
+                        _ => unreachable!("a two-operand op"),
+                    };
+                    two(f, a, b)?
+                }
+            };
+            st.push(v);
+        }
+        (st.len() == 1).then(|| st[0].0)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -27,6 +27,7 @@ pub mod calibrate;
 pub mod checks;
 pub mod corrector;
 pub mod datasheet;
+pub mod dim;
 pub mod effects;
 pub mod estimator;
 pub mod expr;
@@ -38,6 +39,7 @@ pub mod shape;
 pub mod stylus;
 pub mod transfer;
 pub mod trig;
+pub mod units;
 pub mod wire;
 
 pub use calib::{CalibError, Calibration};

@@ -74,6 +74,46 @@ pub struct Config {
     /// (`input.shed_queue_full`), never waited for (zenoh's callback waiting would stop the
     /// link, and behind a router that link carries every machine).
     pub max_input_bytes_per_machine: usize,
+    /// Fail-over between instances serving the same machines (off by default).
+    pub failover: Failover,
+}
+
+/// Fail-over between instances (`failover` in the configuration): with it on, an instance
+/// whose assignment holds a machine another instance serves does not refuse it but stands by
+/// for it (a hot standby: it corrects the machine's raw streams as the active one does,
+/// withholds its points, and drops those the active one is seen to publish); when the active
+/// instance's liveliness token goes (it stopped, or its router dropped its session after the
+/// lease), the standby takes the machine over and publishes the points the active one was
+/// not seen to publish, then goes on live. Which instance is active for a machine is decided
+/// by zenoh liveliness alone: each active instance declares `<prefix>/<machine>/scancorrd`
+/// and `<prefix>/<machine>/scancorrd/active/<since_ms>-<zid>`, each standby
+/// `<prefix>/<machine>/scancorrd/standby/<zid>`. Two active at once (a partition healed) is
+/// a split brain: both say so (log, health, metrics) and the one active since later steps
+/// back to standby. Turn it on in every instance of the set (an active instance with it on
+/// hands a machine over at SIGTERM without flushing it, so the standby goes on with the same
+/// `seq`). The instances share one calibration store (`data_dir` on one host) or are given
+/// the same calibrations: a standby reloads the stored calibration when it takes over.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Failover {
+    /// Stand by for machines another instance serves, take them over when it goes.
+    pub enabled: bool,
+    /// After the active instance's token goes, how long its last points in flight are waited
+    /// for before taking over, ms.
+    pub grace_ms: u64,
+    /// Output a standby holds per machine (what the active one was not seen to publish yet),
+    /// bytes; past it the oldest is dropped and counted (`held_overflow_points`).
+    pub max_held_bytes: usize,
+}
+
+impl Default for Failover {
+    fn default() -> Self {
+        Failover {
+            enabled: false,
+            grace_ms: 100,
+            max_held_bytes: 8 << 20,
+        }
+    }
 }
 
 impl Default for Config {
@@ -100,6 +140,7 @@ impl Default for Config {
             max_point_cost_us: 200.0,
             shed_after_ms: 2000,
             max_input_bytes_per_machine: 4 << 20,
+            failover: Failover::default(),
         }
     }
 }
@@ -196,6 +237,12 @@ impl Config {
         }
         if self.max_input_bytes_per_machine < 64 * 1024 {
             return Err("max_input_bytes_per_machine: at least 64 KiB".into());
+        }
+        if self.failover.grace_ms > 10_000 {
+            return Err("failover.grace_ms: 0 … 10 000".into());
+        }
+        if self.failover.max_held_bytes < 64 * 1024 {
+            return Err("failover.max_held_bytes: at least 64 KiB".into());
         }
         if let Some(m) = &self.metrics_listen {
             m.parse::<std::net::SocketAddr>().map_err(|_| {

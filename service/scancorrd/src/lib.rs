@@ -11,9 +11,11 @@ mod input;
 pub mod latency;
 pub mod metrics;
 pub mod notify;
+mod outgoing;
 mod routes;
 pub mod server;
 mod shard;
+mod standby;
 pub mod store;
 mod uplink;
 

@@ -16,6 +16,7 @@
 //! shared only with its publishing thread.
 
 use crate::input::Input;
+use crate::outgoing::Outgoing;
 use scancorr_core::calib::Model;
 use scancorr_core::sample::StreamId;
 use scancorr_core::wire;
@@ -72,6 +73,10 @@ pub(crate) struct Outbox {
     state: Mutex<OutState>,
     /// Where the buffers of its published points go back to.
     pool: Arc<Pool>,
+    /// Mirrors `state.hold.holding` (read without the lock).
+    holding: std::sync::atomic::AtomicBool,
+    /// Not flushed at shutdown (handed over to a standby).
+    keep_tail: std::sync::atomic::AtomicBool,
 }
 
 /// Where a machine's alarms are put.
@@ -193,20 +198,10 @@ struct OutState {
     failed: u64,
     /// Raw message arrival → its points published.
     latency: crate::latency::Latency,
-}
-
-pub(crate) enum Outgoing {
-    /// Encoded points, how many, when the earliest message that completed them arrived.
-    Points(Vec<u8>, u64, Option<Instant>),
-    Alarm(Vec<u8>),
-}
-
-impl Outgoing {
-    fn len(&self) -> usize {
-        match self {
-            Outgoing::Points(b, _, _) | Outgoing::Alarm(b) => b.len(),
-        }
-    }
+    /// The newest `seq` published.
+    last_seq: Option<u64>,
+    /// A hot standby's withheld output (`failover`; never holding without it).
+    hold: crate::standby::Hold,
 }
 
 impl Outbox {
@@ -224,6 +219,8 @@ impl Outbox {
             max_bytes,
             state: Mutex::default(),
             pool,
+            holding: Default::default(),
+            keep_tail: Default::default(),
         }
     }
 
@@ -237,7 +234,7 @@ impl Outbox {
         let mut st = self.lock();
         if st.bytes + o.len() > self.max_bytes && !st.queue.is_empty() {
             match o {
-                Outgoing::Points(b, n, _) => {
+                Outgoing::Points(b, n, _, _) => {
                     st.dropped_points += n;
                     drop(st);
                     self.pool.put(b);
@@ -248,11 +245,12 @@ impl Outbox {
         }
         st.bytes += o.len();
         match (st.queue.back_mut(), o) {
-            (Some(Outgoing::Points(b, n, at)), Outgoing::Points(more, m, later))
+            (Some(Outgoing::Points(b, n, at, seqs)), Outgoing::Points(more, m, later, next))
                 if b.len() + more.len() <= JOIN_UP_TO =>
             {
                 b.extend_from_slice(&more);
                 *n += m;
+                seqs.1 = next.1;
                 *at = at.or(later);
                 let queued = !std::mem::replace(&mut st.queued, true);
                 drop(st);
@@ -269,24 +267,30 @@ impl Outbox {
         let mut st = self.lock();
         while let Some(o) = st.queue.pop_front() {
             st.bytes -= o.len();
+            if st.hold.holding {
+                // A standby: kept, not published (see `standby`).
+                st.hold.keep(o);
+                continue;
+            }
             drop(st);
-            let (r, n, arrived) = match o {
-                Outgoing::Points(b, n, at) => {
+            let (r, n, arrived, last) = match o {
+                Outgoing::Points(b, n, at, (_, last)) => {
                     // Zero-copy: zenoh reads the buffer, and hands it back to the pool when
                     // it is done with it.
                     let b = bytes::Bytes::from_owner(Pooled {
                         buf: b,
                         pool: self.pool.clone(),
                     });
-                    (self.points.put(b).wait(), n, at)
+                    (self.points.put(b).wait(), n, at, Some(last))
                 }
-                Outgoing::Alarm(b) => (self.alarms.put(b), 0, None),
+                Outgoing::Alarm(b) => (self.alarms.put(b), 0, None, None),
             };
             progress.fetch_add(1, Ordering::Relaxed);
             st = self.lock();
             match r {
                 Ok(()) => {
                     st.published_points += n;
+                    st.last_seq = last.or(st.last_seq);
                     if let Some(at) = arrived {
                         st.latency.record(at.elapsed());
                     }
@@ -300,6 +304,43 @@ impl Outbox {
             }
         }
         st.queued = false;
+    }
+
+    /// Withholds its output from now on (a hot standby): at most `max_bytes` held.
+    pub(crate) fn hold(&self, max_bytes: usize) {
+        let mut st = self.lock();
+        let published = st.last_seq;
+        st.hold.start(max_bytes, published);
+        self.holding.store(true, Ordering::Relaxed);
+    }
+
+    /// Withholding (a hot standby).
+    pub(crate) fn holding(&self) -> bool {
+        self.holding.load(Ordering::Relaxed)
+    }
+
+    /// The active instance was seen to publish points up to `seq`.
+    pub(crate) fn seen(&self, seq: u64) {
+        self.lock().hold.see(Some(seq));
+    }
+
+    /// Publishes from now on, what is held and not seen published first. True when the
+    /// outbox must be handed to a lane.
+    pub(crate) fn release(&self) -> bool {
+        let mut st = self.lock();
+        let held = st.hold.release();
+        self.holding.store(false, Ordering::Relaxed);
+        for o in held.into_iter().rev() {
+            st.bytes += o.len();
+            st.queue.push_front(o);
+        }
+        !st.queue.is_empty() && !std::mem::replace(&mut st.queued, true)
+    }
+
+    /// At shutdown, hand the machine over as it is (its buffered samples not flushed: a
+    /// standby corrects them as more samples come, with the same `seq`).
+    pub(crate) fn keep_tail(&self) {
+        self.keep_tail.store(true, Ordering::Relaxed);
     }
 
     pub(crate) fn idle(&self) -> bool {
@@ -317,6 +358,8 @@ impl Outbox {
             "publish_failures": st.failed,
             // From a raw message's arrival to the publication of the points it completed, µs.
             "added_latency_us": st.latency.figures(),
+            "last_seq": st.last_seq,
+            "standby": st.hold.figures(),
         })
     }
 }
@@ -605,6 +648,8 @@ pub(crate) struct Pending {
     arrived: Option<Instant>,
     /// The size of the machine's last batch: the room the next one is given at once.
     last_len: usize,
+    /// The first and last `seq` of its points.
+    seqs: (u64, u64),
 }
 
 /// What the corrector says about itself, for status and metrics.
@@ -662,6 +707,9 @@ pub(crate) enum Job {
     Flush(tokio::sync::oneshot::Sender<()>),
     /// Publish the snapshots of the machines that changed now (health's totals).
     Publish(tokio::sync::oneshot::Sender<()>),
+    /// The machine in this slot takes over (a standby becoming active): its outbox publishes
+    /// what it held and what follows.
+    Release(usize),
 }
 
 /// A machine's work waiting on its shard, in order.
@@ -900,6 +948,15 @@ impl Shard {
                 let _ = done.send(());
                 return;
             }
+            Job::Release(slot) => {
+                if let Some((_, m)) = self.machines.get(slot) {
+                    if m.outbox.release() {
+                        self.ready.push(m.outbox.clone());
+                    }
+                    self.hand_over();
+                }
+                return;
+            }
         };
         let m = &mut self.machines[k].1;
         m.work.push_back(w);
@@ -1013,6 +1070,9 @@ impl Shard {
     /// Flushes every machine's buffered samples and hands their points over.
     fn flush_all(&mut self) {
         for (k, (name, m)) in self.machines.iter_mut().enumerate() {
+            if m.outbox.keep_tail.load(Ordering::Relaxed) {
+                continue;
+            }
             if let Some(c) = m.corrector.as_mut() {
                 c.flush(&mut self.out);
                 if let Some(p) = self.out.points.last() {
@@ -1200,6 +1260,10 @@ fn publish(
         }
         let p = &mut m.pending;
         wire::encode_points(&out.points, machine, &m.ids, &mut p.bytes);
+        if p.points == 0 {
+            p.seqs.0 = out.points[0].seq;
+        }
+        p.seqs.1 = out.points[out.points.len() - 1].seq;
         p.points += out.points.len() as u64;
         p.arrived = p.arrived.or(arrived);
     }
@@ -1239,7 +1303,7 @@ fn to_outbox(m: &mut Core, ready: &mut Vec<Arc<Outbox>>) {
         },
     );
     if m.outbox
-        .send(Outgoing::Points(p.bytes, p.points, p.arrived))
+        .send(Outgoing::Points(p.bytes, p.points, p.arrived, p.seqs))
     {
         ready.push(m.outbox.clone());
     }

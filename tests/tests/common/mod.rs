@@ -75,9 +75,11 @@ impl Drop for Scratch {
     }
 }
 
-/// Runs `scancorr ARGS` in `dir`.
+/// Runs `scancorr ARGS` in `dir`, outputs allowed to replace existing files (the tests rewrite
+/// their scratch files; `cli_outputs` tests the refusal without it).
 pub fn run(dir: &Path, args: &[&str]) -> Output {
     Command::new(scancorr())
+        .env("SCANCORR_FORCE", "1")
         .args(args)
         .current_dir(dir)
         .output()
@@ -542,5 +544,43 @@ pub fn fitted_start(dir: &Path, listed: &str, datasheet: &str, bag: &str, to: &s
         &[
             "lab", "fit", "--bag", bag, "--calib", &unfitted, "--out", to,
         ],
+    );
+}
+
+/// The first `n` numbers the README quotes after `marker` (its text with line breaks and runs
+/// of spaces made single spaces): what a test holds to what the quoted command prints.
+#[allow(dead_code)]
+pub fn readme_figures(marker: &str, n: usize) -> Vec<f64> {
+    let text = include_str!("../../../README.md")
+        .split_whitespace()
+        .collect::<Vec<_>>()
+        .join(" ");
+    let at = text
+        .find(marker)
+        .unwrap_or_else(|| panic!("README.md no longer says `{marker}`"));
+    let mut out = vec![];
+    let mut cur = String::new();
+    for c in text[at + marker.len()..].chars() {
+        if c.is_ascii_digit() || (c == '.' && !cur.is_empty()) {
+            cur.push(c);
+        } else if !cur.is_empty() {
+            out.push(cur.trim_end_matches('.').parse().expect("a number"));
+            cur.clear();
+            if out.len() == n {
+                break;
+            }
+        }
+    }
+    assert_eq!(out.len(), n, "README.md after `{marker}`: {out:?}");
+    out
+}
+
+/// `printed` rounds to the README's `quoted` figure at the `decimals` it quotes.
+#[allow(dead_code)]
+pub fn assert_quoted(what: &str, quoted: f64, printed: f64, decimals: i32) {
+    let half = 0.5 * 10f64.powi(-decimals) + 1e-9;
+    assert!(
+        (quoted - printed).abs() <= half,
+        "README.md quotes {what} as {quoted}; the command prints {printed}: regenerate the figure"
     );
 }

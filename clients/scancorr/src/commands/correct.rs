@@ -1,17 +1,23 @@
 //! `scancorr correct`: a bag corrected offline through the core (`shared::bags`), points and
-//! alarms to a bag, the summary printed.
+//! alarms to a bag (with Foxglove's channels unless `--no-foxglove`), the summary printed.
 
 use crate::shared::{bags, output};
 use anyhow::Result;
 use std::path::PathBuf;
 
 /// Runs `scancorr correct`.
-pub fn exec(bag: PathBuf, calib: PathBuf, out: Option<PathBuf>, json: bool) -> Result<()> {
+pub fn exec(
+    bag: PathBuf,
+    calib: PathBuf,
+    out: Option<PathBuf>,
+    json: bool,
+    no_foxglove: bool,
+) -> Result<()> {
     if let Some(o) = &out {
         output::refuse_same_file(&[("--out", o)], &[("--bag", &bag), ("--calib", &calib)])?;
     }
     let cal = crate::shared::calib::load_calibration(&calib)?;
-    let (s, warnings) = bags::correct(&bag, &cal, out.as_deref())?;
+    let (s, warnings) = bags::correct_with(&bag, &cal, out.as_deref(), !no_foxglove)?;
     for w in warnings {
         eprintln!("warning: {w}");
     }

@@ -12,6 +12,9 @@ pub fn exec(with: &[String], dir: Option<PathBuf>, json: bool) -> Result<()> {
     // `scancorr-demo/` in the current folder.
     let keep = true;
     let dir = dir.unwrap_or_else(|| PathBuf::from("scancorr-demo"));
+    // The folder is the demo's own: a second run replaces the first's bags, versions and
+    // reports (no user file is an output of the demo).
+    crate::shared::output::set_force(true);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let result = run_in(with, &dir, keep, json, 20);
     if json {

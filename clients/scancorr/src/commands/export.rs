@@ -221,7 +221,7 @@ pub fn run(
         }
     }
     let file = AtomicOutput::new("--out", out)?;
-    let mut w = BufWriter::new(file.file()?);
+    let mut w = BufWriter::new(file.stream()?);
     let mut sum = Summary::default();
     let mut bad2 = 0;
     match format {

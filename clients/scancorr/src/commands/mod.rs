@@ -14,3 +14,4 @@ pub mod lab;
 pub mod proto;
 pub mod shape;
 pub mod sim;
+pub mod view;

@@ -176,17 +176,23 @@ pub fn probe_force(
         xy("radius-before", &series(false), "deflection (mm)", "R − R_cert (µm)"),
         xy("radius-after", &series(true), "deflection (mm)", "R − R_cert (µm)")
     );
-    body += "<h2>Parameters</h2><table><tr><th>parameter</th><th>value</th><th>standard uncertainty</th></tr>";
+    body += "<h2>Parameters</h2><table><tr><th>parameter</th><th>unit</th><th>value ± standard uncertainty</th></tr>";
     for p in &o.params {
+        // Each value in the unit its name states (the units table of the core).
+        let unit = scancorr_core::units::key_unit(&p.name)
+            .or_else(|| scancorr_core::units::name_unit(&p.name))
+            // `tipN.probe_k_u`: mm of error per mm of deflection (the core's doc).
+            .or_else(|| p.name.contains(".probe_k_").then_some("mm/mm"))
+            .unwrap_or("—");
         let _ = write!(
             body,
-            "<tr><td>{}</td><td>{:.4}</td><td>{:.4}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td>{}</td></tr>",
             esc(&p.name),
-            p.value * 1e3,
-            p.sigma * 1e3
+            esc(unit),
+            super::svg::value_sigma(p.value, Some(p.sigma))
         );
     }
-    body += "</table><p class=\"muted\">probe_k in µm of error per mm of deflection; radius in µm (of the tip radius at zero force).</p>";
+    body += "</table>";
     for s in &o.settings {
         let _ = write!(
             body,
@@ -346,6 +352,12 @@ pub fn straightness(
             ("−2σ".to_string(), "#bbbbbb", line(-1.0), true),
         ]
     };
+    let _ = write!(
+        body,
+        "<p data-straightness=\"1\">Straightness, peak-to-valley about the least-squares line (ISO 12780): guide <b data-pv-um=\"guide\">{}</b>, part <b data-pv-um=\"part\">{}</b>.</p>",
+        pv_text(&s.stations_mm, &s.guide_straightness_mm),
+        pv_text(&s.part_positions_mm, &s.part_straightness_mm)
+    );
     let _ = write!(
         body,
         "<h2>Guide</h2><figure>{}<figcaption>The carriage's lateral motion towards {} at the carriage positions the scales read, with ±2σ (the sequential methods integrate: the band widens along the travel).</figcaption></figure>",
@@ -538,4 +550,50 @@ pub fn dynamic_map(
         let _ = write!(body, "<p class=\"muted\">{}</p>", esc(n));
     }
     page("scancorr calibrate dynamic-map", &body)
+}
+
+/// Peak-to-valley of a profile (mm) about its least-squares line, µm; `None` with fewer than
+/// three finite points.
+pub fn straightness_pv_um(x: &[f64], v: &[f64]) -> Option<f64> {
+    let pts: Vec<(f64, f64)> = x
+        .iter()
+        .zip(v)
+        .filter(|(x, v)| x.is_finite() && v.is_finite())
+        .map(|(x, v)| (*x, *v))
+        .collect();
+    if pts.len() < 3 {
+        return None;
+    }
+    let n = pts.len() as f64;
+    let (mx, my) = pts
+        .iter()
+        .fold((0.0, 0.0), |a, p| (a.0 + p.0 / n, a.1 + p.1 / n));
+    let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
+    let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+    let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+    let (lo, hi) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| {
+        let r = p.1 - my - b * (p.0 - mx);
+        (a.0.min(r), a.1.max(r))
+    });
+    Some((hi - lo) * 1e3)
+}
+
+fn pv_text(x: &[f64], v: &[f64]) -> String {
+    straightness_pv_um(x, v).map_or("— (too few points)".into(), |p| format!("{p:.2} µm"))
+}
+
+#[cfg(test)]
+mod pv_tests {
+    #[test]
+    fn a_tilted_bow_keeps_its_bow_and_loses_its_tilt() {
+        let x: Vec<f64> = (0..=10).map(|i| i as f64 * 100.0).collect();
+        // 2 µm of bow (a parabola) on a 5 µm/m tilt, in mm.
+        let v: Vec<f64> = x
+            .iter()
+            .map(|x| 5e-6 * x + 2e-3 * (1.0 - ((x - 500.0) / 500.0).powi(2)))
+            .collect();
+        let pv = super::straightness_pv_um(&x, &v).unwrap();
+        assert!((pv - 2.0).abs() < 1e-6, "{pv}");
+        assert!(super::straightness_pv_um(&x[..2], &v[..2]).is_none());
+    }
 }

@@ -1,7 +1,9 @@
 //! The model lab's reports: compare, diagnose, add, history, discover.
 
 use super::svg::value_sigma;
-use super::svg::{bars, esc, page, polar, polar_over, scale_and_speeds, xy, Series};
+use super::svg::{
+    bars, colour_keys, esc, page, polar, polar_over, scale_of, xy, PolarScale, Series,
+};
 use scancorr_core::lab::analysis::{Comparison, Diagnosis};
 use scancorr_core::lab::dataset::Dataset;
 use scancorr_core::lab::traces::Trace;
@@ -126,13 +128,17 @@ fn prediction_polars(ds: &Dataset, p: &scancorr_core::lab::analysis::Prediction)
         esc(&p.effect)
     );
     let all: Vec<&Trace> = p.measured.iter().chain(&p.predicted).collect();
-    let (upd, speeds) = scale_and_speeds(&all);
+    let scale = PolarScale {
+        upd: scale_of(&all),
+        against: None,
+    };
     for (fi, (_, f)) in ds.features.iter().enumerate() {
         let pred: Vec<&Trace> = p.predicted.iter().filter(|t| t.feature == fi).collect();
         let meas: Vec<&Trace> = p.measured.iter().filter(|t| t.feature == fi).collect();
         if pred.is_empty() {
             continue;
         }
+        let keys = colour_keys(&[&pred[..], &meas[..]].concat());
         let title = format!(
             "{} {} (Ø{} mm) — {verb} {}",
             f.artifact,
@@ -140,7 +146,7 @@ fn prediction_polars(ds: &Dataset, p: &scancorr_core::lab::analysis::Prediction)
             f.certificate_diameter_mm.unwrap_or(f.nominal_diameter_mm),
             p.effect
         );
-        s += &polar_over(&title, "predicted", &pred, &meas, upd, &speeds);
+        s += &polar_over(&title, "predicted", &pred, &meas, scale, &keys);
     }
     s
 }
@@ -201,20 +207,21 @@ fn summary(cal: &Calibration, cmp: &Comparison) -> String {
     s
 }
 
-/// Polar plots of every circle feature with traces, on one scale for the whole report; with
-/// `before`, a before and an after plot per feature.
+/// Polar plots of every circle feature with traces; with `before`, a before and an after plot
+/// per feature. The "now" plots share one scale; the "before" plots one, and the "after" plots
+/// their own (the residual left magnified, the magnification stated), so that what is left
+/// after a correction is readable and the plots of one kind compare between features.
 fn polars(ds: &Dataset, cmp: &Comparison, before: Option<(&Dataset, &Comparison)>) -> String {
-    let mut s = String::from("<h2>Deviation of each circle, per direction and speed</h2>");
-    let all: Vec<&Trace> = cmp
-        .traces
-        .iter()
-        .chain(before.iter().flat_map(|(_, b)| b.traces.iter()))
-        .collect();
-    if all.is_empty() {
+    let mut s = String::from(
+        "<h2>Deviation of each circle, one trace per run (tip, head angles, deflection, direction, speed)</h2>",
+    );
+    let now: Vec<&Trace> = cmp.traces.iter().collect();
+    let was: Vec<&Trace> = before.iter().flat_map(|(_, b)| b.traces.iter()).collect();
+    if now.is_empty() && was.is_empty() {
         s += "<p class=\"muted\">No circle was scanned at a steady speed over a quarter turn or more: nothing to draw.</p>";
         return s;
     }
-    let (upd, speeds) = scale_and_speeds(&all);
+    let (upd_after, upd_before) = (scale_of(&now), scale_of(&was));
     for (fi, (_, f)) in ds.features.iter().enumerate() {
         fn of(c: &Comparison, fi: usize) -> Vec<&Trace> {
             c.traces.iter().filter(|t| t.feature == fi).collect()
@@ -230,16 +237,24 @@ fn polars(ds: &Dataset, cmp: &Comparison, before: Option<(&Dataset, &Comparison)
             f.certificate_diameter_mm.unwrap_or(f.nominal_diameter_mm)
         );
         if let Some((_, b)) = before {
-            s += &polar(
-                &format!("{title} — before"),
-                "before",
-                &of(b, fi),
-                upd,
-                &speeds,
-            );
-            s += &polar(&format!("{title} — after"), "after", &after, upd, &speeds);
+            let bt = of(b, fi);
+            let keys = colour_keys(&[&bt[..], &after[..]].concat());
+            let bs = PolarScale {
+                upd: upd_before,
+                against: None,
+            };
+            s += &polar(&format!("{title} — before"), "before", &bt, bs, &keys);
+            let scale = PolarScale {
+                upd: upd_after.min(upd_before),
+                against: Some(upd_before),
+            };
+            s += &polar(&format!("{title} — after"), "after", &after, scale, &keys);
         } else {
-            s += &polar(&title, "now", &after, upd, &speeds);
+            let scale = PolarScale {
+                upd: upd_after,
+                against: None,
+            };
+            s += &polar(&title, "now", &after, scale, &colour_keys(&after));
         }
     }
     s
@@ -518,7 +533,7 @@ pub fn discover(
         &f.params,
     );
     if let Some(((ds0, c0), (ds1, c1))) = circles {
-        body += "<p>Each circle before (the start, red) and after (the final version, blue):</p>";
+        body += "<p>Each circle before (the start) and after (the final version), the after plots on their own, magnified scale (stated in each):</p>";
         body += &polars(ds1, c1, Some((ds0, c0)));
     }
     page("scancorr lab — discover", &body)

@@ -24,10 +24,64 @@ td:first-child,th:first-child{{text-align:left}}.fail{{color:#b00;font-weight:bo
     )
 }
 
-/// Colours of the traces, by speed (slowest first).
-pub(super) const TRACE_COLOURS: [&str; 6] = [
-    "#2266cc", "#2a9d4b", "#e08a00", "#c2185b", "#6a3d9a", "#555555",
-];
+/// The runs of a plot that get a colour each: one per setting and speed (both directions of a
+/// run share its hue), ordered by tip, head angles, deflection, then speed.
+pub(super) fn colour_keys<'a>(all: &[&'a Trace]) -> Vec<&'a Trace> {
+    let mut keys: Vec<&Trace> = vec![];
+    for t in all {
+        if !keys.iter().any(|k| k.same_setting_and_speed(t)) {
+            keys.push(t);
+        }
+    }
+    keys.sort_by(|a, b| {
+        (
+            a.tip,
+            a.head_a1_deg,
+            a.head_a2_deg,
+            a.deflection_mm,
+            a.speed_mm_s,
+        )
+            .partial_cmp(&(
+                b.tip,
+                b.head_a1_deg,
+                b.head_a2_deg,
+                b.deflection_mm,
+                b.speed_mm_s,
+            ))
+            .unwrap_or(std::cmp::Ordering::Equal)
+    });
+    keys
+}
+
+/// The colour of run `k` of `n` in one plot: hues spread from blue (the first, e.g. the
+/// slowest) through green and orange to crimson (the last), never the same twice in a plot;
+/// counter-clockwise the lighter shade, clockwise the darker one (and drawn dashed).
+pub(super) fn run_colour(k: usize, n: usize, ccw: bool) -> String {
+    let span = if n <= 1 { 0.0 } else { 260.0 / (n - 1) as f64 };
+    let hue = (230.0 - span * k as f64).rem_euclid(360.0);
+    // Past ten runs the hues come close: alternate the lightness as well.
+    let light = if n > 10 && k % 2 == 1 { 0.56 } else { 0.46 };
+    let light = if ccw { light } else { light - 0.18 };
+    hsl_hex(hue, 0.78, light)
+}
+
+/// `#rrggbb` of a hue (degrees), saturation and lightness (0…1).
+pub(super) fn hsl_hex(h: f64, s: f64, l: f64) -> String {
+    let c = (1.0 - (2.0 * l - 1.0).abs()) * s;
+    let hp = h / 60.0;
+    let x = c * (1.0 - (hp.rem_euclid(2.0) - 1.0).abs());
+    let (r, g, b) = match hp as u32 {
+        0 => (c, x, 0.0),
+        1 => (x, c, 0.0),
+        2 => (0.0, c, x),
+        3 => (0.0, x, c),
+        4 => (x, 0.0, c),
+        _ => (c, 0.0, x),
+    };
+    let m = l - c / 2.0;
+    let q = |v: f64| ((v + m).clamp(0.0, 1.0) * 255.0).round() as u8;
+    format!("#{:02x}{:02x}{:02x}", q(r), q(g), q(b))
+}
 
 /// A round scale for polar plots: 1, 2 or 5 × 10ᵏ µm per division, so that `maxdev` fits in
 /// four divisions.
@@ -49,18 +103,43 @@ pub(super) fn dir_name(d: i32) -> &'static str {
     }
 }
 
-/// Polar plot of one circle feature's traces (one per direction and speed), as a circular
-/// test draws them: the certified circle solid, ±4 divisions of `upd` µm dashed, +X to the
-/// right and +Y up, each trace de-centred (its own 1θ taken out) with its circularity in the
-/// legend. `speeds` fixes the colours (the same speed, the same colour, in every plot).
+/// The scale of a polar plot: µm per division and, for an "after" plot magnified against its
+/// "before", the before's µm per division.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct PolarScale {
+    pub upd: f64,
+    pub against: Option<f64>,
+}
+
+impl PolarScale {
+    /// The scale drawn in the plot's corner and stated in its caption.
+    fn text(&self) -> String {
+        match self.against {
+            Some(b) if b > self.upd * 1.0001 => format!(
+                "{} µm/div (magnified {}× against the before's {} µm/div)",
+                fmt_scale(self.upd),
+                fmt_scale(b / self.upd),
+                fmt_scale(b)
+            ),
+            Some(b) => format!("{} µm/div (the before's scale)", fmt_scale(b)),
+            None => format!("{} µm/div", fmt_scale(self.upd)),
+        }
+    }
+}
+
+/// Polar plot of one circle feature's traces (one per run: tip, head angles, deflection,
+/// direction and speed), as a circular test draws them: the certified circle solid, ±4
+/// divisions of `scale` dashed, +X to the right and +Y up, each trace de-centred (its own 1θ
+/// taken out) with its circularity in the legend. `keys` fixes the colours (see
+/// [`colour_keys`]; the same run, the same colour, in a feature's before and after plots).
 pub(super) fn polar(
     title: &str,
     role: &str,
     traces: &[&Trace],
-    upd: f64,
-    speeds: &[i64],
+    scale: PolarScale,
+    keys: &[&Trace],
 ) -> String {
-    polar_over(title, role, traces, &[], upd, speeds)
+    polar_over(title, role, traces, &[], scale, keys)
 }
 
 /// [`polar`] with `under` drawn first, faint, in the same colours: a prediction (`traces`)
@@ -70,18 +149,25 @@ pub(super) fn polar_over(
     role: &str,
     traces: &[&Trace],
     under: &[&Trace],
-    upd: f64,
-    speeds: &[i64],
+    scale: PolarScale,
+    keys: &[&Trace],
 ) -> String {
     let (w, r0, div) = (400.0, 100.0, 20.0);
+    let upd = scale.upd;
     let c = w / 2.0;
-    let speed_key = |t: &Trace| (t.speed_mm_s * 10.0).round() as i64;
     let colour = |t: &Trace| {
-        let k = speeds.iter().position(|v| *v == speed_key(t)).unwrap_or(0);
-        TRACE_COLOURS[k % TRACE_COLOURS.len()]
+        let k = keys
+            .iter()
+            .position(|x| x.same_setting_and_speed(t))
+            .unwrap_or(keys.len());
+        run_colour(k, keys.len().max(k + 1), t.direction > 0)
     };
     let mut svg = format!(
-        "<svg data-plot=\"polar\" data-role=\"{role}\" data-um-per-div=\"{upd}\" xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{w}\" viewBox=\"0 0 {w} {w}\">"
+        "<svg data-plot=\"polar\" data-role=\"{role}\" data-um-per-div=\"{upd}\"{} xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{w}\" viewBox=\"0 0 {w} {w}\">",
+        scale
+            .against
+            .map(|b| format!(" data-magnification=\"{}\"", fmt_scale(b / upd)))
+            .unwrap_or_default()
     );
     let _ = write!(svg, "<line x1=\"8\" x2=\"{}\" y1=\"{c}\" y2=\"{c}\" stroke=\"#e4e4e4\"/><line x1=\"{c}\" x2=\"{c}\" y1=\"8\" y2=\"{}\" stroke=\"#e4e4e4\"/>", w - 8.0, w - 8.0);
     for k in -4i32..=4 {
@@ -100,10 +186,15 @@ pub(super) fn polar_over(
         c - 4.0,
         c + 4.0
     );
+    let corner = match scale.against {
+        Some(b) if b > upd * 1.0001 => {
+            format!("{} µm/div (×{})", fmt_scale(upd), fmt_scale(b / upd))
+        }
+        _ => format!("{} µm/div", fmt_scale(upd)),
+    };
     let _ = write!(
         svg,
-        "<text x=\"6\" y=\"14\" font-size=\"11\">{} µm/div</text><text x=\"6\" y=\"{}\" font-size=\"10\" fill=\"#444\">solid circle: certified Ø</text>",
-        fmt_scale(upd),
+        "<text x=\"6\" y=\"14\" font-size=\"11\">{corner}</text><text x=\"6\" y=\"{}\" font-size=\"10\" fill=\"#444\">solid circle: certified Ø</text>",
         w - 6.0
     );
     let layers = under
@@ -128,12 +219,15 @@ pub(super) fn polar_over(
         }
         let _ = write!(
             svg,
-            "<path data-trace=\"{} {} mm/s\" data-layer=\"{}\" data-direction=\"{}\" data-speed-mm-s=\"{}\" data-circularity-um=\"{:.3}\" d=\"{d}\" fill=\"none\" stroke=\"{}\" stroke-width=\"{}\"{}{}/>",
-            dir_name(t.direction),
-            t.speed_mm_s,
+            "<path data-trace=\"{}\" data-layer=\"{}\" data-direction=\"{}\" data-speed-mm-s=\"{}\" data-tip=\"{}\" data-a1-deg=\"{}\" data-a2-deg=\"{}\" data-deflection-mm=\"{}\" data-circularity-um=\"{:.3}\" d=\"{d}\" fill=\"none\" stroke=\"{}\" stroke-width=\"{}\"{}{}/>",
+            esc(&t.label()),
             if faint { "measured" } else { role },
             dir_name(t.direction).to_lowercase(),
             t.speed_mm_s,
+            t.tip,
+            t.head_a1_deg,
+            t.head_a2_deg,
+            t.deflection_mm,
             t.circularity_um,
             colour(t),
             if faint { "3" } else { "1.4" },
@@ -146,53 +240,50 @@ pub(super) fn polar_over(
     for t in traces {
         let was = under
             .iter()
-            .find(|u| u.direction == t.direction && speed_key(u) == speed_key(t))
+            .find(|u| u.same_run(t))
             .map(|u| format!("measured {:.2} µm → predicted ", u.circularity_um))
             .unwrap_or_default();
         let _ = write!(
             legend,
-            "<li><span style=\"color:{}\">{}</span> {} {} mm/s: circularity {was}<b data-circularity-um=\"{:.3}\">{:.2} µm</b></li>",
+            "<li><span style=\"color:{}\">{}</span> {}: circularity {was}<b data-circularity-um=\"{:.3}\">{:.2} µm</b></li>",
             colour(t),
             if t.direction < 0 { "╌╌" } else { "━━" },
-            dir_name(t.direction),
-            t.speed_mm_s,
+            esc(&t.label()),
             t.circularity_um,
             t.circularity_um
         );
     }
     legend += "</ul>";
     let what = if under.is_empty() {
-        "deviation from the certified circle per direction and speed"
+        "deviation from the certified circle, one trace per run"
     } else {
-        "predicted deviation (bold) drawn over the measured one (faint), per direction and speed"
+        "predicted deviation (bold) drawn over the measured one (faint, same colour), one trace per run"
     };
     format!(
-        "<figure>{svg}<figcaption><b>{}</b>: {what} (1° means, each trace's own centre taken out: the 1θ term is where the circle lies, not its form; circularity = range of the trace){legend}</figcaption></figure>",
-        esc(title)
+        "<figure>{svg}<figcaption><b>{}</b>: {what}; scale {}. A colour per setting and speed (tip, head angles, deflection, speed), never repeated in the plot; counter-clockwise lighter and solid, clockwise darker and dashed. 1° means, each trace's own centre taken out (the 1θ term is where the circle lies, not its form); circularity = range of the trace.{legend}</figcaption></figure>",
+        esc(title),
+        scale.text()
     )
 }
 
-/// One polar scale for every trace of a report (µm per division) and the speeds that fix
-/// the traces' colours (0.1 mm/s, ascending).
-pub(super) fn scale_and_speeds(all: &[&Trace]) -> (f64, Vec<i64>) {
+/// One polar scale (µm per division) for every trace of `all`.
+pub(super) fn scale_of(all: &[&Trace]) -> f64 {
     let maxdev = all
         .iter()
         .flat_map(|t| t.deviation_um.iter())
         .fold(0.0f64, |a, e| a.max(e.abs()));
-    let mut speeds: Vec<i64> = all
-        .iter()
-        .map(|t| (t.speed_mm_s * 10.0).round() as i64)
-        .collect();
-    speeds.sort_unstable();
-    speeds.dedup();
-    (um_per_div(maxdev), speeds)
+    um_per_div(maxdev)
 }
 
 pub(super) fn fmt_scale(v: f64) -> String {
-    if v >= 1.0 {
+    if v >= 1.0 && (v - v.round()).abs() < 1e-9 * v {
         format!("{v:.0}")
+    } else if v >= 1.0 {
+        format!("{v:.1}")
     } else {
-        format!("{v}")
+        // Round values of 1, 2, 5 × 10⁻ᵏ: no float noise (0.30000000000000004).
+        let d = (-v.log10().floor()).clamp(0.0, 9.0) as usize;
+        format!("{v:.d$}")
     }
 }
 

@@ -350,6 +350,16 @@ pub fn correct(
     cal: &Calibration,
     out: Option<&Path>,
 ) -> Result<(Summary, Vec<String>)> {
+    correct_with(bag, cal, out, false)
+}
+
+/// [`correct`], with the Foxglove channels (`shared::foxglove`) beside ours when `foxglove`.
+pub fn correct_with(
+    bag: &Path,
+    cal: &Calibration,
+    out: Option<&Path>,
+    foxglove: bool,
+) -> Result<(Summary, Vec<String>)> {
     let t0 = std::time::Instant::now();
     if let Some(o) = out {
         crate::shared::output::refuse_same_file(&[("--out", o)], &[("--bag", bag)])?;
@@ -357,7 +367,7 @@ pub fn correct(
     let out_file = out
         .map(|p| crate::shared::output::AtomicOutput::new("--out", p))
         .transpose()?;
-    let (reader, machine, warnings) = open(bag, Some(&cal.machine_id)).map_err(|e| {
+    let (reader, machine, mut warnings) = open(bag, Some(&cal.machine_id)).map_err(|e| {
         // Name the mismatch plainly when the bag is simply of another machine.
         match BagReader::open(bag) {
             Ok(r) if !r.machines().contains(&cal.machine_id.as_str()) => anyhow::anyhow!(
@@ -403,11 +413,28 @@ pub fn correct(
         ),
         None => None,
     };
+    let mut fox = match foxglove && writer.is_some() {
+        true => {
+            let records = reader.metadata().iter();
+            let records = records.map(|m| (m.name.as_str(), &m.entries));
+            let nominal =
+                crate::shared::foxglove::Nominal::from_metadata(records).unwrap_or_else(|e| {
+                    warnings.push(format!("{}: {e:#}: no deviations", bag.display()));
+                    None
+                });
+            let s = crate::shared::foxglove::BagSink::new(&prefix, &machine, nominal);
+            Some(s)
+        }
+        false => None,
+    };
     let mut pipe = match writer {
         Some(w) => {
             let (machine, prefix, ids) = (machine.clone(), prefix.clone(), ids.clone());
             let mut bytes = vec![];
             Some(Pipe::spawn(w, move |w: &mut BagWriter, b: &Batch| {
+                if let Some(f) = &mut fox {
+                    f.write(w, b.log_time, &b.points, &b.alarms)?;
+                }
                 if let Some(first) = b.points.first() {
                     // The service's encoder: a `CorrectedPointBatch`'s bytes without building
                     // a message per point.

@@ -79,6 +79,9 @@ impl Bus {
             })?,
             None => zenoh::Config::default(),
         };
+        if let Some(p) = &self.zenoh_config {
+            check_tls_files(&cfg, &format!("--zenoh-config {}", p.display()))?;
+        }
         let endpoints = self.endpoint_list(&cfg)?;
         for (k, v) in [
             ("mode", "\"client\"".to_string()),
@@ -136,6 +139,63 @@ impl Bus {
     }
 }
 
+/// The TLS files a zenoh configuration may name (under `transport/link/tls/`).
+const TLS_FILES: [&str; 5] = [
+    "root_ca_certificate",
+    "connect_certificate",
+    "connect_private_key",
+    "listen_certificate",
+    "listen_private_key",
+];
+
+/// Each TLS certificate and key the configuration names must be a readable file: a missing
+/// one is named with its key (zenoh itself would only fail to connect).
+fn check_tls_files(cfg: &zenoh::Config, source: &str) -> Result<()> {
+    for name in TLS_FILES {
+        let key = format!("transport/link/tls/{name}");
+        let Some(path) = cfg
+            .get_json(&key)
+            .ok()
+            .and_then(|j| serde_json::from_str::<Option<String>>(&j).ok())
+            .flatten()
+            .filter(|p| !p.is_empty())
+        else {
+            continue;
+        };
+        if let Err(e) = std::fs::File::open(&path).and_then(|mut f| {
+            use std::io::Read;
+            f.read(&mut [0u8; 1]).map(|_| ())
+        }) {
+            let why = e.to_string();
+            let why = why.split(" (os error").next().unwrap_or(&why);
+            bail!("{source}: `{key}`: cannot read the TLS certificate or key file {path}: {why}");
+        }
+    }
+    Ok(())
+}
+
+/// Endpoints (tcp/, tls/, ws/) at which something accepts a TCP connection within `timeout`.
+fn listening(endpoints: &[String], timeout: Duration) -> Vec<String> {
+    use std::net::ToSocketAddrs;
+    endpoints
+        .iter()
+        .filter(|e| {
+            let Some((proto, addr)) = e.split_once('/') else {
+                return false;
+            };
+            if !matches!(proto, "tcp" | "tls" | "ws") {
+                return false;
+            }
+            let addr = addr.split(['?', '#']).next().unwrap_or(addr);
+            addr.to_socket_addrs()
+                .ok()
+                .and_then(|mut a| a.next())
+                .is_some_and(|a| std::net::TcpStream::connect_timeout(&a, timeout).is_ok())
+        })
+        .cloned()
+        .collect()
+}
+
 /// An endpoint is `PROTOCOL/ADDRESS` (`tcp/127.0.0.1:7447`), optionally with `?` or `#`
 /// parameters.
 fn check_endpoint(e: &str) -> Result<()> {
@@ -183,19 +243,33 @@ async fn open(bus: &Bus) -> Result<zenoh::Session> {
         cfg.insert_json5(k, v)
             .map_err(|e| anyhow::anyhow!("zenoh configuration `{k}`: {e}"))?;
     }
+    let endpoints = cfg
+        .get_json("connect/endpoints")
+        .ok()
+        .and_then(|j| serde_json::from_str::<Vec<String>>(&j).ok())
+        .unwrap_or_default();
     let open = zenoh::open(cfg);
-    match tokio::time::timeout(Duration::from_secs(8), open).await {
-        Ok(Ok(s)) => Ok(s),
-        Ok(Err(e)) => bail!(
-            "cannot connect to {}: nothing answers there (is scancorrd or a zenoh router running and listening on it?) [zenoh: {}]",
+    let why = match tokio::time::timeout(Duration::from_secs(8), open).await {
+        Ok(Ok(s)) => return Ok(s),
+        Ok(Err(e)) => one_line(&e.to_string()),
+        Err(_) => "no answer within 8 s".to_string(),
+    };
+    // Something listening there, yet no session: a refusal (a TLS handshake the router
+    // rejected, or no zenoh there), not an absence.
+    let at = tokio::task::spawn_blocking(move || listening(&endpoints, Duration::from_millis(500)))
+        .await
+        .unwrap_or_default();
+    if !at.is_empty() {
+        bail!(
+            "cannot connect to {}: something listens at {} but no zenoh session was established (for tls/: the router refused the TLS handshake — a certificate it does not accept, or none; or no zenoh there) [zenoh: {why}]",
             bus.endpoints(),
-            one_line(&e.to_string())
-        ),
-        Err(_) => bail!(
-            "cannot connect to {}: no answer within 8 s (is scancorrd or a zenoh router running and listening on it?)",
-            bus.endpoints()
-        ),
+            at.join(", ")
+        );
     }
+    bail!(
+        "cannot connect to {}: nothing answers there (is scancorrd or a zenoh router running and listening on it?) [zenoh: {why}]",
+        bus.endpoints()
+    )
 }
 
 /// A zenoh error on one line, without the source location zenoh appends (` at FILE:LINE.`).

@@ -10,6 +10,8 @@ pub mod bags;
 pub mod bus;
 pub mod calib;
 pub mod demo;
+pub mod foxglove;
+pub mod foxglove_ws;
 pub mod human;
 pub mod provenance;
 pub mod simulate;

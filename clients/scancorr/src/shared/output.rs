@@ -7,6 +7,12 @@
 //!   before any work is done. The temporary file is created exclusively (`O_CREAT|O_EXCL`,
 //!   which never follows a symlink: a link planted under that name is left alone and another
 //!   name taken) and written through the handle that created it, never reopened by name.
+//! * An existing file is never replaced unless asked: an output flag (`--out`, `--report`, …)
+//!   naming a file that exists is refused before any work, unless `--force` (or
+//!   `SCANCORR_FORCE=1` in the environment) is given. `-` names standard output for text
+//!   outputs (a report, a calibration, a CSV): the output is written there once complete, and
+//!   what the command would print goes to stderr instead; a bag (written with seeks) refuses
+//!   it.
 //! * [`refuse_same_file`]: an output that is one of the command's inputs (the same path, or
 //!   the same file through a symlink or a hard link) is refused before anything is written.
 //! * [`csv_text`], [`header_name`], [`one_line`]: text from a bag or a document put into a
@@ -21,6 +27,25 @@ use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+static FORCE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+static STDOUT_TAKEN: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// `--force`: outputs may replace existing files (also `SCANCORR_FORCE=1`).
+pub fn set_force(on: bool) {
+    FORCE.store(on, std::sync::atomic::Ordering::Relaxed);
+}
+
+fn force() -> bool {
+    FORCE.load(std::sync::atomic::Ordering::Relaxed)
+        || std::env::var("SCANCORR_FORCE").is_ok_and(|v| v == "1")
+}
+
+/// Whether an output goes to standard output (`--out -`): then what the command prints goes
+/// to stderr.
+pub fn stdout_taken() -> bool {
+    STDOUT_TAKEN.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 /// An output file written under a temporary name and renamed when complete.
 pub struct AtomicOutput {
     /// The name the user gave (for messages).
@@ -34,6 +59,8 @@ pub struct AtomicOutput {
     /// The temporary file, as created (`None` when `direct`).
     file: Option<fs::File>,
     committed: bool,
+    /// `-`: standard output; the content, written there on commit.
+    stdout: Option<std::sync::Mutex<Vec<u8>>>,
 }
 
 impl AtomicOutput {
@@ -48,6 +75,20 @@ impl AtomicOutput {
         if path.as_os_str().is_empty() {
             bail!("{flag}: an empty file name");
         }
+        if path.as_os_str() == "-" {
+            if STDOUT_TAKEN.swap(true, std::sync::atomic::Ordering::Relaxed) {
+                bail!("{flag} -: standard output is already another output's");
+            }
+            return Ok(AtomicOutput {
+                shown: PathBuf::from("standard output"),
+                dest: path.to_path_buf(),
+                tmp: path.to_path_buf(),
+                direct: true,
+                file: None,
+                committed: false,
+                stdout: Some(Default::default()),
+            });
+        }
         // A device or a pipe (`--out /dev/null`) is written in place, never replaced.
         if let Ok(m) = fs::metadata(path) {
             if !m.is_file() && !m.is_dir() {
@@ -58,7 +99,15 @@ impl AtomicOutput {
                     direct: true,
                     file: None,
                     committed: false,
+                    stdout: None,
                 });
+            }
+            // A file the user named by a flag is replaced only when asked to.
+            if m.is_file() && flag.starts_with("--") && !force() {
+                bail!(
+                    "{flag} {}: the file exists; give --force to replace it, or choose another name",
+                    path.display()
+                );
             }
         }
         // Writing through a symlink updates the file it points to, as `>` would.
@@ -86,6 +135,7 @@ impl AtomicOutput {
             direct: false,
             file: Some(file),
             committed: false,
+            stdout: None,
         })
     }
 
@@ -97,11 +147,28 @@ impl AtomicOutput {
     /// A handle to write the output through: the temporary file as it was created (empty,
     /// unless written already), or the device or pipe itself when written in place.
     pub fn file(&self) -> Result<fs::File> {
+        if self.stdout.is_some() {
+            bail!("`-` (standard output) is for text outputs; this one is written with seeks: give a file name");
+        }
         match &self.file {
             Some(f) => f.try_clone(),
             None => fs::OpenOptions::new().write(true).open(&self.tmp),
         }
         .with_context(|| format!("writing {}", self.shown.display()))
+    }
+
+    /// [`Self::file`] for an output written from start to end (text): with `-`, standard
+    /// output itself.
+    pub fn stream(&self) -> Result<fs::File> {
+        if self.stdout.is_some() {
+            use std::os::fd::AsFd;
+            let fd = std::io::stdout()
+                .as_fd()
+                .try_clone_to_owned()
+                .context("writing to standard output")?;
+            return Ok(fs::File::from(fd));
+        }
+        self.file()
     }
 
     /// The name the user gave.
@@ -113,6 +180,12 @@ impl AtomicOutput {
     pub fn write_all(&self, bytes: impl AsRef<[u8]>) -> Result<()> {
         use std::io::{Seek, SeekFrom};
         let context = || format!("writing {}", self.shown.display());
+        if let Some(buf) = &self.stdout {
+            let mut b = buf.lock().unwrap_or_else(|e| e.into_inner());
+            b.clear();
+            b.extend_from_slice(bytes.as_ref());
+            return Ok(());
+        }
         match &self.file {
             Some(f) => {
                 let mut f = f;
@@ -127,6 +200,16 @@ impl AtomicOutput {
     /// Makes the file complete: flushed to disk and renamed over the final name (keeping the
     /// permissions of a file it replaces).
     pub fn commit(mut self) -> Result<()> {
+        if let Some(buf) = self.stdout.take() {
+            self.committed = true;
+            let b = buf.into_inner().unwrap_or_else(|e| e.into_inner());
+            let mut out = std::io::stdout().lock();
+            return match out.write_all(&b).and_then(|_| out.flush()) {
+                Ok(()) => Ok(()),
+                Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Err(StdoutClosed.into()),
+                Err(e) => Err(anyhow::Error::new(e).context("writing to standard output")),
+            };
+        }
         if self.direct {
             self.committed = true;
             return Ok(());
@@ -387,8 +470,16 @@ impl std::fmt::Display for StdoutClosed {
 
 impl std::error::Error for StdoutClosed {}
 
-/// Writes to stdout; a closed pipe becomes [`StdoutClosed`], another failure an error.
+/// Writes to stdout; a closed pipe becomes [`StdoutClosed`], another failure an error. When an
+/// output is standard output (`--out -`), to stderr instead.
 pub fn write_stdout(args: std::fmt::Arguments<'_>) -> Result<()> {
+    if stdout_taken() {
+        let mut err = std::io::stderr().lock();
+        return err
+            .write_fmt(args)
+            .and_then(|_| err.flush())
+            .context("writing to stderr");
+    }
     let mut out = std::io::stdout().lock();
     match out.write_fmt(args).and_then(|_| out.flush()) {
         Ok(()) => Ok(()),
@@ -430,13 +521,13 @@ mod tests {
         let f = d.join("a.json");
         fs::write(&f, "old").unwrap();
         {
-            let o = AtomicOutput::new("--out", &f).unwrap();
+            let o = AtomicOutput::new("the test's output", &f).unwrap();
             o.write_all("new").unwrap();
             assert_eq!(fs::read_to_string(&f).unwrap(), "old");
         }
         assert_eq!(fs::read_to_string(&f).unwrap(), "old");
         assert_eq!(fs::read_dir(&d).unwrap().count(), 1, "temporary removed");
-        let o = AtomicOutput::new("--out", &f).unwrap();
+        let o = AtomicOutput::new("the test's output", &f).unwrap();
         o.write_all("new").unwrap();
         o.commit().unwrap();
         assert_eq!(fs::read_to_string(&f).unwrap(), "new");

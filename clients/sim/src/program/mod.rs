@@ -16,9 +16,11 @@ use std::f64::consts::{PI, TAU};
 
 mod builder;
 mod geometry;
+mod thin_wall;
 
 use builder::*;
 pub use geometry::{Feature, Path, Segment};
+pub use thin_wall::{WALL_ARTIFACT, WALL_LENGTH_MM};
 
 /// A planned program: features and segments with start times.
 #[derive(Debug, Clone)]
@@ -34,7 +36,7 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 15] = [
+pub const PROGRAMS: [&str; 21] = [
     "ring",
     "ring-speeds",
     "campaign",
@@ -50,6 +52,12 @@ pub const PROGRAMS: [&str; 15] = [
     "dynamic-map",
     "dynamic-map-part",
     "dynamic-map-speeds",
+    "tips-repeat",
+    "tips-one-angle",
+    "tips-reference",
+    "scales",
+    "thin-wall",
+    "thin-wall-forces",
 ];
 
 /// Plans a program. `position` places the program's main artifact.
@@ -279,6 +287,82 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 reference(&mut b);
             }
         }
+        "scales" => {
+            // The scales' expansion: a ball bar (two spheres of a certified centre distance,
+            // their centres on a 0.1 mm grid so the bag's nominal centres state it exactly)
+            // along X (600 mm), Y (500 mm) and Z (300 mm), each ball measured by the reference
+            // tip at three latitudes, the bars taken in turn four times over the room's drift,
+            // so each scale is read at four temperatures.
+            let base = position.unwrap_or(V3::new(500.0, 400.0, -300.0));
+            let ends = [
+                (V3::new(-300.0, 0.0, 0.0), V3::new(300.0, 0.0, 0.0)),
+                (V3::new(0.0, -250.0, 0.0), V3::new(0.0, 250.0, 0.0)),
+                (V3::new(0.0, 0.0, -150.0), V3::new(0.0, 0.0, 150.0)),
+            ];
+            let ball = |c: V3| Feature {
+                id: 0,
+                artifact: "ball-bar".into(),
+                kind: FeatureKind::Boss,
+                center: ((c * 10.0).map(f64::round) / 10.0).into(),
+                radius_mm: 25.0004 / 2.0,
+                nominal_diameter_mm: 25.0,
+                certificate_diameter_mm: Some(25.0004),
+                normal: [0.0; 3],
+                form: vec![[2.0, 0.01e-3, 0.2]],
+            };
+            let bars: Vec<[u32; 2]> = ends
+                .iter()
+                .map(|(a, z)| [b.feature(ball(base + a)), b.feature(ball(base + z))])
+                .collect();
+            b.set_tip(1, 0.0, 0.0);
+            for _ in 0..4 {
+                for bar in &bars {
+                    for &f in bar {
+                        for lat in [-30.0, 0.0, 30.0] {
+                            b.sphere_circle(f, 20.0, 1.0, 0.3, lat);
+                        }
+                    }
+                }
+            }
+        }
+        "tips-reference" => {
+            // The reference tip re-qualified alone (a new ball, after a crash): the master
+            // sphere three times, three latitudes each.
+            let sphere = b.feature(master_sphere(position));
+            b.set_tip(1, 0.0, 0.0);
+            for _ in 0..3 {
+                for lat in [-30.0, 0.0, 30.0] {
+                    b.sphere_circle(sphere, 20.0, 1.0, 0.3, lat);
+                }
+            }
+        }
+        "tips-repeat" | "tips-one-angle" => {
+            // Qualification as `tips`, the crank's head angles visited twice (`tips-repeat`:
+            // each head angle at two temperatures of the room's drift, so a stylus's growth is
+            // seen against itself, free of the machine's geometry between the carriage
+            // positions) or the crank at one head angle only, four times (`tips-one-angle`: a
+            // head without rotary axes, the patent's own case).
+            let sphere = b.feature(master_sphere(position));
+            let reference = |b: &mut Builder| {
+                b.set_tip(1, 0.0, 0.0);
+                for lat in [-30.0, 0.0, 30.0] {
+                    b.sphere_circle(sphere, 20.0, 1.0, 0.3, lat);
+                }
+            };
+            let angles: &[f64] = if name == "tips-repeat" {
+                &[0.0, 90.0, 180.0, 270.0, 0.0, 90.0, 180.0, 270.0]
+            } else {
+                &[0.0, 0.0, 0.0, 0.0]
+            };
+            reference(&mut b);
+            for &a1 in angles {
+                b.set_tip(2, a1, 0.0);
+                for lat in [-30.0, 0.0, 30.0] {
+                    b.sphere_circle(sphere, 20.0, 1.0, 0.3, lat);
+                }
+                reference(&mut b);
+            }
+        }
         "probe-force" => {
             // Extrapolation to zero force, variant (a): the same circles on the master sphere
             // at three deflections, each tip at head angles (0, 0); three latitudes, so the
@@ -340,6 +424,9 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 }
             }
         }
+        // A thin-walled part at two probing forces (F1, F2) and at three.
+        "thin-wall" => thin_wall::plan(&mut b, position, &[0.1, 0.5]),
+        "thin-wall-forces" => thin_wall::plan(&mut b, position, &[0.1, 0.3, 0.5]),
         "part" => {
             let base = position.unwrap_or(V3::new(450.0, 350.0, -280.0));
             let bore = b.feature(Feature {

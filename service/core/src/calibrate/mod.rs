@@ -7,6 +7,8 @@
 //! it with [`crate::lab::version::next`]). Pure logic: no files, no clock.
 //!
 //! * [`tips`] — qualification of the styli on a master sphere.
+//! * [`scales`] — the scales' expansion coefficients from a ball bar read at several
+//!   temperatures.
 //! * [`probe_force`] — extrapolation to zero force: a force coefficient per tip and axis.
 //! * [`dynamic_map`] — the S1/F1/F2 joint method: a per-point map of a fast scan's error for
 //!   one feature and speed (slow and fast scans, extrapolated to zero deflection).
@@ -28,6 +30,7 @@ pub mod dynamic_map;
 pub mod dynamics;
 pub mod plate;
 pub mod probe_force;
+pub mod scales;
 pub mod separation;
 pub mod straightness;
 pub mod thermal_drift;

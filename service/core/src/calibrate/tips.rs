@@ -22,6 +22,21 @@
 //! The lengths are those at T_q, which becomes the reference temperature of the stylus
 //! thermal correction, with one coefficient per stylus (`alpha_per_tip`).
 //!
+//! What the settings determine, largest set first: limbs, rotation ω and the α's; then
+//! without ω (one head angle per stylus — a head without rotary axes, the patent's own case —
+//! cannot turn the offsets: ω stays in the lengths, named as not determined); then without the
+//! α's. The expansion needs the stylus temperature to change between settings, and its signal
+//! α·Δτ·|o| (0.6 µm for 10 ppm/K, 1 K and a 56 mm crank) must stand above what else differs
+//! between the settings: the machine's geometry between the carriage positions of different
+//! head angles (about 1 µm uncorrected) is constant per head angle, so when each stylus visits a
+//! head angle ≥ 2 times the α's are fitted first from the visits' deviations from their own
+//! head angle's mean (that constant projected out, with 3 degrees of freedom per head angle
+//! taken from the χ² scale) and held in the lengths' fit. A coefficient is stored only when
+//! more than 2σ from zero. The scales' expansion between the carriage positions of the tips
+//! (the offsets × α_scale × ΔT_scale) follows the room as the styli's does: without a
+//! `scale_thermal` in the start it is taken for the styli's (said in the notes). Only the
+//! reference measured (re-qualifying it alone): its effective radius; the rest is kept.
+//!
 //! Source idea: probe qualification on a reference sphere, the offset of each tip from the
 //! reference tip's (s12 = S2 − S1) solved for the stylus lengths from the trusted head and
 //! bend angles (the probe-unit thermal correction patent's qualification), with the
@@ -38,8 +53,9 @@ use serde::Serialize;
 use std::collections::BTreeMap;
 
 /// Least temperature range over the qualification for the expansion coefficients to be
-/// fitted, K.
-const MIN_TEMP_RANGE_K: f64 = 0.3;
+/// fitted at all, K (ten times the stylus sensor's noise): whether a range suffices is then
+/// the fit's σ — what it takes is stated in the module's doc.
+const MIN_TEMP_RANGE_K: f64 = 0.02;
 
 /// One setting: a tip at one head angle, measuring the sphere.
 #[derive(Debug, Clone, Serialize)]
@@ -89,6 +105,9 @@ pub struct Outcome {
     pub consistency_before_um: f64,
     /// RMS of the offsets left after the fit, µm.
     pub residual_rms_um: f64,
+    /// Only the reference tip measured the sphere: its radius re-qualified, no tip-to-tip
+    /// consistency (the two figures above are zero).
+    pub reference_alone: bool,
     /// Rotation of the offsets at the sphere's position relative to the reference's (about
     /// x, y, z, rad): the machine's angular errors there (Abbe) or the head's angle offsets.
     /// Qualified lengths exclude it; a rigid-body or guide effect corrects it.
@@ -100,11 +119,11 @@ pub struct Outcome {
 }
 
 /// Groups of consecutive points of one (feature, tip, head angle).
-struct Group {
-    feature: usize,
-    tip: u32,
-    head: [f64; 2],
-    idx: Vec<usize>,
+pub(super) struct Group {
+    pub(super) feature: usize,
+    pub(super) tip: u32,
+    pub(super) head: [f64; 2],
+    pub(super) idx: Vec<usize>,
 }
 
 fn key(ds: &Dataset, i: usize) -> (usize, u32, [i64; 2]) {
@@ -120,7 +139,7 @@ fn key(ds: &Dataset, i: usize) -> (usize, u32, [i64; 2]) {
 }
 
 /// The sphere's settings in time order.
-fn groups(ds: &Dataset, spheres: &BTreeMap<usize, f64>) -> Vec<Group> {
+pub(super) fn groups(ds: &Dataset, spheres: &BTreeMap<usize, f64>) -> Vec<Group> {
     let mut order: Vec<usize> = (0..ds.points.len())
         .filter(|&i| spheres.contains_key(&ds.points[i].feature))
         .collect();
@@ -145,7 +164,11 @@ fn groups(ds: &Dataset, spheres: &BTreeMap<usize, f64>) -> Vec<Group> {
 }
 
 /// Centre covariance of an orthogonal-distance sphere fit (free radius), mm².
-fn center_cov(points: &[Vec3], center: &Vec3, rms: f64) -> Option<nalgebra::Matrix3<f64>> {
+pub(super) fn center_cov(
+    points: &[Vec3],
+    center: &Vec3,
+    rms: f64,
+) -> Option<nalgebra::Matrix3<f64>> {
     let n = points.len();
     if n < 8 {
         return None;
@@ -278,13 +301,65 @@ pub fn run(
     let others: Vec<usize> = (0..settings.len())
         .filter(|&i| settings[i].tip != reference)
         .collect();
-    if others.is_empty() {
-        return Err(ProcedureError::Missing(format!(
-            "only the reference tip {reference} measured the sphere: measure it with every \
-             other tip and head angle to qualify them"
-        )));
-    }
     let mut notes = vec![];
+    // Temperatures.
+    let temps: Vec<f64> = settings.iter().filter_map(|s| s.temp_c).collect();
+    let all_temps = temps.len() == settings.len();
+    let (t_q, t_range) = if all_temps {
+        let lo = temps.iter().cloned().fold(f64::MAX, f64::min);
+        let hi = temps.iter().cloned().fold(f64::MIN, f64::max);
+        (
+            Some(temps.iter().sum::<f64>() / temps.len() as f64),
+            hi - lo,
+        )
+    } else {
+        (None, 0.0)
+    };
+    let mut undetermined = vec![format!(
+        "tip{reference}.l1_mm: the reference stylus's length (its offset defines the machine's \
+         zero: every other tip is qualified relative to it)"
+    )];
+    // The tips' geometry (catalogue or earlier qualification).
+    let geom = |tip: u32| start.geometry.tips.iter().find(|t| t.id == tip);
+    for s in &settings {
+        if geom(s.tip).is_none() {
+            return Err(ProcedureError::Missing(format!(
+                "tip {} is not in the calibration's geometry",
+                s.tip
+            )));
+        }
+    }
+    if others.is_empty() {
+        // The reference re-qualified alone (a new ball, a crash): its effective radius; the
+        // other styli keep the start's lengths, measured from the reference's zero.
+        notes.push(format!(
+            "only the reference tip {reference} measured the sphere: its effective radius is \
+             re-qualified; the other styli keep the starting calibration's lengths (measure \
+             them against it to qualify them again)"
+        ));
+        undetermined.push(
+            "expansion coefficients: the reference's growth along its own axis and the \
+             scales' are one drift of the sphere's centre without another stylus"
+                .into(),
+        );
+        let mut params = vec![];
+        let mut cal = start.clone();
+        effective_radii(&settings, &mut cal, &mut params);
+        return Ok(Outcome {
+            calibration: cal,
+            params,
+            reference_tip: reference,
+            reference_temp_c: t_q,
+            temp_range_k: t_range,
+            settings,
+            consistency_before_um: 0.0,
+            residual_rms_um: 0.0,
+            reference_alone: true,
+            rotation: vec![],
+            undetermined,
+            notes,
+        });
+    }
     // Reference centre at time t (linear between its measurements), with its covariance
     // (diagonal).
     let ref_at = |t: f64| -> (Vec3, Vec3) {
@@ -318,44 +393,27 @@ pub fn run(
             ));
         }
     }
-    // Temperatures.
-    let temps: Vec<f64> = settings.iter().filter_map(|s| s.temp_c).collect();
-    let all_temps = temps.len() == settings.len();
-    let (t_q, t_range) = if all_temps {
-        let lo = temps.iter().cloned().fold(f64::MAX, f64::min);
-        let hi = temps.iter().cloned().fold(f64::MIN, f64::max);
-        (
-            Some(temps.iter().sum::<f64>() / temps.len() as f64),
-            hi - lo,
-        )
-    } else {
-        (None, 0.0)
-    };
     let fit_alpha = all_temps && t_range >= MIN_TEMP_RANGE_K;
-    let mut undetermined = vec![format!(
-        "tip{reference}.l1_mm: the reference stylus's length (its offset defines the machine's \
-         zero: every other tip is qualified relative to it)"
-    )];
     if !fit_alpha {
         undetermined.push(if all_temps {
             format!(
                 "expansion coefficients per stylus: the stylus temperature spanned only \
-                 {t_range:.2} K (≥ {MIN_TEMP_RANGE_K} K needed): qualify again at another \
-                 temperature"
+                 {t_range:.3} K, within its sensor's noise: qualify again as the room's \
+                 temperature changes"
             )
         } else {
             "expansion coefficients per stylus: the bags have no `stylus` temperature".into()
         });
     }
-    // The tips' geometry (catalogue or earlier qualification).
-    let geom = |tip: u32| start.geometry.tips.iter().find(|t| t.id == tip);
-    for s in &settings {
-        if geom(s.tip).is_none() {
-            return Err(ProcedureError::Missing(format!(
-                "tip {} is not in the calibration's geometry",
-                s.tip
-            )));
-        }
+    if fit_alpha && !start.effects.iter().any(|e| e.kind() == "scale_thermal") {
+        notes.push(
+            "the starting calibration has no scales' expansion (`scale_thermal`): the scales' \
+             growth between the carriage positions of the tips (the offsets × α_scale × the \
+             scales' temperature change) follows the room as the styli's does and is taken \
+             for it — measure the scales first (`scancorr calibrate scales`) for the styli's \
+             own coefficients"
+                .into(),
+        );
     }
     // Offsets from the reference and the calibrated offsets the corrector used.
     let offset_cal = |i: usize| -> Vec3 {
@@ -453,13 +511,163 @@ pub fn run(
             w.push(1.0 / var[ax].max(1e-12));
         }
     }
-    let Some((theta, cov, _)) = weighted_lsq(&a, &b, &w) else {
+    let alpha_cols: Vec<usize> = col
+        .iter()
+        .filter(|((_, f), _)| *f == "alpha_per_k")
+        .map(|(_, &c)| c)
+        .collect();
+    let limb_cols: Vec<usize> = col
+        .iter()
+        .filter(|((_, f), _)| *f != "alpha_per_k")
+        .map(|(_, &c)| c)
+        .collect();
+    let rot_cols: Vec<usize> = (omega0..omega0 + 3).collect();
+    let n_all = names.len();
+    let mut theta = vec![0.0; n_all];
+    let mut cov = nalgebra::DMatrix::<f64>::zeros(n_all, n_all);
+    let mut fitted = vec![false; n_all];
+    // (1) The expansion coefficients from the settings repeated at one head angle, each
+    // against its own mean: what the machine's geometry does between the carriage positions
+    // of different head angles is constant per head angle and cancels; the lengths do too.
+    let setting_key = |i: usize| {
+        let s = &settings[i];
+        (
+            s.tip,
+            (s.head_deg[0] * 1e3).round() as i64,
+            (s.head_deg[1] * 1e3).round() as i64,
+        )
+    };
+    let mut repeats: BTreeMap<(u32, i64, i64), Vec<usize>> = BTreeMap::new();
+    for (n_row, &i) in others.iter().enumerate() {
+        repeats.entry(setting_key(i)).or_default().push(n_row);
+    }
+    let every_stylus_repeated = styli.iter().all(|&k| {
+        repeats
+            .iter()
+            .any(|((t, _, _), rows)| *t == k && rows.len() >= 2)
+    });
+    let mut alpha_from_repeats = false;
+    if fit_alpha && every_stylus_repeated {
+        let (mut ar, mut br, mut wr) = (vec![], vec![], vec![]);
+        let mut groups_used = 0usize;
+        for rows in repeats.values().filter(|r| r.len() >= 2) {
+            groups_used += 1;
+            for ax in 0..3 {
+                // Projecting out the group's own offset: deviations from its weighted mean.
+                let sw: f64 = rows.iter().map(|&r| w[3 * r + ax]).sum();
+                let mean = |f: &dyn Fn(usize) -> f64| {
+                    rows.iter()
+                        .map(|&r| w[3 * r + ax] * f(3 * r + ax))
+                        .sum::<f64>()
+                        / sw
+                };
+                let mean_a: Vec<f64> = alpha_cols.iter().map(|&c| mean(&|k| a[k][c])).collect();
+                let mean_b = mean(&|k| b[k]);
+                for &r in rows {
+                    let k = 3 * r + ax;
+                    ar.push(
+                        alpha_cols
+                            .iter()
+                            .zip(&mean_a)
+                            .map(|(&c, mu)| a[k][c] - mu)
+                            .collect::<Vec<_>>(),
+                    );
+                    br.push(b[k] - mean_b);
+                    wr.push(w[k]);
+                }
+            }
+        }
+        if let Some((t, c, rms)) = weighted_lsq(&ar, &br, &wr) {
+            // The χ² scale with the degrees of freedom the group offsets took (3 per group).
+            let (m, n) = (ar.len() as f64, alpha_cols.len() as f64);
+            let chi2 = rms * rms * m;
+            let used = (chi2 / (m - n).max(1.0)).max(1.0);
+            let right = (chi2 / (m - n - 3.0 * groups_used as f64).max(1.0)).max(1.0);
+            for (i, &ci) in alpha_cols.iter().enumerate() {
+                theta[ci] = t[i];
+                fitted[ci] = true;
+                for (j, &cj) in alpha_cols.iter().enumerate() {
+                    cov[(ci, cj)] = c[(i, j)] / used * right;
+                }
+            }
+            alpha_from_repeats = true;
+        }
+    }
+    // (2) The lengths (with the rotation and the expansion when the settings determine them):
+    // the largest set of unknowns the settings separate.
+    let b_fix: Vec<f64> = if alpha_from_repeats {
+        a.iter()
+            .zip(&b)
+            .map(|(row, y)| y - alpha_cols.iter().map(|&c| row[c] * theta[c]).sum::<f64>())
+            .collect()
+    } else {
+        b.clone()
+    };
+    let alpha_joint: &[usize] = if fit_alpha && !alpha_from_repeats {
+        &alpha_cols
+    } else {
+        &[]
+    };
+    let tries: &[(bool, bool)] = if alpha_joint.is_empty() {
+        &[(true, false), (false, false)]
+    } else {
+        &[(true, true), (false, true), (true, false), (false, false)]
+    };
+    let mut solved = None;
+    for &(with_rot, with_alpha) in tries {
+        let cols: Vec<usize> = limb_cols
+            .iter()
+            .copied()
+            .chain(if with_rot { rot_cols.clone() } else { vec![] })
+            .chain(if with_alpha {
+                alpha_joint.to_vec()
+            } else {
+                vec![]
+            })
+            .collect();
+        let sub: Vec<Vec<f64>> = a
+            .iter()
+            .map(|r| cols.iter().map(|&c| r[c]).collect())
+            .collect();
+        if let Some(s) = weighted_lsq(&sub, &b_fix, &w) {
+            solved = Some((cols, s, with_rot, with_alpha));
+            break;
+        }
+    }
+    let Some((cols, (t, c, _), with_rot, with_alpha)) = solved else {
         return Err(ProcedureError::IllConditioned(format!(
-            "the settings do not separate {}: measure each stylus at ≥ 2 head angles \
-             (its limbs point in different directions) and the reference before and after",
-            names.join(", ")
+            "the settings do not separate {}: measure each stylus at a head angle where its \
+             limbs point along different axes, and the reference before and after",
+            names[..omega0]
+                .iter()
+                .filter(|n| !n.ends_with("alpha_per_k"))
+                .cloned()
+                .collect::<Vec<_>>()
+                .join(", ")
         )));
     };
+    for (i, &ci) in cols.iter().enumerate() {
+        theta[ci] = t[i];
+        fitted[ci] = true;
+        for (j, &cj) in cols.iter().enumerate() {
+            cov[(ci, cj)] = c[(i, j)];
+        }
+    }
+    if !with_rot {
+        undetermined.push(
+            "the rotation of the offsets at the sphere's position (the machine's angular \
+             errors there, the head's angle offsets): one head angle per stylus does not turn \
+             the offsets; it stays in the lengths"
+                .into(),
+        );
+    }
+    if fit_alpha && !alpha_from_repeats && !with_alpha {
+        undetermined.push(
+            "expansion coefficients per stylus: the settings do not separate them from the \
+             lengths — measure a head angle again later in the room's drift"
+                .into(),
+        );
+    }
     // Residuals.
     let mut res_ss = 0.0;
     for (n_row, &i) in others.iter().enumerate() {
@@ -484,14 +692,19 @@ pub fn run(
             sigma: cov[(i, i)].max(0.0).sqrt(),
         })
         .collect();
-    let rotation: Vec<Param> = all[omega0..omega0 + 3].to_vec();
+    let rotation: Vec<Param> = if with_rot {
+        all[omega0..omega0 + 3].to_vec()
+    } else {
+        vec![]
+    };
     // A stylus's length along the reference's axis is measured from the reference's own
     // (the zero): it is printed as that difference, which is what the sphere determines.
     let l1_ref = geom(reference).map_or(0.0, |g| g.l1_mm);
     let mut params: Vec<Param> = all[..omega0]
         .iter()
-        .chain(&all[omega0 + 3..])
-        .cloned()
+        .enumerate()
+        .filter(|(i, _)| fitted[*i])
+        .map(|(_, p)| p.clone())
         .map(|mut p| {
             if let Some(k) = p.name.strip_suffix(".l1_mm") {
                 p.name = format!("{k}.l1_from_tip{reference}_mm");
@@ -500,11 +713,78 @@ pub fn run(
             p
         })
         .collect();
-    // Effective radii.
+    let mut cal = start.clone();
+    effective_radii(&settings, &mut cal, &mut params);
+    // The fitted values, by (tip, field) as the columns were laid out.
+    for (&(tip, field), &c) in &col {
+        if let Some(g) = cal.geometry.tips.iter_mut().find(|t| t.id == tip) {
+            match field {
+                "l1_mm" => g.l1_mm = theta[c],
+                "l2_mm" => g.l2_mm = theta[c],
+                "l3_mm" => g.l3_mm = theta[c],
+                _ => {}
+            }
+        }
+    }
+    // The stylus thermal correction: the coefficients measured here, referred to T_q.
+    if let Some(t_q) = t_q {
+        let old = cal
+            .effects
+            .iter()
+            .position(|e| e.kind() == "stylus_thermal");
+        let mut th = match old.map(|i| &cal.effects[i]) {
+            Some(EffectConfig::StylusThermal(c)) => c.clone(),
+            _ => stylus_thermal::Config::zeros(false),
+        };
+        th.reference_temp_c = t_q;
+        // A coefficient the measurement does not determine to better than its own size is
+        // reported but not stored (the starting calibration's stays).
+        for (&(tip, field), &c) in &col {
+            if field == "alpha_per_k" && fitted[c] {
+                let sigma = cov[(c, c)].max(0.0).sqrt();
+                if theta[c].abs() > 2.0 * sigma {
+                    th.alpha_per_tip.insert(tip, theta[c]);
+                } else {
+                    undetermined.push(format!(
+                        "tip{tip}.alpha_per_k: {:.1} ± {:.1} ppm/K, not 2σ from zero (not \
+                         stored): visit each head angle twice as the room's temperature \
+                         changes (`sim --program tips-repeat`), or over a wider range",
+                        theta[c] * 1e6,
+                        sigma * 1e6
+                    ));
+                }
+            }
+        }
+        if fit_alpha || old.is_some() {
+            match old {
+                Some(i) => cal.effects[i] = EffectConfig::StylusThermal(th),
+                None => cal.effects.push(EffectConfig::StylusThermal(th)),
+            }
+        }
+    }
+    params.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(Outcome {
+        calibration: cal,
+        params,
+        reference_tip: reference,
+        reference_temp_c: t_q,
+        temp_range_k: t_range,
+        settings,
+        consistency_before_um,
+        residual_rms_um,
+        rotation,
+        undetermined,
+        reference_alone: false,
+        notes,
+    })
+}
+
+/// Each tip's effective radius: the start's plus the mean over its settings of the sphere's
+/// fitted radius less the certified one; written into `cal`, pushed onto `params`.
+fn effective_radii(settings: &[Setting], cal: &mut Calibration, params: &mut Vec<Param>) {
     let mut tips_seen: Vec<u32> = settings.iter().map(|s| s.tip).collect();
     tips_seen.sort();
     tips_seen.dedup();
-    let mut cal = start.clone();
     for &k in &tips_seen {
         let e: Vec<f64> = settings
             .iter()
@@ -540,65 +820,4 @@ pub fn run(
             sigma: spread.max(fit_sigma),
         });
     }
-    // The fitted values, by (tip, field) as the columns were laid out.
-    for (&(tip, field), &c) in &col {
-        if let Some(g) = cal.geometry.tips.iter_mut().find(|t| t.id == tip) {
-            match field {
-                "l1_mm" => g.l1_mm = theta[c],
-                "l2_mm" => g.l2_mm = theta[c],
-                "l3_mm" => g.l3_mm = theta[c],
-                _ => {}
-            }
-        }
-    }
-    // The stylus thermal correction: the coefficients measured here, referred to T_q.
-    if let Some(t_q) = t_q {
-        let old = cal
-            .effects
-            .iter()
-            .position(|e| e.kind() == "stylus_thermal");
-        let mut th = match old.map(|i| &cal.effects[i]) {
-            Some(EffectConfig::StylusThermal(c)) => c.clone(),
-            _ => stylus_thermal::Config::zeros(false),
-        };
-        th.reference_temp_c = t_q;
-        // A coefficient the measurement does not determine to better than its own size is
-        // reported but not stored (the starting calibration's stays).
-        for (&(tip, field), &c) in &col {
-            if field == "alpha_per_k" {
-                let sigma = cov[(c, c)].max(0.0).sqrt();
-                if theta[c].abs() > sigma {
-                    th.alpha_per_tip.insert(tip, theta[c]);
-                } else {
-                    undetermined.push(format!(
-                        "tip{tip}.alpha_per_k: {:.1} ± {:.1} ppm/K, its uncertainty larger than \
-                         itself (not stored): qualify again over a wider temperature range, with \
-                         the machine's geometry corrected",
-                        theta[c] * 1e6,
-                        sigma * 1e6
-                    ));
-                }
-            }
-        }
-        if fit_alpha || old.is_some() {
-            match old {
-                Some(i) => cal.effects[i] = EffectConfig::StylusThermal(th),
-                None => cal.effects.push(EffectConfig::StylusThermal(th)),
-            }
-        }
-    }
-    params.sort_by(|a, b| a.name.cmp(&b.name));
-    Ok(Outcome {
-        calibration: cal,
-        params,
-        reference_tip: reference,
-        reference_temp_c: t_q,
-        temp_range_k: t_range,
-        settings,
-        consistency_before_um,
-        residual_rms_um,
-        rotation,
-        undetermined,
-        notes,
-    })
 }

@@ -280,7 +280,7 @@ impl Config {
             .map(|j| format!("radial correction at θ={}° (mm)", deg(j)))
             .chain(
                 (0..self.per_deflection.len())
-                    .map(|j| format!("radial correction per mm of deflection at θ={}°", deg(j))),
+                    .map(|j| format!("radial correction per deflection at θ={}° (mm/mm)", deg(j))),
             )
             .collect()
     }

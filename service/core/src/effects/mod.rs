@@ -352,7 +352,14 @@ impl EffectConfig {
             EffectConfig::Custom(c) => c
                 .terms
                 .iter()
-                .map(|t| format!("{}·[{}]", t.axis.name(), t.expr))
+                .map(|t| {
+                    format!(
+                        "{}·[{}] ({})",
+                        t.axis.name(),
+                        t.expr,
+                        crate::units::coefficient_unit(&t.expr)
+                    )
+                })
                 .collect(),
             EffectConfig::FeatureMap(c) => c.param_names(),
             EffectConfig::ThermalDrift(c) => c.param_names(),

@@ -1,12 +1,22 @@
-//! Per-axis amplitude response on arcs.
+//! Per-axis radial gain on arcs.
 //!
-//! Equation: on an arc, axis i reaches only |G_i|(f) = 1 − g_i(f) of its commanded excursion
-//! about the arc centre c, with g_i(f) = Σ_k α_{i,k}(p)·f^k (powers k from `powers`, each
-//! coefficient a polynomial in position); the correction is δ_i = g_i(f)·(s_i − c_i).
+//! Equation: on an arc of rotation frequency f about the commanded centre c, the correction
+//! of axis i is δ_i = g_i(f)·(s_i − c_i), with g_i(f) = Σ_k α_{i,k}(p)·f^k (powers k from
+//! `powers`, each coefficient a polynomial in position). Its physical term is f²: a compliance
+//! γ_i between the scale's reading head and the probe (the probe head on its mount, or the
+//! reading head on its bracket, whichever dominates that axis) displaces the probe by −γ_i·a_i
+//! relative to what the scale reads; on a steady arc a_i = −(2πf)²·(s_i − c_i), so
+//! δ_i = γ_i·(2πf)²·(s_i − c_i), i.e. α_{i,2} = 4π²·γ_i — the same displacement as the
+//! diagonal of [`accel_deflection`](super::accel_deflection)'s P (α_{i,2} = −4π²·P_ii), seen
+//! on arcs only (which is why the ring procedure reports the two as nearly one column). The
+//! f¹ term and the position dependence are an empirical polynomial for what arcs show beyond
+//! it (a mode's resonance approached, a drive's amplitude loss).
 //!
-//! Source idea: a servo axis driven sinusoidally (each axis sees a sine on a circle) follows
-//! with a frequency-dependent gain, so a circle scanned fast comes out smaller, and elliptic
-//! when the axes differ; the correction is applied about the commanded centre.
+//! Source idea: dynamic-error compensation of scanning CMMs — on a circle each axis sees a
+//! sine, and a compliant element between scale and probe makes the fast circle larger or
+//! smaller than commanded and elliptic when the axes differ, growing with f²; the correction
+//! is applied about the commanded centre (the simulator's machine injects no gain formula: its
+//! arc gain is this compliance, `scancorr-sim`'s `mount_compliance_s2`).
 
 use super::{check_finite, Effect, PositionBasis};
 use crate::sample::{PointContext, Vec3};

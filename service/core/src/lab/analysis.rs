@@ -182,6 +182,121 @@ pub struct Diagnosis {
     /// candidates).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub prediction: Option<Prediction>,
+    /// What the choice of model moves: for each parameter of the model (refitted as it is),
+    /// the largest change among the moves this data scores near-equal (see
+    /// [`near_equal`]), and the move that makes it. Applied to a fit of this model by
+    /// [`widen_by_alternatives`].
+    #[serde(skip)]
+    pub model_spread: Vec<ModelSpread>,
+}
+
+/// The largest change of one parameter among the near-equal models (see [`Diagnosis`]).
+#[derive(Debug, Clone)]
+pub struct ModelSpread {
+    /// The effect's id.
+    pub effect: String,
+    /// The parameter's name.
+    pub name: String,
+    /// |value in the alternative − value in the model refitted as it is|.
+    pub shift: f64,
+    /// The move that makes it.
+    pub by: String,
+}
+
+/// Whether a move's model is near-equal to the model refitted as it is: on the other scans
+/// it is better, or worse by less than a significant move would gain (half the noise floor
+/// or 1 % of the sum of squares, as [`significant_gain`]): the data cannot say that the model
+/// is preferable to it, so what it changes is part of the uncertainty.
+pub fn near_equal(base: &Score, s: &Score, noise_um: f64) -> bool {
+    if !(s.cv_ss.is_finite() && base.cv_ss.is_finite()) || s.cv_n == 0 {
+        return false;
+    }
+    let n = s.cv_n as f64;
+    let noise = noise_um.max(0.01) * 1e-3;
+    let band = (0.25 * noise * noise * n).max(0.01 * base.cv_ss);
+    s.cv_ss <= base.cv_ss + band
+}
+
+/// Widens each parameter's σ of `o` (a fit of the model `model_spread` was computed for) by
+/// the largest change among the near-equal models: σ² + change², recorded in
+/// `Param::model_spread` and said in its note when it dominates. Parameters without a σ (not
+/// determined) stay without one.
+pub fn widen_by_alternatives(o: &mut FitOutcome, model_spread: &[ModelSpread]) {
+    for (c, ps) in o.configs.iter().zip(o.params.iter_mut()) {
+        let id = c.id();
+        for p in ps.iter_mut() {
+            let Some(m) = model_spread
+                .iter()
+                .find(|m| m.effect == id && m.name == p.name)
+            else {
+                continue;
+            };
+            let Some(s) = p.sigma else { continue };
+            if !m.shift.is_finite() {
+                continue;
+            }
+            p.model_spread = Some(m.shift);
+            p.sigma = Some((s * s + m.shift * m.shift).sqrt());
+            if m.shift > s {
+                let said = format!(
+                    "the choice of model moves it: `{}`, which the data scores near-equal, changes it by {:.3e}: σ includes that",
+                    m.by, m.shift
+                );
+                p.note = Some(match p.note.take() {
+                    Some(n) => format!("{n}; {said}"),
+                    None => said,
+                });
+            }
+        }
+    }
+}
+
+/// The largest change of each parameter of the base fit `base_o` among the near-equal moves
+/// of `results`.
+fn model_spreads(
+    base_o: &FitOutcome,
+    base: &Score,
+    results: &[(Candidate, Option<usize>, Spec, Score, FitOutcome, bool)],
+    noise_um: f64,
+) -> Vec<ModelSpread> {
+    let mut out: Vec<ModelSpread> = vec![];
+    for (c, _, _, score, o, _) in results {
+        if !near_equal(base, score, noise_um) {
+            continue;
+        }
+        for (cfg, ps) in o.configs.iter().zip(&o.params) {
+            let id = cfg.id();
+            let Some(bi) = base_o.configs.iter().position(|b| b.id() == id) else {
+                continue;
+            };
+            for p in ps {
+                let Some(bp) = base_o.params[bi].iter().find(|q| q.name == p.name) else {
+                    continue;
+                };
+                if bp.sigma.is_none() || p.sigma.is_none() {
+                    continue;
+                }
+                let shift = (p.value - bp.value).abs();
+                if !shift.is_finite() {
+                    continue;
+                }
+                match out.iter_mut().find(|m| m.effect == id && m.name == p.name) {
+                    Some(m) if m.shift >= shift => {}
+                    Some(m) => {
+                        m.shift = shift;
+                        m.by = c.effect.clone();
+                    }
+                    None => out.push(ModelSpread {
+                        effect: id.clone(),
+                        name: p.name.clone(),
+                        shift,
+                        by: c.effect.clone(),
+                    }),
+                }
+            }
+        }
+    }
+    out
 }
 
 /// The residual a candidate move predicts, beside the measured one: the circles' traces
@@ -818,10 +933,8 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
     let model = ds.calibration.effects.clone();
     let sc = score_moves(ds, &prep, moves(ds, &model))?;
     let mut results = vec![];
-    let base_held = sc
-        .space
-        .fit(&prep, &sc.base_spec, &sc.base, &sc.base)?
-        .heldout_rms_after_um;
+    let base_o = sc.space.fit(&prep, &sc.base_spec, &sc.base, &sc.base)?;
+    let base_held = base_o.heldout_rms_after_um;
     for (c, b, spec, score) in &sc.moves {
         let o = sc.space.fit(&prep, spec, score, &sc.base)?;
         let sig = significant(&c.action, &sc.base, score, &o, base_held, noise);
@@ -932,6 +1045,7 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         }
         None => None,
     };
+    let model_spread = model_spreads(&base_o, &sc.base, &results, noise);
     let npts = [
         prep.fit_mask.iter().filter(|m| **m).count(),
         prep.held_mask.iter().filter(|m| **m).count(),
@@ -976,5 +1090,6 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
         points: npts,
         skipped: sc.skipped,
         prediction,
+        model_spread,
     })
 }

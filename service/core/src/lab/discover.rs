@@ -112,6 +112,10 @@ pub struct Discovery {
     /// Pairs the campaign could not separate when one of them was added, with the measurement
     /// that would.
     pub confounded: Vec<Confounded>,
+    /// Pairs whose corrections look alike (the correlation test of [`Confounded`]) but whose
+    /// scores on scans they were not fitted on separate them: not confounded.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub separated: Vec<Separated>,
     /// Structure the library does not explain, left at the end.
     pub unexplained: Vec<Structure>,
     /// Moves that were significant but not taken, and why (the held-out data got worse).
@@ -125,6 +129,48 @@ pub struct Discovery {
     pub r#final: Final,
     /// Candidates the data could not test, and why (last diagnosis).
     pub skipped: Vec<String>,
+}
+
+/// Two candidates whose corrections look alike, told apart by their scores.
+#[derive(Debug, Clone, Serialize)]
+pub struct Separated {
+    /// The one taken (or the better scored) first.
+    pub effects: [String; 2],
+    /// Their cross-validated RMS (scans predicted from the others), µm, in that order.
+    pub cv_rms_um: [f64; 2],
+    /// Their held-out RMS, µm.
+    pub heldout_rms_um: [f64; 2],
+}
+
+/// A pair the correlation test names confounded, judged by the candidates' scores as well: when
+/// the better one removes, over the worse one, a component that passes the significance test
+/// of a move (at least half the noise floor and 1 % of the sum of squares on scans neither was
+/// fitted on, the held-out data not worse), the data separates them — the pair is returned as
+/// [`Separated`]. `None` keeps it confounded (scores alike, or a candidate not scored).
+pub fn separated_by_scores(dg: &Diagnosis, k: &Confounded) -> Option<Separated> {
+    let find = |e: &str| {
+        dg.candidates
+            .iter()
+            .find(|c| c.effect == e && c.action == Move::Add)
+    };
+    let (a, b) = (find(&k.effects[0])?, find(&k.effects[1])?);
+    let (good, bad) = if a.cv_rms_after_um <= b.cv_rms_after_um {
+        (a, b)
+    } else {
+        (b, a)
+    };
+    analysis::significant_gain(
+        bad.cv_rms_after_um,
+        good.cv_rms_after_um,
+        bad.heldout_rms_after_um,
+        good.heldout_rms_after_um,
+        dg.noise_floor_um,
+    )
+    .then(|| Separated {
+        effects: k.effects.clone(),
+        cv_rms_um: [a.cv_rms_after_um, b.cv_rms_after_um],
+        heldout_rms_um: [a.heldout_rms_after_um, b.heldout_rms_after_um],
+    })
 }
 
 /// A model's structure, for recognising one the loop already had.
@@ -560,6 +606,7 @@ pub fn discover(
     steps.push(s0);
     let mut seen = vec![signature(&cal.effects)];
     let mut confounded: Vec<Confounded> = vec![];
+    let mut separated: Vec<Separated> = vec![];
     let mut refused: Vec<String> = vec![];
     let stopped;
     let last_dg;
@@ -660,18 +707,28 @@ pub fn discover(
                     refused.push(r);
                 }
                 Ok(t) => {
+                    // Confounded by the correlation of their corrections, unless the scores
+                    // separate them.
+                    let mut conf = vec![];
+                    for k in dg.confounded.iter().filter(|k| k.effects[0] == cand.effect) {
+                        match separated_by_scores(&dg, k) {
+                            Some(sep) => {
+                                on_progress(&format!(
+                                    "step {index}: {} and {} correct alike, but their scores separate them (cross-validated {:.3} vs {:.3} µm)",
+                                    sep.effects[0], sep.effects[1], sep.cv_rms_um[0], sep.cv_rms_um[1]
+                                ));
+                                separated.push(sep);
+                            }
+                            None => conf.push(k.clone()),
+                        }
+                    }
                     chosen = Some(Chosen {
                         tried: t,
                         action,
                         effect: cand.effect.clone(),
                         replaces: cand.replaces.clone().filter(|_| cand.action == Move::Swap),
                         cv: applied.outcome.cv_rms_after_um,
-                        conf: dg
-                            .confounded
-                            .iter()
-                            .filter(|k| k.effects[0] == cand.effect)
-                            .cloned()
-                            .collect(),
+                        conf,
                         found: None,
                     });
                     break;
@@ -788,13 +845,16 @@ pub fn discover(
         ds = ch.tried.ds;
         prep = ch.tried.prep;
     }
-    let fin = analysis::fit_effects(&ds, &prep, &cal.effects)?;
+    let mut fin = analysis::fit_effects(&ds, &prep, &cal.effects)?;
+    // σ carries what the choice of model moves (the near-equal moves of the last diagnosis).
+    analysis::widen_by_alternatives(&mut fin, &last_dg.model_spread);
     let fin_params = fin.by_effect();
     Ok(Discovery {
         start_heldout_rms_um: p0.rms_held_um,
         start_rms_um: p0.rms_fit_um,
         steps,
         confounded,
+        separated,
         unexplained: left,
         refused,
         unidentifiable: fin.unidentifiable,
@@ -811,4 +871,181 @@ pub fn discover(
         },
         skipped: last_dg.skipped,
     })
+}
+
+/// Candidates the lab tries that a default campaign leaves confounded with a model effect: the
+/// servo gain in f and f² (against `accel_deflection`) and the rigid body (against a guide).
+const PLANNED_CANDIDATES: [&str; 2] = ["servo_gain:powers=1+2", "rigid_body"];
+
+/// What a discovery leaves for a plan to determine: the confounded pairs, and the parameters
+/// the data could not determine. Empty: nothing to plan for.
+pub fn left_to_plan(d: &Discovery) -> Vec<String> {
+    let mut v: Vec<String> = d
+        .confounded
+        .iter()
+        .map(|c| format!("{} against {}", c.effects[0], c.effects[1]))
+        .collect();
+    if !d.unidentifiable.is_empty() {
+        v.push(format!(
+            "{} parameter(s) not determined",
+            d.unidentifiable.len()
+        ));
+    }
+    v
+}
+
+/// The candidates a plan after `d` makes identifiable beside the final model: each effect
+/// named confounded with one the loop took, then the candidates a default campaign leaves
+/// confounded (see `PLANNED_CANDIDATES`), each kind the model does not have, once.
+pub fn plan_candidates(d: &Discovery) -> Vec<String> {
+    let mut v: Vec<String> = vec![];
+    let kind = |e: &str| e.split(':').next().unwrap_or(e).to_string();
+    let names = d
+        .confounded
+        .iter()
+        .map(|c| c.effects[1].clone())
+        .chain(PLANNED_CANDIDATES.iter().map(|s| s.to_string()));
+    for n in names {
+        let k = kind(&n);
+        if d.r#final.kinds.contains(&k) || v.iter().any(|x| kind(x) == k) {
+            continue;
+        }
+        v.push(n);
+    }
+    v
+}
+
+/// The artifacts the bags' program records show the user owns: each ring and sphere at its
+/// certified diameter (or nominal, without a certificate), and a straightedge at least as long
+/// as the longest line scanned along it (speed × duration of its segments, rounded up to
+/// 10 mm; 400 mm when its segments say nothing).
+pub fn owned_in(bags: &[BagData]) -> Vec<super::plan::Owned> {
+    use super::plan::{Artifact, Owned};
+    let mut v: Vec<Owned> = vec![];
+    for p in bags.iter().filter_map(|b| b.program.as_ref()) {
+        for f in &p.features {
+            let size = f.certificate_diameter_mm.unwrap_or(f.nominal_diameter_mm);
+            let (artifact, size_mm) = match f.artifact.as_str() {
+                "ring" => (Artifact::Ring, size),
+                "sphere" => (Artifact::Sphere, size),
+                "straightedge" => {
+                    let l = p
+                        .segments
+                        .iter()
+                        .filter(|s| {
+                            s.feature == Some(f.id)
+                                && s.kind == super::program::SegmentKind::Scan
+                                && s.direction == 0
+                        })
+                        .map(|s| s.speed.abs() * (s.t1_s - s.t0_s))
+                        .filter(|l| l.is_finite())
+                        .fold(0.0, f64::max);
+                    let l = if l >= 50.0 {
+                        (l / 10.0).ceil() * 10.0
+                    } else {
+                        400.0
+                    };
+                    (Artifact::Straightedge, l.min(3000.0))
+                }
+                _ => continue,
+            };
+            if !(size_mm.is_finite() && size_mm > 0.0) {
+                continue;
+            }
+            match v.iter_mut().find(|o| {
+                o.artifact == artifact
+                    && (artifact == Artifact::Straightedge || (o.size_mm - size_mm).abs() < 1e-6)
+            }) {
+                Some(o) => o.size_mm = o.size_mm.max(size_mm),
+                None => v.push(Owned { artifact, size_mm }),
+            }
+        }
+    }
+    v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lab::plan::Artifact;
+    use crate::lab::program::{FeatureKind, FeatureSpec, ProgramSpec, SegmentKind, SegmentSpec};
+    use std::sync::Arc;
+
+    fn feature(id: u32, artifact: &str, d: f64, cert: Option<f64>) -> FeatureSpec {
+        FeatureSpec {
+            id,
+            artifact: artifact.into(),
+            kind: if d > 0.0 {
+                FeatureKind::Bore
+            } else {
+                FeatureKind::Face
+            },
+            nominal_center: [0.0; 3],
+            nominal_diameter_mm: d,
+            certificate_diameter_mm: cert,
+            normal: [0.0, -1.0, 0.0],
+        }
+    }
+
+    fn line(id: u32, feature: u32, speed: f64, secs: f64) -> SegmentSpec {
+        SegmentSpec {
+            id,
+            kind: SegmentKind::Scan,
+            feature: Some(feature),
+            speed,
+            direction: 0,
+            tip: 1,
+            a1_deg: 0.0,
+            a2_deg: 0.0,
+            deflection_mm: 0.3,
+            t0_s: 10.0,
+            t1_s: 10.0 + secs,
+        }
+    }
+
+    /// The artifacts a plan may use are those the bags measured: each ring size once, the
+    /// sphere, and the straightedge at least as long as its longest line (rounded up).
+    #[test]
+    fn owned_from_the_bags_program_records() {
+        let program = ProgramSpec {
+            program: "campaign".into(),
+            features: vec![
+                feature(1, "ring", 50.0, Some(50.0012)),
+                feature(2, "ring", 50.0, Some(50.0012)),
+                feature(3, "sphere", 25.0, Some(25.0004)),
+                feature(4, "straightedge", 0.0, None),
+                feature(5, "part", 30.0, None),
+            ],
+            segments: vec![line(1, 4, 50.0, 15.2), line(2, 4, 50.0, 3.0)],
+        };
+        let bag = BagData {
+            name: "c.mcap".into(),
+            samples: Arc::new(Vec::<crate::sample::Sample>::new()),
+            program: Some(program),
+            validation: false,
+        };
+        let owned = owned_in(&[bag]);
+        assert_eq!(owned.len(), 3, "{owned:?}");
+        assert_eq!(
+            (owned[0].artifact, owned[0].size_mm),
+            (Artifact::Ring, 50.0012)
+        );
+        assert_eq!(
+            (owned[1].artifact, owned[1].size_mm),
+            (Artifact::Sphere, 25.0004)
+        );
+        // 50 mm/s × 15.2 s = 760 mm.
+        assert_eq!(
+            (owned[2].artifact, owned[2].size_mm),
+            (Artifact::Straightedge, 760.0)
+        );
+        // No program record: nothing known owned.
+        let bare = BagData {
+            name: "r.mcap".into(),
+            samples: Arc::new(Vec::<crate::sample::Sample>::new()),
+            program: None,
+            validation: false,
+        };
+        assert!(owned_in(&[bare]).is_empty());
+    }
 }

@@ -151,6 +151,11 @@ pub struct Space {
     /// The held-out points are the fit bags' alternate scans, scored as fold 1 (see
     /// [`folds`]): the held-out figures are then the cross-validated ones.
     internal: bool,
+    /// The model's columns of every fit point (fold 0 or 1) with its deviation and its scan
+    /// (cluster) number: for the scan-clustered σ of a fit of the model's own effects.
+    rows: Vec<(u32, f64, Box<[(usize, f64)]>)>,
+    /// Number of scans (clusters) among `rows`.
+    n_clusters: usize,
 }
 
 /// Second-difference rows of each table of an effect, grouped by the tables that share one
@@ -308,6 +313,8 @@ impl Space {
         let mut nu = vec![];
         let mut base: Vec<(usize, f64)> = vec![];
         let mut cand: Vec<(usize, f64)> = vec![];
+        let mut rows = vec![];
+        let mut clusters: std::collections::BTreeMap<(usize, u32), u32> = Default::default();
         for (i, p) in ds.points.iter().enumerate() {
             let Some(f) = fold[i] else { continue };
             let gi = art.grad[i];
@@ -326,6 +333,11 @@ impl Space {
             }
             base.extend(nu.iter().map(|(c, v)| (c + n_fx, *v)));
             gram.add_block(&base, None, y);
+            if f < 2 {
+                let n = clusters.len() as u32;
+                let c = *clusters.entry((p.bag, p.segment)).or_insert(n);
+                rows.push((c, y, base.clone().into_boxed_slice()));
+            }
             for (b, m) in out.iter().zip(&models).filter(|(b, _)| !b.in_model) {
                 cand.clear();
                 m.regressors(&p.ctx, &mut r[..b.n]);
@@ -376,6 +388,8 @@ impl Space {
         Ok(Space {
             weak,
             internal: held_within_fit_bags(ds, prep),
+            rows,
+            n_clusters: clusters.len(),
             blocks: out,
             n_fx,
             n_nu,
@@ -604,6 +618,67 @@ impl Space {
         best.expect("a ladder has at least one rung")
     }
 
+    /// The scan-clustered ("sandwich") variance of each fitted column:
+    /// C (Σ_c s_c s_cᵀ) C · G/(G − 1), C the (penalised) inverse normal matrix, s_c = Σ_{i∈c}
+    /// a_i r_i the score of scan c at the solution `x` (columns `cols`, then the placements),
+    /// G the number of scans. Only for a model of the space's own effects (every fitted block
+    /// in the model: the stored rows have no candidate's columns); `None` otherwise or with
+    /// fewer than 3 scans.
+    fn scan_variance(
+        &self,
+        spec: &Spec,
+        cols: &[usize],
+        fixed: &[(usize, f64)],
+        x: &DVector<f64>,
+        cov: &DMatrix<f64>,
+    ) -> Option<Vec<f64>> {
+        if self.n_clusters < 3 || spec.fitted.iter().any(|&b| !self.blocks[b].in_model) {
+            return None;
+        }
+        let kk = cols.len() + self.n_nu;
+        if x.len() != kk || cov.nrows() != kk {
+            return None;
+        }
+        // Global column → position in the solved system, or the fixed change of a removed block.
+        let mut pos = vec![None; self.n_fx + self.n_nu];
+        for (l, &c) in cols.iter().enumerate() {
+            pos[c] = Some(l);
+        }
+        for j in 0..self.n_nu {
+            pos[self.n_fx + j] = Some(cols.len() + j);
+        }
+        let mut fixed_v = vec![0.0; self.n_fx + self.n_nu];
+        for &(c, v) in fixed {
+            fixed_v[c] = v;
+        }
+        let mut scores = vec![DVector::<f64>::zeros(kk); self.n_clusters];
+        for (c, y, row) in &self.rows {
+            let mut r = *y;
+            for &(g, v) in row.iter() {
+                r += v * match pos[g] {
+                    Some(l) => x[l],
+                    None => fixed_v[g],
+                };
+            }
+            let s = &mut scores[*c as usize];
+            for &(g, v) in row.iter() {
+                if let Some(l) = pos[g] {
+                    s[l] += v * r;
+                }
+            }
+        }
+        let g = self.n_clusters as f64;
+        let mut var = vec![0.0; cols.len()];
+        for s in &scores {
+            let t = cov.rows(0, cols.len()) * s;
+            for (v, tj) in var.iter_mut().zip(t.iter()) {
+                *v += tj * tj;
+            }
+        }
+        let f = g / (g - 1.0);
+        Some(var.into_iter().map(|v| v * f).collect())
+    }
+
     /// Fits a candidate model on all fit points (with the smoothness `score` chose) and
     /// reports it as a [`FitOutcome`]: the fitted configs in `spec.fitted` order.
     pub fn fit(
@@ -630,6 +705,7 @@ impl Space {
         ne.yy = yy;
         ne.n = n;
         let sol = ne.solve();
+        let scan_var = self.scan_variance(spec, &cols, &fixed, &sol.x, &sol.cov);
         let theta: Vec<f64> = sol.x.iter().take(k).copied().collect();
         let ss1 = self.eval(0, &cols, &theta, &fixed) + self.eval(1, &cols, &theta, &fixed);
         let (ssh0, ssh1, nh) = (
@@ -700,6 +776,8 @@ impl Space {
                         sigma_stat: None,
                         penalty_shift: None,
                         fold_spread: None,
+                        sigma_scan: None,
+                        model_spread: None,
                         note: Some("its column is numerical noise on this data: not fitted".into()),
                     });
                     continue;
@@ -708,6 +786,7 @@ impl Space {
                 c += 1;
                 cur[j] += theta[col];
                 let stat = (sol.cov[(col, col)] * sigma2).sqrt();
+                let scan = scan_var.as_ref().map(|v| v[col].max(0.0).sqrt());
                 let shift = (theta[col] - less[col]).abs();
                 let spread = match per_fold.as_slice() {
                     [f0, f1] => (f0[col] - f1[col]).abs() / 2.0,
@@ -716,10 +795,11 @@ impl Space {
                 // σ² = max(σ_stat², spread²) + shift²: the fold-to-fold spread is a second
                 // estimate of the statistical part (it sees correlated residuals and model
                 // error the normal matrix does not); the penalty's shift is a bias.
-                let total = (stat.max(spread).powi(2) + shift.powi(2)).sqrt();
+                let st = stat.max(scan.filter(|s| s.is_finite()).unwrap_or(0.0));
+                let total = (st.max(spread).powi(2) + shift.powi(2)).sqrt();
                 let r2 = 1.0 - 1.0 / (sol.cov[(col, col)] * diag[col]).max(1.0);
                 let ident = !sol.unidentifiable.contains(&col) && total.is_finite();
-                let moved = ident && shift > stat.max(spread);
+                let moved = ident && shift > st.max(spread);
                 let note = if !ident {
                     unidentifiable.push(format!("{}: {name}", block.config.id()));
                     Some("not determined by this data: kept at the minimum-norm value".into())
@@ -744,6 +824,8 @@ impl Space {
                     sigma_stat: finite(stat),
                     penalty_shift: finite(shift).filter(|_| penalised),
                     fold_spread: finite(spread).filter(|_| !per_fold.is_empty()),
+                    sigma_scan: scan.and_then(finite),
+                    model_spread: None,
                     note,
                 });
             }

@@ -108,13 +108,19 @@ pub fn prepare(ds: &Dataset) -> Result<Prepared, LabError> {
 
 /// A fitted parameter.
 ///
-/// `sigma` is honest about what moved the value: σ² = max(σ_stat², spread²) + shift², with
-/// σ_stat from the penalised normal matrix (scaled by the residual, inflated for correlated
-/// residuals), spread half the difference of the two folds' own fits (a second estimate of
-/// the statistical part that sees model error), and shift the change the penalties (ridge,
-/// smoothness) make against the least-penalised fit of their ladders — a ridge estimator's
-/// covariance omits its bias. A parameter the data does not determine has no σ and is
-/// listed in `unidentifiable`.
+/// `sigma` is honest about what moved the value:
+/// σ² = max(σ_stat, σ_scan, spread)² + shift² + model², with σ_stat from the penalised normal
+/// matrix (scaled by the residual, inflated for correlated residuals), σ_scan the same
+/// covariance with the residual's scatter taken scan by scan (the cluster-robust "sandwich"
+/// (AᵀA)⁻¹ Σ_c s_c s_cᵀ (AᵀA)⁻¹, s_c = A_cᵀ r_c the score of scan c: a model error that
+/// differs between scans — speeds, positions, directions — does not average away with the
+/// number of points, Liang & Zeger 1986), spread half the difference of the two folds' own
+/// fits, shift the change the penalties (ridge, smoothness) make against the
+/// least-penalised fit of their ladders — a ridge estimator's covariance omits its bias —
+/// and model the largest change of the value among the models the data scores near-equal to
+/// this one (a move within the significance threshold: what the choice of model moves; set
+/// by [`super::analysis::widen_by_alternatives`]). A parameter the data does not determine
+/// has no σ and is listed in `unidentifiable`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Param {
     /// Name with unit.
@@ -132,6 +138,12 @@ pub struct Param {
     /// Half the difference of the two folds' fits.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fold_spread: Option<f64>,
+    /// The scan-clustered (sandwich) σ: the residual's scatter taken scan by scan.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_scan: Option<f64>,
+    /// The largest change among near-equal models (see above).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_spread: Option<f64>,
     /// What determines it, when not the data alone: a penalty, only its correlation with
     /// other parameters, or nothing (not determined).
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -256,6 +256,44 @@ impl State {
                 );
             }
         }
+        if self.cfg.failover.enabled {
+            // Fail-over: per machine, whether this instance is active for it, since when, its
+            // take-overs and the split brains it saw.
+            metric(
+                &mut r,
+                "scancorr_failover_active",
+                "gauge",
+                "1 while this instance is active for the machine, 0 while it stands by.",
+                &|m, _| {
+                    m.fo.as_ref()
+                        .map(|f| vec![(vec![], (f.role == failover::Role::Active) as u8 as f64)])
+                },
+            );
+            metric(
+                &mut r,
+                "scancorr_failover_role_since_seconds",
+                "gauge",
+                "When this instance became active or standby for the machine (Unix time, s).",
+                &|m, _| {
+                    m.fo.as_ref()
+                        .map(|f| vec![(vec![], f.since_ms as f64 / 1e3)])
+                },
+            );
+            metric(
+                &mut r,
+                "scancorr_failover_takeovers_total",
+                "counter",
+                "Times this instance took the machine over from another.",
+                &|m, _| m.fo.as_ref().map(|f| vec![(vec![], f.takeovers as f64)]),
+            );
+            metric(
+                &mut r,
+                "scancorr_failover_split_brains_total",
+                "counter",
+                "Times another instance was seen active for the machine while this one was.",
+                &|m, _| m.fo.as_ref().map(|f| vec![(vec![], f.split_brains as f64)]),
+            );
+        }
         r.metric("scancorr_machines", "gauge", "Machines served.");
         r.sample("scancorr_machines", &[], self.machines.len() as f64);
         if let Some(u) = &self.uplink {

@@ -37,6 +37,7 @@ use tracing::{error, info, warn};
 use zenoh::qos::CongestionControl;
 
 mod exposition;
+mod failover;
 mod queries;
 mod routing;
 
@@ -152,7 +153,10 @@ struct Machine {
     /// the machine is not corrected until a new calibration is put; the others are served.
     quarantined: Option<String>,
     outbox: Arc<Outbox>,
-    _token: zenoh::liveliness::LivelinessToken,
+    /// Its liveliness tokens while this instance is active for it (none while standing by).
+    tokens: Vec<zenoh::liveliness::LivelinessToken>,
+    /// Fail-over (with `failover.enabled`): active or standby, since when, the others seen.
+    fo: Option<failover::Fo>,
     /// The machine's raw key expressions, declared so that zenoh resolves an incoming
     /// message's route once, not by matching every key of every machine per message.
     _raw_keys: Vec<zenoh::key_expr::KeyExpr<'static>>,
@@ -190,6 +194,8 @@ struct State {
     pool: Arc<crate::shard::Pool>,
     /// The link to the router (client mode only).
     uplink: Option<crate::uplink::Uplink>,
+    /// Fail-over events (liveliness of the other instances) to the control task.
+    fo_tx: flume::Sender<failover::Event>,
 }
 
 /// Runs the service until `shutdown` resolves; then flushes every machine and closes the
@@ -232,6 +238,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     let (calib_tx, calib) = flume::bounded(64);
     let (status_tx, status) = flume::bounded(64);
     let mut declared = Declared::default();
+    let (fo_tx, fo_rx) = flume::unbounded();
     let routes = Arc::new(Routes::new(&prefix));
     for m in &chunks {
         let tx = raw_tx.clone();
@@ -310,6 +317,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             shed_after: Duration::from_millis(cfg_shed_after_ms),
         },
         uplink: None,
+        fo_tx,
     };
     if st.cfg.mode == "client" {
         let n = session.info().routers_zid().await.count();
@@ -378,6 +386,8 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                     "workers": st.shards.len(),
                     "assignment": if st.cfg.allow_any_machine { vec!["*".to_string()] } else { st.cfg.machines.clone() },
                     "served_elsewhere": st.elsewhere.keys().collect::<Vec<_>>(),
+                    // With fail-over: per machine, active or standby and since when.
+                    "failover": st.failover_health(),
                     "refused": st.refused_now(),
                     "router_link": st.uplink.as_ref().map(|u| json!({
                         "routers": u.routers(),
@@ -423,12 +433,16 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
                     let _ = q.reply(q.key_expr().clone(), body.to_string()).await;
                 });
             },
+            e = fo_rx.recv_async() => if let Ok(e) = e { st.on_failover(e).await },
             s = raw.recv_async() => match s {
                 Ok((at, s)) => st.on_raw(s, at).await,
                 Err(e) => { warn!(error = %e, "raw subscriber closed"); break }
             },
             _ = tick.tick() => {
                 st.check_stalls();
+                if st.cfg.failover.enabled {
+                    st.check_failover();
+                }
                 st.watch_uplink().await;
                 if let Some(m) = &metrics {
                     if last_metrics.elapsed() >= Duration::from_secs(1) {
@@ -456,6 +470,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     }
     watchdog.abort();
     notify.send("STOPPING=1");
+    st.hand_over_at_shutdown();
     st.routes.close();
     info!("shutting down: flushing buffered samples");
     // Every shard finishes what is queued and flushes, at once; bounded, so a shard that does
@@ -546,20 +561,7 @@ impl State {
             }
         }
         let key = format!("{}/{name}/scancorrd", self.cfg.prefix);
-        let mut found = false;
-        if let Ok(replies) = self
-            .session
-            .liveliness()
-            .get(key.as_str())
-            .timeout(Duration::from_secs(2))
-            .await
-        {
-            // Only a token naming this very machine claims it: a token with a wildcard
-            // (`cmm/*/scancorrd`, which any peer may declare) names no machine.
-            while let Ok(r) = replies.recv_async().await {
-                found |= r.result().is_ok_and(|t| t.key_expr().as_str() == key);
-            }
-        }
+        let found = self.token_on_bus(name).await;
         if found {
             if self
                 .elsewhere
@@ -583,9 +585,18 @@ impl State {
             // becomes part of key expressions.
             scancorr_proto::names::check_machine(name)
                 .map_err(|e| ServiceError::Refused(e.to_string()))?;
-            if self.served_elsewhere(name).await {
-                return Err(ServiceError::ServedElsewhere(name.to_string()));
-            }
+            // With fail-over, a machine another instance serves is stood by for.
+            let role = if !self.cfg.failover.enabled {
+                if self.served_elsewhere(name).await {
+                    return Err(ServiceError::ServedElsewhere(name.to_string()));
+                }
+                failover::Role::Active
+            } else if self.token_on_bus(name).await {
+                info!(machine = name, "machine served by another instance: standing by for it (hot standby: corrected, not published, until that instance goes)");
+                failover::Role::Standby
+            } else {
+                failover::Role::Active
+            };
             let p = &self.cfg.prefix;
             let points = self
                 .session
@@ -602,12 +613,11 @@ impl State {
                 self.session.clone(),
                 zenoh::key_expr::KeyExpr::try_from(Stream::Alarms.key(p, name)).map_err(z)?,
             );
-            let token = self
-                .session
-                .liveliness()
-                .declare_token(format!("{p}/{name}/scancorrd"))
-                .await
-                .map_err(z)?;
+            let since_ms = failover::now_ms();
+            let tokens = match role {
+                failover::Role::Active => self.active_tokens(name, since_ms).await?,
+                failover::Role::Standby => vec![],
+            };
             let mut raw_keys = Vec::with_capacity(4);
             for st in scancorr_core::sample::StreamId::ALL {
                 raw_keys.push(
@@ -665,6 +675,14 @@ impl State {
                 self.cfg.max_queued_bytes_per_machine,
                 self.pool.clone(),
             ));
+            let fo = if self.cfg.failover.enabled {
+                if role == failover::Role::Standby {
+                    outbox.hold(self.cfg.failover.max_held_bytes);
+                }
+                Some(self.watch(name, role, since_ms, outbox.clone()).await?)
+            } else {
+                None
+            };
             let input = Arc::new(Input::new(self.cfg.max_input_bytes_per_machine));
             // The shard with the fewest machines corrects it.
             let shard = (0..self.shards.len())
@@ -690,7 +708,8 @@ impl State {
                     slot,
                     quarantined,
                     outbox,
-                    _token: token,
+                    tokens,
+                    fo,
                     _raw_keys: raw_keys,
                     not_corrected: 0,
                     stalled: [false; 4],
@@ -715,7 +734,14 @@ impl State {
     /// Whether a query about `machine` is for another instance to answer (it serves the
     /// machine): this one stays silent, so the asker gets that instance's answer alone.
     fn answered_elsewhere(&self, machine: &str) -> bool {
-        !self.machines.contains_key(machine) && self.elsewhere.contains_key(machine)
+        match self.machines.get(machine) {
+            // A standby stays silent: the active instance answers (and takes the puts).
+            Some(m) => {
+                m.fo.as_ref()
+                    .is_some_and(|f| f.role == failover::Role::Standby)
+            }
+            None => self.elsewhere.contains_key(machine),
+        }
     }
 }
 

@@ -47,6 +47,8 @@ impl State {
             "served": true,
             "quarantined": m.quarantined,
             "output": m.outbox.figures(),
+            // With fail-over: active or standby for this machine, since when.
+            "failover": m.fo.as_ref().map(super::failover::fo_json),
             // Raw messages that reached the service, and those it shed (its shard fell
             // behind real time with them, or their queue there was full).
             "input": m.input.figures(),

@@ -12,10 +12,21 @@
 //! - `discover`: the whole loop from the nominal model.
 //!
 //! Every fitted parameter is then compared with the simulator's true calibration (the truth
-//! only judges): matched by effect kind and variant (the same parameter names, hence the same
-//! parametrisation: a per-tip probe force is not compared with a machine-wide one), the share with |θ − θ_true| ≤ 2σ (≈ 95 % for an honest
-//! Gaussian σ; the issue asks ≥ 90 %) and ≤ max(3σ, 5 % of |θ_true|). Parameters the lab
-//! reports as not determined (no σ) are counted apart, never as covered.
+//! only judges): matched by effect kind and parameter name (the same name, hence the same
+//! parametrisation: a per-tip probe force is not compared with a machine-wide one); a term
+//! the lab's variant has and the truth's variant of the same effect lacks (a cross-term of
+//! the acceleration matrix, a higher power) is judged against 0, the truth's value of a term
+//! it does not have; an effect whose parameters share no name with the truth's variant is
+//! skipped and said. The share with |θ − θ_true| ≤ 2σ (≈ 95 % for an honest Gaussian σ; the
+//! issue asks ≥ 90 %), ≤ max(3σ, 5 % of |θ_true|), and the median |θ − θ_true|/σ (0.67 when
+//! σ is honest; far below, σ is uselessly wide). Parameters the lab reports as not determined
+//! (no σ) are counted apart, never as covered. Effects the truth does not have at all (a
+//! machine-wide rigid body, a custom effect) are judged against 0 apart (`absent_effects`):
+//! where such an effect stands in for one the truth has, 0 is not its value in the lab's
+//! parametrisation, so it is not mixed into the headline share. The parameters the lab says
+//! are determined only jointly with others (≥ 99 % of their column follows theirs) are also
+//! counted apart (`joint`), with the share the headline would have if they were not
+//! determined.
 //!
 //! Tables (guide straightness knots) are reported apart: artifacts do not determine a guide
 //! table's rigid part (a straightness table's offset and slope, a pitch table's mean are a
@@ -57,6 +68,12 @@ struct Judged {
     value: f64,
     sigma: f64,
     truth: f64,
+    /// The truth's variant lacks the term: judged against 0.
+    zero: bool,
+    /// Determined only jointly with other parameters (the lab's note).
+    joint: bool,
+    /// σ's parts: statistical, scan-clustered, fold spread, penalty shift, model spread.
+    parts: [Option<f64>; 5],
 }
 
 impl Judged {
@@ -77,6 +94,8 @@ struct Tally {
     scalars: Vec<Judged>,
     /// Table knots (rigid part taken out of the difference).
     knots: Vec<Judged>,
+    /// Parameters of effects the truth does not have, against 0.
+    absent: Vec<Judged>,
     /// Parameters of matched effects the lab gave no σ.
     not_determined: usize,
     /// Skipped parameters by reason.
@@ -410,41 +429,61 @@ fn judge(
             judge_tables(t, m, g, ps, &same_kind);
             continue;
         }
-        let Some(tc) = same_kind.iter().find(|e| e.param_names() == names) else {
-            let why = if same_kind.is_empty() {
-                format!("{}: not in the truth", c.kind())
-            } else {
-                format!(
-                    "{}: another variant than the truth's ({} parameters vs {})",
-                    c.id(),
-                    names.len(),
-                    same_kind[0].param_names().len()
-                )
-            };
-            *t.skipped.entry(why).or_default() += ps.len();
-            continue;
-        };
-        let tv = tc.params();
-        if ps.len() != tv.len() {
+        // The truth's variant sharing the most parameter names with the lab's.
+        let overlap =
+            |e: &EffectConfig| e.param_names().iter().filter(|n| names.contains(n)).count();
+        let tc = same_kind
+            .iter()
+            .max_by_key(|e| overlap(e))
+            .filter(|e| overlap(e) > 0);
+        // A stylus expansion without its own bent-limb term gives the limbs the shank's α (a
+        // lumped α, not the shank's alone): only the same variant is comparable.
+        let tc = tc.filter(|e| c.kind() != "stylus_thermal" || e.param_names() == names);
+        if tc.is_none() && !same_kind.is_empty() {
             *t.skipped
-                .entry(format!("{}: parameter count differs", c.id()))
+                .entry(format!(
+                    "{}: another parametrisation than the truth's (no parameter name in common, or a lumped α)",
+                    c.id()
+                ))
                 .or_default() += ps.len();
             continue;
         }
-        let one = |j: usize, value: f64, sigma: f64| Judged {
-            machine: m,
-            effect: c.id(),
-            name: ps[j].name.clone(),
-            value,
-            sigma,
-            truth: tv[j],
-        };
-        for (j, p) in ps.iter().enumerate() {
-            match p.sigma {
-                Some(s) if s > 0.0 && s.is_finite() && p.value.is_finite() => {
-                    t.scalars.push(one(j, p.value, s))
-                }
-                _ => t.not_determined += 1,
+        let truth_of: BTreeMap<String, f64> = tc
+            .map(|e| e.param_names().into_iter().zip(e.params()).collect())
+            .unwrap_or_default();
+        for p in ps {
+            let Some(s) = p
+                .sigma
+                .filter(|s| *s > 0.0 && s.is_finite() && p.value.is_finite())
+            else {
+                t.not_determined += 1;
+                continue;
+            };
+            let tv = truth_of.get(&p.name).copied();
+            let j = Judged {
+                machine: m,
+                effect: c.id(),
+                name: p.name.clone(),
+                value: p.value,
+                sigma: s,
+                truth: tv.unwrap_or(0.0),
+                zero: tv.is_none(),
+                joint: p
+                    .note
+                    .as_deref()
+                    .is_some_and(|n| n.contains("determined only jointly")),
+                parts: [
+                    p.sigma_stat,
+                    p.sigma_scan,
+                    p.fold_spread,
+                    p.penalty_shift,
+                    p.model_spread,
+                ],
+            };
+            if tc.is_some() {
+                t.scalars.push(j);
+            } else {
+                t.absent.push(j);
             }
         }
     }
@@ -538,6 +577,9 @@ fn judge_tables(
                     value: tr + dj,
                     sigma: s,
                     truth: tr,
+                    zero: false,
+                    joint: false,
+                    parts: [None; 5],
                 }),
                 _ => t.not_determined += 1,
             }
@@ -585,6 +627,20 @@ fn report(path: &str, t: &mut Tally, o: &Options) -> Result<serde_json::Value> {
     // ≈ 0.67 for an honest Gaussian σ; above: σ too small, below: too large.
     let z_med = median(t.scalars.iter().map(|j| j.z().abs()).collect());
     let secs = median(t.seconds.clone());
+    let zero: Vec<Judged> = t.scalars.iter().filter(|j| j.zero).cloned().collect();
+    let joint: Vec<Judged> = t.scalars.iter().filter(|j| j.joint).cloned().collect();
+    let not_joint: Vec<Judged> = t.scalars.iter().filter(|j| !j.joint).cloned().collect();
+    let absent_in2 = frac(&t.absent, Judged::in2);
+    let all: Vec<Judged> = t.scalars.iter().chain(&t.absent).cloned().collect();
+    let judged_json = |j: &Judged| {
+        serde_json::json!({
+            "machine_seed": j.machine, "effect": j.effect, "name": j.name,
+            "value": j.value, "sigma": j.sigma, "truth": j.truth, "z": j.z(),
+            "against_zero": j.zero, "joint": j.joint,
+            "sigma_stat": j.parts[0], "sigma_scan": j.parts[1], "fold_spread": j.parts[2],
+            "penalty_shift": j.parts[3], "model_spread": j.parts[4],
+        })
+    };
     let v = serde_json::json!({
         "machines": o.machines,
         "first_machine_seed": o.first_seed,
@@ -594,6 +650,18 @@ fn report(path: &str, t: &mut Tally, o: &Options) -> Result<serde_json::Value> {
         "within_2sigma_median_over_machines": med,
         "within_2sigma_per_machine": t.per_machine.iter().map(|(m, n, k)| serde_json::json!({"machine_seed": m, "parameters": n, "within_2sigma": k})).collect::<Vec<_>>(),
         "median_abs_z": z_med,
+        "terms_against_zero": zero.len(),
+        "terms_against_zero_within_2sigma": frac(&zero, Judged::in2),
+        "joint": joint.len(),
+        "joint_within_2sigma": frac(&joint, Judged::in2),
+        "within_2sigma_if_joint_not_determined": frac(&not_joint, Judged::in2),
+        "absent_effects": t.absent.len(),
+        "absent_effects_within_2sigma": absent_in2,
+        "absent_effects_median_abs_z": median(t.absent.iter().map(|j| j.z().abs()).collect()),
+        "all_within_2sigma": frac(&all, Judged::in2),
+        "all_within_3sigma_or_5pct": frac(&all, Judged::in3),
+        "all_median_abs_z": median(all.iter().map(|j| j.z().abs()).collect()),
+        "judged": t.scalars.iter().chain(&t.absent).map(judged_json).collect::<Vec<_>>(),
         "not_determined": t.not_determined,
         "machines_failed": t.failed,
         "skipped": t.skipped,
@@ -620,6 +688,23 @@ fn report(path: &str, t: &mut Tally, o: &Options) -> Result<serde_json::Value> {
             z_med.map_or("—".to_string(), |z| format!("{z:.2}")),
             t.not_determined,
             secs.map_or("—".to_string(), |s| format!("{s:.1}")),
+        )?;
+        outln!(
+            "  of which {} terms the truth's variant lacks (against 0): {} within 2σ; {} determined only jointly with others: {} within 2σ ({} within 2σ if they were counted as not determined)",
+            zero.len(),
+            pct(frac(&zero, Judged::in2)),
+            joint.len(),
+            pct(frac(&joint, Judged::in2)),
+            pct(frac(&not_joint, Judged::in2)),
+        )?;
+        outln!(
+            "  effects the truth does not have, against 0: {} parameters, {} within 2σ, median |z| {}; everything together: {} within 2σ, {} within max(3σ, 5 %)",
+            t.absent.len(),
+            pct(absent_in2),
+            median(t.absent.iter().map(|j| j.z().abs()).collect())
+                .map_or("—".to_string(), |z| format!("{z:.2}")),
+            pct(frac(&all, Judged::in2)),
+            pct(frac(&all, Judged::in3)),
         )?;
         if t.failed > 0 {
             outln!("  failed on {} machine(s) (below)", t.failed)?;

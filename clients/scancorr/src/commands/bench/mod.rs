@@ -171,6 +171,11 @@ pub enum BenchCmd {
 
 /// Runs a benchmark.
 pub fn exec(cmd: BenchCmd) -> Result<()> {
+    // A benchmark has no output file of the user's: it writes only into scratch folders of its
+    // own (`private_dir`), where each round replaces the round before's files, in this process
+    // and in the `scancorr` processes it starts. Set before any thread is.
+    crate::shared::output::set_force(true);
+    std::env::set_var("SCANCORR_FORCE", "1");
     match cmd {
         BenchCmd::Core {
             json,

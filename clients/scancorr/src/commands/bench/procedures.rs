@@ -36,6 +36,11 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                 all.insert(proc.clone(), v);
                 continue;
             }
+            "zero-force" => {
+                let v = zero_force(&dir, machine, runs, json)?;
+                all.insert(proc.clone(), v);
+                continue;
+            }
             "straightness" => {
                 for method in ["three-probe", "shear-stage"] {
                     let v = straightness(&dir, method, machine, runs, json)?;
@@ -43,7 +48,7 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                 }
                 continue;
             }
-            p => bail!("procedure `{p}` (tips, probe-force, dynamics, dynamic-map, straightness)"),
+            p => bail!("procedure `{p}` (tips, probe-force, dynamics, dynamic-map, straightness, zero-force)"),
         };
         let mut t = Tally::default();
         for seed in 1..=runs {
@@ -111,7 +116,9 @@ fn report(
             "worst": worst.iter().map(|(k, f)| serde_json::json!({"name": k, "within_2sigma": f})).collect::<Vec<_>>(),
         });
         if !json {
-            let (what, bound) = if proc.starts_with("straightness") {
+            let (what, bound) = if proc == "zero-force" {
+                ("series (every zero-force point on the thin wall)", "3σ")
+            } else if proc.starts_with("straightness") {
                 ("profiles (every station)", "3σ")
             } else if proc == "dynamic-map" {
                 ("map series (every bin of each, about the runs' mean)", "3σ")
@@ -349,6 +356,145 @@ fn dynamic_map(dir: &Path, machine: u64, runs: u64, json: bool) -> Result<serde_
 /// Simulates `program` on `machine` (run `seed`, every library effect left out of the start,
 /// the truth to `truth.json`), writes the nominal start and runs `calibrate proc` on it; its
 /// time goes into the tally; returns its `--json`.
+/// `zero-force`: per run, the sphere's force coefficients (`probe-force` on the quarter
+/// variant from the nominal start) and the thin-walled part at two forces (`thin-wall`), the
+/// simulator's other machine errors off; every zero-force point against the true unloaded
+/// wall (about the points' mean: where the part stands along its normal is free), within 2σ
+/// and 3σ of R0's σ.
+fn zero_force(dir: &Path, machine: u64, runs: u64, json: bool) -> Result<serde_json::Value> {
+    use scancorr_core::sample::Vec3;
+    const OFF: [&str; 10] = [
+        "--effect",
+        "accel_deflection=0",
+        "--effect",
+        "servo_phase=0",
+        "--effect",
+        "stylus_thermal=0",
+        "--effect",
+        "scale_thermal=0",
+        "--effect",
+        "guide_straightness=0",
+    ];
+    let mut t = Tally::default();
+    let ms = machine.to_string();
+    for seed in 1..=runs {
+        for f in [
+            "m.mcap",
+            "start.json",
+            "datasheet.json",
+            "catalogue.json",
+            "nominal.json",
+            "pf.json",
+            "w.mcap",
+            "truth.json",
+            "zero.xyz",
+        ] {
+            std::fs::remove_file(dir.join(f)).ok();
+        }
+        let (s1, s2) = ((2 * seed).to_string(), (2 * seed + 1).to_string());
+        let mut a = vec![
+            "sim",
+            "--program",
+            "probe-force-quarter",
+            "--machine-seed",
+            &ms,
+        ];
+        a.extend([
+            "--seed",
+            &s1,
+            "--out",
+            "m.mcap",
+            "--calib-out",
+            "start.json",
+        ]);
+        a.extend(OFF);
+        // (The switched-off effects cannot be hidden: the nominal start is the data sheet's.)
+        a.extend([
+            "--datasheet-out",
+            "datasheet.json",
+            "--catalogue-out",
+            "catalogue.json",
+        ]);
+        exe(dir, &a)?;
+        let nominal = [
+            "calib",
+            "nominal",
+            "--datasheet",
+            "datasheet.json",
+            "--catalogue",
+        ];
+        exe(
+            dir,
+            &[
+                &nominal[..],
+                &["catalogue.json", "--out", "nominal.json"][..],
+            ]
+            .concat(),
+        )?;
+        let pf = [
+            "--bag",
+            "m.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "pf.json",
+        ];
+        exe(dir, &[&["calibrate", "probe-force"][..], &pf[..]].concat())?;
+        let mut a = vec!["sim", "--program", "thin-wall", "--machine-seed", &ms];
+        a.extend(["--seed", &s2, "--out", "w.mcap", "--truth", "truth.json"]);
+        a.extend(OFF);
+        exe(dir, &a)?;
+        let t0 = std::time::Instant::now();
+        let r: serde_json::Value = serde_json::from_str(&exe(
+            dir,
+            &[
+                "calibrate",
+                "zero-force",
+                "--bag",
+                "w.mcap",
+                "--calib",
+                "pf.json",
+                "--points-out",
+                "zero.xyz",
+                "--json",
+            ],
+        )?)?;
+        t.seconds.push(t0.elapsed().as_secs_f64());
+        let sigma = r["sets"][0]["sigma_um"].as_f64().context("sigma_um")?;
+        let truth = read(&dir.join("truth.json"))?;
+        let wall: scancorr_sim::program::Feature = truth["features"]
+            .as_array()
+            .context("features")?
+            .iter()
+            .find(|f| f["artifact"] == scancorr_sim::wall::ARTIFACT)
+            .map(|f| serde_json::from_value(f.clone()))
+            .context("the wall in the truth")??;
+        let n = Vec3::from(wall.normal);
+        let along = n.cross(&Vec3::z()).normalize();
+        let pts =
+            scancorr_core::shape::parse_points(&std::fs::read_to_string(dir.join("zero.xyz"))?)?;
+        let h: Vec<f64> = pts
+            .iter()
+            .map(|p| p - Vec3::from(wall.center))
+            .map(|d| (d.dot(&n) - wall.form_at(d.dot(&along))) * 1e3)
+            .collect();
+        let mean = h.iter().sum::<f64>() / h.len().max(1) as f64;
+        let e = t.per.entry("wall points at zero force".into()).or_default();
+        for v in &h {
+            let d = (v - mean).abs();
+            t.n += 1;
+            t.in2 += (d <= 2.0 * sigma) as usize;
+            t.in3 += (d <= 3.0 * sigma) as usize;
+            e.0 += (d <= 2.0 * sigma) as usize;
+            e.1 += 1;
+        }
+        if !json {
+            eprintln!("zero-force: run {seed}/{runs} done");
+        }
+    }
+    report("zero-force", &mut t, machine, runs, json)
+}
+
 fn measure_and_calibrate(
     dir: &Path,
     program: &str,

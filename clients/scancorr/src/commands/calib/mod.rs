@@ -88,7 +88,8 @@ pub enum CalibCmd {
         /// Machine id.
         #[arg(long, default_value = "m1")]
         machine: String,
-        /// Include every effect of the library (zero parameters).
+        /// Include every effect of the library, with the benchmark's small example parameters
+        /// (non-zero: each effect corrects something).
         #[arg(long)]
         all_effects: bool,
     },

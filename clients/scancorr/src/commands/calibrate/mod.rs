@@ -8,9 +8,11 @@ pub mod plate;
 mod platefile;
 mod probe_force;
 mod procedure;
+mod scales;
 pub mod straightness;
 pub mod thermal;
 mod tips;
+mod zero_force;
 
 use anyhow::Result;
 use clap::Subcommand;
@@ -46,6 +48,24 @@ pub enum CalibrateCmd {
         /// reference's drift in time, every parameter.
         #[arg(long)]
         report: Option<PathBuf>,
+    },
+    /// The scales' expansion: a ball bar (two spheres of a certified centre distance) along
+    /// each axis read several times as the room's temperature changes gives each scale's
+    /// expansion coefficient (the change of the length with the scale's temperature) and the
+    /// machine's length error at 20 °C, each ± σ. Writes the `scale_thermal` effect.
+    Scales {
+        /// Bags of the measurement (`scancorr sim --program scales`).
+        #[arg(long, required = true)]
+        bag: Vec<PathBuf>,
+        /// The calibration to start from (its scale_thermal is replaced).
+        #[arg(long)]
+        calib: PathBuf,
+        /// The new calibration version.
+        #[arg(long)]
+        out: PathBuf,
+        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `readings`).
+        #[arg(long)]
+        json: bool,
     },
     /// Extrapolation to zero probing force: the same circles on the master sphere scanned
     /// at two or more deflections by each tip give that tip's force coefficients (stylus
@@ -160,6 +180,10 @@ pub enum CalibrateCmd {
     /// squareness), higher-order terms chosen by cross-validation over holes, each ± σ, and
     /// the original plug-plate tool's fit. Reports only.
     Plate(plate::PlateArgs),
+    /// Per-point extrapolation to zero force on a part: the same path scanned at ≥ 2 probing
+    /// forces, each point's own line (a polynomial with ≥ 3) to zero force — the part's own
+    /// bending (a thin wall) that the sphere's force coefficients cannot know.
+    ZeroForce(zero_force::Args),
 }
 
 /// Runs a procedure.
@@ -167,6 +191,7 @@ pub fn exec(cmd: CalibrateCmd) -> Result<()> {
     crate::shared::output::started();
     match cmd {
         CalibrateCmd::Plate(a) => plate::run(a),
+        CalibrateCmd::ZeroForce(a) => zero_force::run(a),
         CalibrateCmd::ThermalDrift(a) => thermal::run(a),
         CalibrateCmd::DynamicMap {
             bag,
@@ -212,6 +237,12 @@ pub fn exec(cmd: CalibrateCmd) -> Result<()> {
             json,
             report,
         } => dynamics::exec(bag, calib, out, json, report),
+        CalibrateCmd::Scales {
+            bag,
+            calib,
+            out,
+            json,
+        } => scales::exec(bag, calib, out, json),
         CalibrateCmd::Tips {
             bag,
             calib,

@@ -35,23 +35,32 @@ pub(super) fn exec(
         &new,
         Some(outcome.reference_tip),
     )
-    .map(|o| o.consistency_before_um)
-    .ok();
-    new.note = format!(
-        "calibrate tips (reference tip {}): tip-to-tip consistency {:.3} µm → {} on the \
-                 qualification",
-        outcome.reference_tip,
-        outcome.consistency_before_um,
-        after.map_or("—".into(), |a| format!("{a:.3} µm"))
-    );
+    .ok()
+    .filter(|o| !o.reference_alone)
+    .map(|o| o.consistency_before_um);
+    new.note = if outcome.reference_alone {
+        format!(
+            "calibrate tips (reference tip {} alone): its effective radius re-qualified",
+            outcome.reference_tip
+        )
+    } else {
+        format!(
+            "calibrate tips (reference tip {}): tip-to-tip consistency {:.3} µm → {} on the \
+             qualification",
+            outcome.reference_tip,
+            outcome.consistency_before_um,
+            after.map_or("—".into(), |a| format!("{a:.3} µm"))
+        )
+    };
     commit_version(
         &mut new,
         [
             ("tip_consistency_before_um", outcome.consistency_before_um),
             ("tip_fit_residual_um", outcome.residual_rms_um),
-            ("noise_floor_um", ds.noise_floor_um),
         ]
         .into_iter()
+        .filter(|_| !outcome.reference_alone)
+        .chain([("noise_floor_um", ds.noise_floor_um)])
         .chain(after.map(|a| ("tip_consistency_after_um", a)))
         .collect(),
         out_file,
@@ -68,6 +77,10 @@ pub(super) fn exec(
             &out,
         )?;
         v["consistency_after_um"] = after.into();
+        if outcome.reference_alone {
+            v["consistency_before_um"] = serde_json::Value::Null;
+            v["residual_rms_um"] = serde_json::Value::Null;
+        }
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
     } else {
         outln!(
@@ -94,28 +107,32 @@ pub(super) fn exec(
         for p in &outcome.params {
             outln!("{}", print_param(p))?;
         }
-        outln!(
-                    "  offsets rotated at the sphere's position (µrad, the machine's angular errors there or the head's): {}",
-                    outcome
-                        .rotation
-                        .iter()
-                        .map(|p| format!("{:.1} ± {:.1}", p.value * 1e6, p.sigma * 1e6))
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                )?;
+        if !outcome.rotation.is_empty() {
+            outln!(
+                "  offsets rotated at the sphere's position (µrad, the machine's angular errors there or the head's): {}",
+                outcome
+                    .rotation
+                    .iter()
+                    .map(|p| format!("{:.1} ± {:.1}", p.value * 1e6, p.sigma * 1e6))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )?;
+        }
         for u in &outcome.undetermined {
             outln!("  not determined: {u}")?;
         }
         for n in &outcome.notes {
             outln!("  note: {n}")?;
         }
-        outln!(
-                    "tip-to-tip consistency: {:.3} µm with the starting calibration, {} with the new one (noise floor {:.3} µm); fit residual {:.3} µm",
-                    outcome.consistency_before_um,
-                    after.map_or("—".into(), |a| format!("{a:.3} µm")),
-                    ds.noise_floor_um,
-                    outcome.residual_rms_um
-                )?;
+        if !outcome.reference_alone {
+            outln!(
+                "tip-to-tip consistency: {:.3} µm with the starting calibration, {} with the new one (noise floor {:.3} µm); fit residual {:.3} µm",
+                outcome.consistency_before_um,
+                after.map_or("—".into(), |a| format!("{a:.3} µm")),
+                ds.noise_floor_um,
+                outcome.residual_rms_um
+            )?;
+        }
         outln!(
             "→ {} (version {}, parent {})",
             out.display(),

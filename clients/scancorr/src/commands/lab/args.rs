@@ -104,6 +104,14 @@ pub enum LabCmd {
         /// Write a self-contained HTML report of the steps and the error fall.
         #[arg(long)]
         report: Option<PathBuf>,
+        /// When the loop stops with a confounded pair or parameters not determined, the
+        /// artifacts the plan it writes (--out-dir/plan.json) may use: ring:d=50.0012,
+        /// sphere:d=25.0004, straightedge:l=400 (repeatable; default: those the bags measured).
+        #[arg(long)]
+        plan_artifact: Vec<String>,
+        /// Machine time for that plan, minutes.
+        #[arg(long, default_value_t = 8.0)]
+        plan_minutes: f64,
     },
     /// Refit an unchanged model: the nominal model's time constants, then every effect.
     Fit {

@@ -20,12 +20,14 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
         max_steps,
         json,
         report,
+        plan_artifact,
+        plan_minutes,
     } = cmd
     else {
         unreachable!("lab discover")
     };
     // Every file the loop will write, against every input and each other, before any
-    // work: the step versions after the start's, `calibration.json`, --report.
+    // work: the step versions after the start's, `calibration.json`, `plan.json`, --report.
     let start = calib::load_calibration(&data.calib)?;
     let first = start.version.saturating_add(1);
     let last = first.saturating_add(max_steps as u64);
@@ -111,10 +113,141 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
         commit_all([report_out])?;
         eprintln!("report: {}", p.display());
     }
+    let plan = write_plan(&d, &l, last, &out_dir, &plan_artifact, plan_minutes, &data)?;
     if json {
-        outln!("{}", serde_json::to_string_pretty(&d)?)?;
+        let mut j = serde_json::to_value(&d)?;
+        if let Some(p) = &plan {
+            j["plan"] = serde_json::to_value(p)?;
+        }
+        outln!("{}", serde_json::to_string_pretty(&j)?)?;
     } else {
         print_discovery(&d, &out_dir)?;
+        print_after(&d, plan.as_ref())?;
+    }
+    Ok(())
+}
+
+/// The plan `lab discover` wrote for what it left confounded or not determined.
+#[derive(serde::Serialize)]
+struct PlanWritten {
+    /// The program record (`scancorr sim --program FILE`, or the part program to write).
+    file: Option<PathBuf>,
+    /// What it is for.
+    left: Vec<String>,
+    /// The candidates it makes identifiable beside the final model.
+    candidates: Vec<String>,
+    /// Machine time, minutes.
+    minutes: f64,
+    /// Parameters the bags given could not determine.
+    undetermined_before: usize,
+    /// Parameters (of the final model and the candidates) the plan's design alone would leave
+    /// undetermined, predicted (the plan is measured beside the campaign, not instead of it).
+    undetermined_plan_alone: usize,
+    /// Why no plan was written, when none was.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    not_written: Option<String>,
+}
+
+/// When the loop stopped with a confounded pair or parameters not determined: the plan that
+/// separates them (`scancorr_core::lab::plan::plan`, as `lab plan` makes it) from the final
+/// model, written to `out_dir/plan.json`.
+fn write_plan(
+    d: &scancorr_core::lab::discover::Discovery,
+    l: &super::data::Loaded,
+    last: &scancorr_core::Calibration,
+    out_dir: &Path,
+    artifacts: &[String],
+    minutes: f64,
+    data: &super::args::DataArgs,
+) -> Result<Option<PlanWritten>> {
+    use scancorr_core::lab::discover::{left_to_plan, owned_in, plan_candidates};
+    use scancorr_core::lab::plan::{self, Assumptions, Owned, PlanRequest};
+    let left = left_to_plan(d);
+    if left.is_empty() {
+        return Ok(None);
+    }
+    let candidates = plan_candidates(d);
+    let mut w = PlanWritten {
+        file: None,
+        left,
+        candidates: candidates.clone(),
+        minutes: 0.0,
+        undetermined_before: d.unidentifiable.len(),
+        undetermined_plan_alone: 0,
+        not_written: None,
+    };
+    let owned: Vec<Owned> = if artifacts.is_empty() {
+        owned_in(&l.bags)
+    } else {
+        artifacts
+            .iter()
+            .map(|s| Owned::parse(s).map_err(|e| anyhow::anyhow!("--plan-artifact {e}")))
+            .collect::<Result<_>>()?
+    };
+    let travel = last.limits.travel_mm;
+    if travel.iter().any(|[lo, hi]| hi - lo >= 9000.0) {
+        w.not_written = Some("the calibration's limits.travel_mm is the default ±5000 mm, not the machine's: make the start with `calib nominal --datasheet`, or run `lab plan --datasheet`".into());
+        return Ok(Some(w));
+    }
+    let req = PlanRequest {
+        travel_mm: travel,
+        owned,
+        minutes,
+        candidates,
+        assumptions: Assumptions {
+            noise_um: d.r#final.noise_floor_um,
+            stride: l.opts.stride,
+            heldout_alternate: data.validate.is_empty(),
+            ..Assumptions::default()
+        },
+    };
+    let planned = match plan::plan(last, &req) {
+        Ok(p) => p,
+        Err(e) => {
+            w.not_written = Some(format!("{e}"));
+            return Ok(Some(w));
+        }
+    };
+    let path = out_dir.join("plan.json");
+    crate::shared::output::write_file("--out-dir", &path, planned.program.to_json())?;
+    w.file = Some(path);
+    w.minutes = planned.minutes;
+    w.undetermined_plan_alone = planned.prediction.undetermined.len();
+    Ok(Some(w))
+}
+
+/// What the text output adds to [`print_discovery`]: pairs told apart by their scores, and
+/// the plan written.
+fn print_after(d: &scancorr_core::lab::discover::Discovery, p: Option<&PlanWritten>) -> Result<()> {
+    for s in &d.separated {
+        outln!(
+            "  not confounded: {} and {} correct alike, but their scores separate them (cross-validated {} vs {} µm)",
+            s.effects[0],
+            s.effects[1],
+            um(s.cv_rms_um[0]),
+            um(s.cv_rms_um[1])
+        )?;
+    }
+    let Some(p) = p else { return Ok(()) };
+    outln!("  left for a plan: {}", p.left.join("; "))?;
+    match (&p.file, &p.not_written) {
+        (Some(f), _) => {
+            outln!(
+                "  plan: {} ({:.1} min of machine time; with {}): measure it (`scancorr sim --program {}` on the simulator) and run `lab discover` again with its bag beside the campaign (--bag CAMPAIGN --bag PLAN); the bags given left {} parameter(s) undetermined, the plan alone would leave {} (predicted from its design)",
+                f.display(),
+                p.minutes,
+                if p.candidates.is_empty() {
+                    "the final model's effects".to_string()
+                } else {
+                    p.candidates.join(", ")
+                },
+                f.display(),
+                p.undetermined_before,
+                p.undetermined_plan_alone
+            )?;
+        }
+        (None, Some(why)) => outln!("  no plan written: {why}")?,
+        (None, None) => {}
     }
     Ok(())
 }
@@ -138,8 +271,11 @@ fn discover_outputs(
             })
             .is_some()
     };
-    let mut names: std::collections::BTreeSet<std::ffi::OsString> =
-        [std::ffi::OsString::from("calibration.json")].into();
+    let mut names: std::collections::BTreeSet<std::ffi::OsString> = [
+        std::ffi::OsString::from("calibration.json"),
+        std::ffi::OsString::from("plan.json"),
+    ]
+    .into();
     if let Ok(entries) = std::fs::read_dir(out_dir) {
         for e in entries.flatten() {
             if is_step(&e.file_name()) {

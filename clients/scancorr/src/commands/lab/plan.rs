@@ -54,6 +54,10 @@ pub struct PlanArgs {
     /// Its rise over the campaign, K.
     #[arg(long, default_value_t = 1.0)]
     temp_rise_k: f64,
+    /// Simulated measurements of the design the lab fits to predict its σ (0: the design's
+    /// normal matrix alone, no penalty or fold spread).
+    #[arg(long, default_value_t = plan::FIT_REPLICATES)]
+    replicates: usize,
     /// Predict an existing program record instead of planning one.
     #[arg(long)]
     program: Option<PathBuf>,
@@ -127,7 +131,7 @@ pub fn exec(a: PlanArgs) -> Result<()> {
             .with_context(|| format!("--program {}: reading", path.display()))?;
         let program = Program::from_json(&text)
             .map_err(|e| anyhow::anyhow!("--program {}: {e}", path.display()))?;
-        let pred = plan::predict(&cal, &program, &candidates, &assumptions)?;
+        let pred = predict(&a, &cal, &program, &candidates, &assumptions)?;
         let measured = if a.bag.is_empty() {
             None
         } else {
@@ -136,7 +140,8 @@ pub fn exec(a: PlanArgs) -> Result<()> {
         // The same design at the noise and residual correlation the bags showed: what the
         // Jacobian alone predicts, the assumptions set aside.
         let at_measured = match &measured {
-            Some((_, noise, rho)) if *noise > 0.0 => Some(plan::predict(
+            Some((_, noise, rho)) if *noise > 0.0 => Some(predict(
+                &a,
                 &cal,
                 &program,
                 &candidates,
@@ -195,7 +200,16 @@ pub fn exec(a: PlanArgs) -> Result<()> {
         candidates,
         assumptions,
     };
-    let planned = plan::plan(&cal, &req)?;
+    let mut planned = plan::plan(&cal, &req)?;
+    if a.replicates > 0 {
+        planned.prediction = predict(
+            &a,
+            &cal,
+            &planned.program,
+            &req.candidates,
+            &req.assumptions,
+        )?;
+    }
     put(&out, planned.program.to_json())?;
     commit_all([out])?;
     print_prediction(
@@ -208,6 +222,22 @@ pub fn exec(a: PlanArgs) -> Result<()> {
     )
 }
 
+/// The prediction: the lab's fit on `--replicates` simulated measurements, or the design's
+/// normal matrix alone.
+fn predict(
+    a: &PlanArgs,
+    cal: &scancorr_core::Calibration,
+    program: &Program,
+    candidates: &[String],
+    assumptions: &Assumptions,
+) -> Result<Prediction> {
+    Ok(if a.replicates == 0 {
+        plan::predict(cal, program, candidates, assumptions)?
+    } else {
+        plan::predict_by_fit(cal, program, candidates, assumptions, a.replicates)?
+    })
+}
+
 /// One parameter as the lab measured it.
 #[derive(serde::Serialize)]
 struct Measured {
@@ -215,6 +245,9 @@ struct Measured {
     name: String,
     value: f64,
     sigma: Option<f64>,
+    /// What the lab says determines it, when not the data alone.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    note: Option<String>,
 }
 
 /// The lab's fit of the model and the candidates on the bags.
@@ -248,6 +281,7 @@ fn measure(
                 name: p.name.clone(),
                 value: p.value,
                 sigma: p.sigma,
+                note: p.note.clone(),
             });
         }
     }
@@ -316,7 +350,15 @@ fn print_prediction(
         )?;
     }
     outln!(
-        "predicted from the design alone ({} points fitted, noise {:.3} µm, ρ {:.2}):",
+        "predicted {} ({} points fitted, noise {:.3} µm, ρ {:.2}):",
+        if pred.replicates > 0 {
+            format!(
+                "by the lab's fit on {} simulated measurements of the design",
+                pred.replicates
+            )
+        } else {
+            "from the design's normal matrix alone".to_string()
+        },
         pred.points,
         pred.noise_um,
         pred.rho
@@ -352,8 +394,13 @@ fn print_prediction(
                 (ms, _) => format!("   measured {:.3e} ± {}", m.value, sig(ms)),
             })
             .unwrap_or_default();
+        let joint = if p.determined_alone() {
+            ""
+        } else {
+            "  [confounded: σ set by the lab's penalty]"
+        };
         outln!(
-            "    {:<28} {:>12.4e}  σ {}{rel}{meas}",
+            "    {:<28} {:>12.4e}  σ {}{rel}{meas}{joint}",
             p.name,
             p.value,
             sig(p.sigma)
@@ -364,6 +411,12 @@ fn print_prediction(
         for c in &pred.correlations {
             outln!("    {:+.4}  {}  ~  {}", c.r, c.a, c.b)?;
         }
+    }
+    if !pred.confounded.is_empty() {
+        outln!(
+            "  {} parameter(s) confounded with others (over 99.9 % of the column follows theirs): their σ is the lab's penalty's, not a prediction",
+            pred.confounded.len()
+        )?;
     }
     if !pred.undetermined.is_empty() {
         let shown: Vec<&str> = pred

@@ -1,6 +1,6 @@
 //! `--csv DIR`: every series a lab report plots, as CSV files an engineer can redraw in
-//! matplotlib or a spreadsheet — the polar traces (`traces.csv`: one row per trace and 1°
-//! bin), the residual per bin of each feature (`bins.csv`), the circles' harmonics
+//! matplotlib or a spreadsheet — the polar traces (`traces.csv`: one row per trace — a run:
+//! feature, tip, head angles, deflection, direction, speed — and 1° bin), the residual per bin of each feature (`bins.csv`), the circles' harmonics
 //! (`harmonics.csv`) and, for `diagnose`, the candidate ranking (`candidates.csv`), the best
 //! candidate's predicted traces beside the measured ones (`prediction.csv`), the residual
 //! along each unexplained structure's coordinate with the fitted structure (`structure.csv`)
@@ -30,13 +30,13 @@ pub fn prepare(dir: &Path) -> Result<()> {
 /// `before-`). Returns the files written.
 pub fn comparison(dir: &Path, prefix: &str, c: &Comparison) -> Result<Vec<String>> {
     let mut traces = String::from(
-        "feature,artifact,diameter_mm,direction,speed_mm_s,circularity_um,radius_um,theta_deg,deviation_um\n",
+        "feature,artifact,diameter_mm,direction,speed_mm_s,circularity_um,radius_um,theta_deg,deviation_um,tip,head_a1_deg,head_a2_deg,deflection_mm\n",
     );
     for t in &c.traces {
         for (th, e) in t.theta_deg.iter().zip(&t.deviation_um) {
             let _ = writeln!(
                 traces,
-                "{},{},{},{},{},{},{},{},{}",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{}",
                 t.feature + 1,
                 q(&t.artifact),
                 t.diameter_mm,
@@ -45,7 +45,11 @@ pub fn comparison(dir: &Path, prefix: &str, c: &Comparison) -> Result<Vec<String
                 t.circularity_um,
                 t.radius_um,
                 th,
-                e
+                e,
+                t.tip,
+                t.head_a1_deg,
+                t.head_a2_deg,
+                t.deflection_mm
             );
         }
     }
@@ -102,7 +106,7 @@ pub fn diagnosis(dir: &Path, d: &Diagnosis) -> Result<Vec<String>> {
         );
     }
     let mut pred = String::from(
-        "effect,layer,feature,artifact,direction,speed_mm_s,circularity_um,theta_deg,deviation_um\n",
+        "effect,layer,feature,artifact,direction,speed_mm_s,circularity_um,theta_deg,deviation_um,tip,head_a1_deg,head_a2_deg,deflection_mm\n",
     );
     if let Some(p) = &d.prediction {
         for (layer, ts) in [("measured", &p.measured), ("predicted", &p.predicted)] {
@@ -110,13 +114,17 @@ pub fn diagnosis(dir: &Path, d: &Diagnosis) -> Result<Vec<String>> {
                 for (th, e) in t.theta_deg.iter().zip(&t.deviation_um) {
                     let _ = writeln!(
                         pred,
-                        "{},{layer},{},{},{},{},{},{th},{e}",
+                        "{},{layer},{},{},{},{},{},{th},{e},{},{},{},{}",
                         q(&p.effect),
                         t.feature + 1,
                         q(&t.artifact),
                         if t.direction > 0 { "ccw" } else { "cw" },
                         t.speed_mm_s,
-                        t.circularity_um
+                        t.circularity_um,
+                        t.tip,
+                        t.head_a1_deg,
+                        t.head_a2_deg,
+                        t.deflection_mm
                     );
                 }
             }

@@ -49,31 +49,34 @@ pub(super) fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
     features.dedup();
     if !features.is_empty() {
         outln!(
-            "  circularity per direction and speed (each trace about its own centre, 1° means):"
+            "  circularity per run (tip, head angles, deflection; direction and speed; each trace about its own centre, 1° means):"
         )?;
     }
     for fi in features {
-        let ts: Vec<String> = c
-            .traces
-            .iter()
-            .filter(|t| t.feature == fi)
-            .map(|t| {
-                format!(
-                    "{} {} mm/s {} µm",
-                    if t.direction > 0 { "CCW" } else { "CW" },
-                    t.speed_mm_s,
-                    um(t.circularity_um)
-                )
-            })
-            .collect();
         let t0 = c.traces.iter().find(|t| t.feature == fi).expect("listed");
-        outln!(
-            "    {} {} (Ø{} mm): {}",
-            t0.artifact,
-            fi + 1,
-            t0.diameter_mm,
-            ts.join(", ")
-        )?;
+        outln!("    {} {} (Ø{} mm):", t0.artifact, fi + 1, t0.diameter_mm)?;
+        let mut settings: Vec<String> = vec![];
+        for t in c.traces.iter().filter(|t| t.feature == fi) {
+            if !settings.contains(&t.setting()) {
+                settings.push(t.setting());
+            }
+        }
+        for set in settings {
+            let ts: Vec<String> = c
+                .traces
+                .iter()
+                .filter(|t| t.feature == fi && t.setting() == set)
+                .map(|t| {
+                    format!(
+                        "{} {} mm/s {} µm",
+                        if t.direction > 0 { "CCW" } else { "CW" },
+                        t.speed_mm_s,
+                        um(t.circularity_um)
+                    )
+                })
+                .collect();
+            outln!("      {set}: {}", ts.join(", "))?;
+        }
     }
     for h in &c.harmonics {
         let a: Vec<String> = h

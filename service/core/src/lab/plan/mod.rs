@@ -181,7 +181,8 @@ pub const WEAVE: (f64, f64, [f64; 2]) = (0.1, 0.3, [4.0, 8.0]);
 /// off arcs: separates `accel_deflection` from `servo_gain`); a second ring diameter or the
 /// sphere's equator at three speeds (f = v/2πr and v²/r scale differently); the sphere with
 /// every tip and two head angles; the straightedge along x with two tips (the guide); then
-/// the ring at the edges' midpoints.
+/// the ring stepped along a line in x, in y and in z through the centre (the shape of each
+/// rigid-body error along its axis, as `sim --program geometry` steps it).
 pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
     let tr = req.travel_mm;
     for (i, [lo, hi]) in tr.iter().enumerate() {
@@ -423,32 +424,46 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
             scans,
         });
     }
-    // 7. The ring at the edges' midpoints.
+    // 7. The ring stepped along a line in X, in Y and in Z through the centre.
     {
-        let why = "more positions: the rigid-body terms' curvature, tighter";
+        let why = "the ring stepped along each axis: the shape of every rigid-body error along its axis (a wavy error needs its slope at each step), apart from the guide's table and the squareness";
         let mut features = vec![];
         let mut scans = vec![];
-        for (fx, fy, fz) in [
-            (0.5, 0.15, 0.15),
-            (0.5, 0.85, 0.15),
-            (0.5, 0.15, 0.85),
-            (0.5, 0.85, 0.85),
-            (0.15, 0.5, 0.15),
-            (0.85, 0.5, 0.15),
-            (0.15, 0.5, 0.85),
-            (0.85, 0.5, 0.85),
-            (0.15, 0.15, 0.5),
-            (0.85, 0.15, 0.5),
-            (0.15, 0.85, 0.5),
-            (0.85, 0.85, 0.5),
-        ] {
+        let steps: Vec<f64> = (1..=9).map(|k| k as f64 / 10.0).collect();
+        let mut places: Vec<Vec3> = vec![];
+        for &f in &steps {
+            places.push(at(f, 0.5, 0.5));
+        }
+        for &f in &steps {
+            places.push(at(0.5, f, 0.5));
+        }
+        for &f in &steps {
+            places.push(at(0.5, 0.5, f));
+        }
+        let mut seen: Vec<Vec3> = vec![];
+        places.retain(|p| {
+            let new = seen.iter().all(|q| (p - q).norm() >= 1.0) && (p - centre).norm() >= 1.0;
+            seen.push(*p);
+            new
+        });
+        for p in &places {
             let i = features.len();
-            features.push(ring_at(at(fx, fy, fz), big));
+            features.push(ring_at(*p, big));
             scans.push(circle(i, 30.0, 1, 0.3, t1.id, 0.0, why));
             scans.push(circle(i, 30.0, -1, 0.3, t1.id, 0.0, why));
         }
+        let span = |a: usize| 0.8 * (tr[a][1] - tr[a][0]);
         groups.push(Group {
-            what: format!("ring d={big} mm at the 12 edges' midpoints: 30 mm/s both ways"),
+            what: format!(
+                "ring d={big} mm stepped along x, y and z through the centre ({} places, every {:.0}/{:.0}/{:.0} mm over {:.0}/{:.0}/{:.0} mm): 30 mm/s both ways",
+                places.len(),
+                span(0) / 8.0,
+                span(1) / 8.0,
+                span(2) / 8.0,
+                span(0),
+                span(1),
+                span(2)
+            ),
             why: why.into(),
             features,
             scans,

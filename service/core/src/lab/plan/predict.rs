@@ -242,6 +242,29 @@ pub struct ParamSigma {
     pub value: f64,
     /// Predicted standard uncertainty; None when the design cannot determine it.
     pub sigma: Option<f64>,
+    /// The design's σ from the normal matrix alone, s·√([(JᵀJ)⁺]_kk·(1+ρ)/(1−ρ)) (no
+    /// penalty, no fold spread); `sigma` is the lab's own σ when [`predict_by_fit`] made it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_design: Option<f64>,
+    /// Its variance inflation in the design, [(JᵀJ)⁺]_kk·[JᵀJ]_kk: how much of its column the
+    /// other parameters' follow (above [`JOINT_VIF`] it is confounded with them, and its σ
+    /// depends on the lab's penalties and on what the data hold beyond noise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub vif: Option<f64>,
+}
+
+/// The variance inflation above which a parameter is confounded: 99.9 % of its column
+/// follows the other parameters', so the design gives it no σ of its own — the lab's ridge
+/// and what the data hold beyond noise (model error) set it. Measured on the lab's fit of a
+/// planned bag (tests/tests/lab_plan.rs): below it the lab's σ fell within 0.68–1.43× of the
+/// prediction, above it 0.4–120×.
+pub const JOINT_VIF: f64 = 1e3;
+
+impl ParamSigma {
+    /// Determined by the design (a σ, and not confounded with other parameters).
+    pub fn determined_alone(&self) -> bool {
+        self.sigma.is_some() && self.vif.is_some_and(|v| v <= JOINT_VIF)
+    }
 }
 
 /// A correlation between two parameters' estimates.
@@ -264,12 +287,20 @@ pub struct Prediction {
     pub correlations: Vec<Correlation>,
     /// Parameters the design cannot determine (`effect: name`).
     pub undetermined: Vec<String>,
+    /// Parameters confounded with others (variance inflation above [`JOINT_VIF`]): their σ
+    /// is the lab's penalty's, not a prediction (`effect: name`).
+    pub confounded: Vec<String>,
     /// Points the lab would fit.
     pub points: usize,
     /// The noise and correlation assumed: µm, ρ.
     pub noise_um: f64,
     /// ρ.
     pub rho: f64,
+    /// How `sigma` was made: `design` (the normal matrix alone) or `lab fit` (the lab's own
+    /// fit on simulated measurements of the design, see [`predict_by_fit`]).
+    pub method: String,
+    /// Simulated measurements the lab fitted (0 for `design`).
+    pub replicates: usize,
 }
 
 impl Prediction {
@@ -430,11 +461,17 @@ pub fn predict_on(
             if let Some(cc) = col {
                 label.push((cc, format!("{effect}: {pn}"), sigma.is_some()));
             }
+            let vif = col
+                .filter(|_| sigma.is_some())
+                .map(|cc| sol.cov[(cc, cc)] * ne.m[(cc, cc)])
+                .filter(|v| v.is_finite());
             params.push(ParamSigma {
                 effect: effect.clone(),
                 name: pn,
                 value: v,
                 sigma,
+                sigma_design: sigma,
+                vif,
             });
         }
     }
@@ -464,12 +501,128 @@ pub fn predict_on(
             .then_with(|| p.b.cmp(&q.b))
     });
     correlations.truncate(12);
+    let confounded = params
+        .iter()
+        .filter(|p| p.sigma.is_some() && !p.determined_alone())
+        .map(|p| format!("{}: {}", p.effect, p.name))
+        .collect();
     Ok(Prediction {
         params,
         correlations,
         undetermined,
+        confounded,
         points: n_fit,
         noise_um: a.noise_um,
         rho: a.rho,
+        method: "design".into(),
+        replicates: 0,
     })
+}
+
+/// Simulated measurements of a design the lab fits in [`predict_by_fit`].
+pub const FIT_REPLICATES: usize = 3;
+
+/// A deterministic normal deviate stream (SplitMix64 and Box–Muller): the same design gives
+/// the same prediction.
+struct Gauss(u64);
+
+impl Gauss {
+    fn uniform(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    }
+    fn next(&mut self) -> f64 {
+        let (u, v) = (self.uniform(), self.uniform());
+        (-2.0 * u.ln()).sqrt() * (TAU * v).cos()
+    }
+}
+
+/// The ideal dataset with noise along each point's normal: s·e, e a lag-1 autoregressive
+/// sequence of correlation ρ along each scan (unit variance), from `seed`.
+pub fn noisy(ds: &Dataset, a: &Assumptions, seed: u64) -> Dataset {
+    let mut out = ds.clone();
+    let mut g = Gauss(seed.wrapping_mul(0x2545_F491_4F6C_DD1D) ^ 0x5CA7_C0);
+    let s = a.noise_um * 1e-3;
+    let rho = a.rho.clamp(0.0, 0.99);
+    let innov = (1.0 - rho * rho).sqrt();
+    let mut e = 0.0;
+    let mut last = u32::MAX;
+    for p in &mut out.points {
+        e = if p.segment == last {
+            rho * e + innov * g.next()
+        } else {
+            g.next()
+        };
+        last = p.segment;
+        p.surface += p.normal * (s * e);
+    }
+    out.noise_floor_um = a.noise_um;
+    out
+}
+
+/// Predicts each parameter's σ as the lab will report it: the lab's own fit
+/// (`analysis::fit_effects`: the same artifact fit, folds, cross-validated smoothness and
+/// ridge, and the σ it composes — statistical part, fold spread, penalty shift) on
+/// `replicates` simulated measurements of the design (its ideal points with noise of the
+/// assumed floor and lag-1 correlation along the scans), the median σ of each parameter. A
+/// parameter the lab leaves undetermined in most replicates is undetermined. Correlations and
+/// the design's own σ are those of [`predict`].
+///
+/// The simulated measurements carry noise and no model error, around the calibration's
+/// current values: what a penalty does to a large unmodelled signal is not in it.
+pub fn predict_by_fit(
+    cal: &Calibration,
+    program: &Program,
+    candidates: &[String],
+    a: &Assumptions,
+    replicates: usize,
+) -> Result<Prediction, LabError> {
+    let mut pred = predict(cal, program, candidates, a)?;
+    let ds = ideal_dataset(cal, program, a)?;
+    let configs = configs_for(&ds, candidates)?;
+    let cfgs: Vec<EffectConfig> = configs.iter().map(|(_, c)| c.clone()).collect();
+    let n = replicates.max(1);
+    let mut sig: Vec<Vec<Option<f64>>> = vec![vec![]; pred.params.len()];
+    for r in 0..n {
+        let dr = noisy(&ds, a, r as u64 + 1);
+        let prep = super::super::types::prepare(&dr)?;
+        let o = super::super::select::fit_effects(&dr, &prep, &cfgs)?;
+        let flat: Vec<Option<f64>> = o.params.iter().flatten().map(|p| p.sigma).collect();
+        if flat.len() != pred.params.len() {
+            return Err(LabError::Data(format!(
+                "the lab's fit gave {} parameters where the design has {}",
+                flat.len(),
+                pred.params.len()
+            )));
+        }
+        for (v, s) in sig.iter_mut().zip(flat) {
+            v.push(s.filter(|x| x.is_finite()));
+        }
+    }
+    pred.undetermined.clear();
+    for (p, v) in pred.params.iter_mut().zip(sig) {
+        let mut ok: Vec<f64> = v.into_iter().flatten().collect();
+        p.sigma = if 2 * ok.len() > n {
+            ok.sort_by(f64::total_cmp);
+            Some(ok[ok.len() / 2])
+        } else {
+            None
+        };
+        if p.sigma.is_none() {
+            pred.undetermined.push(format!("{}: {}", p.effect, p.name));
+        }
+    }
+    pred.confounded = pred
+        .params
+        .iter()
+        .filter(|p| p.sigma.is_some() && !p.determined_alone())
+        .map(|p| format!("{}: {}", p.effect, p.name))
+        .collect();
+    pred.method = "lab fit".into();
+    pred.replicates = n;
+    Ok(pred)
 }
