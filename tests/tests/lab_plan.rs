@@ -53,38 +53,7 @@ fn a_planned_campaign_measures_what_it_predicted() {
         ]
         .concat(),
     );
-    ok(
-        &d,
-        &[
-            "calib",
-            "nominal",
-            "--datasheet",
-            "ds.json",
-            "--tips-from",
-            "sim.json",
-            "--out",
-            "nominal.json",
-        ],
-    );
-    // The discovered model's effects at zero, refitted on the campaign.
-    let nominal = std::fs::read_to_string(d.join("nominal.json")).unwrap();
-    let mut cal = scancorr_core::Calibration::from_json(&nominal).unwrap();
-    let tips: Vec<u32> = cal.geometry.tips.iter().map(|t| t.id).collect();
-    cal.effects = discovered_effects(&tips);
-    std::fs::write(d.join("start.json"), cal.to_json()).unwrap();
-    ok(
-        &d,
-        &[
-            "lab",
-            "fit",
-            "--bag",
-            "c.mcap",
-            "--calib",
-            "start.json",
-            "--out",
-            "fitted.json",
-        ],
-    );
+    fitted_from_nominal(&d);
     // The plan, from the fitted calibration, the data sheet's travel and the artifacts owned.
     let planned = json(&ok(
         &d,
@@ -286,37 +255,7 @@ fn the_plan_determines_the_rigid_body_hidden_from_a_nominal_start() {
         "v.mcap",
         &["--position", "550,300,-250"],
     );
-    ok(
-        &d,
-        &[
-            "calib",
-            "nominal",
-            "--datasheet",
-            "ds.json",
-            "--tips-from",
-            "sim.json",
-            "--out",
-            "nominal.json",
-        ],
-    );
-    let nominal = std::fs::read_to_string(d.join("nominal.json")).unwrap();
-    let mut cal = scancorr_core::Calibration::from_json(&nominal).unwrap();
-    let tips: Vec<u32> = cal.geometry.tips.iter().map(|t| t.id).collect();
-    cal.effects = discovered_effects(&tips);
-    std::fs::write(d.join("start.json"), cal.to_json()).unwrap();
-    ok(
-        &d,
-        &[
-            "lab",
-            "fit",
-            "--bag",
-            "c.mcap",
-            "--calib",
-            "start.json",
-            "--out",
-            "fitted.json",
-        ],
-    );
+    fitted_from_nominal(&d);
     let planned = json(&ok(
         &d,
         &[
@@ -397,5 +336,41 @@ fn the_plan_determines_the_rigid_body_hidden_from_a_nominal_start() {
     assert!(
         floor > 0.0 && after <= 1.2 * floor,
         "held-out ring {after:.3} µm against a floor of {floor:.3} µm (from {before:.3} µm)"
+    );
+}
+
+/// `calib nominal` from the data sheet (styli as qualified), the discovered model's effects at
+/// zero, refitted on the campaign `c.mcap` by `lab fit`: `fitted.json`, what a user starts from.
+fn fitted_from_nominal(d: &std::path::Path) {
+    ok(
+        d,
+        &[
+            "calib",
+            "nominal",
+            "--datasheet",
+            "ds.json",
+            "--tips-from",
+            "sim.json",
+            "--out",
+            "nominal.json",
+        ],
+    );
+    let nominal = std::fs::read_to_string(d.join("nominal.json")).unwrap();
+    let mut cal = scancorr_core::Calibration::from_json(&nominal).unwrap();
+    let tips: Vec<u32> = cal.geometry.tips.iter().map(|t| t.id).collect();
+    cal.effects = discovered_effects(&tips);
+    std::fs::write(d.join("start.json"), cal.to_json()).unwrap();
+    ok(
+        d,
+        &[
+            "lab",
+            "fit",
+            "--bag",
+            "c.mcap",
+            "--calib",
+            "start.json",
+            "--out",
+            "fitted.json",
+        ],
     );
 }
