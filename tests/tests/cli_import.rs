@@ -15,7 +15,7 @@ use common::*;
 use scancorr_bag::BagReader;
 use scancorr_core::sample::Sample;
 use scancorr_core::wire;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 fn json(s: &str) -> serde_json::Value {
@@ -393,29 +393,6 @@ t,x,y,z,T
     );
     std::fs::remove_file(dir.join("art.json")).unwrap();
     assert_eq!(files(&dir), before);
-}
-
-/// The Python interpreter of the project's venv (`scripts/python-env.sh`, last stdout line).
-fn python() -> PathBuf {
-    let out = Command::new("bash")
-        .arg(root().join("scripts/python-env.sh"))
-        .current_dir(root())
-        .output()
-        .expect("bash runs");
-    assert!(
-        out.status.success(),
-        "scripts/python-env.sh failed (needs Python 3 with pip and venv):\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let py = PathBuf::from(
-        String::from_utf8_lossy(&out.stdout)
-            .lines()
-            .last()
-            .unwrap_or("")
-            .trim(),
-    );
-    assert!(py.is_file(), "no interpreter: {}", py.display());
-    py
 }
 
 #[test]

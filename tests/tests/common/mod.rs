@@ -584,3 +584,26 @@ pub fn assert_quoted(what: &str, quoted: f64, printed: f64, decimals: i32) {
         "README.md quotes {what} as {quoted}; the command prints {printed}: regenerate the figure"
     );
 }
+
+/// The Python interpreter of the project's venv (`scripts/python-env.sh`, last stdout line).
+pub fn python() -> PathBuf {
+    let out = Command::new("bash")
+        .arg(root().join("scripts/python-env.sh"))
+        .current_dir(root())
+        .output()
+        .expect("bash runs");
+    assert!(
+        out.status.success(),
+        "scripts/python-env.sh failed (needs Python 3 with pip and venv):\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let py = PathBuf::from(
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .last()
+            .unwrap_or("")
+            .trim(),
+    );
+    assert!(py.is_file(), "no interpreter: {}", py.display());
+    py
+}
