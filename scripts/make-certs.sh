@@ -9,7 +9,8 @@
 # DIR/scancorrd-{cert,key}.pem           CN scancorrd           (the service)
 # DIR/controller-M-{cert,key}.pem        CN controller-M        (one per machine)
 # DIR/app-shape-analysis-{cert,key}.pem  CN app-shape-analysis  (an app)
-# DIR/operator-{cert,key}.pem            CN operator            (an operator / the lab)
+# DIR/operator-{cert,key}.pem            CN operator            (an operator)
+# DIR/lab-metrology-{cert,key}.pem       CN lab-metrology       (the metrology lab: an operator's rights)
 # DIR/auditor-{cert,key}.pem             CN auditor             (reads calibrations, changes none)
 # DIR/rogue-ca.pem, rogue-{cert,key}.pem a second CA and a `controller-m1` it signed (for
 #                                        tests: a certificate the router must refuse)
@@ -56,6 +57,7 @@ leaf scancorrd ca
 for m in "${machines[@]}"; do leaf "controller-$m" ca; done
 leaf app-shape-analysis ca
 leaf operator ca
+leaf lab-metrology ca
 leaf auditor ca
 # A certificate for an existing name from a CA the bus does not trust.
 ca rogue-ca
@@ -64,4 +66,4 @@ mv controller-m1-cert.pem rogue-cert.pem
 mv controller-m1-key.pem rogue-key.pem
 for m in "${machines[@]}"; do [ "$m" != m1 ] || leaf controller-m1 ca; done
 rm -f ./*.srl
-echo "$dir: CA and certificates for router, scancorrd, ${machines[*]/#/controller-}, app-shape-analysis, operator (+ rogue)" >&2
+echo "$dir: CA and certificates for router, scancorrd, ${machines[*]/#/controller-}, app-shape-analysis, operator, lab-metrology, auditor (+ rogue)" >&2

@@ -9,6 +9,8 @@ Compares them with the bag's own corrected points (read by the project's `scanco
 and with the deviation the lab defines, computed here from the bag's `scancorr.program` record:
 for a bore or boss the distance in XY from the feature's nominal centre less its radius
 (certified diameter, else nominal, halved), for a face the distance along its unit normal.
+Lists, per Foxglove channel, the fields of its message as its schema in the bag (the
+`FileDescriptorSet` of the MCAP schema record, read by protobuf's descriptor pool) declares them.
 Prints one JSON document of counts and largest differences; the Rust test judges it.
 """
 
@@ -22,6 +24,7 @@ from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf import descriptor_pb2, descriptor_pool
 from mcap.reader import make_reader
 
 import scancorr
@@ -51,6 +54,23 @@ def unpack(cloud):
     return out
 
 
+def schema_fields(schema):
+    """The top-level field names of the message `schema` names, from its FileDescriptorSet."""
+    files = list(descriptor_pb2.FileDescriptorSet.FromString(schema.data).file)
+    pool = descriptor_pool.DescriptorPool()
+    while files:  # dependencies first, whatever the set's order
+        left = []
+        for f in files:
+            try:
+                pool.Add(f)
+            except Exception:  # noqa: BLE001 - a dependency not added yet
+                left.append(f)
+        if len(left) == len(files):
+            raise ValueError(f"unresolvable schema files: {[f.name for f in left]}")
+        files = left
+    return sorted(f.name for f in pool.FindMessageTypeByName(schema.name).fields)
+
+
 def lab_deviation(feature, p):
     c = feature["nominal_center"]
     if feature["kind"] == "face":
@@ -69,12 +89,15 @@ def main(path):
     dup = 0
     types = {}
     schemas = {}
+    fields = {}
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         for schema, channel, message in reader.iter_messages(log_time_order=False):
             if "/foxglove/" not in channel.topic:
                 continue
             schemas[channel.topic] = [schema.name, schema.encoding, channel.message_encoding]
+            if channel.topic not in fields:
+                fields[channel.topic] = schema_fields(schema)
             if schema.name == "foxglove.PointCloud":
                 cloud = PointCloud.FromString(message.data)
                 clouds += 1
@@ -143,6 +166,7 @@ def main(path):
             "entities": entities,
             "features": len(features),
             "schemas": schemas,
+            "message_fields": fields,
         },
         sys.stdout,
         indent=1,

@@ -3,30 +3,60 @@
 `foxglove.websocket.v1`) for `scancorr view`: the `websockets` package and Foxglove's published
 schemas (`foxglove-schemas-protobuf`), nothing of the project.
 
-    python foxglove_view.py PORT TOPIC EXPECTED_POINTS TIMEOUT_S
+    python foxglove_view.py PORT TOPIC EXPECTED_POINTS TIMEOUT_S [RAW_SCALE_TOPIC]
 
 Connects to ws://127.0.0.1:PORT asking for the subprotocol, waits for `serverInfo` and the
 `advertise` of TOPIC, subscribes to it (and to every other advertised channel), prints the line
 `subscribed` on stderr, then collects the points of the clouds that arrive (binary frames:
 opcode 1, subscription id u32, time u64, payload) until EXPECTED_POINTS or the timeout. Prints
 one JSON document: the protocol facts seen and every point as [seq, x, y, z] in metres, in
-arrival order.
+arrival order. With RAW_SCALE_TOPIC (a raw scale channel, `view --raw`), its messages are decoded
+with the schema the server advertised for it (a `FileDescriptorSet`, read by protobuf's own
+descriptor pool) and every scale sample is listed as [seq, t_ns, x, y, z] in arrival order.
 """
 
 import asyncio
+import base64
 import json
 import struct
 import sys
 
 import websockets
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
 FORMATS = {PackedElementField.UINT32: "<I", PackedElementField.FLOAT64: "<d", PackedElementField.UINT8: "<B"}
 
 
-async def run(port, topic, expected, timeout):
-    out = {"subprotocol": None, "server_info": None, "channels": {}, "points": [], "other_messages": {}}
+def message_class(schema_b64, name):
+    """The message class `name` of an advertised base64 FileDescriptorSet."""
+    files = list(descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(schema_b64)).file)
+    pool = descriptor_pool.DescriptorPool()
+    while files:  # dependencies first, whatever the set's order
+        left = []
+        for f in files:
+            try:
+                pool.Add(f)
+            except Exception:  # noqa: BLE001 - a dependency not added yet
+                left.append(f)
+        if len(left) == len(files):
+            raise ValueError(f"unresolvable schema files: {[f.name for f in left]}")
+        files = left
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
+def scale_samples(batch):
+    """[seq, t_ns, x, y, z] of a scale batch: per-sample messages or packed columns."""
+    out = [[s.seq, s.t_ns, s.x, s.y, s.z] for s in batch.samples]
+    c = batch.columns
+    out += [list(r) for r in zip(c.seq, c.t_ns, c.x, c.y, c.z)]
+    return out
+
+
+async def run(port, topic, expected, timeout, raw_topic):
+    out = {"subprotocol": None, "server_info": None, "channels": {}, "points": [], "other_messages": {}, "raw": []}
+    raw_class = None
     async with websockets.connect(
         f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"], max_size=None
     ) as ws:
@@ -51,6 +81,8 @@ async def run(port, topic, expected, timeout):
                     for c in m["channels"]:
                         out["channels"][c["topic"]] = {k: c[k] for k in ("id", "encoding", "schemaName", "schemaEncoding")}
                         sid = len(subs) + 100
+                        if c["topic"] == raw_topic:
+                            raw_class = message_class(c["schema"], c["schemaName"])
                         subs[sid] = c
                         new.append({"id": sid, "channelId": c["id"]})
                     await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
@@ -64,6 +96,8 @@ async def run(port, topic, expected, timeout):
                 continue
             ch = subs[sid]
             payload = msg[13:]
+            if ch["topic"] == raw_topic:
+                out["raw"] += scale_samples(raw_class.FromString(payload))
             if ch["topic"] != topic:
                 out["other_messages"][ch["topic"]] = out["other_messages"].get(ch["topic"], 0) + 1
                 continue
@@ -78,7 +112,8 @@ async def run(port, topic, expected, timeout):
 
 def main(argv):
     port, topic, expected, timeout = int(argv[1]), argv[2], int(argv[3]), float(argv[4])
-    out = asyncio.run(run(port, topic, expected, timeout))
+    raw_topic = argv[5] if len(argv) > 5 else None
+    out = asyncio.run(run(port, topic, expected, timeout, raw_topic))
     json.dump(out, sys.stdout)
     sys.stdout.write("\n")
 

@@ -33,7 +33,7 @@ fn floats(v: &serde_json::Value) -> Vec<f64> {
 fn judge(label: &str, r: &serde_json::Value, truth: &serde_json::Value, axes: &[&str]) {
     for t in [1, 2] {
         for a in axes {
-            let name = format!("tip{t}.probe_k_{a}");
+            let name = format!("tip{t}.probe_k_{a}_mm_per_mm");
             let v = r["params"][&name]
                 .as_f64()
                 .unwrap_or_else(|| panic!("{name}: {r:#}"));
@@ -85,7 +85,8 @@ fn probe_force_recovers_each_tips_bending_from_the_nominal_model() {
     }
     // One coefficient per stylus: the crank bends more than the reference, as in the truth.
     let ratio = |p: &serde_json::Value| {
-        p["tip2.probe_k_u"].as_f64().unwrap() / p["tip1.probe_k_u"].as_f64().unwrap()
+        p["tip2.probe_k_u_mm_per_mm"].as_f64().unwrap()
+            / p["tip1.probe_k_u_mm_per_mm"].as_f64().unwrap()
     };
     let (fit, true_ratio) = (ratio(&r["params"]), ratio(&truth["params"]));
     assert!(
@@ -168,7 +169,7 @@ fn probe_force_recovers_each_tips_bending_from_the_nominal_model() {
         );
     }
     let html = std::fs::read_to_string(dir.join("pf.html")).unwrap();
-    assert!(html.contains("radius-before") && html.contains("tip2.probe_k_w"));
+    assert!(html.contains("radius-before") && html.contains("tip2.probe_k_w_mm_per_mm"));
     // The README quotes this run (its command with run seed 4): the radius's spread over the
     // deflections per tip, before (held to what it prints) and after (below the bound quoted).
     let q = readme_figures("deflection (spread", 3);
@@ -260,7 +261,7 @@ fn probe_force_variants_quarter_and_approach() {
     let (r, truth) = calibrate(&dir, "probe-force-approach", "6");
     judge("(d)", &r, &truth, &["u", "v"]);
     for t in [1, 2] {
-        let w = format!("tip{t}.probe_k_w");
+        let w = format!("tip{t}.probe_k_w_mm_per_mm");
         assert!(r["params"].get(&w).is_none(), "{w} printed: {r:#}");
         assert!(
             r["undetermined"]

@@ -600,3 +600,94 @@ fn lines_stepped_across_give_the_flatness() {
     let html = std::fs::read_to_string(dir.join("f.html")).unwrap();
     assert!(html.contains("data-plot=\"flatness\""));
 }
+
+/// Three probes without a reversal on machine 67: the probes' offsets' parabola estimated by
+/// least squares from the straightedge's stated bow (β = δ/l, the angle between the probes'
+/// zero lines), instead of left unseen; honest against the truth.
+#[test]
+fn three_probes_without_a_reversal_estimate_the_parabola_from_the_stated_bow() {
+    let dir = scratch("calibrate-straightness-bow");
+    nominal(&dir);
+    measure(
+        &dir,
+        "straightness-three-probe",
+        "t3.mcap",
+        &["--truth", "t3.json"],
+    );
+    let t3 = json(&std::fs::read_to_string(dir.join("t3.json")).unwrap());
+    let plain = calibrate(&dir, "three-probe", "t3.mcap", "c3.json", &[]);
+    let (g0, p0, _, _) = errors(&plain, &t3, 1);
+    // The straightedge's sag over the measured span is at most 4 µm (the simulator's are
+    // 2–4 µm over 800 mm; the bound a grade or certificate would state).
+    let r = calibrate(
+        &dir,
+        "three-probe",
+        "t3.mcap",
+        "cb.json",
+        &["--straightedge-bow-um", "4"],
+    );
+    let cannot = r["cannot_see"].to_string();
+    assert!(!cannot.contains("parabola"), "{cannot}");
+    let (g, p, _, u) = errors(&r, &t3, 1);
+    eprintln!(
+        "no reversal: guide {:.3} µm, part {:.3} µm RMS against the truth (line out); with the \
+         stated bow {:.3} µm, {:.3} µm (guide σ {:.3} µm RMS)",
+        g0 * 1e3,
+        p0 * 1e3,
+        g * 1e3,
+        p * 1e3,
+        u * 1e3
+    );
+    assert!(g < 0.6 * g0 && p < 0.6 * p0, "{g} vs {g0}, {p} vs {p0}");
+    assert!(g <= 2.0 * u, "guide {g} mm vs its σ {u} mm");
+    // δ = o_A − 2o_B + o_C against the simulator's offsets, within 2σ.
+    let o = arr(&t3["instruments"]["probe_offsets_mm"]);
+    let delta = o[0] - 2.0 * o[1] + o[2];
+    let param = |n: &str| {
+        r["params"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|p| p["name"] == n)
+            .unwrap_or_else(|| panic!("{n} in {}", r["params"]))
+            .clone()
+    };
+    let d = param("probe_offsets.second_difference_mm");
+    let (v, s) = (d["value"].as_f64().unwrap(), d["sigma"].as_f64().unwrap());
+    eprintln!(
+        "δ = {:.4} ± {:.4} µm (truth {:.4} µm)",
+        v * 1e3,
+        s * 1e3,
+        delta * 1e3
+    );
+    assert!((v - delta).abs() <= 2.0 * s, "δ {v} ± {s} vs {delta}");
+    let b = param("probe_offsets.beta_rad");
+    assert!((b["value"].as_f64().unwrap() - v / 25.0).abs() < 1e-12);
+    // Bounds that cannot be used are refused, naming them.
+    for (extra, needle) in [
+        (
+            vec!["--straightedge-bow-um=-1"],
+            "bow bound must be a positive length",
+        ),
+        (
+            vec!["--probe-zero-um", "0.2"],
+            "give the straightedge's bow bound too",
+        ),
+    ] {
+        let mut a = vec![
+            "calibrate",
+            "straightness",
+            "--method",
+            "three-probe",
+            "--bag",
+            "t3.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "bad.json",
+        ];
+        a.extend(extra);
+        let e = fails(&dir, &a, &[needle]);
+        assert!(!e.contains("NaN"), "{e}");
+    }
+}

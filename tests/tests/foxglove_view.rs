@@ -2,7 +2,9 @@
 //! bus, serves it as a Foxglove WebSocket; `tests/python/foxglove_view.py`, an independent
 //! client of the protocol (the `websockets` package and Foxglove's published schemas), asks for
 //! the `foxglove.websocket.v1` subprotocol, subscribes to the advertised channels and receives
-//! every corrected point of the ring, in order, equal to the offline correction.
+//! every corrected point of the ring, in order, equal to the offline correction. With `--raw`
+//! the machine's raw streams are channels too: the client decodes the scale channel with the
+//! schema the server advertised, and each sample it gets is the bag's.
 
 mod common;
 
@@ -66,7 +68,14 @@ fn a_foxglove_websocket_client_receives_every_live_point_in_order() {
     let view_log = d.join("view.log");
     let view = Killed(
         Command::new(scancorr())
-            .args(["view", "--port", &ws_port.to_string(), "--machine", "m1"])
+            .args([
+                "view",
+                "--port",
+                &ws_port.to_string(),
+                "--machine",
+                "m1",
+                "--raw",
+            ])
             .args(["--nominal", "r.mcap", "--seconds", "60", "--connect", &bus])
             .current_dir(&d)
             .stdout(Stdio::null())
@@ -88,6 +97,7 @@ fn a_foxglove_websocket_client_receives_every_live_point_in_order() {
                 "cmm/m1/foxglove/points",
                 &off.len().to_string(),
                 "30",
+                "cmm/m1/raw/scale",
             ])
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
@@ -100,18 +110,7 @@ fn a_foxglove_websocket_client_receives_every_live_point_in_order() {
     err.read_line(&mut line).unwrap();
     assert_eq!(line.trim(), "subscribed", "the client says: {line}");
     std::thread::sleep(Duration::from_millis(300));
-    ok(
-        &d,
-        &[
-            "replay",
-            "--bag",
-            "r.mcap",
-            "--speed",
-            "max",
-            "--connect",
-            &bus,
-        ],
-    );
+    replay_max(&d, "r.mcap", &bus);
     svc.stop(); // flushes what the corrector holds
     let mut stdout = String::new();
     std::io::Read::read_to_string(client.0.stdout.as_mut().unwrap(), &mut stdout).unwrap();
@@ -132,6 +131,17 @@ fn a_foxglove_websocket_client_receives_every_live_point_in_order() {
             r["channels"][format!("cmm/m1/foxglove/{t}")].is_object(),
             "{}",
             r["channels"]
+        );
+    }
+    // Every topic the shipped layout names is one the view advertises.
+    for p in foxglove_layout_paths() {
+        let channels = r["channels"].as_object().unwrap();
+        assert!(
+            channels
+                .keys()
+                .any(|t| p == *t || p.starts_with(&format!("{t}."))),
+            "the layout names `{p}`; the view advertises {:?}",
+            channels.keys()
         );
     }
     assert_eq!(r["other_messages"]["cmm/m1/foxglove/frame"], 1, "{r}");
@@ -163,5 +173,54 @@ fn a_foxglove_websocket_client_receives_every_live_point_in_order() {
             "point {i} (in order, equal to the offline correction)"
         );
     }
+
+    // The raw scale stream on request: advertised with our schema, decoded by the client with
+    // it, each sample the bag's (scancorrd's router may drop raw messages for a consumer that
+    // falls behind, so some, in order, not necessarily all).
+    let raw = &r["channels"]["cmm/m1/raw/scale"];
+    assert_eq!(
+        raw["schemaName"], "scancorr.v1.ScaleBatch",
+        "{}",
+        r["channels"]
+    );
+    assert_eq!(raw["schemaEncoding"], "protobuf");
+    for t in ["command", "probe", "temperature"] {
+        assert!(r["channels"][format!("cmm/m1/raw/{t}")].is_object());
+    }
+    let mut bag = std::collections::BTreeMap::new();
+    let reader = scancorr_bag::BagReader::open(d.join("r.mcap")).unwrap();
+    for m in reader.messages().unwrap() {
+        let m = m.unwrap();
+        if m.stream != scancorr_bag::Stream::Scale {
+            continue;
+        }
+        let dec =
+            scancorr_core::wire::decode(scancorr_core::wire::stream_id(m.stream).unwrap(), &m.data);
+        for (_, s) in dec.unwrap().samples {
+            if let scancorr_core::Sample::Scale(s) = s {
+                bag.insert(s.seq, [s.t_ns as f64, s.pos.x, s.pos.y, s.pos.z]);
+            }
+        }
+    }
+    let got = r["raw"].as_array().unwrap();
+    assert!(got.len() >= 100, "{} raw scale samples received", got.len());
+    let mut last = None;
+    for g in got {
+        let g: Vec<f64> = g
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let seq = g[0] as u64;
+        assert!(last < Some(seq), "scale seq {seq} after {last:?}");
+        last = Some(seq);
+        assert_eq!(
+            Some(&[g[1], g[2], g[3], g[4]]),
+            bag.get(&seq),
+            "scale sample {seq}"
+        );
+    }
+    eprintln!("{} of {} raw scale samples received", got.len(), bag.len());
     drop(view);
 }

@@ -88,12 +88,56 @@ fn compare_diagnose_add_fit_history() {
             .count()
             > 5
     );
-    ok(
+    let text = ok(
         &d,
         &[
             "lab", "diagnose", "--bag", "c.mcap", "--calib", "v1.json", "--csv", "plots",
         ],
     );
+    // The table: every candidate once, no swap named `X for X`, the significant ones first and
+    // each group by the fraction explained, largest first.
+    let rows: Vec<(String, f64, bool)> = text
+        .lines()
+        .filter_map(|l| {
+            let t: Vec<&str> = l.split_whitespace().collect();
+            let n = t.len();
+            let pct = t
+                .get(n.checked_sub(5)?)?
+                .strip_suffix('%')?
+                .parse::<f64>()
+                .ok()?;
+            let sig = t[n - 4];
+            (n >= 6 && (sig == "yes" || sig == "no"))
+                .then(|| (t[..n - 5].join(" "), pct, sig == "yes"))
+        })
+        .collect();
+    assert!(rows.len() >= 3, "{text}");
+    let mut labels: Vec<&str> = rows.iter().map(|r| r.0.as_str()).collect();
+    for l in &labels {
+        if let Some((a, b)) = l.split_once(" for ") {
+            assert_ne!(a, b, "a swap named by the same name twice:\n{text}");
+        }
+    }
+    for w in rows.windows(2) {
+        assert!(
+            (w[0].2, w[0].1) >= (w[1].2, w[1].1),
+            "rows out of order ({} then {}):\n{text}",
+            w[0].0,
+            w[1].0
+        );
+    }
+    labels.sort();
+    labels.dedup();
+    assert_eq!(
+        labels.len(),
+        rows.len(),
+        "a candidate listed twice:\n{text}"
+    );
+    let notes: Vec<&str> = text.lines().filter(|l| l.contains("not tested:")).collect();
+    let mut unique = notes.clone();
+    unique.sort();
+    unique.dedup();
+    assert_eq!(unique.len(), notes.len(), "a note repeated:\n{text}");
     let cand = std::fs::read_to_string(d.join("plots/candidates.csv")).unwrap();
     assert!(
         cand.lines().nth(1).unwrap().contains("servo_phase"),
@@ -145,6 +189,19 @@ fn compare_diagnose_add_fit_history() {
     }
     assert!(c0["significant"].as_bool().unwrap() && c0["params"].as_array().unwrap().len() == 6);
     assert!(dg["confounded"].is_array() && dg["unexplained"].is_array());
+    // The JSON in the table's order: significant first, then by the fraction explained.
+    let order: Vec<(bool, f64)> = dg["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            (
+                c["significant"].as_bool().unwrap(),
+                c["explained"].as_f64().unwrap(),
+            )
+        })
+        .collect();
+    assert!(order.windows(2).all(|w| w[0] >= w[1]), "{order:?}");
     // Add → the next version, fit → the one after, history shows the fall.
     std::fs::create_dir_all(d.join("cals")).unwrap();
     std::fs::copy(d.join("v1.json"), d.join("cals/v1.json")).unwrap();

@@ -262,16 +262,5 @@ fn publishing_to_an_uncalibrated_machine_fails_loudly() {
         &needles,
     );
     calib_put(&d, "m1", "v1.json", &ep);
-    ok(
-        &d,
-        &[
-            "replay",
-            "--bag",
-            "r.mcap",
-            "--speed",
-            "max",
-            "--connect",
-            &ep,
-        ],
-    );
+    replay_max(&d, "r.mcap", &ep);
 }

@@ -1,7 +1,10 @@
 //! Every command block of README.md runs as written: each fenced block tagged `sh` is taken
 //! from the file itself (not copied here) and run, in the README's order, with
 //! `bash -euo pipefail` in one scratch folder, so state carries from block to block as it
-//! does for a reader following the README.
+//! does for a reader following the README. One exception: a block whose only command is
+//! `scancorr demo` (the "Two commands" block) writes nothing but its own folder, which no other
+//! block reads, so it runs beside the others in a folder of its own (`work-N/`, laid out the
+//! same way): the lab is one thread and the machine has two cores.
 //!
 //! The scratch folder is laid out as a clone is: the blocks run in `work/`, which reaches the
 //! repository's `deploy/`, `scripts/` and `clients/` (symbolic links) and whose parent holds
@@ -148,9 +151,9 @@ fn kill_group(pgid: u32) {
 
 /// The scratch layout of a clone: `work/` with links to the repository's folders the README
 /// names, `shared/` beside it.
-fn layout(scratch: &Path) -> PathBuf {
+fn layout(scratch: &Path, name: &str) -> PathBuf {
     let root = root();
-    let work = scratch.join("work");
+    let work = scratch.join(name);
     std::fs::create_dir_all(&work).unwrap();
     for d in ["deploy", "scripts", "clients"] {
         std::os::unix::fs::symlink(root.join(d), work.join(d)).unwrap();
@@ -161,7 +164,10 @@ fn layout(scratch: &Path) -> PathBuf {
         "{}: the README's real data is read from `../shared` beside the repository",
         shared.display()
     );
-    std::os::unix::fs::symlink(&shared, scratch.join("shared")).unwrap();
+    let link = scratch.join("shared");
+    if !link.exists() {
+        std::os::unix::fs::symlink(&shared, link).unwrap();
+    }
     work
 }
 
@@ -183,46 +189,27 @@ fn bin_dir() -> PathBuf {
     dir
 }
 
-#[test]
-fn every_sh_block_of_the_readme_runs_as_written() {
-    use std::os::unix::process::CommandExt;
-    let readme = std::fs::read_to_string(root().join("README.md")).unwrap();
-    let (all, problems) = blocks(&readme);
-    assert!(problems.is_empty(), "{}", problems.join("\n"));
-    let sh: Vec<&Block> = all.iter().filter(|b| b.tag == "sh").collect();
-    assert!(!sh.is_empty(), "README.md has no ```sh block");
-
-    // Every exclusion matches exactly one line of a ```sh block.
-    for (line, instead, why) in EXCLUDED {
-        let at: Vec<usize> = sh
-            .iter()
-            .flat_map(|b| &b.lines)
-            .filter(|(_, t)| t.trim() == *line)
-            .map(|(n, _)| *n)
-            .collect();
-        assert_eq!(
-            at.len(),
-            1,
-            "exclusion `{line}` matches README lines {at:?}: it must match exactly one"
-        );
-        match instead {
-            Some(i) => eprintln!("README.md:{}: runs as `{i}`: {why}", at[0]),
-            None => eprintln!("README.md:{}: `{line}` not run: {why}", at[0]),
+/// The script a block runs: the prelude, then its lines (an excluded line replaced or
+/// neutralised, with its reason).
+fn script(b: &Block) -> String {
+    let mut script = prelude().join("\n") + "\n";
+    for (_, t) in &b.lines {
+        match EXCLUDED.iter().find(|(l, _, _)| t.trim() == *l) {
+            Some((_, Some(instead), why)) => {
+                script += &format!("{instead}  # readme_blocks.rs, shortened: {why}\n")
+            }
+            Some((l, None, why)) => {
+                script += &format!("true  # not run by readme_blocks.rs: `{l}`: {why}\n")
+            }
+            None => script += &format!("{t}\n"),
         }
     }
+    script
+}
 
-    let scratch = scratch("readme-blocks");
-    let work = layout(&scratch);
-    let logs = scratch.join("blocks");
-    std::fs::create_dir_all(&logs).unwrap();
-    let bins = bin_dir();
-    let path = format!(
-        "{}:{}",
-        bins.display(),
-        std::env::var("PATH").unwrap_or_default()
-    );
-    // Lines before the block's own: the failing command's line is reported from bash's LINENO.
-    let prelude = [
+/// Lines before the block's own: the failing command's line is reported from bash's LINENO.
+fn prelude() -> [String; 3] {
+    [
         "set -E".to_string(),
         "trap 'echo \"README_BLOCK_FAILED_AT=$LINENO exit $?\" >&2' ERR".to_string(),
         format!(
@@ -230,34 +217,44 @@ fn every_sh_block_of_the_readme_runs_as_written() {
              command cargo \"$1\" --manifest-path '{}' \"${{@:2}}\"; }}",
             root().join("Cargo.toml").display()
         ),
-    ];
-    let t_all = Instant::now();
-    let mut failures = vec![];
-    let mut times = vec![];
-    for (k, b) in sh.iter().enumerate() {
-        let mut script = prelude.join("\n") + "\n";
-        for (_, t) in &b.lines {
-            match EXCLUDED.iter().find(|(l, _, _)| t.trim() == *l) {
-                Some((_, Some(instead), why)) => {
-                    script += &format!("{instead}  # readme_blocks.rs, shortened: {why}\n")
-                }
-                Some((l, None, why)) => {
-                    script += &format!("true  # not run by readme_blocks.rs: `{l}`: {why}\n")
-                }
-                None => script += &format!("{t}\n"),
-            }
-        }
-        let file = logs.join(format!("{:02}-line{}.sh", k + 1, b.fence));
-        std::fs::write(&file, &script).unwrap();
+    ]
+}
+
+/// What a block's run gave.
+struct Ran {
+    fence: usize,
+    secs: f64,
+    /// Why it failed, with the failing README line and its output's tail.
+    failure: Option<String>,
+}
+
+/// Runs blocks: where the binaries are, where the logs go.
+struct Runner {
+    bins: PathBuf,
+    logs: PathBuf,
+}
+
+impl Runner {
+    /// Runs block `k` (its script) in `dir` with `bash -euo pipefail`, stops what it left
+    /// running, and says how it went.
+    fn block(&self, k: usize, b: &Block, script: &str, dir: &Path) -> Ran {
+        use std::os::unix::process::CommandExt;
+        let path = format!(
+            "{}:{}",
+            self.bins.display(),
+            std::env::var("PATH").unwrap_or_default()
+        );
+        let file = self.logs.join(format!("{:02}-line{}.sh", k + 1, b.fence));
+        std::fs::write(&file, script).unwrap();
         let log_path = file.with_extension("log");
         let log = std::fs::File::create(&log_path).unwrap();
         let t0 = Instant::now();
         let mut child = Command::new("bash")
             .args(["-euo", "pipefail"])
             .arg(&file)
-            .current_dir(&work)
+            .current_dir(dir)
             .env("PATH", &path)
-            .env("README_BIN_DIR", &bins)
+            .env("README_BIN_DIR", &self.bins)
             .stdin(Stdio::null())
             .stdout(log.try_clone().unwrap())
             .stderr(log)
@@ -286,7 +283,7 @@ fn every_sh_block_of_the_readme_runs_as_written() {
             .filter(|l| l.trim_start().starts_with("Compiling "))
             .count();
         eprintln!(
-            "README.md:{} (```sh, lines {}–{last}): {} in {secs:.1} s{}",
+            "README.md:{} (```sh, lines {}–{last}): {} in {secs:.1} s{}{}",
             b.fence,
             b.fence + 1,
             match status {
@@ -298,11 +295,19 @@ fn every_sh_block_of_the_readme_runs_as_written() {
                 format!(" (cargo compiled {compiled} crate(s) first)")
             } else {
                 String::new()
+            },
+            if dir.ends_with("work") {
+                String::new()
+            } else {
+                format!(", beside the others in {}", dir.display())
             }
         );
-        times.push((b.fence, secs));
         if status.is_some_and(|s| s.success()) {
-            continue;
+            return Ran {
+                fence: b.fence,
+                secs,
+                failure: None,
+            };
         }
         // The README line of the failing command, from the ERR trap's LINENO.
         let at = output
@@ -310,22 +315,105 @@ fn every_sh_block_of_the_readme_runs_as_written() {
             .rev()
             .find_map(|l| l.strip_prefix("README_BLOCK_FAILED_AT="))
             .and_then(|l| l.split_whitespace().next()?.parse::<usize>().ok())
-            .and_then(|n| b.lines.get(n.checked_sub(prelude.len() + 1)?))
+            .and_then(|n| b.lines.get(n.checked_sub(prelude().len() + 1)?))
             .map(|(n, t)| format!("README.md:{n}: `{}`", t.trim()))
             .unwrap_or_else(|| "(the failing line was not reported)".into());
         let tail: Vec<&str> = output.lines().collect();
         let tail = tail[tail.len().saturating_sub(120)..].join("\n");
-        failures.push(format!(
-            "the ```sh block at README.md:{} {} — failed at {at}\n--- its output (last 120 \
-             lines; all of it in {}) ---\n{tail}\n---",
-            b.fence,
-            match status {
-                Some(s) => format!("exited with {s}"),
-                None => format!("ran over {} s and was stopped", BLOCK_TIMEOUT.as_secs()),
-            },
-            log_path.display()
-        ));
+        Ran {
+            fence: b.fence,
+            secs,
+            failure: Some(format!(
+                "the ```sh block at README.md:{} {} — failed at {at}\n--- its output (last 120 \
+                 lines; all of it in {}) ---\n{tail}\n---",
+                b.fence,
+                match status {
+                    Some(s) => format!("exited with {s}"),
+                    None => format!("ran over {} s and was stopped", BLOCK_TIMEOUT.as_secs()),
+                },
+                log_path.display()
+            )),
+        }
     }
+}
+
+#[test]
+fn every_sh_block_of_the_readme_runs_as_written() {
+    let readme = std::fs::read_to_string(root().join("README.md")).unwrap();
+    let (all, problems) = blocks(&readme);
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+    let sh: Vec<&Block> = all.iter().filter(|b| b.tag == "sh").collect();
+    assert!(!sh.is_empty(), "README.md has no ```sh block");
+
+    // Every exclusion matches exactly one line of a ```sh block.
+    for (line, instead, why) in EXCLUDED {
+        let at: Vec<usize> = sh
+            .iter()
+            .flat_map(|b| &b.lines)
+            .filter(|(_, t)| t.trim() == *line)
+            .map(|(n, _)| *n)
+            .collect();
+        assert_eq!(
+            at.len(),
+            1,
+            "exclusion `{line}` matches README lines {at:?}: it must match exactly one"
+        );
+        match instead {
+            Some(i) => eprintln!("README.md:{}: runs as `{i}`: {why}", at[0]),
+            None => eprintln!("README.md:{}: `{line}` not run: {why}", at[0]),
+        }
+    }
+
+    let scratch = scratch("readme-blocks");
+    let work = layout(&scratch, "work");
+    let logs = scratch.join("blocks");
+    std::fs::create_dir_all(&logs).unwrap();
+    let run = Runner {
+        bins: bin_dir(),
+        logs,
+    };
+    let scripts: Vec<(usize, &Block, String)> = sh
+        .iter()
+        .enumerate()
+        .map(|(k, b)| (k, *b, script(b)))
+        .collect();
+    // A block whose only command is `demo` writes nothing but its own folder, which no other
+    // block reads: it runs beside the others, in a folder of its own (the lab is one thread,
+    // the machine has two cores).
+    let alone = |b: &Block| {
+        let runs: Vec<&str> = b
+            .lines
+            .iter()
+            .map(|(_, t)| t.trim())
+            .filter(|t| !t.is_empty() && !t.starts_with('#'))
+            .filter(|t| !EXCLUDED.iter().any(|(l, _, _)| t == l))
+            .collect();
+        !runs.is_empty()
+            && runs
+                .iter()
+                .all(|t| t.starts_with("cargo run --release --bin scancorr -- demo"))
+    };
+    let t_all = Instant::now();
+    let (beside, in_order): (Vec<_>, Vec<_>) = scripts.iter().partition(|(_, b, _)| alone(b));
+    let mut results = vec![];
+    std::thread::scope(|s| {
+        let aside = s.spawn(|| {
+            beside
+                .iter()
+                .map(|(k, b, script)| {
+                    let dir = layout(&scratch, &format!("work-{}", k + 1));
+                    run.block(*k, b, script, &dir)
+                })
+                .collect::<Vec<_>>()
+        });
+        for (k, b, script) in &in_order {
+            results.push(run.block(*k, b, script, &work));
+        }
+        results.extend(aside.join().unwrap());
+    });
+    results.sort_by_key(|r| r.fence);
+    let failures: Vec<String> = results.iter().filter_map(|r| r.failure.clone()).collect();
+    let mut times: Vec<(usize, f64)> = results.iter().map(|r| (r.fence, r.secs)).collect();
     times.sort_by(|a, b| b.1.total_cmp(&a.1));
     eprintln!(
         "{} ```sh block(s) in {:.1} s; the slowest: {}",

@@ -78,25 +78,6 @@ fn role(dir: &Path, role: &str, port: u16, certs: &Path) -> PathBuf {
     p
 }
 
-/// A certificate for `cn` from the test CA in `certs` (`scripts/make-certs.sh` makes none for
-/// the lab).
-fn leaf_cert(certs: &Path, cn: &str) {
-    let sh = format!(
-        "set -e; cd '{}'
-openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out {cn}-key.pem
-openssl req -new -key {cn}-key.pem -out {cn}.csr -subj /CN={cn}
-printf 'basicConstraints=critical,CA:FALSE\\nkeyUsage=critical,digitalSignature,keyEncipherment\\nextendedKeyUsage=serverAuth,clientAuth\\nsubjectAltName=DNS:{cn}\\n' > {cn}.ext
-openssl x509 -req -in {cn}.csr -CA ca.pem -CAkey ca-key.pem -CAcreateserial -out {cn}-cert.pem -days 2 -extfile {cn}.ext",
-        certs.display()
-    );
-    let out = Command::new("bash").args(["-c", &sh]).output().unwrap();
-    assert!(
-        out.status.success(),
-        "a certificate for {cn}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
 /// Waits (at most 10 s) for a line of `p`'s log with every needle; returns it.
 fn logged(p: &Proc, needles: &[&str]) -> String {
     let t0 = Instant::now();
@@ -240,8 +221,7 @@ fn roles_can_do_exactly_what_the_router_allows() {
         )
     };
 
-    // Each role with its shipped file (the lab's certificate made here).
-    leaf_cert(&certs, "lab-metrology");
+    // Each role with its shipped file and the certificate `scripts/make-certs.sh` made for it.
     let op = role_file(&d, "zenoh-operator-tls.json5", "operator", port, &certs);
     let auditor = role_file(&d, "zenoh-auditor-tls.json5", "auditor", port, &certs);
     let app = role_file(&d, "zenoh-app-tls.json5", "app", port, &certs);
@@ -368,17 +348,35 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         ),
         "operator calib put v2",
     );
+    // The lab rolls back (its rights are an operator's) and reads the history.
     succeeded(
         cli(
             &d,
-            &op,
+            &lab,
             &["calib", "rollback", "--machine", "m1", "--to", "1"],
         ),
-        "operator calib rollback",
+        "lab calib rollback",
     );
     assert_eq!(versions(&d, &op, "m1"), 3);
-    // The lab reads the history as an operator does.
     assert_eq!(versions(&d, &lab, "m1"), 3, "the lab's history");
+    // The audit names who asked by the connection: the session's zenoh id and the subject of
+    // the certificate the router admitted, never `unknown`.
+    let out = cli(&d, &op, &["calib", "history", "--machine", "m1", "--json"]);
+    let h: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let by: Vec<&str> = h
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["audit"]["by"].as_str().unwrap())
+        .collect();
+    assert!(
+        by[..2]
+            .iter()
+            .all(|b| b.contains(", zenoh id ") && b.ends_with(", certificate CN operator"))
+            && by[2].ends_with(", certificate CN lab-metrology")
+            && by.iter().all(|b| !b.contains("unknown")),
+        "{by:#?}"
+    );
     // A controller asks its own machine's status, not another's, and reads no calibration.
     let c1_s = session(&c1).expect("controller-m1 connects");
     let answered = |key: &str| {

@@ -1,10 +1,22 @@
-//! Fail-over between two scancorrd instances (`failover.enabled`): a fleet of simulated machines
-//! streams through a router; instance A serves them, instance B (same store) stands by for
-//! them (corrects, withholds). A is stopped mid-run — SIGKILL (a crash) or SIGTERM (a planned
-//! hand-over) — and B takes every machine over: a consumer on the bus receives every point
-//! once, in order, `seq` without a gap, each equal to the offline correction of the machine's
-//! bag. The take-over time is measured at the consumer (the longest pause of a machine's
-//! points around the stop) and read from B's health (from the token's going to take-over).
+//! Fail-over between two scancorrd instances (`failover.enabled`), through two routers in a
+//! mesh: a fleet of simulated machines streams (`scancorr replay`, the controllers) into
+//! router R1, where a consumer listens to every machine's corrected points; instance A serves
+//! the machines, instance B (same store) stands by for them (corrects, withholds). Then:
+//!
+//! * A is stopped mid-run — SIGKILL (a crash) or SIGTERM (a planned hand-over) — with both
+//!   instances behind router R2 ([`FLEET`] machines);
+//! * router R2, the only way to A, is restarted mid-run (B on R1);
+//! * the link between R1 (A) and R2 (B) is cut mid-run (a partition: a TCP relay of the test's
+//!   own, the link the routers' mesh takes, stops), so that B takes the machines over on its
+//!   side while A goes on serving them on its own: both active, a split brain; the link is
+//!   then restored.
+//!
+//! Each time the consumer receives every point once, in order, `seq` without a gap, each equal
+//! to the offline correction of the machine's bag. The take-over time is measured at the
+//! consumer (the longest pause of a machine's points after the event) and read from the
+//! taking instance's health (from the token's going to take-over). The split brain is
+//! detected and reported by both instances (health's `split_brains`), and the instance active
+//! since later steps back without a point published twice.
 
 mod common;
 
@@ -12,13 +24,20 @@ use common::*;
 use scancorr_proto::v1::CorrectedPoint;
 use serde_json::Value;
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::io::{Read, Write};
+use std::net::{Shutdown, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
-/// Machines in the fleet.
-const MACHINES: usize = 10;
+/// Machines in the fleet (the SIGKILL and SIGTERM cases); the router restart and the
+/// partition take the first [`SMALL`]. At 50 machines every point arrived once, in order,
+/// equal to offline, but on this loaded 2-core machine B held 0.27–0.60 M points and the
+/// consumer paused 2.3–3.5 s (over the 2 s target): 20 here.
+const FLEET: usize = 20;
+const SMALL: usize = 10;
 
 /// A child process killed when dropped (a failing assertion leaves nothing running).
 struct Killed(Child);
@@ -30,16 +49,129 @@ impl Drop for Killed {
     }
 }
 
+impl Killed {
+    fn term(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.0.id().to_string()])
+            .status();
+        assert!(self.0.wait().unwrap().success(), "did not stop cleanly");
+    }
+    fn kill(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 fn name(k: usize) -> String {
     format!("fo{k:02}")
 }
 
-/// A scancorrd client of the router, fail-over on, the store shared (`data`).
-fn instance(d: &Path, bus: &str, tag: &str) -> Killed {
+/// The fleet's bags, calibrations and offline corrections, made once for every case (two
+/// makers at once).
+struct Fleet {
+    dir: PathBuf,
+    off: BTreeMap<String, Vec<CorrectedPoint>>,
+}
+
+fn fleet() -> &'static Fleet {
+    static FLEET_: OnceLock<Fleet> = OnceLock::new();
+    FLEET_.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!(
+            "scancorr-test-failover-fleet-{}",
+            std::process::id()
+        ));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let makers: Vec<_> = (0..2)
+            .map(|w| {
+                let dir = dir.clone();
+                std::thread::spawn(move || {
+                    let mut off = BTreeMap::new();
+                    for k in (w..FLEET).step_by(2) {
+                        let m = name(k);
+                        let seed = (4901 + k).to_string();
+                        ok(
+                            &dir,
+                            &[
+                                "sim",
+                                "--program",
+                                "ring",
+                                "--machine",
+                                &m,
+                                "--machine-seed",
+                                &seed,
+                                "--seed",
+                                &seed,
+                                "--out",
+                                &format!("{m}.mcap"),
+                                "--calib-out",
+                                &format!("{m}.json"),
+                            ],
+                        );
+                        ok(
+                            &dir,
+                            &[
+                                "correct",
+                                "--bag",
+                                &format!("{m}.mcap"),
+                                "--calib",
+                                &format!("{m}.json"),
+                                "--out",
+                                &format!("off-{m}.mcap"),
+                            ],
+                        );
+                        off.insert(m.clone(), points(&dir.join(format!("off-{m}.mcap"))));
+                    }
+                    off
+                })
+            })
+            .collect();
+        let mut off = BTreeMap::new();
+        for m in makers {
+            off.extend(m.join().expect("making the fleet"));
+        }
+        Fleet { dir, off }
+    })
+}
+
+/// The first `n` machines' calibrations in the store both instances share (`d/data`).
+fn seed_store(d: &Path, n: usize) {
+    let f = fleet();
+    let mut st = scancorrd::store::Store::open(&d.join("data")).unwrap();
+    for k in 0..n {
+        let text = std::fs::read_to_string(f.dir.join(format!("{}.json", name(k)))).unwrap();
+        st.put(scancorr_core::Calibration::from_json(&text).unwrap())
+            .unwrap();
+    }
+}
+
+/// A router listening on `port`, in a mesh with the router at `to` (retried every 0.1–0.2 s).
+fn router(d: &Path, tag: &str, port: u16, to: Option<u16>) -> Killed {
+    let connect = to.map_or(String::new(), |p| {
+        format!(", connect: {{ endpoints: ['tcp/127.0.0.1:{p}'], retry: {{ period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5 }} }}")
+    });
+    std::fs::write(
+        d.join(format!("{tag}.json5")),
+        format!("{{ mode: 'router', listen: {{ endpoints: ['tcp/127.0.0.1:{port}'] }}{connect}, scouting: {{ multicast: {{ enabled: false }}, gossip: {{ enabled: false }} }} }}"),
+    )
+    .unwrap();
+    let child = Command::new(scancorrd().with_file_name("scancorr-router"))
+        .args(["-c", &format!("{tag}.json5")])
+        .current_dir(d)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(d.join(format!("{tag}.log"))).unwrap())
+        .spawn()
+        .unwrap();
+    wait_listening(port, || format!("router {tag} did not start"));
+    Killed(child)
+}
+
+/// A scancorrd client of the router at `port`, fail-over on, the store shared (`data`).
+fn instance(d: &Path, port: u16, tag: &str) -> Killed {
     std::fs::write(
         d.join(format!("{tag}.json5")),
         format!(
-            "{{ mode: 'client', listen: [], connect: ['{bus}'], data_dir: 'data', machines: ['fo*'], allow_any_machine: false, failover: {{ enabled: true, grace_ms: 100 }} }}"
+            "{{ mode: 'client', listen: [], connect: ['tcp/127.0.0.1:{port}'], data_dir: 'data', machines: ['fo*'], allow_any_machine: false, failover: {{ enabled: true, grace_ms: 100 }} }}"
         ),
     )
     .unwrap();
@@ -54,9 +186,10 @@ fn instance(d: &Path, bus: &str, tag: &str) -> Killed {
     )
 }
 
-/// Every instance's health answer.
-fn health(d: &Path, bus: &str) -> Vec<Value> {
-    let out = run(d, &["health", "--json", "--connect", bus]);
+/// Every instance's health answer, asked through the router at `port`.
+fn health(d: &Path, port: u16) -> Vec<Value> {
+    let bus = format!("tcp/127.0.0.1:{port}");
+    let out = run(d, &["health", "--json", "--connect", &bus]);
     serde_json::from_slice::<Value>(&out.stdout)
         .ok()
         .and_then(|v| v.as_array().cloned())
@@ -64,113 +197,46 @@ fn health(d: &Path, bus: &str) -> Vec<Value> {
 }
 
 /// Waits until some instance's health satisfies `f`; returns that answer.
-fn wait_health(d: &Path, bus: &str, what: &str, f: impl Fn(&Value) -> bool) -> Value {
+fn wait_health(d: &Path, port: u16, what: &str, f: impl Fn(&Value) -> bool) -> Value {
     let t0 = Instant::now();
     loop {
-        let h = health(d, bus);
+        let h = health(d, port);
         if let Some(v) = h.iter().find(|v| f(v)) {
             return v.clone();
         }
         assert!(
-            t0.elapsed() < Duration::from_secs(15),
+            t0.elapsed() < Duration::from_secs(20),
             "no instance {what}: {h:?}"
         );
-        std::thread::sleep(Duration::from_millis(200));
+        std::thread::sleep(Duration::from_millis(100));
     }
+}
+
+/// Every machine of a health answer's fail-over block satisfies `f`.
+fn every(h: &Value, n: usize, f: impl Fn(&Value) -> bool) -> bool {
+    h["failover"]["machines"]
+        .as_object()
+        .is_some_and(|m| m.len() == n && m.values().all(f))
 }
 
 /// The points a consumer received per machine, with when each batch arrived.
 type Received = Arc<Mutex<BTreeMap<String, Vec<(Instant, Vec<CorrectedPoint>)>>>>;
 
-/// The fleet's bags and offline corrections (the same seeds for every test: the files are
-/// made in each test's own folder).
-fn fleet(d: &Path) -> BTreeMap<String, Vec<CorrectedPoint>> {
-    let mut off = BTreeMap::new();
-    for k in 0..MACHINES {
-        let m = name(k);
-        let seed = (4901 + k).to_string();
-        ok(
-            d,
-            &[
-                "sim",
-                "--program",
-                "ring",
-                "--machine",
-                &m,
-                "--machine-seed",
-                &seed,
-                "--seed",
-                &seed,
-                "--out",
-                &format!("{m}.mcap"),
-                "--calib-out",
-                &format!("{m}.json"),
-            ],
-        );
-        ok(
-            d,
-            &[
-                "correct",
-                "--bag",
-                &format!("{m}.mcap"),
-                "--calib",
-                &format!("{m}.json"),
-                "--out",
-                &format!("off-{m}.mcap"),
-            ],
-        );
-        off.insert(m.clone(), points(&d.join(format!("off-{m}.mcap"))));
-    }
-    off
+/// A consumer of the first `n` machines' corrected points on the router at `port`.
+struct Consumer {
+    rt: tokio::runtime::Runtime,
+    session: zenoh::Session,
+    _subs: Vec<zenoh::pubsub::Subscriber<()>>,
+    got: Received,
 }
 
-/// Runs the fleet through A (active) and B (standby), stops A mid-run with `stop`, and checks
-/// what the consumer received.
-fn failover(tag: &str, stop: impl FnOnce(&mut Killed)) {
-    // One fleet at a time (the machine has two cores).
-    static ONE: Mutex<()> = Mutex::new(());
-    let _one = ONE.lock().unwrap_or_else(|e| e.into_inner());
-    let d = scratch(tag);
-    let off = fleet(&d);
-    let port = free_port();
-    let bus = format!("tcp/127.0.0.1:{port}");
-    let _router = Killed(start_router(&d, port));
-    let mut a = instance(&d, &bus, "a");
-    wait_health(&d, &bus, "A answers", |_| true);
-    for k in 0..MACHINES {
-        let m = name(k);
-        let f = format!("{m}.json");
-        ok(
-            &d,
-            &[
-                "calib",
-                "put",
-                "--machine",
-                &m,
-                "--file",
-                &f,
-                "--connect",
-                &bus,
-            ],
-        );
-    }
-    let b = instance(&d, &bus, "b");
-    let hb = wait_health(&d, &bus, "standing by for every machine", |v| {
-        v["failover"]["standby"] == MACHINES
-    });
-    let b_zid = hb["zid"].as_str().unwrap().to_string();
-    let ha = wait_health(&d, &bus, "active for every machine", |v| {
-        v["failover"]["active"] == MACHINES
-    });
-    assert_ne!(ha["zid"], hb["zid"]);
-
-    // The consumer.
+fn consumer(port: u16, n: usize) -> Consumer {
     let got: Received = Arc::default();
     let rt = tokio::runtime::Runtime::new().unwrap();
-    let (session, _subs) = rt.block_on(async {
+    let (session, subs) = rt.block_on(async {
         let s = session(port).await;
         let mut subs = vec![];
-        for k in 0..MACHINES {
+        for k in 0..n {
             let m = name(k);
             let got = got.clone();
             subs.push(
@@ -196,48 +262,140 @@ fn failover(tag: &str, stop: impl FnOnce(&mut Killed)) {
         (s, subs)
     });
     std::thread::sleep(Duration::from_millis(500));
-    let replays: Vec<Killed> = (0..MACHINES)
+    Consumer {
+        rt,
+        session,
+        _subs: subs,
+        got,
+    }
+}
+
+impl Consumer {
+    /// Checks that every machine's points arrived once, in order, equal to the offline
+    /// correction; returns the longest pause of a machine's points after `after`, s.
+    fn judge(self, n: usize, after: Instant) -> f64 {
+        self.rt.block_on(async { self.session.close().await }).ok();
+        let got = self.got.lock().unwrap();
+        let mut longest = 0f64;
+        for k in 0..n {
+            let m = name(k);
+            let offline = &fleet().off[&m];
+            let batches = got.get(&m).map(|v| v.as_slice()).unwrap_or_default();
+            let pause = batches
+                .windows(2)
+                .filter(|w| w[1].0 > after)
+                .map(|w| (w[1].0 - w[0].0).as_secs_f64())
+                .fold(0f64, f64::max);
+            longest = longest.max(pause);
+            let live: Vec<&CorrectedPoint> = batches.iter().flat_map(|(_, b)| b).collect();
+            let bad_seq = live.iter().enumerate().find(|(i, p)| p.seq != *i as u64);
+            assert!(
+                bad_seq.is_none(),
+                "{m}: point {} has seq {} (a gap or a point twice); {} points",
+                bad_seq.unwrap().0,
+                bad_seq.unwrap().1.seq,
+                live.len()
+            );
+            assert_eq!(live.len(), offline.len(), "{m}: live vs offline points");
+            let differ = live.iter().zip(offline).position(|(a, b)| *a != b);
+            assert!(
+                differ.is_none(),
+                "{m}: live point {} differs from offline",
+                differ.unwrap()
+            );
+        }
+        longest
+    }
+}
+
+/// The controllers: one `scancorr replay` per machine into the router at `port`.
+fn replays(d: &Path, port: u16, n: usize, speed: &str) -> Vec<Killed> {
+    let bus = format!("tcp/127.0.0.1:{port}");
+    let f = fleet();
+    (0..n)
         .map(|k| {
             Killed(
                 Command::new(scancorr())
                     .args([
                         "replay",
                         "--bag",
-                        &format!("{}.mcap", name(k)),
+                        &f.dir
+                            .join(format!("{}.mcap", name(k)))
+                            .display()
+                            .to_string(),
                         "--speed",
-                        "4",
+                        speed,
                         "--connect",
                         &bus,
                     ])
-                    .current_dir(&d)
+                    .current_dir(d)
                     .stdout(Stdio::null())
                     .stderr(std::fs::File::create(d.join(format!("replay-{k}.log"))).unwrap())
                     .spawn()
                     .unwrap(),
             )
         })
-        .collect();
-    std::thread::sleep(Duration::from_millis(2000));
-    let stopped = Instant::now();
-    stop(&mut a);
+        .collect()
+}
+
+fn finish(replays: Vec<Killed>) {
     for mut r in replays {
         assert!(r.0.wait().unwrap().success(), "a replay failed");
     }
-    // B took every machine over.
-    let hb = wait_health(&d, &bus, "B active for every machine", |v| {
-        v["zid"] == b_zid.as_str() && v["failover"]["active"] == MACHINES
-    });
-    let took: Vec<f64> = hb["failover"]["machines"]
+}
+
+/// Take-over times from a health answer's fail-over block, ms (the largest).
+fn took_ms(h: &Value) -> f64 {
+    h["failover"]["machines"]
         .as_object()
         .unwrap()
         .values()
-        .map(|m| m["last_takeover_ms"].as_f64().unwrap())
-        .collect();
+        .filter_map(|m| m["last_takeover_ms"].as_f64())
+        .fold(0f64, f64::max)
+}
+
+/// One fleet at a time (the machine has two cores).
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static ONE: Mutex<()> = Mutex::new(());
+    ONE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Runs the fleet through A (active) and B (standby), both behind router R2, stops A mid-run
+/// with `stop`, and checks what the consumer on router R1 received.
+fn stop_the_active(tag: &str, stop: impl FnOnce(&mut Killed)) {
+    let n = FLEET;
+    fleet();
+    let _one = one_at_a_time();
+    let d = scratch(tag);
+    seed_store(&d, n);
+    let (p1, p2) = (free_port(), free_port());
+    let _r1 = router(&d, "r1", p1, None);
+    let _r2 = router(&d, "r2", p2, Some(p1));
+    let mut a = instance(&d, p2, "a");
+    let ha = wait_health(&d, p1, "active for every machine", |v| {
+        v["failover"]["active"] == n
+    });
+    let mut b = instance(&d, p2, "b");
+    let hb = wait_health(&d, p1, "standing by for every machine", |v| {
+        v["zid"] != ha["zid"] && v["failover"]["standby"] == n
+    });
+    let b_zid = hb["zid"].as_str().unwrap().to_string();
+
+    let c = consumer(p1, n);
+    let replays = replays(&d, p1, n, "4");
+    std::thread::sleep(Duration::from_millis(2000));
+    let stopped = Instant::now();
+    stop(&mut a);
+    finish(replays);
+    // B took every machine over.
+    let hb = wait_health(&d, p1, "B active for every machine", |v| {
+        v["zid"] == b_zid.as_str() && v["failover"]["active"] == n
+    });
     // What B published from what it held (the points A was not seen to publish), and that it
     // dropped none of it.
     let (mut released, mut overflow) = (0, 0);
-    for k in 0..MACHINES {
-        let st = rt.block_on(status(&session, &name(k)));
+    for k in 0..n {
+        let st = c.rt.block_on(status(&c.session, &name(k)));
         assert_eq!(st["failover"]["role"], "active", "{st}");
         let h = &st["output"]["standby"];
         released += h["released_points"].as_u64().unwrap();
@@ -246,46 +404,12 @@ fn failover(tag: &str, stop: impl FnOnce(&mut Killed)) {
     assert_eq!(overflow, 0, "B dropped held points");
     // B stops (no standby left: it flushes, as a single instance does).
     std::thread::sleep(Duration::from_millis(500));
-    let _ = Command::new("kill")
-        .args(["-TERM", &b.0.id().to_string()])
-        .status();
-    let mut b = b;
-    assert!(b.0.wait().unwrap().success());
+    b.term();
     std::thread::sleep(Duration::from_millis(300));
-    rt.block_on(async { session.close().await }).ok();
-
-    let got = got.lock().unwrap();
-    let mut longest = 0f64;
-    for (m, offline) in &off {
-        let batches = got.get(m).map(|v| v.as_slice()).unwrap_or_default();
-        // The longest pause between two batches after the stop, s.
-        let pause = batches
-            .windows(2)
-            .filter(|w| w[1].0 > stopped)
-            .map(|w| (w[1].0 - w[0].0).as_secs_f64())
-            .fold(0f64, f64::max);
-        longest = longest.max(pause);
-        let live: Vec<&CorrectedPoint> = batches.iter().flat_map(|(_, b)| b).collect();
-        let bad_seq = live.iter().enumerate().find(|(i, p)| p.seq != *i as u64);
-        assert!(
-            bad_seq.is_none(),
-            "{m}: point {} has seq {} (a gap or a point twice); {} points",
-            bad_seq.unwrap().0,
-            bad_seq.unwrap().1.seq,
-            live.len()
-        );
-        assert_eq!(live.len(), offline.len(), "{m}: live vs offline points");
-        let differ = live.iter().zip(offline).position(|(a, b)| *a != b);
-        assert!(
-            differ.is_none(),
-            "{m}: live point {} differs from offline",
-            differ.unwrap()
-        );
-    }
-    let took_max = took.iter().copied().fold(0f64, f64::max);
+    let longest = c.judge(n, stopped);
     eprintln!(
-        "{tag}: {MACHINES} machines, every point once, in order, equal to offline; take-over {:.0} ms at most after the token went (B's health), longest pause of a machine's points at the consumer {:.0} ms; {released} held points published by B at take-over",
-        took_max,
+        "{tag}: {n} machines through two routers, every point once, in order, equal to offline; take-over {:.0} ms at most after the token went (B's health), longest pause of a machine's points at the consumer {:.0} ms; {released} held points published by B at take-over",
+        took_ms(&hb),
         longest * 1e3
     );
     assert!(
@@ -298,20 +422,197 @@ fn failover(tag: &str, stop: impl FnOnce(&mut Killed)) {
 
 #[test]
 fn sigkill_of_the_active_instance_loses_no_point() {
-    failover("failover-kill", |a| {
-        let _ = a.0.kill();
-        let _ = a.0.wait();
-    });
+    stop_the_active("failover-kill", |a| a.kill());
 }
 
 #[test]
 fn sigterm_hands_the_machines_over_without_a_gap() {
-    failover("failover-term", |a| {
-        let _ = Command::new("kill")
-            .args(["-TERM", &a.0.id().to_string()])
-            .status();
-        assert!(a.0.wait().unwrap().success());
+    stop_the_active("failover-term", |a| a.term());
+}
+
+/// Router R2, A's only way to the bus, restarts mid-run: B (on R1, with the controllers and
+/// the consumer) takes over; A, back on the bus, stands by (it stepped back when it lost its
+/// router: no split brain).
+#[test]
+fn a_router_restart_moves_the_machines_to_the_standby() {
+    let n = SMALL;
+    fleet();
+    let _one = one_at_a_time();
+    let d = scratch("failover-restart");
+    seed_store(&d, n);
+    let (p1, p2) = (free_port(), free_port());
+    let _r1 = router(&d, "r1", p1, None);
+    let mut r2 = router(&d, "r2", p2, Some(p1));
+    let mut a = instance(&d, p2, "a");
+    let ha = wait_health(&d, p1, "active for every machine", |v| {
+        v["failover"]["active"] == n
     });
+    let a_zid = ha["zid"].as_str().unwrap().to_string();
+    let mut b = instance(&d, p1, "b");
+    let hb = wait_health(&d, p1, "standing by for every machine", |v| {
+        v["zid"] != a_zid.as_str() && v["failover"]["standby"] == n
+    });
+    let b_zid = hb["zid"].as_str().unwrap().to_string();
+
+    let c = consumer(p1, n);
+    let replays = replays(&d, p1, n, "2");
+    std::thread::sleep(Duration::from_millis(2000));
+    let restarted = Instant::now();
+    r2.kill();
+    std::thread::sleep(Duration::from_millis(300));
+    let _r2 = router(&d, "r2", p2, Some(p1));
+    // B active; A back on the bus, standing by, without a split brain.
+    let hb = wait_health(&d, p1, "B active for every machine", |v| {
+        v["zid"] == b_zid.as_str() && v["failover"]["active"] == n
+    });
+    let ha = wait_health(&d, p1, "A back, standing by for every machine", |v| {
+        v["zid"] == a_zid.as_str() && v["failover"]["standby"] == n
+    });
+    finish(replays);
+    assert!(every(&ha, n, |m| m["split_brains"] == 0), "{ha}");
+    assert!(
+        every(&hb, n, |m| m["split_brains"] == 0 && m["takeovers"] == 1),
+        "{hb}"
+    );
+    let log_a = std::fs::read_to_string(d.join("a.log")).unwrap();
+    assert!(log_a.contains("no router: stepping back"), "{log_a}");
+    // A stops (a standby: nothing to hand over), then B, flushing.
+    a.kill();
+    std::thread::sleep(Duration::from_millis(500));
+    b.term();
+    std::thread::sleep(Duration::from_millis(300));
+    let longest = c.judge(n, restarted);
+    eprintln!(
+        "router restart: {n} machines, every point once, in order, equal to offline; take-over {:.0} ms at most after the token went (B's health), longest pause at the consumer {:.0} ms",
+        took_ms(&hb),
+        longest * 1e3
+    );
+    assert!(
+        longest < 2.0,
+        "take-over took {longest:.2} s at the consumer"
+    );
+}
+
+/// A TCP relay on `listen` to `to` (the link between two routers), that the test cuts (every
+/// connection closed, new ones refused) and restores.
+struct Link {
+    cut: Arc<AtomicBool>,
+    open: Arc<Mutex<Vec<TcpStream>>>,
+}
+
+fn link(listen: u16, to: u16) -> Link {
+    let l = TcpListener::bind(("127.0.0.1", listen)).unwrap();
+    let cut = Arc::new(AtomicBool::new(false));
+    let open: Arc<Mutex<Vec<TcpStream>>> = Arc::default();
+    let (c, o) = (cut.clone(), open.clone());
+    std::thread::spawn(move || {
+        for s in l.incoming() {
+            let Ok(s) = s else { continue };
+            if c.load(Ordering::SeqCst) {
+                continue; // dropped: closed
+            }
+            let Ok(t) = TcpStream::connect(("127.0.0.1", to)) else {
+                continue;
+            };
+            let _ = (s.set_nodelay(true), t.set_nodelay(true));
+            let mut o = o.lock().unwrap();
+            for (mut from, mut into) in [
+                (s.try_clone().unwrap(), t.try_clone().unwrap()),
+                (t.try_clone().unwrap(), s.try_clone().unwrap()),
+            ] {
+                std::thread::spawn(move || {
+                    let mut buf = vec![0u8; 64 * 1024];
+                    while let Ok(k) = from.read(&mut buf) {
+                        if k == 0 || into.write_all(&buf[..k]).is_err() {
+                            break;
+                        }
+                    }
+                    let _ = (from.shutdown(Shutdown::Both), into.shutdown(Shutdown::Both));
+                });
+            }
+            o.extend([s, t]);
+        }
+    });
+    Link { cut, open }
+}
+
+impl Link {
+    fn cut(&self) {
+        self.cut.store(true, Ordering::SeqCst);
+        for s in self.open.lock().unwrap().drain(..) {
+            let _ = s.shutdown(Shutdown::Both);
+        }
+    }
+    fn restore(&self) {
+        self.cut.store(false, Ordering::SeqCst);
+    }
+}
+
+/// A partition between the instances: A (on R1, with the controllers and the consumer) and B
+/// (on R2) lose each other; B takes the machines over on its side, so both are active (a
+/// split brain, with no raw sample reaching B). When the link is back, each sees the other's
+/// active token: both report the split brain, B (active since later) steps back, and the
+/// consumer received every point once — none twice from B.
+#[test]
+fn a_partition_between_the_instances_is_a_split_brain_reported_and_no_point_doubled() {
+    let n = SMALL;
+    fleet();
+    let _one = one_at_a_time();
+    let d = scratch("failover-partition");
+    seed_store(&d, n);
+    let (p1, p2, pl) = (free_port(), free_port(), free_port());
+    let _r1 = router(&d, "r1", p1, None);
+    let wire = link(pl, p1);
+    let _r2 = router(&d, "r2", p2, Some(pl));
+    let mut a = instance(&d, p1, "a");
+    let ha = wait_health(&d, p1, "active for every machine", |v| {
+        v["failover"]["active"] == n
+    });
+    let a_zid = ha["zid"].as_str().unwrap().to_string();
+    let mut b = instance(&d, p2, "b");
+    let hb = wait_health(&d, p1, "standing by for every machine", |v| {
+        v["zid"] != a_zid.as_str() && v["failover"]["standby"] == n
+    });
+    let b_zid = hb["zid"].as_str().unwrap().to_string();
+
+    let c = consumer(p1, n);
+    let replays = replays(&d, p1, n, "2");
+    std::thread::sleep(Duration::from_millis(1500));
+    let cut = Instant::now();
+    wire.cut();
+    // B, alone on its side, takes the machines over (asked through R2).
+    wait_health(&d, p2, "B active on its side of the partition", |v| {
+        v["zid"] == b_zid.as_str() && v["failover"]["active"] == n
+    });
+    wire.restore();
+    // Both report the split brain; B steps back, A stays.
+    let hb = wait_health(&d, p1, "B standing by again after the split brain", |v| {
+        v["zid"] == b_zid.as_str()
+            && v["failover"]["standby"] == n
+            && every(v, n, |m| m["split_brains"].as_u64() >= Some(1))
+    });
+    let ha = wait_health(&d, p1, "A active, the split brain reported", |v| {
+        v["zid"] == a_zid.as_str()
+            && v["failover"]["active"] == n
+            && every(v, n, |m| m["split_brains"].as_u64() >= Some(1))
+            && v["failover"]["split_brain_now"] == 0
+    });
+    let healed = cut.elapsed();
+    finish(replays);
+    let log_b = std::fs::read_to_string(d.join("b.log")).unwrap();
+    assert!(log_b.contains("split brain"), "{log_b}");
+    // B stops (standing by), then A, flushing.
+    b.kill();
+    std::thread::sleep(Duration::from_millis(500));
+    a.term();
+    std::thread::sleep(Duration::from_millis(300));
+    c.judge(n, cut);
+    eprintln!(
+        "partition: {n} machines; B took over on its side, the split brain was reported by both ({} and {} split brains) and resolved {:.1} s after the cut; every point once, in order, equal to offline",
+        ha["failover"]["machines"].as_object().unwrap().values().filter_map(|m| m["split_brains"].as_u64()).sum::<u64>(),
+        hb["failover"]["machines"].as_object().unwrap().values().filter_map(|m| m["split_brains"].as_u64()).sum::<u64>(),
+        healed.as_secs_f64()
+    );
 }
 
 #[test]

@@ -281,18 +281,7 @@ fn two_instances_share_a_router_with_disjoint_and_overlapping_assignments() {
         &["machine `m1` is not served"],
     );
     std::thread::sleep(super_recheck());
-    ok(
-        &d,
-        &[
-            "replay",
-            "--bag",
-            "m2.mcap",
-            "--speed",
-            "max",
-            "--connect",
-            &bus,
-        ],
-    );
+    replay_max(&d, "m2.mcap", &bus);
     let t0 = Instant::now();
     let m2 = loop {
         let out = run(

@@ -95,18 +95,7 @@ fn metrics_audit_trail_and_rollback() {
     for _ in 0..2 {
         calib_put(&d, "m1", "v1.json", &bus);
     }
-    ok(
-        &d,
-        &[
-            "replay",
-            "--bag",
-            "r.mcap",
-            "--speed",
-            "max",
-            "--connect",
-            &bus,
-        ],
-    );
+    replay_max(&d, "r.mcap", &bus);
 
     // Rollback: version 1 current again, as version 3 with parent 2.
     let r: Value = serde_json::from_str(&ok(
@@ -177,19 +166,23 @@ fn metrics_audit_trail_and_rollback() {
         .map(|v| v["audit"]["action"].as_str().unwrap())
         .collect();
     assert_eq!(actions, ["put", "put", "rollback to v1"]);
-    // The requester's claim, or `unnamed` when it named no user ($USER and $LOGNAME unset):
-    // never a made-up `unknown`.
+    // The requester's claim with its session's zenoh id, the user `uid N` when $USER and
+    // $LOGNAME are unset: never a made-up `unknown`.
     let user = std::env::var("USER")
         .or_else(|_| std::env::var("LOGNAME"))
         .ok()
         .filter(|u| !u.is_empty())
-        .unwrap_or_else(|| "unnamed".into());
+        .unwrap_or_else(|| {
+            let s = std::fs::read_to_string("/proc/self/status").unwrap();
+            let uid = s.lines().find_map(|l| l.strip_prefix("Uid:")).unwrap();
+            format!("uid {}", uid.split_whitespace().next().unwrap())
+        });
     for v in h {
         let a = &v["audit"];
         let by = a["by"].as_str().unwrap();
         assert!(
             by.starts_with(&format!("{user}@"))
-                && by.contains("(claimed")
+                && by.contains("(claimed), zenoh id ")
                 && !by.contains("unknown"),
             "{a}"
         );
@@ -499,18 +492,7 @@ fn sigkill_mid_stream_keeps_the_history_and_the_database_intact() {
             .all(|v| v.get("damaged").is_none()),
         "{h}"
     );
-    ok(
-        &d,
-        &[
-            "replay",
-            "--bag",
-            "r.mcap",
-            "--speed",
-            "max",
-            "--connect",
-            &bus,
-        ],
-    );
+    replay_max(&d, "r.mcap", &bus);
     std::thread::sleep(Duration::from_millis(500));
     let st = status(&d, &bus);
     assert_eq!(st["samples_in"], 51829, "{st}");

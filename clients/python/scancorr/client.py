@@ -264,7 +264,7 @@ class Client:
             if payload is not None:
                 kw["payload"] = payload
             if who:
-                kw["attachment"] = _requester()
+                kw["attachment"] = _requester(self.session)
             for reply in self.session.get(selector, **kw):
                 if reply.ok is not None:
                     return reply.ok.payload.to_string()
@@ -377,16 +377,27 @@ class Client:
         self.close()
 
 
-def _requester() -> str:
-    """`user@host`, for the service's audit trail."""
+def _requester(session: Any = None) -> str:
+    """`user@host; zid=<this session's zenoh id>`, for the service's audit trail (as the CLI
+    sends it; the user is never made up: the login name, else `uid N`)."""
     import getpass
+    import os
     import socket
 
     try:
         user = getpass.getuser()
     except Exception:
-        user = "unknown"
-    return f"{user}@{socket.gethostname()}"
+        user = f"uid {os.getuid()}" if hasattr(os, "getuid") else ""
+    who = f"{user}@{socket.gethostname()}"
+    zid = None
+    try:
+        zid = str(session.info.zid()) if session is not None else None
+    except Exception:
+        try:
+            zid = str(session.zid())
+        except Exception:
+            zid = None
+    return f"{who}; zid={zid}" if zid else who
 
 
 def _looks_like_json(doc: Union[str, bytes]) -> bool:

@@ -4,6 +4,9 @@
 //! Thin by design: every command parses arguments, calls the libraries and prints. Errors are
 //! reported once, here, with their context chain.
 
+// The `bench fleet` JSON summary is one large `serde_json::json!`, deeper than the default 128.
+#![recursion_limit = "256"]
+
 #[macro_use]
 mod shared;
 mod commands;
@@ -152,6 +155,14 @@ enum Cmd {
         /// Print a JSON summary on stdout.
         #[arg(long)]
         json: bool,
+        /// Leave out the Foxglove channels `correct` also writes (corrected points and alarms
+        /// recorded, as `<prefix>/<machine>/foxglove/…`).
+        #[arg(long)]
+        no_foxglove: bool,
+        /// A bag whose program (`scancorr.program` record) gives the nominal features: the
+        /// Foxglove scene and each point's deviation (the record is copied into the bag).
+        #[arg(long, value_name = "BAG")]
+        nominal: Option<PathBuf>,
         #[command(flatten)]
         bus: bus::Bus,
     },
@@ -247,8 +258,19 @@ fn run(cli: Cli) -> Result<()> {
             idle,
             count,
             json,
+            no_foxglove,
+            nominal,
             bus,
-        } => commands::bus::record(keys, out, seconds, idle, count, json, bus),
+        } => commands::bus::record(
+            keys,
+            out,
+            seconds,
+            idle,
+            count,
+            json,
+            (no_foxglove, nominal),
+            bus,
+        ),
         Cmd::Tail {
             machine,
             seconds,

@@ -171,7 +171,7 @@ pub struct Truth {
     /// The calibration with every effect at its true parameters.
     pub true_calibration: Calibration,
     /// The true parameters under the names the calibration procedures print
-    /// (`tip2.l1_mm`, `tip1.radius_mm`, `tip2.alpha_per_k`, `tip2.probe_k_u`, …).
+    /// (`tip2.l1_mm`, `tip1.radius_mm`, `tip2.alpha_per_k`, `tip2.probe_k_u_mm_per_mm`, …).
     pub params: BTreeMap<String, f64>,
 }
 
@@ -237,7 +237,7 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
         p.insert(format!("{t}.radius_mm"), s.radius_mm);
         p.insert(format!("{t}.alpha_per_k"), s.alpha_per_k);
         for (a, k) in ["u", "v", "w"].iter().zip(m.probe_k) {
-            p.insert(format!("{t}.probe_k_{a}"), k * s.bend_scale);
+            p.insert(format!("{t}.probe_k_{a}_mm_per_mm"), k * s.bend_scale);
         }
     }
     // The scales' expansion, as `calibrate scales` prints it.

@@ -11,6 +11,10 @@
 //!   (a number) one in `mm`. [`expression_dim`] works out the expression's dimension from the
 //!   signals' units ([`signal_dim`]); [`coefficient_unit`] states the coefficient's.
 //!
+//! * A **JSON output** is walked key by key by [`check_json`]: every number's key states its
+//!   unit or is a count, id or ratio of [`NUMBER_KEYS`] (`tests/tests/cli_units.rs` walks the
+//!   CLI's outputs).
+//!
 //! Dimensions are powers of length (mm), time (s) and temperature (K); angles, counts and ids
 //! are numbers.
 
@@ -35,14 +39,26 @@ pub const PARAMETER_UNITS: &[(&str, &str)] = &[
         "deflection per deflection (probe-force compliance)",
     ),
     ("µm/mm", "micrometres per millimetre of deflection"),
-    ("mm per mm/s²", "deflection per acceleration"),
+    (
+        "mm per mm/s²",
+        "deflection per acceleration (s²; 1 mm per mm/s² = 10⁶ µm per m/s²)",
+    ),
+    (
+        "µm per m/s²",
+        "deflection per acceleration, engineering unit",
+    ),
     ("s", "time"),
     ("Hz", "frequency"),
+    ("ppm", "relative length, parts per million"),
     ("1", "a number"),
 ];
 
 /// JSON keys and CSV columns: the suffix that states the unit, longest first.
 pub const KEY_SUFFIXES: &[(&str, &str)] = &[
+    // P, the deflection per acceleration: as stored (s², the effect's `mm per mm/s²`) or in
+    // the engineering unit (1 mm per mm/s² = 10⁶ µm per m/s²).
+    ("_mm_per_mm_s2", "mm per mm/s²"),
+    ("_um_per_m_s2", "µm per m/s²"),
     ("_um_per_mm", "µm/mm"),
     ("_mm_per_mm", "mm/mm"),
     ("_rad_per_hz2", "rad/Hz²"),
@@ -54,6 +70,7 @@ pub const KEY_SUFFIXES: &[(&str, &str)] = &[
     ("_per_k", "1/K"),
     ("_mm_s2", "mm/s²"),
     ("_mm_s", "mm/s"),
+    ("_ppm", "ppm"),
     ("_urad", "µrad"),
     ("_rad", "rad"),
     ("_deg", "°"),
@@ -68,13 +85,221 @@ pub const KEY_SUFFIXES: &[(&str, &str)] = &[
     ("_k", "K"),
 ];
 
-/// The unit a JSON key or CSV column states by its suffix (`radius_um` → `µm`).
+/// Keys that are their own unit (`seconds`: s).
+pub const UNIT_KEYS: &[(&str, &str)] = &[("seconds", "s"), ("ppm", "ppm")];
+
+/// The unit a JSON key or CSV column states by its suffix (`radius_um` → `µm`). A key's
+/// standard uncertainty is the key with `_u` or `_sigma` after it (`pitch_rad_u`), in the same
+/// unit.
 pub fn key_unit(key: &str) -> Option<&'static str> {
     let k = key.to_ascii_lowercase();
+    // `…_mm_u`, `…_rad_sigma`: not after a one-letter unit (`probe_k_u` is no kelvin).
+    let k = ["_u", "_sigma"]
+        .iter()
+        .find_map(|s| {
+            k.strip_suffix(s).filter(|b| {
+                KEY_SUFFIXES
+                    .iter()
+                    .any(|(x, _)| x.len() > 2 && b.ends_with(x) && b.len() > x.len())
+            })
+        })
+        .unwrap_or(&k);
+    if let Some((_, u)) = UNIT_KEYS.iter().find(|(n, _)| *n == k) {
+        return Some(u);
+    }
     KEY_SUFFIXES
         .iter()
         .find(|(s, _)| k.ends_with(s) && k.len() > s.len())
         .map(|(_, u)| *u)
+}
+
+/// JSON keys whose values are numbers without a unit: counts, ids, versions, orders, fractions,
+/// statistics. A key is one of these when it is listed, or ends (after `_`) or starts (before
+/// `_`) with one of [`NUMBER_KEY_WORDS`].
+pub const NUMBER_KEYS: &[&str] = &[
+    "version",
+    "parent_version",
+    "calibration_version",
+    "tip",
+    "reference_tip",
+    "id",
+    "bag",
+    "degree",
+    "order",
+    "powers",
+    "segments",
+    "k",
+    "explained",
+    "delta_bic",
+    "direction",
+    "feature",
+    "probes",
+    "alarms",
+    "seed",
+    "machine_seed",
+    "sigma_scale",
+    "birge",
+    "stations",
+    "r2",
+    "harmonic",
+];
+
+/// Keys of objects of counts (`"dropped": {"no_arc": 3}`): every key inside is a count.
+pub const COUNT_MAPS: &[&str] = &["dropped", "effect_points", "counts", "samples"];
+
+/// Words that make a key a count or another number (`points`, `n_scans`, `cell_chi2`,
+/// `clear_fraction`, `max_gap_periods`).
+pub const NUMBER_KEY_WORDS: &[&str] = &[
+    "points", "samples", "readings", "messages", "resets", "scans", "count", "total", "n", "id",
+    "index", "seq", "version", "order", "pending", "periods", "fraction", "ratio", "chi2", "bic",
+    "aic", "dof", "unpaired", "flagged", "knots", "folds", "rank", "cond", "seed",
+];
+
+/// Whether a key holds a number without a unit (see [`NUMBER_KEYS`]).
+pub fn key_is_number(key: &str) -> bool {
+    let k = key.to_ascii_lowercase();
+    NUMBER_KEYS.contains(&k.as_str())
+        || NUMBER_KEY_WORDS.iter().any(|w| {
+            k == *w
+                || k.strip_suffix(w)
+                    .is_some_and(|b| b.ends_with('_') || b.ends_with('.'))
+                || k.strip_prefix(w).is_some_and(|b| b.starts_with('_'))
+        })
+}
+
+/// Checks a JSON key that holds a number: it states its unit by its suffix ([`key_unit`]), is a
+/// parameter's name with its unit ([`check_name`]), or is a number ([`key_is_number`]).
+/// `Ok(Some(unit))`, `Ok(None)` for a number.
+pub fn check_key(key: &str) -> Result<Option<&str>, String> {
+    if key.trim_end().ends_with(')') {
+        return check_name(key).map(Some);
+    }
+    if let Some(u) = key_unit(key) {
+        return Ok(Some(u));
+    }
+    if key_is_number(key) {
+        return Ok(None);
+    }
+    Err(format!(
+        "`{key}` holds a physical value? It states no unit (a suffix of the table: `_um`, `_mm_s`, …) and is no count, id or ratio of the table"
+    ))
+}
+
+/// Keys of an object named by its `name` (`{"name": "P[x][x] (mm per mm/s²)", "value": …,
+/// "sigma": …}`): their values are in the name's unit.
+pub const NAMED_VALUE_KEYS: &[&str] = &[
+    "value",
+    "sigma",
+    "sigma_stat",
+    "penalty_shift",
+    "fold_spread",
+    "truth",
+    "true",
+    "error",
+    "before",
+    "after",
+    "start",
+    "fitted",
+    "mean",
+    "min",
+    "max",
+];
+
+fn is_numeric(v: &serde_json::Value) -> bool {
+    match v {
+        serde_json::Value::Number(_) => true,
+        serde_json::Value::Array(a) => {
+            a.iter().any(|x| !x.is_null()) && a.iter().all(|x| x.is_null() || is_numeric(x))
+        }
+        _ => false,
+    }
+}
+
+/// Walks every key of a JSON output and returns what states no unit (each with its path):
+/// a key holding a number that is neither suffixed with a unit, nor a parameter's name with a
+/// unit, nor a count, id or ratio ([`check_key`]); a parameter's `name` without a unit of the
+/// table. Inside an object under a key that states a unit (`"error_at_f1_um": {"max": …}`) or
+/// is a count (`"dropped": {"no_arc": 3}`), the keys inherit it; in an object with a `name`,
+/// [`NAMED_VALUE_KEYS`] are in the name's unit. A calibration document's effects (objects with
+/// a `kind` under `effects`) state their parameters' units by their parameter names
+/// (`Effect::param_names`, checked against [`check_name`] by the effects' own test and by
+/// the CLI units test): they are not walked here.
+pub fn check_json(v: &serde_json::Value) -> Vec<String> {
+    let mut bad = vec![];
+    walk(v, "", false, &mut bad);
+    bad
+}
+
+fn walk(v: &serde_json::Value, path: &str, inherited: bool, bad: &mut Vec<String>) {
+    use serde_json::Value;
+    match v {
+        Value::Object(o) => {
+            let name = ["name", "param", "parameter"]
+                .iter()
+                .find_map(|k| o.get(*k).and_then(|n| n.as_str()));
+            let named = match name {
+                Some(n) if o.keys().any(|k| NAMED_VALUE_KEYS.contains(&k.as_str())) => {
+                    // `effect: name (unit)` or `tip1.radius_mm`.
+                    let bare = n.rsplit(": ").next().unwrap_or(n);
+                    let ok = check_name(bare).is_ok() || key_unit(bare).is_some();
+                    if !ok {
+                        bad.push(format!(
+                            "{path}: parameter `{n}` states no unit of the table"
+                        ));
+                    }
+                    true
+                }
+                _ => false,
+            };
+            for (k, x) in o {
+                let p = format!("{path}.{k}");
+                if k == "effects"
+                    && x.as_array()
+                        .is_some_and(|a| a.iter().all(|e| e.get("kind").is_some()))
+                {
+                    continue;
+                }
+                let keyed = check_key(k);
+                if let Err(m) = &keyed {
+                    if k.trim_end().ends_with(')') {
+                        bad.push(format!("{p}: {m}"));
+                        continue;
+                    }
+                }
+                let ok =
+                    keyed.is_ok() || inherited || (named && NAMED_VALUE_KEYS.contains(&k.as_str()));
+                if is_numeric(x) {
+                    if !ok {
+                        bad.push(format!("{p}: {}", keyed.unwrap_err()));
+                    }
+                } else {
+                    let inherit =
+                        inherited || key_unit(k).is_some() || COUNT_MAPS.contains(&k.as_str());
+                    walk(x, &p, inherit, bad);
+                }
+            }
+        }
+        Value::Array(a) => {
+            for x in a {
+                walk(x, &format!("{path}[]"), inherited, bad);
+            }
+        }
+        Value::String(s) if !inherited => {
+            // A parameter named in a list (`"servo_phase: φ_z b1 (rad/Hz)"`).
+            if let Some((effect, name)) = s.split_once(": ") {
+                let effect_like = !effect.is_empty()
+                    && effect
+                        .chars()
+                        .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_');
+                if effect_like && name.len() < 60 && name.ends_with(')') && !name.contains(": ") {
+                    if let Err(m) = check_name(name) {
+                        bad.push(format!("{path}: {effect}: {m}"));
+                    }
+                }
+            }
+        }
+        _ => {}
+    }
 }
 
 /// The unit a parameter's name states: the text in its last parentheses (`k_u (mm/mm)` →
@@ -275,6 +500,31 @@ mod tests {
     }
 
     #[test]
+    fn the_json_walk_finds_what_states_no_unit() {
+        let v: serde_json::Value = serde_json::from_str(
+            r#"{"version": 3, "points": 10, "rms_um": 0.1, "pitch_rad_u": [1e-6],
+                "error_at_f1_um": {"max": 1.0}, "dropped": {"no_arc": 2},
+                "params": {"tip1.radius_mm": 1.5, "k_u (mm/mm)": 0.01},
+                "rotation": [{"name": "rotation_x_rad", "value": 1e-5, "sigma": 1e-6}],
+                "unidentifiable": ["servo_phase: φ_z b1 (rad/Hz)"],
+                "effects": [{"kind": "probe_force", "k": [0.01, 0.01, 0.005]}]}"#,
+        )
+        .unwrap();
+        assert_eq!(check_json(&v), Vec::<String>::new());
+        let v: serde_json::Value = serde_json::from_str(
+            r#"{"stiffness": 0.01, "params": {"tip1.probe_k_u": 0.01, "k (furlongs)": 1},
+                "fit": [{"name": "k_u", "value": 0.01}],
+                "unidentifiable": ["servo_phase: φ_z b1 (rad/s)"]}"#,
+        )
+        .unwrap();
+        let bad = check_json(&v);
+        assert_eq!(bad.len(), 5, "{bad:#?}");
+        for needle in ["stiffness", "probe_k_u", "furlongs", "`k_u`", "rad/s"] {
+            assert!(bad.iter().any(|b| b.contains(needle)), "{needle}: {bad:#?}");
+        }
+    }
+
+    #[test]
     fn keys_state_their_unit_by_suffix() {
         assert_eq!(key_unit("radius_at_zero_force_mm"), Some("mm"));
         assert_eq!(key_unit("circularity_um"), Some("µm"));
@@ -282,6 +532,16 @@ mod tests {
         assert_eq!(key_unit("k_um_per_mm"), Some("µm/mm"));
         assert_eq!(key_unit("alpha_per_k"), Some("1/K"));
         assert_eq!(key_unit("points"), None);
+        assert_eq!(key_unit("pitch_rad_u"), Some("rad"));
+        assert_eq!(key_unit("tip1.probe_k_u"), None);
+        assert_eq!(key_unit("tip1.probe_k_u_mm_per_mm"), Some("mm/mm"));
+        assert_eq!(key_unit("seconds"), Some("s"));
+        assert_eq!(key_unit("dynamics.P_xx_um_per_m_s2"), Some("µm per m/s²"));
+        assert_eq!(key_unit("P_xx_mm_per_mm_s2"), Some("mm per mm/s²"));
+        assert!(
+            key_is_number("n_scans") && key_is_number("cell_chi2") && key_is_number("feature_id")
+        );
+        assert!(!key_is_number("noise_floor") && !key_is_number("stiffness"));
         assert_eq!(name_unit("k_u (mm/mm)"), Some("mm/mm"));
         assert_eq!(name_unit("P[0][x]x (mm per mm/s²)"), Some("mm per mm/s²"));
         assert!(check_name("k_u").is_err() && check_name("k_u (furlongs)").is_err());

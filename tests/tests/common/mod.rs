@@ -114,6 +114,15 @@ pub fn ok(dir: &Path, args: &[&str]) -> String {
     String::from_utf8(o.stdout).unwrap()
 }
 
+/// Replays `bag` onto the bus at `bus` as fast as it goes (`scancorr replay --speed max`); its
+/// output. A failed replay fails the test.
+pub fn replay_max(dir: &Path, bag: &str, bus: &str) -> String {
+    ok(
+        dir,
+        &["replay", "--bag", bag, "--speed", "max", "--connect", bus],
+    )
+}
+
 /// `scancorr calib put --machine M --file F --connect BUS`, expected to succeed: its output.
 pub fn calib_put(dir: &Path, machine: &str, file: &str, bus: &str) -> String {
     ok(
@@ -606,4 +615,30 @@ pub fn python() -> PathBuf {
     );
     assert!(py.is_file(), "no interpreter: {}", py.display());
     py
+}
+
+/// Every topic, or topic and message path (`topic.field…`), that the shipped Foxglove layout
+/// (`deploy/foxglove/scancorr-layout.json`) names: its strings, keys and values, that begin
+/// with the default prefix `cmm/`.
+pub fn foxglove_layout_paths() -> Vec<String> {
+    fn walk(v: &serde_json::Value, out: &mut Vec<String>) {
+        match v {
+            serde_json::Value::String(s) if s.starts_with("cmm/") => out.push(s.clone()),
+            serde_json::Value::Array(a) => a.iter().for_each(|x| walk(x, out)),
+            serde_json::Value::Object(o) => {
+                for (k, x) in o {
+                    if k.starts_with("cmm/") {
+                        out.push(k.clone());
+                    }
+                    walk(x, out);
+                }
+            }
+            _ => {}
+        }
+    }
+    let path = root().join("deploy/foxglove/scancorr-layout.json");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut out = vec![];
+    walk(&serde_json::from_str(&text).unwrap(), &mut out);
+    out
 }

@@ -40,9 +40,58 @@ pub fn health(json: bool, bus: bus::Bus) -> Result<()> {
                     list.join(", ")
                 )?;
             }
+            for line in failover_lines(&h["failover"]) {
+                outln!("{line}")?;
+            }
         }
     }
     Ok(())
+}
+
+/// `health`'s fail-over block (`failover` on): per machine, whether this instance is active
+/// or standing by, since when, its take-overs and split brains.
+fn failover_lines(f: &serde_json::Value) -> Vec<String> {
+    let Some(machines) = f["machines"].as_object() else {
+        return vec![];
+    };
+    let mut out = vec![format!(
+        "  fail-over: active for {} machine(s), standing by for {}{}",
+        f["active"],
+        f["standby"],
+        match f["split_brain_now"].as_u64() {
+            Some(n) if n > 0 => format!(", SPLIT BRAIN now for {n} (another instance active too)"),
+            _ => String::new(),
+        }
+    )];
+    for (m, v) in machines {
+        let since = v["since_unix_ms"]
+            .as_u64()
+            .map(|ms| scancorr_core::calib::rfc3339_utc((ms / 1000) as i64))
+            .unwrap_or_else(|| "?".into());
+        let mut line = format!(
+            "    {m}: {} since {since} ({} s)",
+            v["role"].as_str().unwrap_or("?"),
+            v["for_s"]
+        );
+        if let Some(o) = v["other_active"].as_array().filter(|o| !o.is_empty()) {
+            let ids: Vec<&str> = o.iter().filter_map(|x| x.as_str()).collect();
+            line += &format!(", active elsewhere: {}", ids.join(", "));
+        }
+        if let Some(n) = v["standbys"].as_u64().filter(|n| *n > 0) {
+            line += &format!(", {n} standby");
+        }
+        if let Some(n) = v["takeovers"].as_u64().filter(|n| *n > 0) {
+            line += &format!(
+                ", {n} take-over(s), the last in {} ms",
+                v["last_takeover_ms"]
+            );
+        }
+        if let Some(n) = v["split_brains"].as_u64().filter(|n| *n > 0) {
+            line += &format!(", {n} split brain(s)");
+        }
+        out.push(line);
+    }
+    out
 }
 
 /// `scancorr status`: one machine, or (without `--machine`) the machines served.
@@ -105,6 +154,7 @@ pub fn record(
     idle: Option<f64>,
     count: Option<u64>,
     json: bool,
+    foxglove: (bool, Option<PathBuf>),
     bus: bus::Bus,
 ) -> Result<()> {
     let bound = bus::Bound {
@@ -112,7 +162,14 @@ pub fn record(
         idle,
         count,
     };
-    let n = bus::record(&bus, &keys, &out, bound)?;
+    use crate::shared::foxglove::{BusSinks, Nominal};
+    let (no_foxglove, nominal) = foxglove;
+    if no_foxglove && nominal.is_some() {
+        anyhow::bail!("--nominal gives the Foxglove channels' deviations: not with --no-foxglove");
+    }
+    let nominal = nominal.map(|b| Nominal::from_bag("--nominal", &b)).transpose()?;
+    let sinks = (!no_foxglove).then(|| BusSinks::new(&bus.prefix, nominal));
+    let n = bus::record(&bus, &keys, &out, bound, sinks)?;
     if json {
         outln!(
             "{}",

@@ -1,12 +1,13 @@
 //! `scancorr view`: the bus's corrected points and alarms live in Foxglove — a Foxglove
 //! WebSocket server on localhost (`shared::foxglove_ws`) fed by a zenoh client of the bus, on
-//! any machine that reaches it; scancorrd does nothing more for it.
+//! any machine that reaches it; scancorrd does nothing more for it. With `--raw`, the machine's
+//! raw streams too, as they are on the bus (our own protobuf batches, schema advertised).
 
 use crate::shared::bus::Bus;
 use crate::shared::foxglove::Nominal;
 use crate::shared::foxglove_ws::{Server, SUBPROTOCOL};
-use anyhow::{Context, Result};
-use scancorr_bag::{BagReader, Stream};
+use anyhow::Result;
+use scancorr_bag::Stream;
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::mpsc;
@@ -28,24 +29,15 @@ pub struct Args {
     /// features: the scene and each point's deviation. Without it, no deviations.
     #[arg(long, value_name = "BAG")]
     pub nominal: Option<PathBuf>,
+    /// Also serve the raw streams (commanded path, scales, probe, temperatures, distance,
+    /// stage) as channels named by their bus keys, schema our `scancorr.v1` batch messages.
+    #[arg(long)]
+    pub raw: bool,
     /// Stop after this many seconds (default: run until interrupted).
     #[arg(long)]
     pub seconds: Option<f64>,
     #[command(flatten)]
     pub bus: Bus,
-}
-
-fn nominal_of(bag: &std::path::Path) -> Result<Nominal> {
-    let r = BagReader::open(bag).with_context(|| format!("--nominal {}", bag.display()))?;
-    let records = r.metadata().iter().map(|m| (m.name.as_str(), &m.entries));
-    Nominal::from_metadata(records)
-        .with_context(|| format!("--nominal {}", bag.display()))?
-        .with_context(|| {
-            format!(
-                "--nominal {}: the bag has no scancorr.program record, so no nominal features",
-                bag.display()
-            )
-        })
 }
 
 /// Runs `scancorr view`.
@@ -57,8 +49,11 @@ pub fn exec(a: Args) -> Result<()> {
     if let Some(s) = a.seconds {
         anyhow::ensure!(s.is_finite() && s > 0.0, "--seconds must be > 0, got {s}");
     }
-    let nominal = a.nominal.as_deref().map(nominal_of).transpose()?;
-    let mut server = Server::new(&a.bus.prefix, nominal);
+    let nominal = a.nominal.as_deref();
+    let nominal = nominal
+        .map(|b| Nominal::from_bag("--nominal", b))
+        .transpose()?;
+    let mut server = Server::new(&a.bus.prefix, nominal, a.raw);
     for m in &a.machine {
         server.announce_machine(m);
     }
@@ -80,7 +75,8 @@ pub fn exec(a: Args) -> Result<()> {
     };
     let mut subs = vec![];
     for m in &machines {
-        for s in [Stream::Points, Stream::Alarms] {
+        let raw: &[Stream] = if a.raw { &Stream::RAW } else { &[] };
+        for &s in Stream::OUTPUT.iter().chain(raw) {
             let tx = tx.clone();
             let sub = session
                 .declare_subscriber(s.key(&a.bus.prefix, m))
@@ -120,7 +116,7 @@ pub fn exec(a: Args) -> Result<()> {
     drop(subs);
     let _ = session.close().wait();
     eprintln!(
-        "view: served {n} message(s) from the bus ({other} not read: neither points nor alarms, or malformed); {} dropped for clients that fell behind",
+        "view: served {n} message(s) from the bus ({other} not read: not a stream served, or malformed); {} dropped for clients that fell behind",
         server.dropped.load(Ordering::Relaxed)
     );
     Ok(())

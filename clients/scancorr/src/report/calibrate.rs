@@ -181,8 +181,6 @@ pub fn probe_force(
         // Each value in the unit its name states (the units table of the core).
         let unit = scancorr_core::units::key_unit(&p.name)
             .or_else(|| scancorr_core::units::name_unit(&p.name))
-            // `tipN.probe_k_u`: mm of error per mm of deflection (the core's doc).
-            .or_else(|| p.name.contains(".probe_k_").then_some("mm/mm"))
             .unwrap_or("—");
         let _ = write!(
             body,

@@ -4,11 +4,12 @@ use super::svg::value_sigma;
 use super::svg::{
     bars, colour_keys, esc, page, polar, polar_over, scale_of, xy, PolarScale, Series,
 };
-use scancorr_core::lab::analysis::{Comparison, Diagnosis};
+use scancorr_core::lab::analysis::{CandidateReport, Comparison, Diagnosis, Move};
 use scancorr_core::lab::dataset::Dataset;
 use scancorr_core::lab::traces::Trace;
 use scancorr_core::Calibration;
 use serde::Serialize;
+use std::collections::BTreeMap;
 use std::fmt::Write;
 
 /// One calibration version in the history.
@@ -280,15 +281,79 @@ pub fn compare(
     page("scancorr lab — compare", &body)
 }
 
+/// The model's effects by id, each named by its library variant (`accel_deflection:full,order=1`)
+/// where one matches it, else by its kind: what a swap replaces, so that a swap of one variant
+/// for another never reads `accel_deflection for accel_deflection`.
+pub fn model_variants(cal: &Calibration, ds: &Dataset) -> BTreeMap<String, String> {
+    use scancorr_core::lab::candidates::{library_candidates, variant_key};
+    let library = library_candidates(ds);
+    cal.effects
+        .iter()
+        .map(|e| {
+            let key = variant_key(e);
+            let name = library
+                .iter()
+                .find(|(_, c)| c.kind() == e.kind() && variant_key(c) == key)
+                .map(|(n, _)| n.clone())
+                .unwrap_or_else(|| format!("{} (its own variant)", e.kind()));
+            (e.id(), name)
+        })
+        .collect()
+}
+
+/// A candidate's row label: `servo_gain` (added), `accel_deflection for
+/// accel_deflection:full,order=1` (swapped: the variant brought in for the model's),
+/// `drop probe_force`.
+pub fn candidate_label(c: &CandidateReport, model: &BTreeMap<String, String>) -> String {
+    match (&c.action, &c.replaces) {
+        (Move::Swap, Some(r)) => {
+            let was = model.get(r).cloned().unwrap_or_else(|| r.clone());
+            format!("{} for {was}", c.effect)
+        }
+        (Move::Drop, _) => format!("drop {}", c.effect),
+        _ => c.effect.clone(),
+    }
+}
+
+/// A diagnosis as every output shows it: the significant candidates first, each group by the
+/// held-out residual explained (largest first, then by label); a candidate whose label repeats
+/// an earlier one's is left out (the better of the two is kept), and so is a repeated note of
+/// what was not tested.
+pub fn tidy_diagnosis(d: &mut Diagnosis, model: &BTreeMap<String, String>) {
+    d.candidates.sort_by(|a, b| {
+        b.significant
+            .cmp(&a.significant)
+            .then(b.explained.total_cmp(&a.explained))
+            .then_with(|| candidate_label(a, model).cmp(&candidate_label(b, model)))
+    });
+    let mut seen = std::collections::BTreeSet::new();
+    d.candidates
+        .retain(|c| seen.insert(candidate_label(c, model)));
+    let mut seen = std::collections::BTreeSet::new();
+    d.skipped.retain(|s| seen.insert(s.clone()));
+}
+
 /// `lab diagnose --report`.
-pub fn diagnose(cal: &Calibration, ds: &Dataset, cmp: &Comparison, d: &Diagnosis) -> String {
+pub fn diagnose(
+    cal: &Calibration,
+    ds: &Dataset,
+    cmp: &Comparison,
+    d: &Diagnosis,
+    model: &BTreeMap<String, String>,
+) -> String {
     let mut body = summary(cal, cmp);
     body += "<h2>Candidate effects, ranked by held-out residual explained</h2>";
     let rows: Vec<(String, f64, bool)> = d
         .candidates
         .iter()
         .take(15)
-        .map(|c| (c.effect.clone(), c.explained * 100.0, c.significant))
+        .map(|c| {
+            (
+                candidate_label(c, model),
+                c.explained * 100.0,
+                c.significant,
+            )
+        })
         .collect();
     body += &format!("<figure>{}<figcaption>Explained fraction of the held-out residual (red: significant)</figcaption></figure>", bars("ranking", &rows, "%", None));
     body += "<table><tr><th>candidate</th><th>explained</th><th>significant</th><th>held-out µm</th><th>fit µm</th><th>ΔBIC</th><th>parameters</th></tr>";
@@ -296,7 +361,7 @@ pub fn diagnose(cal: &Calibration, ds: &Dataset, cmp: &Comparison, d: &Diagnosis
         let _ = write!(
             body,
             "<tr><td>{}</td><td>{:.1} %</td><td>{}</td><td>{:.3} → {:.3}</td><td>{:.3} → {:.3}</td><td>{:.0}</td><td>{}</td></tr>",
-            esc(&c.effect),
+            esc(&candidate_label(c, model)),
             c.explained * 100.0,
             if c.significant { "yes" } else { "no" },
             c.heldout_rms_before_um,

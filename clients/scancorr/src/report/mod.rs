@@ -10,5 +10,6 @@ pub mod thermal;
 
 pub use calibrate::{dynamic_map, dynamics, probe_force, straightness, tips};
 pub use lab::{add, compare, diagnose, discover, history, history_text, HistoryRow};
+pub use lab::{candidate_label, model_variants, tidy_diagnosis};
 pub use svg::value_sigma;
 pub use thermal::thermal_drift;

@@ -286,23 +286,70 @@ fn one_line(s: &str) -> String {
     }
 }
 
-/// Who is asking, for the service's audit trail: `$USER@host` (what the operator's session
-/// says; the router's access control has checked the certificate's role).
-pub fn requester() -> String {
+/// Who is asking, for the service's audit trail, from this session and its connection:
+/// `user@host; zid=<this session's zenoh id>; cn=<the subject's common name of the certificate
+/// it connects with>` (the certificate the router's access control admitted, read from the
+/// zenoh configuration's `connect_certificate`; no `cn` without TLS). The user is `$USER`,
+/// else `$LOGNAME`, else the process's `uid N` — never a made-up name.
+pub fn requester(zid: &str, cn: Option<&str>) -> String {
     let user = std::env::var("USER")
         .or_else(|_| std::env::var("LOGNAME"))
-        .unwrap_or_else(|_| "unknown".into());
+        .ok()
+        .filter(|u| !u.trim().is_empty())
+        .or_else(|| {
+            std::fs::read_to_string("/proc/self/status")
+                .ok()
+                .and_then(|s| {
+                    s.lines()
+                        .find_map(|l| l.strip_prefix("Uid:"))
+                        .and_then(|l| l.split_whitespace().next().map(|u| format!("uid {u}")))
+                })
+        })
+        .unwrap_or_default();
     let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
         .map(|h| h.trim().to_string())
         .unwrap_or_else(|_| "localhost".into());
-    format!("{user}@{host}")
+    let mut r = format!("{user}@{host}; zid={zid}");
+    if let Some(cn) = cn {
+        r += &format!("; cn={cn}");
+    }
+    r
+}
+
+/// The subject's common name of the certificate a zenoh configuration connects with
+/// (`transport/link/tls/connect_certificate`, PEM), or what keeps it from being read.
+pub fn certificate_cn(cfg: &zenoh::Config) -> Option<String> {
+    let path = cfg
+        .get_json("transport/link/tls/connect_certificate")
+        .ok()
+        .and_then(|j| serde_json::from_str::<Option<String>>(&j).ok())
+        .flatten()?;
+    let pem = match std::fs::read(&path) {
+        Ok(p) => p,
+        Err(e) => return Some(format!("(certificate {path} unreadable: {e})")),
+    };
+    let cn = x509_parser::pem::parse_x509_pem(&pem)
+        .ok()
+        .and_then(|(_, p)| {
+            let cert = p.parse_x509().ok()?;
+            let cn = cert
+                .subject()
+                .iter_common_name()
+                .next()
+                .and_then(|c| c.as_str().ok())
+                .map(str::to_string);
+            cn
+        });
+    Some(cn.unwrap_or_else(|| format!("(certificate {path}: no common name read)")))
 }
 
 /// A query that changes the store (put, rollback), with the requester in its attachment.
 pub fn ask_as_user(bus: &Bus, selector: String, payload: Option<Vec<u8>>) -> Result<String> {
     rt()?.block_on(async {
         let s = open(bus).await?;
-        let r = ask(&s, selector, payload, Some(requester())).await;
+        let cn = bus.config().ok().as_ref().and_then(certificate_cn);
+        let who = requester(&s.zid().to_string(), cn.as_deref());
+        let r = ask(&s, selector, payload, Some(who)).await;
         s.close().await.ok();
         r
     })
@@ -987,8 +1034,16 @@ impl Gaps {
 
 /// `record`: bus → bag until the bound, or Ctrl-C. An error, and no file, when nothing of the
 /// scancorr streams arrived; an error (with the bag kept) when samples are missing between
-/// recorded ones — the bus dropped them for this recorder.
-pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
+/// recorded ones — the bus dropped them for this recorder. With `foxglove`, the corrected
+/// points and alarms recorded are also written as Foxglove channels (`shared::foxglove`, as
+/// `correct` writes them).
+pub fn record(
+    bus: &Bus,
+    keys: &str,
+    out: &Path,
+    bound: Bound,
+    mut foxglove: Option<crate::shared::foxglove::BusSinks>,
+) -> Result<u64> {
     bus.check()?;
     bound.check()?;
     zenoh::key_expr::KeyExpr::try_from(keys).map_err(|e| {
@@ -1005,6 +1060,9 @@ pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
         let sub = s.declare_subscriber(keys).await.map_err(z)?;
         let mut w = BagWriter::from_file(file.file()?, file.path(), BagHeader { compression: scancorr_bag::Compression::Lz4, ..BagHeader::default() })
             .with_context(|| format!("creating {}", out.display()))?;
+        if let Some(f) = &foxglove {
+            f.write_program(&mut w)?;
+        }
         let t0 = Instant::now();
         let mut last = None::<Instant>;
         let (mut n, mut other) = (0u64, 0u64);
@@ -1024,6 +1082,9 @@ pub fn record(bus: &Bus, keys: &str, out: &Path, bound: Bound) -> Result<u64> {
                     let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
                     let publish = scancorr_bag::peek(stream, &bytes).and_then(|p| p.first_t_ns).map(|t| t.max(0) as u64).unwrap_or(now);
                     w.write(stream, machine, &bus.prefix, now, publish, &bytes)?;
+                    if let Some(f) = &mut foxglove {
+                        f.write(&mut w, now, machine, stream, &bytes)?;
+                    }
                     gaps.message(stream, &bytes);
                     n += 1;
                     last = Some(Instant::now());

@@ -1,5 +1,6 @@
 //! A Foxglove WebSocket server (ws-protocol, subprotocol `foxglove.websocket.v1`) on
-//! localhost, fed with the bus's corrected points and alarms: what `scancorr view` serves.
+//! localhost, fed with the bus's corrected points and alarms (and, on request, the raw
+//! streams): what `scancorr view` serves.
 //!
 //! Protocol (<https://github.com/foxglove/ws-protocol>, `docs/spec.md`): the client asks for
 //! the subprotocol; the server sends `serverInfo`, then `advertise` for every channel (here the
@@ -10,14 +11,18 @@
 //! of the `FileDescriptorSet` that holds it. The machine frame and the nominal scene are
 //! latched: a subscription gets the last one at once.
 //!
+//! Raw streams (`--raw`): each of [`Stream::RAW`] of a machine is a channel whose topic is its
+//! bus key (`<prefix>/<machine>/raw/scale`…), schema our own batch message
+//! (`scancorr.v1.ScaleBatch`…, from `scancorr_proto::FILE_DESCRIPTOR_SET`); the bus payload is
+//! forwarded as it is, undecoded.
+//!
 //! Threads: zenoh's callbacks only queue the bytes; one thread decodes and encodes; one thread
 //! per client reads its requests and writes its queue (a client that falls behind by
 //! [`CLIENT_QUEUE`] messages loses the excess, counted and logged). Nothing here runs in
 //! scancorrd.
 
-use crate::shared::foxglove::{alarm_text, cloud_point_wire, Nominal};
+use crate::shared::foxglove::{bus_messages, Nominal};
 use anyhow::{Context, Result};
-use prost::Message as _;
 use scancorr_bag::foxglove::{self as fx, Channel};
 use scancorr_bag::Stream;
 use std::collections::HashMap;
@@ -35,9 +40,31 @@ pub const SUBPROTOCOL: &str = "foxglove.websocket.v1";
 /// Messages queued for one client before the excess is dropped.
 pub const CLIENT_QUEUE: usize = 1 << 16;
 
+/// What a channel carries: one of the Foxglove channels, or a raw stream as it is on the bus.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Kind {
+    Fox(Channel),
+    Raw(Stream),
+}
+
+impl Kind {
+    fn schema_name(self) -> &'static str {
+        match self {
+            Kind::Fox(c) => c.schema_name(),
+            Kind::Raw(s) => s.message_name(),
+        }
+    }
+}
+
+/// The base64 `FileDescriptorSet`s: Foxglove's schemas and ours.
+struct Schemas {
+    foxglove: String,
+    ours: String,
+}
+
 struct ChannelInfo {
     id: u32,
-    channel: Channel,
+    kind: Kind,
     topic: String,
     latched: Option<Vec<u8>>,
 }
@@ -51,8 +78,8 @@ struct Client {
 #[derive(Default)]
 struct Hub {
     channels: Vec<ChannelInfo>,
-    /// (machine, channel) → index in `channels`.
-    index: HashMap<(String, Channel), usize>,
+    /// (machine, kind) → index in `channels`.
+    index: HashMap<(String, Kind), usize>,
     clients: HashMap<u64, Client>,
 }
 
@@ -73,15 +100,19 @@ fn base64(data: &[u8]) -> String {
     s
 }
 
-fn advertise(channels: &[&ChannelInfo], schema: &str) -> WsMessage {
+fn advertise(channels: &[&ChannelInfo], schemas: &Schemas) -> WsMessage {
     let list: Vec<serde_json::Value> = channels
         .iter()
         .map(|c| {
+            let schema = match c.kind {
+                Kind::Fox(_) => &schemas.foxglove,
+                Kind::Raw(_) => &schemas.ours,
+            };
             serde_json::json!({
                 "id": c.id,
                 "topic": c.topic,
                 "encoding": "protobuf",
-                "schemaName": c.channel.schema_name(),
+                "schemaName": c.kind.schema_name(),
                 "schema": schema,
                 "schemaEncoding": "protobuf",
             })
@@ -108,9 +139,10 @@ fn frame(sub: u32, t_ns: u64, data: &[u8]) -> WsMessage {
 /// The server: channels, clients, and what feeds them.
 pub struct Server {
     hub: Arc<Mutex<Hub>>,
-    schema: Arc<String>,
+    schemas: Arc<Schemas>,
     prefix: String,
     nominal: Option<Nominal>,
+    raw: bool,
     points: Vec<fx::CloudPoint>,
     messages: Vec<fx::Message>,
     /// Messages a client lost by falling behind.
@@ -118,13 +150,18 @@ pub struct Server {
 }
 
 impl Server {
-    /// A server for the machines under `prefix`; deviations from `nominal` when given.
-    pub fn new(prefix: &str, nominal: Option<Nominal>) -> Server {
+    /// A server for the machines under `prefix`; deviations from `nominal` when given; the
+    /// raw streams too when `raw`.
+    pub fn new(prefix: &str, nominal: Option<Nominal>, raw: bool) -> Server {
         Server {
             hub: Arc::default(),
-            schema: Arc::new(base64(fx::DESCRIPTOR_SET)),
+            schemas: Arc::new(Schemas {
+                foxglove: base64(fx::DESCRIPTOR_SET),
+                ours: base64(scancorr_proto::FILE_DESCRIPTOR_SET),
+            }),
             prefix: prefix.into(),
             nominal,
+            raw,
             points: vec![],
             messages: vec![],
             dropped: Arc::default(),
@@ -136,18 +173,18 @@ impl Server {
         let listener =
             TcpListener::bind(addr).with_context(|| format!("--port: cannot listen on {addr}"))?;
         let local = listener.local_addr()?;
-        let (hub, schema) = (self.hub.clone(), self.schema.clone());
+        let (hub, schema) = (self.hub.clone(), self.schemas.clone());
         let next = Arc::new(AtomicU64::new(1));
         std::thread::Builder::new()
             .name("foxglove-accept".into())
             .spawn(move || {
                 for stream in listener.incoming().flatten() {
-                    let (hub, schema) = (hub.clone(), schema.clone());
+                    let (hub, schemas) = (hub.clone(), schema.clone());
                     let id = next.fetch_add(1, Ordering::Relaxed);
                     let _ = std::thread::Builder::new()
                         .name(format!("foxglove-client-{id}"))
                         .spawn(move || {
-                            if let Err(e) = serve(stream, id, &hub, &schema) {
+                            if let Err(e) = serve(stream, id, &hub, &schemas) {
                                 eprintln!("view: client {id}: {e:#}");
                             }
                             if let Ok(mut h) = hub.lock() {
@@ -160,43 +197,29 @@ impl Server {
     }
 
     /// Handles one bus message (`key`, its payload): corrected points and alarms become
-    /// Foxglove messages for every subscription. False when it is neither.
+    /// Foxglove messages for every subscription, a raw stream's (when asked for) goes as it is.
+    /// False when it is none of these, or does not decode.
     pub fn handle(&mut self, key: &str, payload: &[u8]) -> bool {
         let Some((machine, stream)) = Stream::parse_key(&self.prefix, key) else {
             return false;
         };
         let machine = machine.to_string();
         self.messages.clear();
-        match stream {
-            Stream::Points => {
-                let Ok(points) = scancorr_proto::v1::CorrectedPointBatch::decode(payload)
-                    .map_err(|e| e.to_string())
-                    .and_then(|b| b.into_points().map_err(|e| e.to_string()))
-                else {
-                    return false;
-                };
-                self.points.clear();
-                let nominal = self.nominal.as_ref();
-                self.points
-                    .extend(points.iter().map(|p| cloud_point_wire(p, nominal)));
-                fx::points_messages(&machine, &self.points, &mut self.messages);
-            }
-            Stream::Alarms => {
-                let Ok(a) = scancorr_proto::v1::EstimatorAlarm::decode(payload) else {
-                    return false;
-                };
-                let (warn, text) = alarm_text(&a);
-                self.messages
-                    .push(fx::log_message(a.t_ns, warn, &machine, &text));
-            }
-            _ => return false,
+        let raw = self.raw && Stream::RAW.contains(&stream);
+        let nominal = self.nominal.as_ref();
+        let (points, out) = (&mut self.points, &mut self.messages);
+        if !raw && !bus_messages(&machine, stream, payload, nominal, points, out) {
+            return false;
         }
         let t0 = self.messages.first().map_or(0, |m| m.t_ns as i64);
         let mut h = match self.hub.lock() {
             Ok(h) => h,
             Err(_) => return false,
         };
-        if !h.index.contains_key(&(machine.clone(), Channel::Frame)) {
+        if !h
+            .index
+            .contains_key(&(machine.clone(), Kind::Fox(Channel::Frame)))
+        {
             self.announce(&mut h, &machine, t0);
         }
         let now = now_ns();
@@ -205,18 +228,24 @@ impl Server {
             index,
             clients,
         } = &mut *h;
-        for m in &self.messages {
-            let Some(&ci) = index.get(&(machine.clone(), m.channel)) else {
-                continue;
+        let mut send = |kind: Kind, data: &[u8]| {
+            let Some(&ci) = index.get(&(machine.clone(), kind)) else {
+                return;
             };
             let id = channels[ci].id;
             for c in clients.values_mut() {
                 if let Some(&sub) = c.subs.get(&id) {
-                    if c.tx.try_send(frame(sub, now, &m.data)).is_err() {
+                    if c.tx.try_send(frame(sub, now, data)).is_err() {
                         self.dropped.fetch_add(1, Ordering::Relaxed);
                     }
                 }
             }
+        };
+        if raw {
+            send(Kind::Raw(stream), payload);
+        }
+        for m in &self.messages {
+            send(Kind::Fox(m.channel), &m.data);
         }
         true
     }
@@ -225,7 +254,10 @@ impl Server {
     /// before the first point); its frame and nominal scene at time 0.
     pub fn announce_machine(&self, machine: &str) {
         if let Ok(mut h) = self.hub.lock() {
-            if !h.index.contains_key(&(machine.to_string(), Channel::Frame)) {
+            if !h
+                .index
+                .contains_key(&(machine.to_string(), Kind::Fox(Channel::Frame)))
+            {
                 self.announce(&mut h, machine, 0);
             }
         }
@@ -234,26 +266,38 @@ impl Server {
     /// A new machine: its channels advertised to every client, frame and nominal latched.
     fn announce(&self, h: &mut Hub, machine: &str, t0: i64) {
         let first = h.channels.len();
-        for c in Channel::ALL {
-            let latched = match c {
-                Channel::Frame => Some(fx::frame_message(t0, machine).data),
-                Channel::Nominal => self
-                    .nominal
-                    .as_ref()
-                    .map(|n| fx::nominal_message(machine, t0, n.scene()).data),
-                _ => None,
+        let raw: &[Stream] = if self.raw { &Stream::RAW } else { &[] };
+        let kinds = Channel::ALL
+            .into_iter()
+            .map(Kind::Fox)
+            .chain(raw.iter().copied().map(Kind::Raw));
+        for kind in kinds {
+            let (latched, topic) = match kind {
+                Kind::Fox(c @ Channel::Frame) => (
+                    Some(fx::frame_message(t0, machine).data),
+                    c.topic(&self.prefix, machine),
+                ),
+                Kind::Fox(c @ Channel::Nominal) => (
+                    self.nominal
+                        .as_ref()
+                        .map(|n| fx::nominal_message(machine, t0, n.scene()).data),
+                    c.topic(&self.prefix, machine),
+                ),
+                Kind::Fox(c) => (None, c.topic(&self.prefix, machine)),
+                Kind::Raw(s) => (None, s.key(&self.prefix, machine)),
             };
             let id = h.channels.len() as u32 + 1;
-            h.index.insert((machine.to_string(), c), h.channels.len());
+            h.index
+                .insert((machine.to_string(), kind), h.channels.len());
             h.channels.push(ChannelInfo {
                 id,
-                channel: c,
-                topic: c.topic(&self.prefix, machine),
+                kind,
+                topic,
                 latched,
             });
         }
         let new: Vec<&ChannelInfo> = h.channels[first..].iter().collect();
-        let msg = advertise(&new, &self.schema);
+        let msg = advertise(&new, &self.schemas);
         for c in h.clients.values() {
             let _ = c.tx.try_send(msg.clone());
         }
@@ -261,7 +305,7 @@ impl Server {
 }
 
 /// One client: the handshake, `serverInfo` and `advertise`, then its requests and its queue.
-fn serve(stream: TcpStream, id: u64, hub: &Mutex<Hub>, schema: &str) -> Result<()> {
+fn serve(stream: TcpStream, id: u64, hub: &Mutex<Hub>, schemas: &Schemas) -> Result<()> {
     use tungstenite::handshake::server::{ErrorResponse, Request, Response};
     stream.set_nodelay(true)?;
     let callback = |req: &Request, mut resp: Response| -> Result<Response, ErrorResponse> {
@@ -297,7 +341,7 @@ fn serve(stream: TcpStream, id: u64, hub: &Mutex<Hub>, schema: &str) -> Result<(
         let _ = tx.try_send(WsMessage::Text(info.to_string()));
         if !h.channels.is_empty() {
             let all: Vec<&ChannelInfo> = h.channels.iter().collect();
-            let _ = tx.try_send(advertise(&all, schema));
+            let _ = tx.try_send(advertise(&all, schemas));
         }
         h.clients.insert(
             id,

@@ -15,6 +15,7 @@ pub use scancorr_core::lab::program::{
 use std::f64::consts::{PI, TAU};
 
 mod builder;
+mod dynamics_faces;
 mod geometry;
 mod thin_wall;
 
@@ -36,12 +37,13 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 21] = [
+pub const PROGRAMS: [&str; 22] = [
     "ring",
     "ring-speeds",
     "campaign",
     "part",
     "dynamics",
+    "dynamics-faces",
     "tips",
     "probe-force",
     "probe-force-quarter",
@@ -424,6 +426,8 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
                 }
             }
         }
+        // Faces touched while the carriage oscillates along and across their normals.
+        "dynamics-faces" => dynamics_faces::plan(&mut b, position),
         // A thin-walled part at two probing forces (F1, F2) and at three.
         "thin-wall" => thin_wall::plan(&mut b, position, &[0.1, 0.5]),
         "thin-wall-forces" => thin_wall::plan(&mut b, position, &[0.1, 0.3, 0.5]),

@@ -27,6 +27,31 @@
 //!   parameters, so the geometry of the machine (not yet calibrated when this procedure
 //!   runs) does not leak into them.
 //!
+//! Face scans accelerated along and across their normal (`scancorr sim --program
+//! dynamics-faces`): the probe held on a face while the carriage oscillates, p(t) = p̄_w +
+//! u·A·sin(2πft) (u the face's normal, or one of its tangents when sliding), at ≥ 2 frequencies
+//! with one amplitude. Each point i of weave placement w (one place on one face) deviates
+//! along the face's normal n by
+//!
+//! e_i = n·[P(p_i)·A_i] + c_w + d_w·τ_i + k_w·(p_i − p̄_w) + u_s·(u·v_i) + ε_i,
+//!
+//! * n·P·A the same compliance as on the rings — off arcs, so the servo gain (an arc term)
+//!   takes no part: a weave along the normal sees P_nn alone, a sliding weave along t sees P_nt
+//!   (P_xz, P_zx, P_yz, P_zy, P_zz, which horizontal rings cannot see);
+//! * c_w, d_w·τ the place's static offset and its drift in time; k_w·(p − p̄_w) what changes
+//!   with the carriage's displacement but not with the frequency — the probe's bending with its
+//!   deflection, the face's tilt, the machine's geometry — shared by the place's frequencies,
+//!   so only what grows with f² (the acceleration A = −(2πf)²·(p − p̄_w)) is left to P;
+//! * u_s·(u·v) per scan s: what follows the velocity along the oscillation (the scales'
+//!   readout delay; the structure's small lag behind the acceleration at f well below its
+//!   modes, a few per cent of P·A in quadrature), orthogonal to A over whole periods, fitted
+//!   as nuisance.
+//!
+//! With the weaves, P_xx and P_yy come from the faces and the gain's f² term from what the arcs
+//! show beyond them: the two are no longer one column. A term of P in the position (ξ_m,
+//! m = x, y, z) is fitted only where the points that carry it spread over ≥ 25 mm along m
+//! (ξ's weighted standard deviation ≥ 0.05); otherwise it is named as not determined.
+//!
 //! Spin-up and slow-down points are used: their acceleration and frequency are what the
 //! estimator says they are. Weighted least squares over all points, the covariance scaled by
 //! the residual variance and by (1 + ρ)/(1 − ρ) for the residuals' lag-1 correlation ρ.
@@ -69,6 +94,11 @@ pub struct Scan {
     pub delta_r_um: f64,
     /// The same after the fit, µm.
     pub delta_r_after_um: f64,
+    /// ΔR along X (at θ = 0 and π: the constant and cos 2θ terms of the deviation), without
+    /// the fitted dynamics, µm.
+    pub delta_r_x_um: f64,
+    /// ΔR along Y (θ = ±π/2), µm.
+    pub delta_r_y_um: f64,
 }
 
 /// One ring placement.
@@ -78,6 +108,31 @@ pub struct Position {
     pub center_mm: [f64; 3],
     /// Its scans.
     pub scans: Vec<Scan>,
+    /// ΔR along X per acceleration v²/r over its scans (a line through the origin), µm per
+    /// m/s².
+    pub dr_x_per_accel_um_per_m_s2: f64,
+    /// The same along Y, µm per m/s².
+    pub dr_y_per_accel_um_per_m_s2: f64,
+}
+
+/// One face scan accelerated in place (a weave).
+#[derive(Debug, Clone, Serialize)]
+pub struct FaceScan {
+    /// Mean carriage position, mm.
+    pub center_mm: [f64; 3],
+    /// The axis the face's normal lies along (what is measured).
+    pub measured_along: String,
+    /// The axis the carriage oscillates along.
+    pub moved_along: String,
+    /// Peak speed, mm/s.
+    pub speed_mm_s: f64,
+    /// Peak acceleration, mm/s².
+    pub peak_accel_mm_s2: f64,
+    /// RMS of the deviation along the normal after the place's static terms, without the fitted
+    /// dynamics, µm.
+    pub dynamic_rms_um: f64,
+    /// The same with them, µm.
+    pub dynamic_rms_after_um: f64,
 }
 
 /// The two forms of the servo gain, scored on held-out ring positions.
@@ -107,6 +162,8 @@ pub struct Outcome {
     pub gain: GainChoice,
     /// Per ring position: ΔR against speed and acceleration.
     pub positions: Vec<Position>,
+    /// Face scans accelerated in place, before and after the fit.
+    pub faces: Vec<FaceScan>,
     /// Residual RMS after the static patterns, before and after the fit, µm.
     pub residual_before_um: f64,
     /// After.
@@ -159,36 +216,141 @@ impl Model {
 /// its slow drift (radius and centre, linear in time).
 const PER_PLACEMENT: usize = 2 * HARMONICS + 4;
 
-/// The static-pattern columns of point i (its placement's Fourier series in the angle, and
-/// the drift of its radius and centre in time: the room warms while the speeds are run).
-fn static_row(
-    ds: &Dataset,
-    prep: &Prepared,
-    col0: &[usize],
-    t_mid: &[f64],
-    i: usize,
-    out: &mut Vec<(usize, f64)>,
-) {
+/// Static columns of a weave placement: constant, drift in time, the carriage's displacement
+/// from the placement's mean along x, y and z.
+const PER_WEAVE: usize = 5;
+/// A scan of a face is a weave when its carriage stays within this span, mm …
+const WEAVE_SPAN_MM: f64 = 3.0;
+/// … and accelerates beyond this, mm/s².
+const WEAVE_MIN_ACC: f64 = 20.0;
+/// Weaves of one face within this distance share a placement, mm.
+const WEAVE_PLACE_MM: f64 = 5.0;
+/// A position term of P or of the phase is fitted only where ξ's weighted standard deviation
+/// over the points that carry it reaches this (25 mm).
+const MIN_SPREAD: f64 = 0.05;
+
+/// One static placement: a ring position, or one place on a face where weaves were run.
+struct Place {
+    /// The ring's feature (None: a weave place).
+    ring: Option<usize>,
+    /// First static column.
+    col0: usize,
+    /// Middle of its time span, s.
+    t_mid: f64,
+    /// Mean carriage position of its weaves, mm.
+    mean: Vec3,
+    /// Held-out fold (0–2 rings; 3: weaves, always fitted).
+    fold: usize,
+}
+
+/// The static design: placements, each point's placement, and a weave point's velocity column
+/// and the axis its carriage oscillates along.
+struct Statics {
+    places: Vec<Place>,
+    place_of: Vec<usize>,
+    vcol: Vec<usize>,
+    moved: Vec<usize>,
+}
+
+/// A scan of a face while the carriage oscillates in place.
+struct Weave {
+    bag: usize,
+    feature: usize,
+    points: Vec<usize>,
+    mean: Vec3,
+    /// Programmed (peak) speed, mm/s.
+    speed: f64,
+    /// Largest |acceleration| per axis, mm/s².
+    peak: Vec3,
+}
+
+/// The face scans of `ds` whose carriage oscillates in place (weaves).
+fn find_weaves(ds: &Dataset, prep: &Prepared) -> Vec<Weave> {
+    let mut by: BTreeMap<(usize, u32), Vec<usize>> = BTreeMap::new();
+    for (i, p) in ds.points.iter().enumerate() {
+        if ds.features[p.feature].1.kind == FeatureKind::Face
+            && prep.art.features[p.feature].is_some()
+        {
+            by.entry((p.bag, p.segment)).or_default().push(i);
+        }
+    }
+    let mut out = vec![];
+    for ((bag, _), points) in by {
+        let (mut lo, mut hi) = (Vec3::repeat(f64::MAX), Vec3::repeat(f64::MIN));
+        let (mut sum, mut peak) = (Vec3::zeros(), Vec3::zeros());
+        for &i in &points {
+            let c = &ds.points[i].ctx;
+            lo = lo.inf(&c.scale);
+            hi = hi.sup(&c.scale);
+            sum += c.scale;
+            peak = peak.sup(&c.est_acc.abs());
+        }
+        if points.len() < 20 || (hi - lo).max() > WEAVE_SPAN_MM || peak.max() < WEAVE_MIN_ACC {
+            continue;
+        }
+        let p0 = &ds.points[points[0]];
+        out.push(Weave {
+            bag,
+            feature: p0.feature,
+            mean: sum / points.len() as f64,
+            speed: p0.speed,
+            peak,
+            points,
+        });
+    }
+    out
+}
+
+/// The static columns of point i: for a ring, its placement's Fourier series in the angle and
+/// the drift of its radius and centre in time (the room warms while the speeds are run); for a
+/// weave, its place's offset, drift and displacement terms and its scan's velocity term.
+fn static_row(ds: &Dataset, prep: &Prepared, st: &Statics, i: usize, out: &mut Vec<(usize, f64)>) {
     out.clear();
     let p = &ds.points[i];
+    let pl = &st.places[st.place_of[i]];
+    let c = pl.col0;
+    // Time from the placement's middle, in units of 100 s.
+    let tau = (p.ctx.t_ns as f64 * 1e-9 - pl.t_mid) / 100.0;
+    if pl.ring.is_none() {
+        let d = p.ctx.scale - pl.mean;
+        out.extend([
+            (c, 1.0),
+            (c + 1, tau),
+            (c + 2, d.x),
+            (c + 3, d.y),
+            (c + 4, d.z),
+        ]);
+        out.push((st.vcol[i], p.ctx.est_vel[st.moved[i]] / 10.0));
+        return;
+    }
     let Some(f) = &prep.art.features[p.feature] else {
         return;
     };
     let d = p.surface - f.center;
     let th = d.y.atan2(d.x);
-    let c = col0[p.feature];
     out.push((c, 1.0));
     for k in 1..=HARMONICS {
         let a = k as f64 * th;
         out.push((c + 2 * k - 1, a.cos()));
         out.push((c + 2 * k, a.sin()));
     }
-    // Time from the placement's middle, in units of 100 s.
-    let tau = (p.ctx.t_ns as f64 * 1e-9 - t_mid[p.feature]) / 100.0;
     let c = c + 2 * HARMONICS + 1;
     out.push((c, tau));
     out.push((c + 1, tau * th.cos()));
     out.push((c + 2, tau * th.sin()));
+}
+
+/// The constant column of a position term's column `c` (P: 9 per monomial; the phase of Y
+/// and Z after it: 3 per monomial), None for a constant or the gain.
+fn constant_partner(c: usize) -> Option<usize> {
+    if c < 36 {
+        (c >= 9).then_some(c % 9)
+    } else if c < 60 {
+        let k = c - 36;
+        (k % 12 >= 3).then_some(36 + (k / 12) * 12 + k % 3)
+    } else {
+        None
+    }
 }
 
 /// Runs the procedure: `ds` built from the bags with the start calibration after the nominal
@@ -299,38 +461,94 @@ pub fn run(
     }
 
     // --- columns: dynamic parameters (dense), static patterns (sparse) ---
-    let mut col0 = vec![usize::MAX; ds.features.len()];
-    for (j, f) in usable.iter().enumerate() {
-        col0[*f] = j * PER_PLACEMENT;
+    let weaves = find_weaves(ds, prep);
+    let mut places: Vec<Place> = usable
+        .iter()
+        .enumerate()
+        .map(|(j, f)| Place {
+            ring: Some(*f),
+            col0: j * PER_PLACEMENT,
+            t_mid: 0.0,
+            mean: Vec3::zeros(),
+            fold: j % 3,
+        })
+        .collect();
+    let mut place_of = vec![usize::MAX; ds.points.len()];
+    for (i, p) in ds.points.iter().enumerate() {
+        if let Some(j) = usable.iter().position(|u| *u == p.feature) {
+            place_of[i] = j;
+        }
     }
-    let n_static = usable.len() * PER_PLACEMENT;
-    let mut t_mid = vec![0.0; ds.features.len()];
+    let mut n_static = usable.len() * PER_PLACEMENT;
+    // Weaves of one face in one bag within WEAVE_PLACE_MM share a place: (bag, feature, place).
+    let mut keys: Vec<(usize, usize, usize)> = vec![];
+    let mut weave_place = vec![];
+    for w in &weaves {
+        let found = keys.iter().find(|(b, f, q)| {
+            *b == w.bag && *f == w.feature && (places[*q].mean - w.mean).norm() < WEAVE_PLACE_MM
+        });
+        let j = match found {
+            Some(k) => k.2,
+            None => {
+                places.push(Place {
+                    ring: None,
+                    col0: n_static,
+                    t_mid: 0.0,
+                    mean: w.mean,
+                    fold: 3,
+                });
+                n_static += PER_WEAVE;
+                keys.push((w.bag, w.feature, places.len() - 1));
+                places.len() - 1
+            }
+        };
+        weave_place.push(j);
+    }
+    let mut vcol = vec![usize::MAX; ds.points.len()];
+    let mut moved = vec![0; ds.points.len()];
+    for (w, j) in weaves.iter().zip(&weave_place) {
+        for &i in &w.points {
+            place_of[i] = *j;
+            vcol[i] = n_static;
+            moved[i] = w.peak.iamax();
+        }
+        n_static += 1;
+    }
     {
-        let mut span = vec![(f64::MAX, f64::MIN); ds.features.len()];
-        for p in &ds.points {
-            let t = p.ctx.t_ns as f64 * 1e-9;
-            let s = &mut span[p.feature];
-            *s = (s.0.min(t), s.1.max(t));
+        let mut span = vec![(f64::MAX, f64::MIN); places.len()];
+        for (p, j) in ds.points.iter().zip(&place_of) {
+            if *j != usize::MAX {
+                let t = p.ctx.t_ns as f64 * 1e-9;
+                let s = &mut span[*j];
+                *s = (s.0.min(t), s.1.max(t));
+            }
         }
-        for (m, s) in t_mid.iter_mut().zip(&span) {
-            *m = 0.5 * (s.0 + s.1);
+        for (q, s) in places.iter_mut().zip(&span) {
+            q.t_mid = 0.5 * (s.0 + s.1);
         }
     }
-    let fold_of = |f: usize| usable.iter().position(|u| *u == f).map(|j| j % 3);
+    let st = Statics {
+        places,
+        place_of,
+        vcol,
+        moved,
+    };
+    let fold_of = |i: usize| st.places[st.place_of[i]].fold;
     let rows: Vec<usize> = (0..ds.points.len())
-        .filter(|&i| col0[ds.points[i].feature] != usize::MAX)
+        .filter(|&i| st.place_of[i] != usize::MAX)
         .collect();
     let models = [Model::new(vec![2], ds), Model::new(vec![1, 2], ds)];
     let mut dense = vec![];
     let mut sparse = vec![];
-    // Per model: one normal system per fold.
-    let mut ne: Vec<[Normal; 3]> = models
+    // Per model: one normal system per fold of ring positions, and one of the weaves (in
+    // every fit, never held out).
+    let mut ne: Vec<[Normal; 4]> = models
         .iter()
         .map(|m| std::array::from_fn(|_| Normal::new(m.n + n_static)))
         .collect();
     for &i in &rows {
-        let f = fold_of(ds.points[i].feature).unwrap();
-        static_row(ds, prep, &col0, &t_mid, i, &mut sparse);
+        let f = fold_of(i);
+        static_row(ds, prep, &st, i, &mut sparse);
         let y = prep.art.residual[i];
         for (m, n) in models.iter().zip(ne.iter_mut()) {
             m.row(ds, prep, i, &mut dense);
@@ -338,25 +556,47 @@ pub fn run(
         }
     }
     // Columns far weaker than the strongest of their effect (z acceleration of horizontal
-    // rings: numerical noise) are not fitted.
-    for (m, n) in models.iter().zip(ne.iter_mut()) {
-        let diag: Vec<f64> = (0..m.n)
-            .map(|c| n.iter().map(|f| f.m[(c, c)]).sum::<f64>())
-            .collect();
+    // rings: numerical noise) are not fitted, nor a position term whose points stand at one
+    // place along its axis.
+    let mut narrow = vec![];
+    for (mi, (m, n)) in models.iter().zip(ne.iter_mut()).enumerate() {
+        let total =
+            |n: &[Normal; 4], a: usize, b: usize| n.iter().map(|f| f.m[(a, b)]).sum::<f64>();
+        let diag: Vec<f64> = (0..m.n).map(|c| total(n, c, c)).collect();
+        let mut drop = vec![];
         let mut off = 0;
         for b in &m.built {
             let k = b.n_params();
             let top = diag[off..off + k].iter().cloned().fold(0.0, f64::max);
             for c in off..off + k {
                 if diag[c] <= WEAK_COLUMN * WEAK_COLUMN * top {
-                    for f in n.iter_mut() {
-                        f.m.row_mut(c).fill(0.0);
-                        f.m.column_mut(c).fill(0.0);
-                        f.b[c] = 0.0;
-                    }
+                    drop.push(c);
                 }
             }
             off += k;
+        }
+        for c in 0..m.n {
+            let Some(c0) = constant_partner(c) else {
+                continue;
+            };
+            if diag[c] <= 0.0 || drop.contains(&c) || drop.contains(&c0) || diag[c0] <= 0.0 {
+                continue;
+            }
+            let cross = total(n, c, c0);
+            let var = (diag[c] - cross * cross / diag[c0]) / diag[c0];
+            if var < MIN_SPREAD * MIN_SPREAD {
+                drop.push(c);
+                if mi == 0 {
+                    narrow.push(c);
+                }
+            }
+        }
+        for c in drop {
+            for f in n.iter_mut() {
+                f.m.row_mut(c).fill(0.0);
+                f.m.column_mut(c).fill(0.0);
+                f.b[c] = 0.0;
+            }
         }
     }
     let sum = |parts: &[&Normal]| {
@@ -369,30 +609,31 @@ pub fn run(
         }
         t
     };
-    // Held-out score: each fold predicted from the other two, its static patterns refitted.
+    // Held-out score: each fold of ring positions predicted from the others and the weaves,
+    // its static patterns refitted.
     let heldout = |mi: usize| -> f64 {
         let m = &models[mi];
         let (mut dense, mut sparse) = (vec![], vec![]);
         let mut ss = 0.0;
         let mut n = 0;
         for test in 0..3 {
-            let train: Vec<&Normal> = (0..3).filter(|f| *f != test).map(|f| &ne[mi][f]).collect();
+            let train: Vec<&Normal> = (0..4).filter(|f| *f != test).map(|f| &ne[mi][f]).collect();
             let sol = sum(&train).solve();
             let theta: Vec<f64> = sol.x.iter().take(m.n).copied().collect();
-            let mut st = Normal::new(n_static);
+            let mut stn = Normal::new(n_static);
             for &i in &rows {
-                if fold_of(ds.points[i].feature) != Some(test) {
+                if fold_of(i) != test {
                     continue;
                 }
                 m.row(ds, prep, i, &mut dense);
                 let y = prep.art.residual[i]
                     + dense.iter().zip(&theta).map(|(a, t)| a * t).sum::<f64>();
-                static_row(ds, prep, &col0, &t_mid, i, &mut sparse);
-                st.add(&[], &sparse, y);
+                static_row(ds, prep, &st, i, &mut sparse);
+                stn.add(&[], &sparse, y);
             }
-            if st.n > 0 {
-                ss += st.solve().ss;
-                n += st.n;
+            if stn.n > 0 {
+                ss += stn.solve().ss;
+                n += stn.n;
             }
         }
         if n == 0 {
@@ -418,7 +659,7 @@ pub fn run(
     let sol = all.solve();
     let mut st0 = Normal::new(n_static);
     for &i in &rows {
-        static_row(ds, prep, &col0, &t_mid, i, &mut sparse);
+        static_row(ds, prep, &st, i, &mut sparse);
         st0.add(&[], &sparse, prep.art.residual[i]);
     }
     let ss0 = st0.solve().ss;
@@ -468,10 +709,16 @@ pub fn run(
     debug_assert_eq!(names.len(), m.n);
     let mut theta = vec![0.0; m.n];
     let mut not_seen = vec![];
+    let mut one_place = vec![];
     for (c, name) in names.iter().enumerate() {
         let seen = all.m[(c, c)] > 0.0 && !sol.unidentifiable.contains(&c);
         if !seen {
-            not_seen.push(name.trim_start_matches("dynamics.").to_string());
+            let short = name.trim_start_matches("dynamics.").to_string();
+            if narrow.contains(&c) {
+                one_place.push(short);
+            } else {
+                not_seen.push(short);
+            }
             continue;
         }
         theta[c] = sol.x[c];
@@ -486,8 +733,19 @@ pub fn run(
     if !not_seen.is_empty() {
         undetermined.push(format!(
             "{} (rings in a horizontal plane neither accelerate along Z nor measure along it: \
-             a ring in a vertical plane, or a sphere at several latitudes, determines them)",
+             a ring in a vertical plane determines them; P's Z row and column also come from \
+             faces scanned while the carriage oscillates along and across their normals, \
+             `scancorr sim --program dynamics-faces`)",
             not_seen.join(", ")
+        ));
+    }
+    if !one_place.is_empty() {
+        undetermined.push(format!(
+            "{} (the change along the position of entries seen only at one place: the points \
+             that carry them spread over less than {:.0} mm along that axis — repeat those \
+             scans at other places to determine it)",
+            one_place.join(", "),
+            MIN_SPREAD * 500.0
         ));
     }
     // The compliance's diagonal and the gain's f² term follow v²/r alike on a steady circle;
@@ -512,7 +770,8 @@ pub fn run(
                 "P_{ax}{ax}.1 and gain_{ax}.f2.1 (correlation {r:+.3}): on a steady circle both \
                  follow v²/r at any diameter, as P − α/(4π²) = {:.3} ± {:.3} µm per m/s²; only \
                  the rings' spin-up and slow-down tell them apart. Scans of a face while the \
-                 machine accelerates along its normal, off arcs, separate them.",
+                 machine accelerates along its normal, off arcs, separate them (`scancorr sim \
+                 --program dynamics-faces`).",
                 v * 1e6,
                 var.max(0.0).sqrt() * 1e6
             ));
@@ -535,43 +794,108 @@ pub fn run(
 
     // --- ΔR per scan, before and after: the residual with each placement's static pattern and
     // drift from the joint fit taken out, without and with the fitted dynamics ---
-    let mut acc: BTreeMap<(usize, i64, i32), (f64, f64, usize)> = BTreeMap::new();
+    // Per scan: Σe before, Σe after, count, Σe·cos 2θ before (the X/Y split of ΔR).
+    let mut acc: BTreeMap<(usize, i64, i32), (f64, f64, usize, f64)> = BTreeMap::new();
+    let mut weave_of = vec![usize::MAX; ds.points.len()];
+    for (k, w) in weaves.iter().enumerate() {
+        for &i in &w.points {
+            weave_of[i] = k;
+        }
+    }
+    let mut wacc = vec![(0.0, 0.0, 0usize); weaves.len()];
     for &i in &rows {
         let p = &ds.points[i];
         m.row(ds, prep, i, &mut dense);
-        static_row(ds, prep, &col0, &t_mid, i, &mut sparse);
+        static_row(ds, prep, &st, i, &mut sparse);
         // x minimises ‖y + A θ + S s‖²: y + S s is the dynamics' signature.
         let stat: f64 = sparse.iter().map(|(c, v)| v * sol.x[m.n + *c]).sum();
         let dynamic: f64 = dense.iter().zip(&theta).map(|(a, t)| a * t).sum();
+        if weave_of[i] != usize::MAX {
+            let e = &mut wacc[weave_of[i]];
+            e.0 += (prep.art.residual[i] + stat).powi(2);
+            e.1 += (prep.art.residual[i] + stat + dynamic).powi(2);
+            e.2 += 1;
+            continue;
+        }
+        let th = prep.art.features[p.feature].as_ref().map_or(0.0, |f| {
+            let d = p.surface - f.center;
+            d.y.atan2(d.x)
+        });
         let e = acc
             .entry((p.feature, (p.speed * 10.0).round() as i64, p.direction))
-            .or_insert((0.0, 0.0, 0));
+            .or_insert((0.0, 0.0, 0, 0.0));
         e.0 += prep.art.residual[i] + stat;
         e.1 += prep.art.residual[i] + stat + dynamic;
         e.2 += 1;
+        e.3 += (prep.art.residual[i] + stat) * (2.0 * th).cos();
     }
     let positions = usable
         .iter()
         .map(|&f| {
             let fit = prep.art.features[f].as_ref().unwrap();
+            let scans: Vec<Scan> = acc
+                .range((f, i64::MIN, i32::MIN)..=(f, i64::MAX, i32::MAX))
+                .map(|((_, v, d), (a, b, n, c2))| {
+                    let v = *v as f64 / 10.0;
+                    let n = *n as f64;
+                    // e(θ) ≈ a0 + a2·cos 2θ + …: ΔR along X is a0 + a2, along Y a0 − a2.
+                    let (a0, a2) = (a / n, 2.0 * c2 / n);
+                    Scan {
+                        speed_mm_s: v,
+                        direction: *d,
+                        accel_mm_s2: v * v / fit.radius,
+                        delta_r_um: a0 * 1e3,
+                        delta_r_after_um: b / n * 1e3,
+                        delta_r_x_um: (a0 + a2) * 1e3,
+                        delta_r_y_um: (a0 - a2) * 1e3,
+                    }
+                })
+                .collect();
+            // ΔR along X and Y per acceleration: least squares through the origin.
+            let slope = |pick: fn(&Scan) -> f64| {
+                let (sxy, sxx) = scans.iter().fold((0.0, 0.0), |(sxy, sxx), s| {
+                    let a = s.accel_mm_s2 * 1e-3;
+                    (sxy + pick(s) * a, sxx + a * a)
+                });
+                if sxx > 0.0 {
+                    sxy / sxx
+                } else {
+                    0.0
+                }
+            };
             Position {
                 center_mm: fit.center.into(),
-                scans: acc
-                    .range((f, i64::MIN, i32::MIN)..=(f, i64::MAX, i32::MAX))
-                    .map(|((_, v, d), (a, b, n))| {
-                        let v = *v as f64 / 10.0;
-                        Scan {
-                            speed_mm_s: v,
-                            direction: *d,
-                            accel_mm_s2: v * v / fit.radius,
-                            delta_r_um: a / *n as f64 * 1e3,
-                            delta_r_after_um: b / *n as f64 * 1e3,
-                        }
-                    })
-                    .collect(),
+                dr_x_per_accel_um_per_m_s2: slope(|s| s.delta_r_x_um),
+                dr_y_per_accel_um_per_m_s2: slope(|s| s.delta_r_y_um),
+                scans,
             }
         })
         .collect();
+    let faces: Vec<FaceScan> = weaves
+        .iter()
+        .zip(&wacc)
+        .map(|(w, (a, b, n))| {
+            let g = prep.art.grad[w.points[0]];
+            let axis = |v: &Vec3| AX[v.iamax()].to_string();
+            FaceScan {
+                center_mm: w.mean.into(),
+                measured_along: axis(&g.abs()),
+                moved_along: axis(&w.peak),
+                speed_mm_s: w.speed,
+                peak_accel_mm_s2: w.peak.max(),
+                dynamic_rms_um: (a / (*n).max(1) as f64).sqrt() * 1e3,
+                dynamic_rms_after_um: (b / (*n).max(1) as f64).sqrt() * 1e3,
+            }
+        })
+        .collect();
+    if !weaves.is_empty() {
+        notes.push(format!(
+            "{} face scans accelerated in place at {} places: P's entries along their normals \
+             come from them off arcs, apart from the arcs' gain",
+            weaves.len(),
+            st.places.iter().filter(|q| q.ring.is_none()).count()
+        ));
+    }
     notes.push(format!(
         "{} ring positions ({} along X), {} points; the static pattern of each position \
          (its form and the machine's geometry there) is fitted to harmonic {HARMONICS} and \
@@ -587,6 +911,7 @@ pub fn run(
         confounded,
         gain,
         positions,
+        faces,
         residual_before_um: (ss0 / n).sqrt() * 1e3,
         residual_after_um: (sol.ss / n).sqrt() * 1e3,
         notes,

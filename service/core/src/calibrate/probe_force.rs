@@ -112,7 +112,8 @@ pub struct Outcome {
     /// The calibration with the fitted force coefficients (unversioned).
     #[serde(skip)]
     pub calibration: Calibration,
-    /// Fitted parameters with their σ (`tip2.probe_k_u`, dimensionless: mm per mm).
+    /// Fitted parameters with their σ (`tip2.probe_k_u_mm_per_mm`: mm of error per mm of
+    /// deflection, the `probe_force` effect's unit).
     pub params: Vec<Param>,
     /// Every setting measured.
     pub settings: Vec<Setting>,
@@ -490,7 +491,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             if !(ne.m[(c, c)] > WEAK_COLUMN * WEAK_COLUMN * top) {
                 weak[c] = true;
                 undetermined.push(format!(
-                    "tip{t}.probe_k_{}: the scans barely deflect tip {t} along its probe axis {} \
+                    "tip{t}.probe_k_{}_mm_per_mm: the scans barely deflect tip {t} along its probe axis {} \
                      — add circles at higher latitudes (or faces probed along that axis)",
                     AXES[a], AXES[a]
                 ));
@@ -617,7 +618,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             }
             k[a] = theta[c0 + a];
             params.push(Param {
-                name: format!("tip{t}.probe_k_{}", AXES[a]),
+                name: format!("tip{t}.probe_k_{}_mm_per_mm", AXES[a]),
                 value: theta[c0 + a],
                 sigma: sig(c0 + a),
             });

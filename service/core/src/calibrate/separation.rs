@@ -133,6 +133,9 @@ pub struct Request<'a> {
     /// Resolution of a probe reading, mm (the floor of a reading's standard error is
     /// resolution/√12).
     pub probe_resolution_mm: f64,
+    /// Three probes without a reversal: the stated bounds that fix the offsets' parabola
+    /// (`straightness::ThreeProbeOptions`; default: none, the parabola is reported unseen).
+    pub three_probe: straightness::ThreeProbeOptions,
 }
 
 /// The procedure's result.
@@ -586,7 +589,7 @@ pub fn run(req: &Request, start: &Calibration) -> Result<Outcome, ProcedureError
                     }
                     None => None,
                 };
-                straightness::three_probe(&mount, &st, rev.as_deref())?
+                straightness::three_probe_with(&mount, &st, rev.as_deref(), &req.three_probe)?
             } else {
                 straightness::two_probe(&mount, &st)?
             };
@@ -820,6 +823,7 @@ mod tests {
             raw: &raw,
             reversal: None,
             probe_resolution_mm: 1e-6,
+            three_probe: Default::default(),
         };
         let o = run(&req, &start).unwrap();
         assert_eq!(o.separation.stations_mm[0], 200.0);

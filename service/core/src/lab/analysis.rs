@@ -188,6 +188,10 @@ pub struct Diagnosis {
     /// [`widen_by_alternatives`].
     #[serde(skip)]
     pub model_spread: Vec<ModelSpread>,
+    /// The residual whose structure `unexplained` reports, while that search is deferred
+    /// ([`diagnose_deferred`]); [`fill_unexplained`] runs it.
+    #[serde(skip)]
+    pub left_residual: Option<Vec<f64>>,
 }
 
 /// The largest change of one parameter among the near-equal models (see [`Diagnosis`]).
@@ -928,6 +932,15 @@ fn choice_advice(
 /// candidate model is refitted as a whole and ranked by its cross-validated error (see
 /// [`super::select`]), the information criterion breaking near-ties.
 pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
+    let mut dg = diagnose_deferred(ds)?;
+    fill_unexplained(ds, &mut dg)?;
+    Ok(dg)
+}
+
+/// [`diagnose`] with the structure search (the costliest part: a periodogram per axis) left
+/// for [`fill_unexplained`]: `unexplained` is empty until then. `lab discover` runs it only
+/// when no library move is taken (the same search on the same residual, so the same result).
+pub fn diagnose_deferred(ds: &Dataset) -> Result<Diagnosis, LabError> {
     let prep = prepare(ds)?;
     let noise = ds.noise_floor_um;
     let model = ds.calibration.effects.clone();
@@ -1010,8 +1023,8 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
             (sc.base_spec.clone(), o, sc.base.rms_um())
         }
     };
-    let unexplained = if left_cv < 1.5 * noise.max(0.01) {
-        vec![]
+    let left_residual = if left_cv < 1.5 * noise.max(0.01) {
+        None
     } else {
         let pred = move_prediction(ds, &prep, &sc.space, &left_spec, &left_o, false)?;
         let resid: Vec<f64> = prep
@@ -1021,7 +1034,7 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
             .zip(&pred)
             .map(|(e, d)| e + d)
             .collect();
-        super::structure::structure(ds, &prep, &resid)?
+        Some(resid)
     };
     // The best candidate's predicted residual, drawn over the measured one.
     let prediction = match results.first() {
@@ -1086,10 +1099,42 @@ pub fn diagnose(ds: &Dataset) -> Result<Diagnosis, LabError> {
             })
             .collect(),
         confounded,
-        unexplained,
+        unexplained: vec![],
+        left_residual,
         points: npts,
         skipped: sc.skipped,
         prediction,
         model_spread,
     })
+}
+
+/// What the choice of model moves on `ds` (its calibration's effects refitted as they are):
+/// [`Diagnosis::model_spread`] without the rest of a diagnosis — only the moves this data
+/// scores near-equal (see [`near_equal`]) are fitted. For `lab add`, whose σ carries it as
+/// `lab discover`'s does ([`widen_by_alternatives`]).
+pub fn model_spread(ds: &Dataset) -> Result<Vec<ModelSpread>, LabError> {
+    let prep = prepare(ds)?;
+    let noise = ds.noise_floor_um;
+    let model = ds.calibration.effects.clone();
+    let sc = score_moves(ds, &prep, moves(ds, &model))?;
+    let base_o = sc.space.fit(&prep, &sc.base_spec, &sc.base, &sc.base)?;
+    let mut results = vec![];
+    for (c, b, spec, score) in &sc.moves {
+        if !near_equal(&sc.base, score, noise) {
+            continue;
+        }
+        let o = sc.space.fit(&prep, spec, score, &sc.base)?;
+        results.push((c.clone(), *b, spec.clone(), score.clone(), o, false));
+    }
+    Ok(model_spreads(&base_o, &sc.base, &results, noise))
+}
+
+/// Runs the structure search [`diagnose_deferred`] left (nothing when it was run or when the
+/// residual is within 1.5× the noise floor): fills `dg.unexplained`.
+pub fn fill_unexplained(ds: &Dataset, dg: &mut Diagnosis) -> Result<(), LabError> {
+    if let Some(resid) = dg.left_residual.take() {
+        let prep = prepare(ds)?;
+        dg.unexplained = super::structure::structure(ds, &prep, &resid)?;
+    }
+    Ok(())
 }

@@ -620,9 +620,11 @@ pub fn discover(
             um(prep.rms_held_um),
             um(ds.noise_floor_um)
         ));
-        let dg = analysis::diagnose(&ds)?;
-        left = dg.unexplained.clone();
+        // The structure search waits until no library move is taken (below).
+        let mut dg = analysis::diagnose_deferred(&ds)?;
         if steps.len() > o.max_steps {
+            analysis::fill_unexplained(&ds, &mut dg)?;
+            left = dg.unexplained.clone();
             stopped = format!("the step limit ({}) was reached", o.max_steps);
             last_dg = dg;
             break;
@@ -736,6 +738,10 @@ pub fn discover(
             }
         }
         // 2. Structure the library does not have, as a custom effect.
+        if chosen.is_none() {
+            analysis::fill_unexplained(&ds, &mut dg)?;
+        }
+        left = dg.unexplained.clone();
         if chosen.is_none() {
             for s in left.iter().take(2) {
                 let Some(ce) = beyond::custom_effect(s) else {

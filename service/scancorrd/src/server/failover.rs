@@ -13,7 +13,14 @@
 //!   decoding only while it holds) to drop what was published from what it holds.
 //! * Split brain: an active instance that sees another active token for its machine says so
 //!   (log, health, metrics, counted); the one active since later (the pair `since_ms`, `zid`
-//!   compared, so both decide alike with no exchange) steps back to standby.
+//!   compared, so both decide alike with no exchange) steps back to standby. It stops
+//!   publishing in the liveliness callback itself, as the token arrives: a partition that
+//!   heals brings the other's token before any raw sample the link carries after it, so no
+//!   point of the healed link is published twice.
+//! * An instance that loses its router (client mode) steps back at once for every machine it
+//!   serves: cut off, it receives no raw sample, and a standby on the bus takes over; it comes
+//!   back standing by. A standby cut off from its router does not take over (it would serve
+//!   nothing and come back in a split brain).
 //!
 //! Without fail-over none of this is declared, and the hot path is as it was: the outbox's
 //! one extra test per published batch (`holding`) is false.
@@ -75,6 +82,10 @@ pub(super) struct Fo {
     pub(super) split_brain_now: bool,
     /// The standby token (while standing by).
     standby_token: Option<zenoh::liveliness::LivelinessToken>,
+    /// This instance's active id (`since_ms-zid`) while active: the liveliness callback stops
+    /// the outbox when an earlier active token appears (split brain), before the control
+    /// task hears of it.
+    active_id: Arc<std::sync::Mutex<Option<String>>>,
     _watch: zenoh::pubsub::Subscriber<()>,
     _points: zenoh::pubsub::Subscriber<()>,
 }
@@ -146,6 +157,14 @@ impl State {
         let me = self.session.zid().to_string();
         let tx = self.fo_tx.clone();
         let machine = name.to_string();
+        let active_id = Arc::new(std::sync::Mutex::new(
+            (role == Role::Active).then(|| format!("{since_ms}-{me}")),
+        ));
+        let (mine, ob, max) = (
+            active_id.clone(),
+            outbox.clone(),
+            self.cfg.failover.max_held_bytes,
+        );
         let watch = self
             .session
             .liveliness()
@@ -160,11 +179,21 @@ impl State {
                 if id.ends_with(&me) {
                     return;
                 }
+                let alive = s.kind() == SampleKind::Put;
+                if kind == "active" && alive {
+                    // Split brain, and this instance active since later: it stops publishing
+                    // now (the control task steps it back, see `on_failover`).
+                    let mut mine = mine.lock().unwrap_or_else(|e| e.into_inner());
+                    if mine.as_deref().is_some_and(|m| order(m) > order(id)) {
+                        ob.hold(max);
+                        *mine = None;
+                    }
+                }
                 let _ = tx.send(Event::Token {
                     machine: machine.clone(),
                     active: kind == "active",
                     id: id.to_string(),
-                    alive: s.kind() == SampleKind::Put,
+                    alive,
                     at: Instant::now(),
                 });
             })
@@ -200,6 +229,7 @@ impl State {
             split_brains: 0,
             split_brain_now: false,
             standby_token,
+            active_id,
             _watch: watch,
             _points: points,
         })
@@ -286,6 +316,7 @@ impl State {
                         error!(machine, this = %me, other = %id, steps_back = later, "split brain: another instance is active for this machine too (a partition healed?): points may have been published twice while both were; the instance active since later steps back to standby");
                         if later {
                             self.step_back(&machine).await;
+                            warn!(machine, "split brain resolved: this instance stands by");
                         }
                     }
                     Role::Active if fo.others_active.is_empty() => {
@@ -303,6 +334,12 @@ impl State {
                 };
                 fo.due = false;
                 if fo.role == Role::Standby && fo.others_active.is_empty() {
+                    if self.uplink.as_ref().is_some_and(|u| u.routers() == 0) {
+                        // Cut off: taking over would serve nothing (no raw sample arrives) and
+                        // come back as a split brain. Tried again once a router is back.
+                        warn!(machine, "the active instance's token went while this instance has no router: not taking over until it has one");
+                        return;
+                    }
                     self.take_over(&machine).await;
                 }
             }
@@ -313,6 +350,9 @@ impl State {
     /// this one watched) takes over.
     pub(super) fn check_failover(&mut self) {
         let grace = Duration::from_millis(self.cfg.failover.grace_ms);
+        if self.uplink.as_ref().is_some_and(|u| u.routers() == 0) {
+            return; // cut off: nothing to take over (see `on_failover`)
+        }
         for (name, m) in &mut self.machines {
             let Some(fo) = m.fo.as_mut() else { continue };
             if fo.role == Role::Standby
@@ -379,6 +419,8 @@ impl State {
         fo.role = Role::Active;
         fo.since_ms = since_ms;
         fo.since = Instant::now();
+        *fo.active_id.lock().unwrap_or_else(|e| e.into_inner()) =
+            Some(format!("{since_ms}-{}", self.session.zid()));
         fo.takeovers += 1;
         fo.last_takeover_ms = took_ms;
         info!(
@@ -404,15 +446,35 @@ impl State {
         m.outbox.hold(max);
         m.tokens.clear();
         if let Some(fo) = m.fo.as_mut() {
+            *fo.active_id.lock().unwrap_or_else(|e| e.into_inner()) = None;
             fo.role = Role::Standby;
             fo.since_ms = now_ms();
             fo.since = Instant::now();
             fo.standby_token = token;
         }
-        warn!(
-            machine = name,
-            "stepped back to standby for the machine (split brain resolved)"
-        );
+        warn!(machine = name, "stepped back to standby for the machine");
+    }
+
+    /// This instance lost its last router (client mode): it steps back for every machine it
+    /// is active for. Cut off, it receives no raw sample (its points would have a gap), and a
+    /// standby on the bus takes the machines over; back on the bus it stands by, and takes
+    /// over again only if no instance is active then.
+    pub(super) async fn lost_bus(&mut self) {
+        let active: Vec<String> = self
+            .machines
+            .iter()
+            .filter(|(_, m)| m.fo.as_ref().is_some_and(|f| f.role == Role::Active))
+            .map(|(n, _)| n.clone())
+            .collect();
+        if !active.is_empty() {
+            warn!(
+                machines = active.len(),
+                "no router: stepping back to standby for every machine this instance was active for (a standby on the bus takes them over)"
+            );
+        }
+        for name in active {
+            self.step_back(&name).await;
+        }
     }
 
     /// At shutdown: machines with a standby are handed over as they are (not flushed), so

@@ -534,8 +534,14 @@ impl State {
     async fn watch_uplink(&mut self) {
         if self.uplink.is_some() {
             let n = self.session.info().routers_zid().await.count();
+            let mut lost = false;
             if let Some(u) = &mut self.uplink {
+                lost = u.routers() > 0 && n == 0;
                 u.observe(n, Instant::now());
+            }
+            // Fail-over: cut off, this instance steps back (see `failover`).
+            if lost && self.cfg.failover.enabled {
+                self.lost_bus().await;
             }
         }
     }

@@ -353,12 +353,16 @@ fn status_body(
 
 /// The audit record of a request: now (the service's clock), who asked, and the action.
 ///
-/// `by` is what the requester said in the query's attachment (`user@host`, at most 128
-/// printable characters), marked `(claimed)`. zenoh 1.10.2's query API tells a queryable
-/// nothing of the querier's connection (neither its zenoh id nor its certificate: only the
-/// router that admitted it knows them, and its access control has checked the role), so the
-/// service records what it was told and never invents a user: a claim without a user (none,
-/// or `unknown`, what a client says when `$USER` is not set) is recorded as `unnamed`.
+/// `by` is what the requester said in the query's attachment (at most 256 printable
+/// characters): `user@host; zid=<its session's zenoh id>; cn=<its certificate's common name>`
+/// (`scancorr` sends all three: the zenoh id of the session that asked and the subject of the
+/// certificate it connected with, which the router's access control admitted for its role),
+/// recorded as `alice@cmm-3 (claimed), zenoh id 5f1e…, certificate CN operator`. zenoh
+/// 1.10.2's stable query API gives a queryable nothing of the querier's connection (neither
+/// its zenoh id nor its certificate; only the router that admitted it knows them), so the
+/// service records what the requester's session says and never invents a user: a claim
+/// without a user (none, or `unknown`, what older clients said when `$USER` was not set) is
+/// recorded as `unnamed`, with the zenoh id and certificate when given.
 fn audit_of(q: &zenoh::query::Query, action: String) -> Audit {
     let claim = q
         .attachment()
@@ -366,7 +370,7 @@ fn audit_of(q: &zenoh::query::Query, action: String) -> Audit {
         .map(|s| {
             s.chars()
                 .filter(|c| !c.is_control())
-                .take(128)
+                .take(256)
                 .collect::<String>()
         })
         .filter(|s| !s.trim().is_empty());
@@ -382,18 +386,36 @@ fn audit_by(claim: Option<&str>) -> String {
     let Some(c) = claim else {
         return "unnamed (the request named no requester)".into();
     };
-    let (user, host) = match c.split_once('@') {
+    let mut parts = c.split(';').map(str::trim);
+    let who = parts.next().unwrap_or("");
+    let (mut zid, mut cn) = (None, None);
+    for p in parts {
+        match p.split_once('=') {
+            Some(("zid", v)) if !v.trim().is_empty() => zid = Some(v.trim()),
+            Some(("cn", v)) if !v.trim().is_empty() => cn = Some(v.trim()),
+            _ => {}
+        }
+    }
+    let (user, host) = match who.split_once('@') {
         Some((u, h)) => (u.trim(), Some(h.trim())),
-        None => (c.trim(), None),
+        None => (who.trim(), None),
     };
     let nameless = user.is_empty() || user.eq_ignore_ascii_case("unknown");
-    match (nameless, host) {
-        (false, _) => format!("{c} (claimed)"),
+    let mut by = match (nameless, host) {
+        (false, _) => format!("{who} (claimed)"),
         (true, Some(h)) if !h.is_empty() => {
             format!("unnamed@{h} (claimed; the requester named no user)")
         }
-        (true, _) => "unnamed (the request named no requester)".into(),
+        (true, _) if zid.is_some() => "unnamed (claimed; the requester named no user)".into(),
+        (true, _) => return "unnamed (the request named no requester)".into(),
+    };
+    if let Some(z) = zid {
+        by += &format!(", zenoh id {z}");
     }
+    if let Some(c) = cn {
+        by += &format!(", certificate CN {c}");
+    }
+    by
 }
 
 /// The wall clock as RFC 3339 UTC (seconds).
@@ -425,5 +447,18 @@ mod audit_tests {
         for c in [None, Some("unknown@vm"), Some("unknown")] {
             assert!(!audit_by(c).contains("unknown"), "{c:?}");
         }
+        // What `scancorr` sends: the session's zenoh id and its certificate's subject.
+        assert_eq!(
+            audit_by(Some("alice@cmm-3; zid=5f1e2a; cn=operator")),
+            "alice@cmm-3 (claimed), zenoh id 5f1e2a, certificate CN operator"
+        );
+        assert_eq!(
+            audit_by(Some("uid 0@vm; zid=5f1e2a")),
+            "uid 0@vm (claimed), zenoh id 5f1e2a"
+        );
+        assert_eq!(
+            audit_by(Some("unknown@vm; zid=5f1e2a; cn=lab")),
+            "unnamed@vm (claimed; the requester named no user), zenoh id 5f1e2a, certificate CN lab"
+        );
     }
 }

@@ -10,7 +10,8 @@
 //! core's own state per machine (from the status queryable), and CPU time of both processes.
 
 use super::harness::{
-    cpu_seconds, memory, pct, query, scancorrd_path, start_scancorrd, start_scancorrd_with, Service,
+    cpu_seconds, memory, pct, query, scancorrd_path, start_scancorrd, start_scancorrd_with,
+    task_switches, Service,
 };
 use crate::shared::synth;
 use anyhow::{bail, Context, Result};
@@ -451,6 +452,7 @@ fn measure(p: &Params) -> Result<Measured> {
         // period when the period has ended, paced on its own.
         let self_cpu0 = cpu_seconds("self").unwrap_or(0.0);
         let svc_cpu0 = cpu_seconds(&pid.to_string()).unwrap_or(0.0);
+        let switches0 = task_switches(pid).unwrap_or((0, 0));
         let fleet = Arc::new(fleet);
         let n_periods = fleet.len();
         let start = Instant::now();
@@ -500,6 +502,8 @@ fn measure(p: &Params) -> Result<Measured> {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
         let svc_cpu = cpu_seconds(&pid.to_string()).unwrap_or(0.0) - svc_cpu0;
+        // Threads that ended meanwhile take their counts with them: a floor.
+        let switches = task_switches(pid).map_or((0, 0), |(v, i)| (v.saturating_sub(switches0.0), i.saturating_sub(switches0.1)));
         let self_cpu = cpu_seconds("self").unwrap_or(0.0) - self_cpu0;
         let (rss_end, rss_peak) = memory(pid).unwrap_or((0, 0));
         drop(sub);
@@ -589,6 +593,9 @@ fn measure(p: &Params) -> Result<Measured> {
             "service_cpu_us_per_point": us_per_point,
             "service_cores_for_1000_machines_at_1khz": cores_for_target,
             "bench_process_cpu_cores": self_cpu / span_s.max(1e-9),
+            "service_task_switches_per_s": (switches.0 + switches.1) as f64 / span_s.max(1e-9),
+            "service_voluntary_switches_per_s": switches.0 as f64 / span_s.max(1e-9),
+            "service_involuntary_switches_per_s": switches.1 as f64 / span_s.max(1e-9),
             "targets": {"machines": 1000, "state_bytes_per_machine": 65536},
         });
         out["latency_parts"] = latency_parts;
@@ -605,6 +612,8 @@ fn measure(p: &Params) -> Result<Measured> {
             writeln!(text, "  service memory         idle {:.1} MiB, served {:.1} MiB, steady {:.1} MiB, peak {:.1} MiB", rss_idle as f64 / 1048576.0, rss_served as f64 / 1048576.0, rss_steady as f64 / 1048576.0, rss_peak as f64 / 1048576.0)?;
             writeln!(text, "  per machine            {:.1} KiB resident ({:.1} KiB before data); core state {:.1} KiB mean, {:.1} KiB max   (target ≤ 64 KiB)", kib(per_machine_rss), kib(per_machine_served), kib(state_mean), kib(state_max))?;
             writeln!(text, "  CPU                    service {:.2} cores, controllers + consumer {:.2} cores; service {us_per_point:.2} µs per point → {cores_for_target:.2} cores for 1000 machines at 1 kHz", svc_cpu / span_s.max(1e-9), self_cpu / span_s.max(1e-9))?;
+            let per_s = |n: u64| n as f64 / span_s.max(1e-9);
+            writeln!(text, "  task switches          service {:.0}/s ({:.0}/s waiting, {:.0}/s preempted; threads still running)", per_s(switches.0 + switches.1), per_s(switches.0), per_s(switches.1))?;
         }
         Ok(Measured { json: out, text })
     })

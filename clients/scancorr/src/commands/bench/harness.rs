@@ -56,6 +56,32 @@ pub(crate) fn cpu_seconds(pid: &str) -> Option<f64> {
     Some(ticks as f64 / 100.0)
 }
 
+/// Task switches of a process so far, summed over its live threads: (voluntary — a thread
+/// that waited, for a message or a lock —, involuntary — a thread preempted).
+pub(crate) fn task_switches(pid: u32) -> Option<(u64, u64)> {
+    let mut sum = (0u64, 0u64);
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))
+        .ok()?
+        .flatten()
+    {
+        let Ok(s) = std::fs::read_to_string(task.path().join("status")) else {
+            continue; // a thread that ended meanwhile
+        };
+        for line in s.lines() {
+            let field = |name: &str| {
+                line.strip_prefix(name)
+                    .and_then(|v| v.trim().parse::<u64>().ok())
+            };
+            if let Some(v) = field("voluntary_ctxt_switches:") {
+                sum.0 += v;
+            } else if let Some(v) = field("nonvoluntary_ctxt_switches:") {
+                sum.1 += v;
+            }
+        }
+    }
+    Some(sum)
+}
+
 /// A child process (scancorrd, or a relay) stopped with SIGTERM when dropped; `dir` is removed.
 pub(crate) struct Service {
     pub(crate) child: Child,

@@ -345,7 +345,7 @@ impl Case {
             bail!("{hide} is not in the fitted calibration");
         }
         let ds = dataset::build(&self.bags, &cal, &self.build)?;
-        let d = analysis::diagnose(&ds)?;
+        let d = analysis::diagnose_deferred(&ds)?;
         let first = d
             .candidates
             .first()
@@ -361,6 +361,12 @@ impl Case {
             analysis::moves_named(&ds, &first.effect)?
         };
         let a = analysis::apply(&ds, cands, false)?;
+        // As `lab add` reports it: σ widened by the near-equal moves on the new model.
+        let mut next = cal.clone();
+        next.effects = a.effects.clone();
+        let ds_after = dataset::build(&self.bags, &next, &self.build)?;
+        let mut outcome = a.outcome.clone();
+        analysis::widen_by_alternatives(&mut outcome, &analysis::model_spread(&ds_after)?);
         let note = format!(
             "{hide} hidden; ranked first: {:?} {}{}; made: {}",
             first.action,
@@ -372,7 +378,7 @@ impl Case {
             },
             a.candidate.effect
         );
-        Ok((note, a.outcome.configs, a.outcome.params))
+        Ok((note, outcome.configs, outcome.params))
     }
 
     /// `lab discover` from the nominal model: its steps, and the final model's configs and

@@ -83,7 +83,8 @@ pub enum CalibCmd {
     /// procedures and the lab (`scancorr sim --datasheet-out --catalogue-out` writes both for a
     /// simulated machine).
     Nominal(nominal::NominalArgs),
-    /// Print an example document (nominal model only) for a machine.
+    /// Print an example document for a machine: the nominal model without effects, or with
+    /// `--all-effects` every effect of the library with small non-zero example parameters.
     Example {
         /// Machine id.
         #[arg(long, default_value = "m1")]

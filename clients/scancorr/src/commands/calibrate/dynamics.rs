@@ -1,5 +1,6 @@
 //! `scancorr calibrate dynamics`: the ring-gauge procedure — the nominal τ, P, the servo phase and
-//! gain from rings at several speeds — its text and JSON output.
+//! gain from rings at several speeds, P's diagonal and Z row and column from faces scanned
+//! while the carriage oscillates (`sim --program dynamics-faces`) — its text and JSON output.
 
 use super::procedure::{open, outcome_json, points_without, Opened};
 use crate::shared::calib::{closing, commit_version, now_rfc3339};
@@ -31,6 +32,31 @@ fn dynamic_unit(p: &Param) -> (f64, f64, &'static str) {
         (1.0, "")
     };
     (p.value * k, p.sigma * k, u)
+}
+
+/// The face scans accelerated in place: what moved, what was measured, before → after.
+fn print_faces(faces: &[dynamics::FaceScan]) -> Result<()> {
+    if faces.is_empty() {
+        return Ok(());
+    }
+    outln!(
+        "face scans accelerated in place (RMS along the normal after each place's static terms, before → after, µm):"
+    )?;
+    for f in faces {
+        outln!(
+            "  ({:>6.1} {:>6.1} {:>7.1})  measured along {}, moved along {}: {:.0} mm/s, {:.0} mm/s² peak  {:.3}→{:.3}",
+            f.center_mm[0],
+            f.center_mm[1],
+            f.center_mm[2],
+            f.measured_along,
+            f.moved_along,
+            f.speed_mm_s,
+            f.peak_accel_mm_s2,
+            f.dynamic_rms_um,
+            f.dynamic_rms_after_um
+        )?;
+    }
+    Ok(())
 }
 
 /// Runs the procedure.
@@ -113,13 +139,16 @@ pub(super) fn exec(
             })
             .collect();
         outln!(
-            "  ({:>6.1} {:>6.1} {:>7.1})  {}",
+            "  ({:>6.1} {:>6.1} {:>7.1})  {}  ΔR/a along X {:+.2}, along Y {:+.2} µm per m/s²",
             p.center_mm[0],
             p.center_mm[1],
             p.center_mm[2],
-            scans.join("  ")
+            scans.join("  "),
+            p.dr_x_per_accel_um_per_m_s2,
+            p.dr_y_per_accel_um_per_m_s2
         )?;
     }
+    print_faces(&o.faces)?;
     outln!(
         "servo gain: {} form (held-out rings: theoretical {:.3} µm, polynomial in f {:.3} µm)",
         o.gain.chosen,

@@ -174,6 +174,15 @@ pub enum CalibrateCmd {
         /// Write an HTML report: guide and part profiles with uncertainty bands, the pitch.
         #[arg(long)]
         report: Option<PathBuf>,
+        /// Three probes without a reversal: the straightedge's bow (sag about its chord over
+        /// the measured span) is at most this, µm (its certificate or grade): the probes'
+        /// offsets' parabola is then estimated by least squares, ± σ, instead of unseen.
+        #[arg(long)]
+        straightedge_bow_um: Option<f64>,
+        /// With --straightedge-bow-um: each probe's zero offset after zeroing is within ± this,
+        /// µm.
+        #[arg(long)]
+        probe_zero_um: Option<f64>,
     },
     /// A plate's features (holes) measured against nominal: the similarity (offset,
     /// rotation, scale), the anisotropic scale/shear (quadrupole; scale per axis and
@@ -212,6 +221,8 @@ pub fn exec(cmd: CalibrateCmd) -> Result<()> {
             out,
             json,
             report,
+            straightedge_bow_um,
+            probe_zero_um,
         } => straightness::run(straightness::Args {
             method,
             bag,
@@ -222,6 +233,8 @@ pub fn exec(cmd: CalibrateCmd) -> Result<()> {
             out,
             json,
             report,
+            straightedge_bow_um,
+            probe_zero_um,
         }),
         CalibrateCmd::ProbeForce {
             bag,

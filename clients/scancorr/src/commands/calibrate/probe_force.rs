@@ -101,20 +101,27 @@ pub(super) fn exec(
     print_real_time(&o)?;
     outln!("parameters (± standard uncertainty):")?;
     for p in &o.params {
-        if p.name.ends_with("_mm") {
+        // Each value in the unit its name states (`scancorr_core::units`); the force
+        // coefficients (mm/mm) also as µm of bending per mm of deflection.
+        if p.name.ends_with("_mm_per_mm") {
             outln!(
-                "  {:<28} {:>9.5} mm ± {:.3} µm (statistical)",
+                "  {:<32} {:>9.6} ± {:.6} mm/mm ({:.3} ± {:.3} µm per mm of deflection)",
+                p.name,
+                p.value,
+                p.sigma,
+                p.value * 1e3,
+                p.sigma * 1e3
+            )?;
+        } else if p.name.ends_with("_mm") {
+            outln!(
+                "  {:<32} {:>9.5} mm ± {:.3} µm (statistical)",
                 p.name,
                 p.value,
                 p.sigma * 1e3
             )?;
         } else {
-            outln!(
-                "  {:<28} {:>9.3} ± {:.3} µm per mm of deflection",
-                p.name,
-                p.value * 1e3,
-                p.sigma * 1e3
-            )?;
+            let unit = scancorr_core::units::key_unit(&p.name).unwrap_or("(no unit)");
+            outln!("  {:<32} {:>9.6} ± {:.6} {unit}", p.name, p.value, p.sigma)?;
         }
     }
     for u in &o.undetermined {

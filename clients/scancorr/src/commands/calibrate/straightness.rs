@@ -11,6 +11,7 @@ use scancorr_bag::{BagReader, Stream};
 use scancorr_core::calibrate::separation::{
     self, CarriageSample, DistanceSample, Method, Raw, Request, StageSample,
 };
+use scancorr_core::calibrate::straightness::ThreeProbeOptions;
 use scancorr_core::lab::version;
 use scancorr_core::sample::{Axis, Sample, StreamId};
 use scancorr_core::wire;
@@ -27,6 +28,10 @@ pub struct Args {
     pub out: PathBuf,
     pub json: bool,
     pub report: Option<PathBuf>,
+    /// Bound on the straightedge's bow, µm (three probes without a reversal).
+    pub straightedge_bow_um: Option<f64>,
+    /// Bound on each probe's zero offset, µm (with the bow's).
+    pub probe_zero_um: Option<f64>,
 }
 
 fn axis(flag: &str, s: &str) -> Result<Axis> {
@@ -221,6 +226,10 @@ pub fn run(a: Args) -> Result<()> {
             raw: &raw,
             reversal: rev.as_ref(),
             probe_resolution_mm: resolution,
+            three_probe: ThreeProbeOptions {
+                straightedge_bow_mm: a.straightedge_bow_um.map(|v| v * 1e-3),
+                probe_zero_mm: a.probe_zero_um.map(|v| v * 1e-3),
+            },
         },
         &start,
     )?;

@@ -44,7 +44,7 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
     let _ = refit_all;
     let applied = analysis::apply(&ds, cands, only_new)?;
     let advice = applied.advice.clone();
-    let o = applied.outcome;
+    let mut o = applied.outcome;
     let vname = match &applied.candidate.replaces {
         Some(r) => format!("{} (replacing {r})", applied.candidate.effect),
         None => applied.candidate.effect.clone(),
@@ -53,6 +53,9 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
     // Measure, don't extrapolate: correct again with the new version.
     let ds_after = dataset_for(&l, &new)?;
     let after = analysis::prepare(&ds_after)?;
+    // σ carries what the choice of model moves (the moves this data scores near-equal on the
+    // new model), as `lab discover`'s does.
+    analysis::widen_by_alternatives(&mut o, &analysis::model_spread(&ds_after)?);
     let what = format!(
         "lab add {vname}{}",
         if only_new {

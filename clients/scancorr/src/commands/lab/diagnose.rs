@@ -27,14 +27,17 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
     }
     let l = load(&data)?;
     let ds = dataset_for(&l, &l.cal)?;
-    let dg = analysis::diagnose(&ds)?;
+    let mut dg = analysis::diagnose(&ds)?;
+    // One row per move, in one order, in the text, the JSON and the report alike.
+    let model = report::model_variants(&l.cal, &ds);
+    report::tidy_diagnosis(&mut dg, &model);
     let cmp = if report.is_some() || csv.is_some() {
         Some(analysis::compare(&ds)?)
     } else {
         None
     };
     if let (Some(p), Some(cmp)) = (&report, &cmp) {
-        put(&report_out, report::diagnose(&l.cal, &ds, cmp, &dg))?;
+        put(&report_out, report::diagnose(&l.cal, &ds, cmp, &dg, &model))?;
         commit_all([report_out])?;
         eprintln!("report: {}", p.display());
     }
@@ -46,7 +49,7 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
     if json {
         outln!("{}", serde_json::to_string_pretty(&dg)?)?;
     } else {
-        print_diagnosis(&dg, &data)?;
+        print_diagnosis(&dg, &data, &model)?;
     }
     Ok(())
 }

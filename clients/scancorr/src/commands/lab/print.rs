@@ -143,7 +143,11 @@ pub(super) fn custom_command(s: &scancorr_core::lab::analysis::Structure, d: &Da
     c
 }
 
-pub(super) fn print_diagnosis(d: &Diagnosis, data: &DataArgs) -> Result<()> {
+pub(super) fn print_diagnosis(
+    d: &Diagnosis,
+    data: &DataArgs,
+    model: &std::collections::BTreeMap<String, String>,
+) -> Result<()> {
     outln!(
         "residual RMS {} µm (cross-validated {} µm, held out {} µm), noise floor {} µm, {} fit / {} held-out points",
         um(d.rms_um),
@@ -153,8 +157,17 @@ pub(super) fn print_diagnosis(d: &Diagnosis, data: &DataArgs) -> Result<()> {
         d.points[0],
         d.points[1]
     )?;
+    let label = |c: &analysis::CandidateReport| crate::report::candidate_label(c, model);
+    let w = d
+        .candidates
+        .iter()
+        .take(12)
+        .map(|c| label(c).chars().count())
+        .max()
+        .unwrap_or(0)
+        .max(34);
     outln!(
-        "  {:<34} {:>9} {:>4} {:>11} {:>11} {:>9}",
+        "  {:<w$} {:>9} {:>4} {:>11} {:>11} {:>9}",
         "candidate",
         "explained",
         "sig",
@@ -164,12 +177,8 @@ pub(super) fn print_diagnosis(d: &Diagnosis, data: &DataArgs) -> Result<()> {
     )?;
     for c in d.candidates.iter().take(12) {
         outln!(
-            "  {:<34} {:>8.1}% {:>4} {:>5}→{:<5} {:>5}→{:<5} {:>9.0}",
-            match (&c.action, &c.replaces) {
-                (analysis::Move::Swap, Some(r)) => format!("{} for {r}", c.effect),
-                (analysis::Move::Drop, _) => format!("drop {}", c.effect),
-                _ => c.effect.clone(),
-            },
+            "  {:<w$} {:>8.1}% {:>4} {:>5}→{:<5} {:>5}→{:<5} {:>9.0}",
+            label(c),
             c.explained * 100.0,
             if c.significant { "yes" } else { "no" },
             format!("{:.3}", c.heldout_rms_before_um),

@@ -29,7 +29,10 @@
 //!   The unknown start values (Y_0 and the slope, i.e. X_1 and 2Y_1 − Y_2) are the line,
 //!   fixed by least squares: the part is reported as its deviation from its least-squares
 //!   line, the guide from its own, the pitch about its mean (a tilt of the straightedge and a
-//!   slope of the offsets, (o_C − o_A)/(2l), are a constant pitch).
+//!   slope of the offsets, (o_C − o_A)/(2l), are a constant pitch). Without a reversal,
+//!   [`three_probe_with`] estimates δ (β = δ/l, the angle between the probes' zero lines) as
+//!   a least-squares start value from a stated bound on the straightedge's bow (and the
+//!   zeroing's): the equations are in `three.rs`'s doc.
 //! * [`two_probe`] — sequential two-point method, no pitch. Probes A, B at s = 0, l:
 //!   Y_{K+1} − Y_K = m_B(K) − m_A(K) (cumulative sum from Y_0 = 0), X_K = Y_K − m_A(K), lines
 //!   removed. A pitch θ_K (about A) is not separated: it adds −θ_K·l to the part's step, so
@@ -74,7 +77,7 @@ mod three;
 mod two;
 
 pub use shear::shear_stage;
-pub use three::three_probe;
+pub use three::{three_probe, three_probe_with, ThreeProbeOptions};
 pub use two::two_probe;
 
 /// Stations of a method without a stage sensor must step by the probe spacing within this

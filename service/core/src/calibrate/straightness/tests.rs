@@ -713,3 +713,132 @@ fn averaging_is_robust() {
     let e = average_samples(&[1.0, f64::NAN]).unwrap_err().to_string();
     assert!(e.contains("at least 2"), "{e}");
 }
+
+/// LS coefficient of i² of (i, y_i), i = 0, 1, … (independently of `three.rs`: the normal
+/// equations of [1, t, t²], t = i − the mean index).
+fn quadratic_coefficient(y: &[f64]) -> f64 {
+    let mut m = nalgebra::Matrix3::<f64>::zeros();
+    let mut b = nalgebra::Vector3::<f64>::zeros();
+    // Centred (the same i² coefficient; the normal matrix better conditioned).
+    let c = (y.len() as f64 - 1.0) / 2.0;
+    let ym = y.iter().sum::<f64>() / y.len() as f64;
+    for (i, v) in y.iter().map(|v| v - ym).enumerate() {
+        let t = i as f64 - c;
+        let r = nalgebra::Vector3::new(1.0, t, t * t);
+        m += r * r.transpose();
+        b += r * v;
+    }
+    (m.try_inverse().unwrap() * b)[2]
+}
+
+#[test]
+fn without_a_reversal_the_stated_bow_fixes_the_offsets_parabola() {
+    let offsets = [0.8e-3, 1.3e-3, 1.5e-3];
+    let delta = offsets[0] - 2.0 * offsets[1] + offsets[2];
+    let mount = ProbeMount { spacing_mm: L };
+    let mut rng = Rng(11);
+    // Noise-free: δ̂ = δ + 2q, q the true part's least-squares parabola (in the point index).
+    let st = probe_readings(3, L, &offsets, 1.0, pitch, 0.0, &mut rng);
+    let bound = 4e-3;
+    let opts = ThreeProbeOptions {
+        straightedge_bow_mm: Some(bound),
+        probe_zero_mm: None,
+    };
+    let sep = three_probe_with(&mount, &st, None, &opts).unwrap();
+    let y: Vec<f64> = sep.part_positions_mm.iter().map(|&x| part(x)).collect();
+    let q = quadratic_coefficient(&y);
+    let d = &sep.params[0];
+    assert_eq!(d.name, "probe_offsets.second_difference_mm");
+    assert!(
+        (d.value - (delta + 2.0 * q)).abs() < 1e-12,
+        "{} vs {}",
+        d.value,
+        delta + 2.0 * q
+    );
+    assert_eq!(sep.params[1].name, "probe_offsets.beta_rad");
+    assert!((sep.params[1].value - d.value / L).abs() < 1e-15);
+    assert!(
+        !sep.cannot_see.iter().any(|c| c == "parabola"),
+        "{:?}",
+        sep.cannot_see
+    );
+    // σ: the stated bound's, 2·(B/√3)/((N+1)/2)² with N + 2 part points.
+    let half = (N + 1) as f64 / 2.0;
+    let sp = 2.0 * bound / 3f64.sqrt() / (half * half);
+    // (plus the 0.1 µm floor of these noise-free readings' u through the recursion).
+    assert!(d.sigma >= sp && d.sigma < 1.001 * sp, "σ {} vs {sp}", d.sigma);
+    // What is left: the part's own parabola, on the guide with its sign changed; honest.
+    let (yp, xg, _) = truths(&sep, pitch);
+    let eg = diff(&sep.guide_straightness_mm, &xg);
+    let ep = diff(&sep.part_straightness_mm, &yp);
+    let (rg, rp) = (rms(eg.iter().copied()), rms(ep.iter().copied()));
+    let ug = rms(sep.guide_straightness_mm_u.iter().copied());
+    eprintln!("stated bow: guide off by {rg:e} mm RMS (σ {ug:e}), part {rp:e}");
+    assert!(rg <= 2.0 * ug && rg > 0.0, "{rg} vs σ {ug}");
+    // Without the bound the parabola is δ's; with it, q's: smaller here (δ ≫ 2q).
+    let plain = three_probe(&mount, &st, None).unwrap();
+    let rg0 = rms(diff(&plain.guide_straightness_mm, &xg).into_iter());
+    assert!(rg < 0.2 * rg0, "{rg} vs {rg0} without the bound");
+    // With the zeroing's bound too: a weighted mean, between 0 and the bow's estimate.
+    let both = three_probe_with(
+        &mount,
+        &st,
+        None,
+        &ThreeProbeOptions {
+            straightedge_bow_mm: Some(bound),
+            probe_zero_mm: Some(2e-3),
+        },
+    )
+    .unwrap();
+    let v = both.params[0].value;
+    assert!(
+        v.abs() < d.value.abs() && v * d.value > 0.0,
+        "{v} vs {}",
+        d.value
+    );
+    assert!(both.params[0].sigma < d.sigma);
+    // Noisy readings: the σ include the noise.
+    let st = probe_readings(3, L, &offsets, 1.0, pitch, NOISE, &mut rng);
+    let noisy = three_probe_with(&mount, &st, None, &opts).unwrap();
+    assert!(noisy.params[0].sigma > d.sigma);
+    let (yp, xg, _) = truths(&noisy, pitch);
+    check(
+        "3p+bow part",
+        &noisy.part_straightness_mm,
+        &noisy.part_straightness_mm_u,
+        &yp,
+    );
+    check(
+        "3p+bow guide",
+        &noisy.guide_straightness_mm,
+        &noisy.guide_straightness_mm_u,
+        &xg,
+    );
+}
+
+#[test]
+fn the_stated_bounds_are_checked() {
+    let offsets = [0.0; 3];
+    let mount = ProbeMount { spacing_mm: L };
+    let mut rng = Rng(12);
+    let st = probe_readings(3, L, &offsets, 1.0, pitch, NOISE, &mut rng);
+    let rev = probe_readings(3, L, &offsets, -1.0, flat_pitch, NOISE, &mut rng);
+    let o = |b: Option<f64>, z: Option<f64>| ThreeProbeOptions {
+        straightedge_bow_mm: b,
+        probe_zero_mm: z,
+    };
+    let e = err_text(three_probe_with(
+        &mount,
+        &st,
+        Some(&rev),
+        &o(Some(1e-3), None),
+    ));
+    assert!(e.contains("either the reversal"), "{e}");
+    let e = err_text(three_probe_with(&mount, &st, None, &o(None, Some(1e-3))));
+    assert!(e.contains("bow bound too"), "{e}");
+    for bad in [0.0, -1e-3, f64::NAN] {
+        let e = err_text(three_probe_with(&mount, &st, None, &o(Some(bad), None)));
+        assert!(e.contains("bow bound must be a positive length"), "{e}");
+        assert!(!e.contains("NaN"), "{e}");
+    }
+}

@@ -36,6 +36,7 @@ use crate::stylus::TipPose;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::{PI, TAU};
 
+mod greedy;
 mod predict;
 mod record;
 pub use predict::*;
@@ -134,6 +135,9 @@ struct Group {
     features: Vec<ProgramFeature>,
     /// Scans with `feature` indices local to `features`.
     scans: Vec<Scan>,
+    /// The effect kinds it is for (a group for a requested candidate comes before the
+    /// others); empty: the base every plan starts with.
+    serves: &'static [&'static str],
 }
 
 fn circle(feature: usize, speed: f64, dir: i32, defl: f64, tip: u32, a1: f64, why: &str) -> Scan {
@@ -173,16 +177,18 @@ fn ring_at(c: Vec3, d: f64) -> ProgramFeature {
 /// structure's modes (the deflection follows the acceleration).
 pub const WEAVE: (f64, f64, [f64; 2]) = (0.1, 0.3, [4.0, 8.0]);
 
-/// Plans a campaign (a fixed design rule, taken in order of what it determines until the
-/// time runs out): the largest ring at the centre of the travel at four speeds in both
-/// directions and three deflections (probe force, the dynamics); at the eight corners of a box
-/// spanning 70 % of the travel (rigid-body terms, the position dependence of the deflection
-/// matrix); face weaves along x, y and z normals (acceleration along the measured direction
-/// off arcs: separates `accel_deflection` from `servo_gain`); a second ring diameter or the
-/// sphere's equator at three speeds (f = v/2πr and v²/r scale differently); the sphere with
-/// every tip and two head angles; the straightedge along x with two tips (the guide); then
-/// the ring stepped along a line in x, in y and in z through the centre (the shape of each
-/// rigid-body error along its axis, as `sim --program geometry` steps it).
+/// Plans a campaign. Groups of scans, each for what it determines: the largest ring at the
+/// centre of the travel at four speeds in both directions and three deflections (probe force,
+/// the dynamics; every plan starts with it); at the eight corners of a box spanning 70 % of
+/// the travel (rigid-body terms, the position dependence of the deflection matrix); face
+/// weaves along x, y and z normals (acceleration along the measured direction off arcs:
+/// separates `accel_deflection` from `servo_gain`); a second ring diameter or the sphere's
+/// equator at three speeds (f = v/2πr and v²/r scale differently); the sphere with every tip
+/// and two head angles; the straightedge along x with two tips (the guide). The groups for the
+/// requested candidates come first; then, when the rigid body is a candidate or in the model,
+/// the ring placed one place at a time where it most reduces the predicted variance of the
+/// rigid-body terms per minute (see [`greedy`]) in the time those leave; then the other
+/// groups while time is left.
 pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
     let tr = req.travel_mm;
     for (i, [lo, hi]) in tr.iter().enumerate() {
@@ -261,6 +267,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
             why: why.into(),
             features: vec![ring_at(centre, big)],
             scans,
+            serves: &[],
         });
     }
     // 2. The ring at the corners.
@@ -285,6 +292,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
             why: why.into(),
             features,
             scans,
+            serves: &["rigid_body"],
         });
     }
     // 3. Face weaves along each axis' normal.
@@ -324,6 +332,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
                     length_mm: Some(l),
                 }],
                 scans,
+                serves: &["servo_gain", "accel_deflection"],
             });
         }
     }
@@ -359,6 +368,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
                 ..ring_at(c, d)
             }],
             scans,
+            serves: &["servo_gain", "accel_deflection"],
         });
     }
     // 5. The sphere with every tip and two head angles.
@@ -387,6 +397,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
                 ..ring_at(c, d)
             }],
             scans,
+            serves: &["stylus_thermal", "probe_force"],
         });
     }
     // 6. The straightedge along x: the guide.
@@ -422,51 +433,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
                 length_mm: Some(l),
             }],
             scans,
-        });
-    }
-    // 7. The ring stepped along a line in X, in Y and in Z through the centre.
-    {
-        let why = "the ring stepped along each axis: the shape of every rigid-body error along its axis (a wavy error needs its slope at each step), apart from the guide's table and the squareness";
-        let mut features = vec![];
-        let mut scans = vec![];
-        let steps: Vec<f64> = (1..=9).map(|k| k as f64 / 10.0).collect();
-        let mut places: Vec<Vec3> = vec![];
-        for &f in &steps {
-            places.push(at(f, 0.5, 0.5));
-        }
-        for &f in &steps {
-            places.push(at(0.5, f, 0.5));
-        }
-        for &f in &steps {
-            places.push(at(0.5, 0.5, f));
-        }
-        let mut seen: Vec<Vec3> = vec![];
-        places.retain(|p| {
-            let new = seen.iter().all(|q| (p - q).norm() >= 1.0) && (p - centre).norm() >= 1.0;
-            seen.push(*p);
-            new
-        });
-        for p in &places {
-            let i = features.len();
-            features.push(ring_at(*p, big));
-            scans.push(circle(i, 30.0, 1, 0.3, t1.id, 0.0, why));
-            scans.push(circle(i, 30.0, -1, 0.3, t1.id, 0.0, why));
-        }
-        let span = |a: usize| 0.8 * (tr[a][1] - tr[a][0]);
-        groups.push(Group {
-            what: format!(
-                "ring d={big} mm stepped along x, y and z through the centre ({} places, every {:.0}/{:.0}/{:.0} mm over {:.0}/{:.0}/{:.0} mm): 30 mm/s both ways",
-                places.len(),
-                span(0) / 8.0,
-                span(1) / 8.0,
-                span(2) / 8.0,
-                span(0),
-                span(1),
-                span(2)
-            ),
-            why: why.into(),
-            features,
-            scans,
+            serves: &["guide_straightness"],
         });
     }
     // Take the groups in order while they fit the time.
@@ -490,8 +457,37 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
             .map(|t| t.radius_mm)
             .unwrap_or(1.0)
     };
-    let mut used = 0.0;
+    let kinds: Vec<&str> = req
+        .candidates
+        .iter()
+        .map(|c| c.split(':').next().unwrap_or(c))
+        .collect();
+    let rigid =
+        kinds.contains(&"rigid_body") || cal.effects.iter().any(|e| e.kind() == "rigid_body");
+    // The base group, then the groups for the requested candidates, then (for the rigid
+    // body) the ring placements chosen one by one, then the others while time is left.
+    let (mut first, mut rest): (Vec<Option<Group>>, Vec<Option<Group>>) = (vec![], vec![]);
+    let mut later = vec![];
     for g in groups {
+        if g.serves.is_empty() || g.serves.iter().any(|k| kinds.contains(k)) {
+            first.push(Some(g));
+        } else {
+            later.push(Some(g));
+        }
+    }
+    if rigid {
+        first.push(None);
+    }
+    rest.extend(later);
+    let mut used = 0.0;
+    for g in first.into_iter().chain(rest) {
+        let g = match g {
+            Some(g) => g,
+            None => match rigid_group(cal, req, off1, big, t1.id, &program, budget, &tip_r)? {
+                Some(g) => g,
+                None => continue,
+            },
+        };
         let base = program.features.len();
         let mut trial = program.clone();
         trial.features.extend(g.features.iter().cloned());
@@ -531,6 +527,155 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         left_out,
         prediction,
     })
+}
+
+/// Lines of the pool of ring places for the rigid body, as fractions of the travel: along
+/// each axis through the centre, and at a second level of each other axis (the Abbe levers:
+/// an axis' pitch and roll times the ram's extension or the carriage's position come apart
+/// from its translations only at two levels).
+const POOL_LINES: [(usize, [f64; 2]); 8] = [
+    (0, [0.5, 0.5]),
+    (0, [0.5, 0.8]),
+    (0, [0.2, 0.5]),
+    (1, [0.5, 0.5]),
+    (1, [0.5, 0.8]),
+    (1, [0.2, 0.5]),
+    (2, [0.5, 0.5]),
+    (2, [0.2, 0.2]),
+];
+
+/// Machine time below which the rigid body's places are not planned, s.
+const RIGID_MIN_S: f64 = 180.0;
+
+/// The ring placements for the rigid body, chosen one by one (see [`greedy`]) from the ring
+/// stepped by its diameter (at least 40 mm) along the [`POOL_LINES`] over 10–90 % of the
+/// travel, within the time `program` leaves of `budget` s. None: no gain, or less than
+/// [`RIGID_MIN_S`] left.
+#[allow(clippy::too_many_arguments)]
+fn rigid_group(
+    cal: &Calibration,
+    req: &PlanRequest,
+    off1: Vec3,
+    d: f64,
+    tip: u32,
+    program: &Program,
+    budget: f64,
+    tip_r: &dyn Fn(u32) -> f64,
+) -> Result<Option<Group>, LabError> {
+    let tr = req.travel_mm;
+    let left = budget - machine_time_s(program, tip_r);
+    // Fewer than about ten places cannot follow each error's shape along its axis: their time
+    // goes to the other groups.
+    if left < RIGID_MIN_S {
+        return Ok(None);
+    }
+    let step = d.max(40.0);
+    let mut places: Vec<greedy::Place> = vec![];
+    let mut line_of: Vec<(usize, usize, f64)> = vec![];
+    for (li, (ax, fr)) in POOL_LINES.iter().enumerate() {
+        let others: Vec<usize> = (0..3).filter(|a| a != ax).collect();
+        let mut f = [0.5; 3];
+        f[others[0]] = fr[0];
+        f[others[1]] = fr[1];
+        let span = tr[*ax][1] - tr[*ax][0];
+        let n = ((0.8 * span) / step).floor() as usize;
+        let lo = tr[*ax][0] + 0.5 * span - 0.5 * n as f64 * step;
+        let pos = |f: [f64; 3]| {
+            Vec3::new(
+                tr[0][0] + f[0] * (tr[0][1] - tr[0][0]),
+                tr[1][0] + f[1] * (tr[1][1] - tr[1][0]),
+                tr[2][0] + f[2] * (tr[2][1] - tr[2][0]),
+            ) + off1
+        };
+        let c0 = pos(f);
+        let name = ["x", "y", "z"];
+        let line = format!(
+            "{} at {} {:.0}, {} {:.0}",
+            name[*ax], name[others[0]], c0[others[0]], name[others[1]], c0[others[1]]
+        );
+        for k in 0..=n {
+            let mut c = c0;
+            c[*ax] = lo + k as f64 * step + off1[*ax];
+            if places.iter().any(|p| (p.center - c).norm() < 1.0) {
+                continue;
+            }
+            line_of.push((li, *ax, c[*ax]));
+            places.push(greedy::Place {
+                center: c,
+                line: line.clone(),
+            });
+        }
+    }
+    let mut chosen = greedy::choose(cal, &places, d, tip, left, &req.assumptions, tip_r)?;
+    let why = "rigid-body errors: the ring placed where it most reduces the predicted variance of the rigid-body terms (each error's shape along its axis, the lab's spline variant; two levels of the other axes for the Abbe levers), one place at a time";
+    // Along the lines in order; the last chosen dropped while the moves make it too long.
+    loop {
+        if chosen.order.is_empty() {
+            return Ok(None);
+        }
+        let mut ord = chosen.order.clone();
+        ord.sort_by(|a, b| {
+            line_of[*a]
+                .0
+                .cmp(&line_of[*b].0)
+                .then(line_of[*a].2.total_cmp(&line_of[*b].2))
+        });
+        let mut g = Group {
+            what: String::new(),
+            why: why.into(),
+            features: vec![],
+            scans: vec![],
+            serves: &["rigid_body"],
+        };
+        for (i, f) in ord.iter().enumerate() {
+            g.features.push(ring_at(places[*f].center, d));
+            g.scans.push(circle(i, 30.0, 1, 0.3, tip, 0.0, why));
+            g.scans.push(circle(i, 30.0, -1, 0.3, tip, 0.0, why));
+        }
+        let mut trial = program.clone();
+        let base = trial.features.len();
+        trial.features.extend(g.features.iter().cloned());
+        trial.scans.extend(g.scans.iter().cloned().map(|mut s| {
+            s.feature += base;
+            s
+        }));
+        if machine_time_s(&trial, tip_r) > budget {
+            chosen.order.pop();
+            continue;
+        }
+        let mut per_line: Vec<(String, usize, f64, f64)> = vec![];
+        for f in &ord {
+            let (l, ax, v) = (
+                &places[*f].line,
+                line_of[*f].1,
+                places[*f].center[line_of[*f].1],
+            );
+            let _ = ax;
+            match per_line.iter_mut().find(|p| &p.0 == l) {
+                Some(p) => {
+                    p.1 += 1;
+                    p.2 = p.2.min(v);
+                    p.3 = p.3.max(v);
+                }
+                None => per_line.push((l.clone(), 1, v, v)),
+            }
+        }
+        g.what = format!(
+            "ring d={d} mm at {} places chosen one by one for the rigid body ({} of {} pool places every {step:.0} mm, the last worth {:.1} % of the first; its terms seen: {} of {}): {}; 30 mm/s both ways",
+            ord.len(),
+            ord.len(),
+            places.len(),
+            100.0 * chosen.gains.get(ord.len() - 1).copied().unwrap_or(0.0),
+            chosen.terms_seen.1,
+            chosen.terms_seen.0,
+            per_line
+                .iter()
+                .map(|(l, n, a, b)| format!("along {l}: {n} from {a:.0} to {b:.0}"))
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+        return Ok(Some(g));
+    }
 }
 
 /// Machine time of a program, s: each scan with the move to it (from the end of the last at
@@ -698,6 +843,49 @@ mod tests {
     }
 
     #[test]
+    fn the_rigid_body_gets_ring_places_chosen_one_by_one_at_two_levels() {
+        let mut req = PlanRequest {
+            travel_mm: [[0.0, 1000.0], [0.0, 800.0], [-600.0, 0.0]],
+            owned: vec![Owned::parse("ring:d=50.0012").unwrap()],
+            minutes: 9.0,
+            candidates: vec!["rigid_body".into()],
+            assumptions: Assumptions {
+                stride: 16,
+                ..Assumptions::default()
+            },
+        };
+        let p = plan(&cal(), &req).unwrap();
+        assert!(p.minutes <= 9.0, "{}", p.minutes);
+        let g = p
+            .groups
+            .iter()
+            .find(|g| g.what.contains("chosen one by one for the rigid body"))
+            .unwrap_or_else(|| panic!("{:?}", p.groups));
+        assert!(g.minutes > 3.0, "{g:?}");
+        // The places: rings at the first tip's reach, inside the travel, on more than one
+        // level of z and of y (the Abbe levers).
+        let rings: Vec<Vec3> = p
+            .program
+            .features
+            .iter()
+            .skip(9)
+            .map(|f| Vec3::from(f.center_mm))
+            .collect();
+        assert!(rings.len() >= 10, "{}", rings.len());
+        let levels = |a: usize| {
+            let mut v: Vec<i64> = rings.iter().map(|c| c[a].round() as i64).collect();
+            v.sort();
+            v.dedup();
+            v.len()
+        };
+        assert!(levels(2) >= 2 && levels(1) >= 2, "{rings:?}");
+        // Without the rigid body asked for, no such group.
+        req.candidates = vec!["servo_gain:powers=1+2".into()];
+        let q = plan(&cal(), &req).unwrap();
+        assert!(!q.groups.iter().any(|g| g.what.contains("rigid body")));
+    }
+
+    #[test]
     fn the_planner_stays_within_its_time_and_determines_the_deflection_matrix() {
         let req = PlanRequest {
             travel_mm: [[0.0, 1000.0], [0.0, 800.0], [-600.0, 0.0]],
@@ -705,7 +893,7 @@ mod tests {
                 .iter()
                 .map(|s| Owned::parse(s).unwrap())
                 .collect(),
-            minutes: 8.0,
+            minutes: 6.0,
             candidates: vec!["servo_gain:powers=1+2".into()],
             assumptions: Assumptions {
                 stride: 16,
@@ -713,8 +901,8 @@ mod tests {
             },
         };
         let p = plan(&cal(), &req).unwrap();
-        assert!(p.minutes <= 8.0 && p.minutes > 4.0, "{}", p.minutes);
-        assert!(!p.left_out.is_empty(), "8 minutes cannot hold every group");
+        assert!(p.minutes <= 6.0 && p.minutes > 4.0, "{}", p.minutes);
+        assert!(!p.left_out.is_empty(), "6 minutes cannot hold every group");
         assert!(p.program.validate().is_ok());
         for q in p
             .prediction
