@@ -24,10 +24,10 @@ from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-from google.protobuf import descriptor_pb2, descriptor_pool
 from mcap.reader import make_reader
 
 import scancorr
+from schema_pool import pool_of
 
 # Foxglove's NumericType (not ROS PointField's) -> struct format.
 FORMATS = {
@@ -56,19 +56,7 @@ def unpack(cloud):
 
 def schema_fields(schema):
     """The top-level field names of the message `schema` names, from its FileDescriptorSet."""
-    files = list(descriptor_pb2.FileDescriptorSet.FromString(schema.data).file)
-    pool = descriptor_pool.DescriptorPool()
-    while files:  # dependencies first, whatever the set's order
-        left = []
-        for f in files:
-            try:
-                pool.Add(f)
-            except Exception:  # noqa: BLE001 - a dependency not added yet
-                left.append(f)
-        if len(left) == len(files):
-            raise ValueError(f"unresolvable schema files: {[f.name for f in left]}")
-        files = left
-    return sorted(f.name for f in pool.FindMessageTypeByName(schema.name).fields)
+    return sorted(f.name for f in pool_of(schema.data).FindMessageTypeByName(schema.name).fields)
 
 
 def lab_deviation(feature, p):

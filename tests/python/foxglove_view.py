@@ -22,7 +22,8 @@ import struct
 import sys
 
 import websockets
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from schema_pool import pool_of
+from google.protobuf import message_factory
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
@@ -31,18 +32,7 @@ FORMATS = {PackedElementField.UINT32: "<I", PackedElementField.FLOAT64: "<d", Pa
 
 def message_class(schema_b64, name):
     """The message class `name` of an advertised base64 FileDescriptorSet."""
-    files = list(descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(schema_b64)).file)
-    pool = descriptor_pool.DescriptorPool()
-    while files:  # dependencies first, whatever the set's order
-        left = []
-        for f in files:
-            try:
-                pool.Add(f)
-            except Exception:  # noqa: BLE001 - a dependency not added yet
-                left.append(f)
-        if len(left) == len(files):
-            raise ValueError(f"unresolvable schema files: {[f.name for f in left]}")
-        files = left
+    pool = pool_of(base64.b64decode(schema_b64))
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
 
 

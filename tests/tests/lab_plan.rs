@@ -55,30 +55,7 @@ fn a_planned_campaign_measures_what_it_predicted() {
     );
     fitted_from_nominal(&d);
     // The plan, from the fitted calibration, the data sheet's travel and the artifacts owned.
-    let planned = json(&ok(
-        &d,
-        &[
-            "lab",
-            "plan",
-            "--calib",
-            "fitted.json",
-            "--datasheet",
-            "ds.json",
-            "--artifact",
-            "ring:d=50.0012",
-            "--artifact",
-            "sphere:d=25.0004",
-            "--artifact",
-            "straightedge:l=400",
-            "--minutes",
-            "8",
-            "--replicates",
-            "0",
-            "--out",
-            "plan.json",
-            "--json",
-        ],
-    ));
+    let planned = plan_owned(&d, "8", &[]);
     let minutes = planned["minutes"].as_f64().unwrap();
     assert!(minutes > 4.0 && minutes <= 8.0, "{minutes} min");
     // The simulator runs the record.
@@ -263,32 +240,7 @@ fn the_plan_determines_the_rigid_body_hidden_from_a_nominal_start() {
         &["--position", "550,300,-250"],
     );
     fitted_from_nominal(&d);
-    let planned = json(&ok(
-        &d,
-        &[
-            "lab",
-            "plan",
-            "--calib",
-            "fitted.json",
-            "--datasheet",
-            "ds.json",
-            "--artifact",
-            "ring:d=50.0012",
-            "--artifact",
-            "sphere:d=25.0004",
-            "--artifact",
-            "straightedge:l=400",
-            "--minutes",
-            "16",
-            "--candidate",
-            "rigid_body",
-            "--replicates",
-            "0",
-            "--out",
-            "plan.json",
-            "--json",
-        ],
-    ));
+    let planned = plan_owned(&d, "16", &["--candidate", "rigid_body"]);
     // The plan places the ring for the rigid body, and predicts it determined.
     let groups = planned["groups"].as_array().unwrap();
     assert!(
@@ -348,6 +300,33 @@ fn the_plan_determines_the_rigid_body_hidden_from_a_nominal_start() {
 
 /// `calib nominal` from the data sheet (styli as qualified), the discovered model's effects at
 /// zero, refitted on the campaign `c.mcap` by `lab fit`: `fitted.json`, what a user starts from.
+/// `lab plan` from the fitted calibration, the data sheet's travel and the artifacts owned (a
+/// ring, a sphere, a 400 mm straightedge), within `minutes`, to `plan.json`: its JSON.
+fn plan_owned(d: &std::path::Path, minutes: &str, extra: &[&str]) -> serde_json::Value {
+    let args = [
+        &[
+            "lab",
+            "plan",
+            "--calib",
+            "fitted.json",
+            "--datasheet",
+            "ds.json",
+            "--artifact",
+            "ring:d=50.0012",
+            "--artifact",
+            "sphere:d=25.0004",
+            "--artifact",
+            "straightedge:l=400",
+            "--minutes",
+            minutes,
+        ][..],
+        extra,
+        &["--replicates", "0", "--out", "plan.json", "--json"],
+    ]
+    .concat();
+    json(&ok(d, &args))
+}
+
 fn fitted_from_nominal(d: &std::path::Path) {
     ok(
         d,

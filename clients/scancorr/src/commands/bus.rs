@@ -167,7 +167,9 @@ pub fn record(
     if no_foxglove && nominal.is_some() {
         anyhow::bail!("--nominal gives the Foxglove channels' deviations: not with --no-foxglove");
     }
-    let nominal = nominal.map(|b| Nominal::from_bag("--nominal", &b)).transpose()?;
+    let nominal = nominal
+        .map(|b| Nominal::from_bag("--nominal", &b))
+        .transpose()?;
     let sinks = (!no_foxglove).then(|| BusSinks::new(&bus.prefix, nominal));
     let n = bus::record(&bus, &keys, &out, bound, sinks)?;
     if json {

@@ -300,8 +300,12 @@ pub(super) fn bars(
         .map(|r| r.1)
         .chain(reference.map(|r| r.0))
         .fold(1e-9f64, f64::max);
-    let (x0, wbar) = (230.0, 300.0);
-    let mut svg = format!("<svg data-plot=\"{kind}\" xmlns=\"http://www.w3.org/2000/svg\" width=\"620\" height=\"{h}\">");
+    // The labels' column as wide as the longest label (11 px text, ~6.3 px a character), so a
+    // long candidate label (`stylus_thermal:split for …`) is not cut at the left edge.
+    let longest = rows.iter().map(|r| r.0.chars().count()).max().unwrap_or(0);
+    let (x0, wbar) = ((6.3 * longest as f64 + 12.0).max(230.0), 300.0);
+    let width = x0 + wbar + 90.0;
+    let mut svg = format!("<svg data-plot=\"{kind}\" xmlns=\"http://www.w3.org/2000/svg\" width=\"{width:.0}\" height=\"{h}\">");
     for (i, (label, v, hot)) in rows.iter().enumerate() {
         let y = 10.0 + 22.0 * i as f64;
         let _ = write!(

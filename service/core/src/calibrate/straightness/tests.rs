@@ -766,7 +766,11 @@ fn without_a_reversal_the_stated_bow_fixes_the_offsets_parabola() {
     let half = (N + 1) as f64 / 2.0;
     let sp = 2.0 * bound / 3f64.sqrt() / (half * half);
     // (plus the 0.1 µm floor of these noise-free readings' u through the recursion).
-    assert!(d.sigma >= sp && d.sigma < 1.001 * sp, "σ {} vs {sp}", d.sigma);
+    assert!(
+        d.sigma >= sp && d.sigma < 1.001 * sp,
+        "σ {} vs {sp}",
+        d.sigma
+    );
     // What is left: the part's own parabola, on the guide with its sign changed; honest.
     let (yp, xg, _) = truths(&sep, pitch);
     let eg = diff(&sep.guide_straightness_mm, &xg);
