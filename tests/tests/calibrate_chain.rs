@@ -1,9 +1,10 @@
 //! The procedures in a row, as a user with a new machine would run them: from a nominal
 //! calibration with the catalogue's styli, `calibrate tips` → `calibrate probe-force` →
-//! `calibrate dynamics` → (`calibrate straightness`) → `calibrate scales`, each on its own
-//! simulated measurement and each starting from the previous one's output; then a `part` run
-//! scanned fast, corrected with the result, is judged against the part's true surfaces (the
-//! truth file is read only to judge), within 1.3× the error the true calibration leaves.
+//! `calibrate dynamics` (horizontal rings and rings standing on their edge) → (`calibrate
+//! straightness`) → `calibrate scales`, each on its own simulated measurement and each
+//! starting from the previous one's output; then a `part` run scanned fast, corrected with
+//! the result, is judged against the part's true surfaces (the truth file is read only to
+//! judge), within 1.3× the error the true calibration leaves.
 //!
 //! The machine (seed 53, no other test's) keeps its scales' expansion (`scale_thermal`): the
 //! room drifts through every measurement, and `calibrate scales` (a ball bar along X, Y and Z
@@ -154,7 +155,22 @@ fn chain(name: &str, guide: bool) {
     sim(&dir, "probe-force", "2", "pf.mcap", "pf.truth.json", guide);
     calibrate("probe-force", "pf.mcap", "c1.json", "c2.json", &[]);
     sim(&dir, "dynamics", "3", "d.mcap", "d.truth.json", guide);
-    calibrate("dynamics", "d.mcap", "c2.json", "c3.json", &[]);
+    // The ring standing on its edge too (XZ and YZ planes): P's Z row and column, the Z phase.
+    sim(
+        &dir,
+        "dynamics-vertical",
+        "7",
+        "dv.mcap",
+        "dv.truth.json",
+        guide,
+    );
+    calibrate(
+        "dynamics",
+        "d.mcap",
+        "c2.json",
+        "c3.json",
+        &["--bag", "dv.mcap"],
+    );
     let mut cals = vec!["nominal.json", "c1.json", "c2.json", "c3.json"];
     if guide {
         for (out, extra) in [("s.mcap", None), ("sr.mcap", Some("--reversal"))] {

@@ -2,8 +2,10 @@
 //! scanned slowly at d1 (S1) and fast at d2 (F1) and d1 (F2) on a machine no other test uses,
 //! from a nominal calibration; then a like part (same nominal bore, same place, another form,
 //! the same part program: its fast scan has F2's segment id) from another run, corrected in
-//! process with the new calibration and judged against its true surface. The truth file and
-//! the part's true surface are read only to judge.
+//! process with the new calibration and judged against its true surface. The same part program
+//! on a bore at another place (the same segment ids at the same speed) gets no map, and
+//! `correct` says the map applies to none of its points. The truth file and the part's true
+//! surface are read only to judge.
 
 mod common;
 use common::*;
@@ -19,12 +21,17 @@ fn json(s: &str) -> serde_json::Value {
     serde_json::from_str(s).unwrap_or_else(|e| panic!("not JSON ({e}): {s}"))
 }
 
-/// The like part, run in process (run `seed`; every library effect in the machine).
-fn like_part(seed: u64) -> (RunResult, Vec<Sample>) {
+/// Where the ring (and the like part) stands unless placed, mm (the simulator's default).
+const RING_PLACE: [f64; 3] = [400.0, 300.0, -250.0];
+
+/// The like part, run in process (run `seed`; every library effect in the machine), at
+/// `position` (none: the ring's place).
+fn like_part(seed: u64, position: Option<[f64; 3]>) -> (RunResult, Vec<Sample>) {
     let o = Options {
         program: "dynamic-map-part".into(),
         machine_seed: MACHINE.parse().unwrap(),
         seed,
+        position,
         ..Default::default()
     };
     let mut samples = vec![];
@@ -83,7 +90,11 @@ fn scan_errors(r: &(RunResult, Vec<Sample>), cal: &Calibration) -> Vec<(f64, f64
 /// (slow, fast) RMS errors of the part's two scans, µm.
 fn slow_fast(part: &(RunResult, Vec<Sample>), dir: &Path, cal: &str) -> (f64, f64) {
     let c = Calibration::from_json(&std::fs::read_to_string(dir.join(cal)).unwrap()).unwrap();
-    let e = scan_errors(part, &c);
+    slow_fast_with(part, &c, cal)
+}
+
+fn slow_fast_with(part: &(RunResult, Vec<Sample>), c: &Calibration, cal: &str) -> (f64, f64) {
+    let e = scan_errors(part, c);
     assert_eq!(e.len(), 2, "{e:?}");
     let (slow, fast) = (e[0], e[1]);
     assert!(slow.0 < fast.0, "{e:?}");
@@ -200,7 +211,7 @@ fn dynamic_map_corrects_a_like_parts_fast_scan_to_the_slow_scans_error() {
     assert!(search["fastest_within_mm_s"].as_f64().unwrap() >= 20.0);
 
     // The like part, another run.
-    let part = like_part(7);
+    let part = like_part(7, None);
     let floor = part.0.truth.noise_floor_um;
     let rows = [
         ("nominal", slow_fast(&part, &dir, "nominal.json")),
@@ -223,6 +234,111 @@ fn dynamic_map_corrects_a_like_parts_fast_scan_to_the_slow_scans_error() {
     assert!(pf_map.1 <= 1.5 * pf_map.0, "probe-force + map: {pf_map:?}");
     assert!(nom_map.1 <= 1.5 * nom_map.0, "nominal + map: {nom_map:?}");
     assert!(nom_map.1 < 0.5 * nom.1, "nominal: {nom:?} → {nom_map:?}");
+
+    map_applies_only_at_its_place(&dir, &part);
+}
+
+/// The map's place: the like part where the master stood gets the map; the same part program
+/// (the same segment ids, at the same speed) on a bore elsewhere on the table, or at another
+/// height, gets none — and `correct` says so, naming the map. Without its place the map would
+/// have applied there (so the check is what keeps it off).
+fn map_applies_only_at_its_place(dir: &Path, part: &(RunResult, Vec<Sample>)) {
+    let text = std::fs::read_to_string(dir.join("dm-pf.json")).unwrap();
+    let cal = Calibration::from_json(&text).unwrap();
+    let v = json(&text);
+    let fm = v["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| {
+            e["kind"] == "feature_map" && e["id"].as_str().unwrap_or("").starts_with("dynamic_map")
+        })
+        .expect("the map");
+    let id = fm["id"].as_str().unwrap().to_string();
+    // The place stored: S1's carriage path (the ring's bore less the tip's radius) at the
+    // carriage's height (the stylus's length above the tip's).
+    let (radius, z) = (
+        fm["radius_mm"].as_f64().unwrap(),
+        fm["z_mm"].as_f64().unwrap(),
+    );
+    eprintln!("the map's place: radius {radius:.3} mm about its centre, z {z:.3} mm");
+    assert!((z - RING_PLACE[2]).abs() < 100.0, "z {z}");
+    assert!(radius > 10.0 && radius < 25.0, "radius {radius}");
+    // The same calibration with this map at no place (as the dynamic maps were before the
+    // place check; the sphere's static maps of `probe-force` keep theirs).
+    let mut anywhere = v.clone();
+    for e in anywhere["effects"].as_array_mut().unwrap() {
+        if e["kind"] == "feature_map" && e["id"] == id.as_str() {
+            let o = e.as_object_mut().unwrap();
+            o.remove("radius_mm");
+            o.remove("z_mm");
+        }
+    }
+    let anywhere = Calibration::from_json(&anywhere.to_string()).unwrap();
+    let pf =
+        Calibration::from_json(&std::fs::read_to_string(dir.join("pf.json")).unwrap()).unwrap();
+    // At the master's place: the map is in force.
+    let home = slow_fast_with(part, &cal, "dm-pf.json");
+    assert!(
+        home.1 < 0.5 * slow_fast_with(part, &pf, "pf.json").1,
+        "{home:?}"
+    );
+    assert_eq!(home, slow_fast_with(part, &anywhere, "anywhere"));
+    for (what, place) in [
+        ("150 mm along X", [550.0, 300.0, -250.0]),
+        ("30 mm higher", [400.0, 300.0, -220.0]),
+    ] {
+        let other = like_part(7, Some(place));
+        let (with_map, without) = (
+            slow_fast_with(&other, &cal, "dm-pf.json"),
+            slow_fast_with(&other, &pf, "pf.json"),
+        );
+        let unplaced = slow_fast_with(&other, &anywhere, "anywhere");
+        eprintln!(
+            "the part program {what}: fast scan {:.3} µm RMS with the calibration and its map, \
+             {:.3} without the map, {:.3} with the map at no place",
+            with_map.1, without.1, unplaced.1
+        );
+        // Bit for bit what the calibration without the map gives.
+        assert_eq!(with_map, without, "{what}: the map applied");
+        assert_ne!(
+            unplaced.1, without.1,
+            "{what}: the map without a place would apply"
+        );
+    }
+    // Said loudly: `correct` on a bag of the part program at the other place names the map,
+    // and at the master's place does not.
+    for (bag, place, idle) in [
+        ("home.mcap", "400,300,-250", false),
+        ("away.mcap", "550,300,-250", true),
+    ] {
+        ok(
+            dir,
+            &[
+                "sim",
+                "--program",
+                "dynamic-map-part",
+                "--machine-seed",
+                MACHINE,
+                "--seed",
+                "9",
+                "--position",
+                place,
+                "--out",
+                bag,
+            ],
+        );
+        let o = common::run(dir, &["correct", "--bag", bag, "--calib", "dm-pf.json"]);
+        assert!(o.status.success(), "{o:?}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        let named = err.lines().any(|l| {
+            l.starts_with("warning: feature map")
+                && l.contains(&id)
+                && l.contains("applies to none")
+        });
+        eprintln!("correct {bag}:\n{err}");
+        assert_eq!(named, idle, "{bag}: {err}");
+    }
 }
 
 #[test]

@@ -5,7 +5,8 @@
 //! their effects' parameter names; and the probe-force text states its coefficients in the unit
 //! their name states. Short simulated bags of machine 4747, each made once; every command
 //! starts from the user's nominal calibration (`calib nominal` from the simulated data sheet
-//! and catalogue).
+//! and catalogue); a custom effect's coefficients carry the unit of their expression; the
+//! straightness report states the guide's and the part's peak-to-valley about their lines.
 
 mod common;
 use common::*;
@@ -181,7 +182,7 @@ fn every_json_output_states_its_units_by_the_table() {
                         "st.mcap",
                         "nominal.json",
                         "st.json",
-                        &["--method", "three-probe"],
+                        &["--method", "three-probe", "--report", "st.html"],
                     ),
                 ),
                 (
@@ -197,6 +198,30 @@ fn every_json_output_states_its_units_by_the_table() {
                             "nominal.json",
                             "--out",
                             "fit.json",
+                            "--json",
+                        ],
+                    ),
+                ),
+                (
+                    "lab add custom --json".to_string(),
+                    ok(
+                        d,
+                        &[
+                            "lab",
+                            "add",
+                            "custom",
+                            "--term",
+                            "x:vx",
+                            "--term",
+                            "y:sin(2*pi*y/4)",
+                            "--bag",
+                            "ring.mcap",
+                            "--calib",
+                            "nominal.json",
+                            "--stride",
+                            "16",
+                            "--out",
+                            "custom.json",
                             "--json",
                         ],
                     ),
@@ -262,8 +287,59 @@ fn every_json_output_states_its_units_by_the_table() {
             }
         }
     }
-    assert_eq!(walked, 8);
+    assert_eq!(walked, 9);
+    // The straightness report states the straightness a metrologist reads: peak-to-valley of
+    // the guide and of the part about their least-squares lines, as the profiles give them.
+    let st = &outs
+        .iter()
+        .find(|o| o.0 == "calibrate straightness --json")
+        .unwrap()
+        .1;
+    let st: serde_json::Value = serde_json::from_str(st).unwrap();
+    let html = std::fs::read_to_string(d.join("st.html")).unwrap();
+    for (which, x, v) in [
+        ("guide", "stations_mm", "guide_straightness_mm"),
+        ("part", "part_positions_mm", "part_straightness_mm"),
+    ] {
+        let arr = |k: &str| -> Vec<f64> {
+            st[k]
+                .as_array()
+                .unwrap_or_else(|| panic!("calibrate straightness --json: no `{k}`"))
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect()
+        };
+        let pv = pv_about_line_um(&arr(x), &arr(v));
+        let stated: f64 = html
+            .split(&format!("data-pv-um=\"{which}\">"))
+            .nth(1)
+            .and_then(|s| s.split(" µm").next())
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("st.html states no {which} peak-to-valley"));
+        eprintln!("straightness of the {which}: {stated} µm peak-to-valley (profile: {pv:.3} µm)");
+        assert!(
+            pv > 0.1 && (stated - pv).abs() <= 0.006,
+            "{which}: the report states {stated} µm, the profile is {pv} µm peak-to-valley"
+        );
+    }
+    // A custom term's coefficient carries the unit of its expression: mm per mm/s for a
+    // velocity, mm for a dimensionless sine.
+    let custom = scancorr_core::Calibration::from_json(
+        &std::fs::read_to_string(d.join("custom.json")).unwrap(),
+    )
+    .unwrap();
+    let names: Vec<String> = custom
+        .effects
+        .iter()
+        .filter(|e| e.kind() == "custom")
+        .flat_map(|e| e.param_names())
+        .collect();
+    assert!(
+        names.len() == 2 && names[0].ends_with("(mm per mm/s)") && names[1].ends_with("(mm)"),
+        "{names:?}"
+    );
     for f in [
+        "custom.json",
         "pf.json",
         "tips.json",
         "scales.json",
@@ -285,13 +361,28 @@ fn every_json_output_states_its_units_by_the_table() {
             "{l}"
         );
     }
-    // Not yet named: the abscissa of an unexplained structure's profile (its unit depends on
-    // the structure's kind; `lab::structure` is to state it).
-    bad.retain(|b| !b.contains(".unexplained[].profile.x"));
     assert!(
         bad.is_empty(),
         "{} key(s) state no unit:\n{}",
         bad.len(),
         bad.join("\n")
     );
+}
+
+/// Peak-to-valley about the least-squares line of a profile (positions mm, values mm), µm.
+fn pv_about_line_um(x: &[f64], v: &[f64]) -> f64 {
+    let n = x.len() as f64;
+    let (mx, mv) = (x.iter().sum::<f64>() / n, v.iter().sum::<f64>() / n);
+    let sxx: f64 = x.iter().map(|x| (x - mx).powi(2)).sum();
+    let sxv: f64 = x.iter().zip(v).map(|(x, v)| (x - mx) * (v - mv)).sum();
+    let b = sxv / sxx;
+    let r: Vec<f64> = x
+        .iter()
+        .zip(v)
+        .map(|(x, v)| v - mv - b * (x - mx))
+        .collect();
+    let (lo, hi) = r.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, r| {
+        (a.0.min(*r), a.1.max(*r))
+    });
+    (hi - lo) * 1e3
 }

@@ -302,7 +302,7 @@ fn profile_follows_the_fit(s: &serde_json::Value) -> bool {
             .map(|a| a.iter().filter_map(|x| x.as_f64()).collect())
             .unwrap_or_default()
     };
-    let (x, m, f) = (v("x"), v("measured_um"), v("fitted_um"));
+    let (x, m, f) = (v("x_mm"), v("measured_um"), v("fitted_um"));
     if p["coordinate"] != "x, mm" || x.len() < 24 || m.len() != x.len() || f.len() != x.len() {
         eprintln!("profile: {p:#}");
         return false;

@@ -3,7 +3,8 @@
 //! has — `lab fit` of the right effect list at zero parameters from the nominal model, and
 //! that fitted calibration with one library effect taken out, then `lab diagnose` and `lab
 //! add` of the ranked-first move — and at least 90 % of the parameters it states a σ for are
-//! within 2σ of the simulator's truth (the truth only judges). The full benchmark (ten
+//! within 2σ of the simulator's truth (the truth only judges), and so are the guide table's
+//! knots, those no scan sees reported as not determined. The full benchmark (ten
 //! machines, and `lab discover` from nominal) is `scancorr bench lab-coverage`.
 
 mod common;
@@ -47,6 +48,31 @@ fn the_labs_sigma_covers_the_truth() {
             in2 >= 0.90,
             "{path}: {:.1} % of {n} parameters within 2σ of the truth (the issue asks ≥ 90 %): {p:#}",
             100.0 * in2
+        );
+        // The guide table's knots: the campaign's rings are horizontal, so no scan sees the
+        // x guide's straightness towards z; its knots are the smoothness penalty's alone and
+        // must be reported as not determined (no σ), never judged with the penalty's σ.
+        let knots = p["table_knots_judged"].as_array().unwrap();
+        assert!(
+            !knots.is_empty(),
+            "{path}: no guide-table knot judged: {p:#}"
+        );
+        let unseen: Vec<&serde_json::Value> = knots
+            .iter()
+            .filter(|k| k["name"].as_str().unwrap_or("").contains("→z"))
+            .collect();
+        assert!(
+            unseen.is_empty(),
+            "{path}: {} knots of the straightness towards z (no scan sees it) were given a σ: {:#?}",
+            unseen.len(),
+            &unseen[..unseen.len().min(3)]
+        );
+        let k2 = p["table_knots_within_2sigma"].as_f64().unwrap();
+        assert!(
+            k2 >= 0.90,
+            "{path}: {:.1} % of {} table knots within 2σ of the truth (≥ 90 % asked)",
+            100.0 * k2,
+            knots.len()
         );
     }
 }

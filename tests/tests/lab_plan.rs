@@ -191,78 +191,113 @@ fn a_planned_campaign_measures_what_it_predicted() {
     );
 }
 
-/// Item 5 and the acceptance's last clause: the machine has the simulator's 21 wavy
-/// rigid-body errors (`--with rigid_body`), which the default campaign's three ring positions
-/// cannot determine. From the nominal model with the discovered effects fitted by `lab fit`
-/// on the campaign, `lab plan --candidate rigid_body` places the ring one place at a time where
-/// it most reduces the predicted variance of the rigid-body terms (lines along x, y and z at
-/// two levels of the other axes), and predicts the rigid body determined; on the campaign with
-/// the plan's bag, `lab add rigid_body` brings a held-out ring at another position within 1.2×
-/// the noise floor. Machine seed 131, run seeds 4311–4313 (no other test uses them).
+/// Item 5, the plan's half: the machine has the simulator's 21 wavy rigid-body errors
+/// (`--with rigid_body`), which the default campaign's three ring positions cannot determine.
+/// From the nominal model with the discovered effects fitted by `lab fit` on the campaign,
+/// `lab plan --candidate rigid_body` places the ring one place at a time where it most reduces
+/// the predicted variance of the rigid-body terms, and its prediction (from the design alone)
+/// determines every rigid-body term any place of the pool could: the others are reported
+/// beyond reach (with horizontal rings, an error of z alone shifts each ring's centre, which the
+/// fit takes as its own; the guide table in the model carries the x axis' straightness and
+/// yaw). Measured: 14 of 33 terms within reach (the x and y axes' positions, pitches and
+/// rolls, AZY), all 14 determined by the plan. Machine seed 131, run seed 4311 (no other test uses
+/// them). 12 s (25 s under heavy load: the two simulations and `lab fit`; the plan 2.4 s).
+#[test]
+fn the_plan_determines_every_rigid_body_term_within_reach() {
+    let t0 = std::time::Instant::now();
+    let d = scratch("lab-plan-reach");
+    let planned = rigid_plan(&d);
+    let beyond: Vec<&str> = planned["prediction"]["beyond_reach"]
+        .as_array()
+        .map(|v| v.iter().filter_map(|x| x.as_str()).collect())
+        .unwrap_or_default();
+    let rb: Vec<(String, bool)> = planned["prediction"]["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| p["effect"].as_str().unwrap().starts_with("rigid_body"))
+        .map(|p| {
+            (
+                format!(
+                    "{}: {}",
+                    p["effect"].as_str().unwrap(),
+                    p["name"].as_str().unwrap()
+                ),
+                p["sigma"].is_number(),
+            )
+        })
+        .collect();
+    let (within, out): (Vec<_>, Vec<_>) =
+        rb.iter().partition(|(n, _)| !beyond.contains(&n.as_str()));
+    let missed: Vec<&String> = within.iter().filter(|(_, s)| !s).map(|(n, _)| n).collect();
+    eprintln!(
+        "lab_plan reach: {} of {} rigid-body terms within reach, {} determined; beyond: {beyond:?} ({:.1} s)",
+        within.len(),
+        rb.len(),
+        within.len() - missed.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    assert!(
+        !within.is_empty() && !out.is_empty(),
+        "{} of {} terms beyond reach: {beyond:?}",
+        out.len(),
+        rb.len()
+    );
+    // With rings in the horizontal plane, the z axis' own errors (EXZ … AZZ: functions of z
+    // alone) shift each ring as a whole: beyond reach, whatever the places.
+    for (n, _) in &rb {
+        let term = n.split(": ").nth(1).unwrap_or("");
+        let z_own = term.len() > 3 && &term[2..4] == "Z ";
+        assert!(
+            !z_own || beyond.contains(&n.as_str()),
+            "{n} predicted determined from horizontal rings"
+        );
+    }
+    assert!(
+        missed.is_empty(),
+        "within reach but not determined: {missed:?}"
+    );
+    // Nothing beyond reach is predicted determined (the pool holds the plan's places).
+    assert!(out.iter().all(|(_, s)| !s), "{out:?}");
+}
+
+/// The acceptance's last clause: on the campaign with the plan's bag (above), `lab add
+/// rigid_body` brings a held-out ring at another position within 1.2× the noise floor. Run
+/// seeds 4312–4313.
 ///
 /// Not met yet (ignored: a known gap of issue 45, run with `--ignored`): with the greedy
-/// planner's 16-minute plan (47–48 places) the held-out ring goes 0.405 → 0.156 µm against a
-/// 0.102 µm floor (1.52×; the fixed design of the round before: 1.87×; with the pool's second
-/// levels at 0.7/0.3 of the travel instead of 0.8/0.2: 1.57×). The limit is the lab's fit, not
-/// the places: on the plan's own bag the fit stays at 0.13–0.14 µm (1.3× the floor), its
-/// worst rings those at the upper z level (`lab compare`: ring means ±0.15–0.19 µm), and
-/// rings on lines through one z level only reach 1.27× when that level is the held-out
-/// ring's (z −260 mm) and 1.65× when it is the travel's centre (z −350 mm): the model
-/// interpolates the rigid body across z worse than the simulator's chain needs.
-/// `sim --program geometry` (its lines at z −280 mm) reaches 1.21×.
+/// planner's 16-minute plan (48 places) the held-out ring goes 0.405 → 0.156 µm against a
+/// 0.102 µm floor (1.52×, measured again 28 Nov; `lab add rigid_body:spline` the same,
+/// `rigid_body:order=3` 0.368 µm; the fixed design of the round before: 1.87×; with the pool's
+/// second levels at 0.7/0.3 of the travel instead of 0.8/0.2: 1.57×). The limit is the lab's
+/// fit, not the places: on the plan's own bag the fit stays at 0.13–0.14 µm (1.3× the floor),
+/// its worst rings those at the upper z level (`lab compare`: ring means ±0.15–0.19 µm), and
+/// rings on lines through one z level only reach 1.27× when that level is the held-out ring's
+/// (z −260 mm) and 1.65× when it is the travel's centre (z −350 mm): the model interpolates
+/// the rigid body across z worse than the simulator's chain needs. `sim --program geometry`
+/// (its lines at z −280 mm) reaches 1.21×.
 #[test]
 #[ignore]
 fn the_plan_determines_the_rigid_body_hidden_from_a_nominal_start() {
     let t0 = std::time::Instant::now();
     let d = scratch("lab-plan-rigid");
-    let m = ["--machine-seed", "131", "--with", "rigid_body"];
-    let sim = |program: &str, seed: &str, out: &str, extra: &[&str]| {
-        ok(
-            &d,
-            &[
-                &["sim", "--program", program, "--seed", seed, "--out", out][..],
-                &m,
-                extra,
-            ]
-            .concat(),
-        );
-    };
-    sim(
-        "campaign",
-        "4311",
-        "c.mcap",
-        &["--datasheet-out", "ds.json", "--calib-out", "sim.json"],
+    rigid_plan(&d);
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "plan.json",
+            "--seed",
+            "4312",
+            "--out",
+            "p.mcap",
+            "--machine-seed",
+            "131",
+            "--with",
+            "rigid_body",
+        ],
     );
-    sim(
-        "ring-speeds",
-        "4313",
-        "v.mcap",
-        &["--position", "550,300,-250"],
-    );
-    fitted_from_nominal(&d);
-    let planned = plan_owned(&d, "16", &["--candidate", "rigid_body"]);
-    // The plan places the ring for the rigid body, and predicts it determined.
-    let groups = planned["groups"].as_array().unwrap();
-    assert!(
-        groups.iter().any(|g| g["what"]
-            .as_str()
-            .unwrap()
-            .contains("chosen one by one for the rigid body")),
-        "{groups:?}"
-    );
-    let rb: Vec<&serde_json::Value> = planned["prediction"]["params"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|p| p["effect"].as_str().unwrap().starts_with("rigid_body"))
-        .collect();
-    let determined = rb.iter().filter(|p| p["sigma"].is_number()).count();
-    assert!(
-        2 * determined > rb.len(),
-        "{determined} of {} rigid-body terms determined",
-        rb.len()
-    );
-    sim("plan.json", "4312", "p.mcap", &[]);
     let added = json(&ok(
         &d,
         &[
@@ -296,6 +331,48 @@ fn the_plan_determines_the_rigid_body_hidden_from_a_nominal_start() {
         floor > 0.0 && after <= 1.2 * floor,
         "held-out ring {after:.3} µm against a floor of {floor:.3} µm (from {before:.3} µm)"
     );
+}
+
+/// Machine 131 with the wavy rigid body: the campaign (`c.mcap`, run seed 4311), a held-out
+/// ring-speeds run at (550, 300, −250) (`v.mcap`, 4313), the user's fitted start
+/// (`fitted.json`) and the 16-minute plan for the rigid body (`plan.json`): its JSON, after
+/// checking the plan placed the ring for the rigid body.
+fn rigid_plan(d: &std::path::Path) -> serde_json::Value {
+    let m = ["--machine-seed", "131", "--with", "rigid_body"];
+    let sim = |program: &str, seed: &str, out: &str, extra: &[&str]| {
+        ok(
+            d,
+            &[
+                &["sim", "--program", program, "--seed", seed, "--out", out][..],
+                &m,
+                extra,
+            ]
+            .concat(),
+        );
+    };
+    sim(
+        "campaign",
+        "4311",
+        "c.mcap",
+        &["--datasheet-out", "ds.json", "--calib-out", "sim.json"],
+    );
+    sim(
+        "ring-speeds",
+        "4313",
+        "v.mcap",
+        &["--position", "550,300,-250"],
+    );
+    fitted_from_nominal(d);
+    let planned = plan_owned(d, "16", &["--candidate", "rigid_body"]);
+    let groups = planned["groups"].as_array().unwrap();
+    assert!(
+        groups.iter().any(|g| g["what"]
+            .as_str()
+            .unwrap()
+            .contains("chosen one by one for the rigid body")),
+        "{groups:?}"
+    );
+    planned
 }
 
 /// `calib nominal` from the data sheet (styli as qualified), the discovered model's effects at

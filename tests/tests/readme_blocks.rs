@@ -4,7 +4,9 @@
 //! does for a reader following the README. One exception: a block whose only command is
 //! `scancorr demo` (the "Two commands" block) writes nothing but its own folder, which no other
 //! block reads, so it runs beside the others in a folder of its own (`work-N/`, laid out the
-//! same way): the lab is one thread and the machine has two cores.
+//! same way): the lab is one thread and the machine has two cores. Its reports are then checked
+//! in headless Chromium from that folder (`common::chromium::check_demo_reports`: the compare,
+//! discover and, by the `lab diagnose` line the demo prints next, diagnose reports).
 //!
 //! The scratch folder is laid out as a clone is: the blocks run in `work/`, which reaches the
 //! repository's `deploy/`, `scripts/` and `clients/` (symbolic links) and whose parent holds
@@ -402,7 +404,16 @@ fn every_sh_block_of_the_readme_runs_as_written() {
                 .iter()
                 .map(|(k, b, script)| {
                     let dir = layout(&scratch, &format!("work-{}", k + 1));
-                    run.block(*k, b, script, &dir)
+                    let mut r = run.block(*k, b, script, &dir);
+                    // The demo's reports in a browser, from the folder it wrote (not run twice).
+                    if r.failure.is_none() {
+                        let log = run.logs.join(format!("{:02}-line{}.log", k + 1, b.fence));
+                        r.failure = common::chromium::check_demo_reports(
+                            &dir,
+                            &std::fs::read_to_string(log).unwrap_or_default(),
+                        );
+                    }
+                    r
                 })
                 .collect::<Vec<_>>()
         });

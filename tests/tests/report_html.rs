@@ -20,472 +20,10 @@
 //! apt-get if it is missing). If it cannot be installed the test fails: it does not skip.
 
 mod common;
+use common::chromium::*;
 use common::*;
 use serde_json::Value;
-use std::fs::File;
-use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
-
-/// Chromium is killed (with its whole process group) after this long.
-const CHROMIUM_TIMEOUT: Duration = Duration::from_secs(60);
-const WINDOW: (u32, u32) = (1200, 3000);
-
-/// Flags every Chromium run needs on a headless machine without network (without the
-/// networking ones it waits on the network).
-const FLAGS: &[&str] = &[
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--disable-default-apps",
-    "--disable-extensions",
-    "--mute-audio",
-];
-
-/// The path of Chromium from `scripts/chromium.sh` (installing it if needed), or a failure
-/// that says why.
-fn chromium() -> PathBuf {
-    let script = root().join("scripts/chromium.sh");
-    let t = Instant::now();
-    let o = Command::new("bash")
-        .arg(&script)
-        .stdin(Stdio::null())
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {}: {e}", script.display()));
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        o.status.success(),
-        "headless Chromium is required to test the HTML reports and {} could not provide it \
-         ({}):\n{stderr}\nInstall it (Debian: `apt-get install chromium`) or put a `chromium` on PATH.",
-        script.display(),
-        o.status
-    );
-    let path = PathBuf::from(
-        stdout
-            .lines()
-            .last()
-            .unwrap_or_else(|| panic!("{} printed no path:\n{stderr}", script.display()))
-            .trim(),
-    );
-    assert!(
-        path.exists(),
-        "{} printed `{}`, which does not exist",
-        script.display(),
-        path.display()
-    );
-    eprintln!(
-        "chromium: {} (ready in {:.1} s)",
-        path.display(),
-        t.elapsed().as_secs_f64()
-    );
-    path
-}
-
-/// `file://` URL of an absolute path.
-fn file_url(p: &Path) -> String {
-    let mut s = String::from("file://");
-    for b in p.to_str().expect("UTF-8 path").bytes() {
-        if b.is_ascii_alphanumeric() || b"/-_.~".contains(&b) {
-            s.push(b as char);
-        } else {
-            s.push_str(&format!("%{b:02X}"));
-        }
-    }
-    s
-}
-
-/// Runs Chromium with `args` and a fresh profile in `dir`, stdout to a file; kills it (and its
-/// children) after [`CHROMIUM_TIMEOUT`]. Returns stdout; panics with stderr on failure.
-fn run_chromium(chrome: &Path, dir: &Path, tag: &str, args: &[String]) -> String {
-    let profile = dir.join(format!("profile-{tag}"));
-    let _ = std::fs::remove_dir_all(&profile);
-    std::fs::create_dir_all(&profile).unwrap();
-    let (out, err) = (
-        dir.join(format!("chromium-{tag}.out")),
-        dir.join(format!("chromium-{tag}.err")),
-    );
-    let mut child = Command::new(chrome)
-        .args(FLAGS)
-        .arg(format!("--user-data-dir={}", profile.display()))
-        .args(args)
-        .current_dir(dir)
-        .stdin(Stdio::null())
-        .stdout(File::create(&out).unwrap())
-        .stderr(File::create(&err).unwrap())
-        .process_group(0)
-        .spawn()
-        .unwrap_or_else(|e| panic!("cannot start {}: {e}", chrome.display()));
-    let start = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        if start.elapsed() > CHROMIUM_TIMEOUT {
-            let _ = Command::new("kill")
-                .args(["-KILL", "--", &format!("-{}", child.id())])
-                .status();
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!(
-                "chromium {args:?} did not finish within {CHROMIUM_TIMEOUT:?}; stderr:\n{}",
-                tail(&std::fs::read_to_string(&err).unwrap_or_default())
-            );
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    let _ = std::fs::remove_dir_all(&profile);
-    let stderr = std::fs::read_to_string(&err).unwrap_or_default();
-    assert!(
-        status.success(),
-        "chromium {args:?} failed ({status}):\n{}",
-        tail(&stderr)
-    );
-    std::fs::read_to_string(&out).unwrap()
-}
-
-fn tail(s: &str) -> String {
-    let lines: Vec<&str> = s.lines().collect();
-    lines[lines.len().saturating_sub(30)..].join("\n")
-}
-
-/// The DOM after Chromium loaded and laid out `page`.
-fn dump_dom(chrome: &Path, dir: &Path, tag: &str, page: &Path, extra: &[&str]) -> String {
-    let mut args: Vec<String> = extra.iter().map(|s| s.to_string()).collect();
-    args.push("--dump-dom".into());
-    args.push(file_url(page));
-    let dom = run_chromium(chrome, dir, tag, &args);
-    assert!(
-        dom.trim_end().ends_with("</html>"),
-        "chromium dumped an incomplete DOM for {}:\n{}",
-        page.display(),
-        &dom[..dom.len().min(2000)]
-    );
-    dom
-}
-
-/// A screenshot of `page`; returns the PNG's bytes.
-fn screenshot(chrome: &Path, dir: &Path, tag: &str, page: &Path) -> Vec<u8> {
-    let png = dir.join(format!("{tag}.png"));
-    let _ = std::fs::remove_file(&png);
-    run_chromium(
-        chrome,
-        dir,
-        tag,
-        &[
-            format!("--screenshot={}", png.display()),
-            format!("--window-size={},{}", WINDOW.0, WINDOW.1),
-            "--hide-scrollbars".into(),
-            file_url(page),
-        ],
-    );
-    let bytes = std::fs::read(&png)
-        .unwrap_or_else(|e| panic!("chromium wrote no screenshot {}: {e}", png.display()));
-    assert!(
-        bytes.len() > 24 && bytes.starts_with(b"\x89PNG\r\n\x1a\n") && &bytes[12..16] == b"IHDR",
-        "{} is not a PNG",
-        png.display()
-    );
-    let be = |i: usize| u32::from_be_bytes(bytes[i..i + 4].try_into().unwrap());
-    assert_eq!(
-        (be(16), be(20)),
-        WINDOW,
-        "{}: screenshot size",
-        png.display()
-    );
-    bytes
-}
-
-/// The `<svg …>…</svg>` elements of a document: (data-plot, markup).
-fn plots(doc: &str) -> Vec<(String, String)> {
-    let mut v = Vec::new();
-    let mut rest = doc;
-    while let Some(i) = rest.find("<svg") {
-        let end = rest[i..]
-            .find("</svg>")
-            .map(|j| i + j + 6)
-            .expect("unclosed <svg>");
-        let svg = &rest[i..end];
-        let open = &svg[..svg.find('>').unwrap()];
-        let kind = open
-            .split("data-plot=\"")
-            .nth(1)
-            .and_then(|s| s.split('"').next())
-            .unwrap_or("")
-            .to_string();
-        v.push((kind, svg.to_string()));
-        rest = &rest[end..];
-    }
-    v
-}
-
-fn of_kind<'a>(p: &'a [(String, String)], kind: &str) -> Vec<&'a str> {
-    p.iter()
-        .filter(|(k, _)| k == kind)
-        .map(|(_, s)| s.as_str())
-        .collect()
-}
-
-/// The document with every `<svg>…</svg>` removed.
-fn without_plots(doc: &str) -> String {
-    let mut s = String::new();
-    let mut rest = doc;
-    while let Some(i) = rest.find("<svg") {
-        s.push_str(&rest[..i]);
-        let j = rest[i..].find("</svg>").expect("unclosed <svg>");
-        rest = &rest[i + j + 6..];
-    }
-    s + rest
-}
-
-/// The report is one self-contained file: no script, nothing fetched or linked. The one URL an
-/// inline SVG may carry is its namespace name, which is never fetched.
-fn assert_self_contained(name: &str, html: &str) {
-    let low = html.to_ascii_lowercase();
-    let scrubbed = low.replace("xmlns=\"http://www.w3.org/2000/svg\"", "");
-    for bad in [
-        "http://", "https://", "<script", " src=", "href=", "<link", "<img", "<iframe", "<object",
-        "<embed", "@import", "url(", " on",
-    ] {
-        // " on" catches event-handler attributes (onload=…) only inside tags.
-        let hit = if bad == " on" {
-            tags(&scrubbed).any(|t| {
-                t.split_whitespace()
-                    .skip(1)
-                    .any(|a| a.starts_with("on") && a.contains('='))
-            })
-        } else {
-            scrubbed.contains(bad)
-        };
-        assert!(!hit, "{name}: not self-contained, contains `{bad}`");
-    }
-}
-
-/// The opening tags of a document (`<name attr…`), without the brackets.
-fn tags(doc: &str) -> impl Iterator<Item = &str> {
-    doc.split('<')
-        .skip(1)
-        .filter_map(|s| s.split('>').next())
-        .filter(|t| !t.starts_with('/') && !t.starts_with('!'))
-}
-
-/// A page of this test's (not the report's) that loads `report` in an iframe and writes what
-/// the browser laid out as JSON into `<pre id="result">`.
-const HARNESS: &str = r#"<!doctype html><html><head><meta charset="utf-8"></head><body>
-<iframe id="r" src="REPORT" width="1200" height="3000"></iframe>
-<script>
-window.addEventListener('load', function () {
-  var out = {};
-  try {
-    var w = document.getElementById('r').contentWindow, d = w.document;
-    out.title = d.title;
-    out.resources = w.performance.getEntriesByType('resource').map(function (e) { return e.name; });
-    out.plots = Array.prototype.map.call(d.querySelectorAll('svg'), function (s) {
-      var r = s.getBoundingClientRect();
-      return {
-        kind: s.getAttribute('data-plot'),
-        width: r.width, height: r.height,
-        visible: w.getComputedStyle(s).visibility === 'visible' && w.getComputedStyle(s).display !== 'none',
-        paths: Array.prototype.map.call(s.querySelectorAll('path'), function (p) {
-          var b = p.getBBox();
-          var cs = w.getComputedStyle(p);
-          return { stroke: cs.stroke, dash: cs.strokeDasharray, layer: p.getAttribute('data-layer'),
-                   direction: p.getAttribute('data-direction'), run: p.getAttribute('data-trace'),
-                   length: p.getTotalLength(), width: b.width, height: b.height };
-        }),
-        rects: Array.prototype.map.call(s.querySelectorAll('rect'), function (p) {
-          var b = p.getBBox();
-          return { failing: p.getAttribute('data-failing'), fill: w.getComputedStyle(p).fill, width: b.width, height: b.height };
-        })
-      };
-    });
-  } catch (e) { out.error = String(e); }
-  var pre = document.createElement('pre');
-  pre.id = 'result';
-  pre.textContent = JSON.stringify(out);
-  document.body.appendChild(pre);
-});
-</script></body></html>"#;
-
-/// What the browser laid out for `report` (see [`HARNESS`]).
-fn layout(chrome: &Path, dir: &Path, report: &str) -> Value {
-    let page = dir.join(format!("harness-{report}"));
-    std::fs::write(&page, HARNESS.replace("REPORT", report)).unwrap();
-    let tag = format!("layout-{report}");
-    // The harness reads the report's document across file:// URLs.
-    let dom = dump_dom(
-        chrome,
-        dir,
-        &tag,
-        &page,
-        &["--allow-file-access-from-files"],
-    );
-    let json = dom
-        .split("<pre id=\"result\">")
-        .nth(1)
-        .and_then(|s| s.split("</pre>").next())
-        .unwrap_or_else(|| panic!("{report}: the harness wrote no result:\n{}", tail(&dom)));
-    let json = json
-        .replace("&lt;", "<")
-        .replace("&gt;", ">")
-        .replace("&nbsp;", "\u{a0}")
-        .replace("&amp;", "&");
-    let v: Value = serde_json::from_str(&json)
-        .unwrap_or_else(|e| panic!("{report}: harness result is not JSON ({e}): {json}"));
-    assert!(
-        v.get("error").is_none(),
-        "{report}: the harness could not inspect the report: {}",
-        v["error"]
-    );
-    v
-}
-
-fn num(v: &Value) -> f64 {
-    v.as_f64().unwrap_or(f64::NAN)
-}
-
-/// Checks common to every laid-out plot; returns the plots of `kind`.
-fn laid_out<'a>(name: &str, lay: &'a Value, kind: &str) -> Vec<&'a Value> {
-    let res = lay["resources"].as_array().unwrap();
-    assert!(res.is_empty(), "{name}: the report fetched {res:?}");
-    let plots = lay["plots"].as_array().unwrap();
-    for p in plots {
-        assert!(
-            p["visible"].as_bool() == Some(true)
-                && num(&p["width"]) >= 50.0
-                && num(&p["height"]) >= 30.0,
-            "{name}: a {} plot is not laid out visibly: {p}",
-            p["kind"]
-        );
-    }
-    plots.iter().filter(|p| p["kind"] == kind).collect()
-}
-
-/// Polar plots: every curve has a length and spans most of the plot. Returns the number of
-/// curves per plot.
-fn check_polars(name: &str, polars: &[&Value]) -> Vec<usize> {
-    polars
-        .iter()
-        .map(|p| {
-            let paths = p["paths"].as_array().unwrap();
-            for c in paths {
-                assert!(
-                    num(&c["length"]) > 100.0
-                        && num(&c["width"]) > 40.0
-                        && num(&c["height"]) > 20.0,
-                    "{name}: a polar curve is (nearly) empty: {c}"
-                );
-            }
-            paths.len()
-        })
-        .collect()
-}
-
-/// `rgb(r, g, b)` as the browser computes a colour.
-fn rgb(c: &str) -> [f64; 3] {
-    let v: Vec<f64> = c
-        .trim_start_matches("rgba(")
-        .trim_start_matches("rgb(")
-        .trim_end_matches(')')
-        .split(',')
-        .filter_map(|x| x.trim().parse().ok())
-        .collect();
-    assert!(v.len() >= 3, "not a colour: {c}");
-    [v[0], v[1], v[2]]
-}
-
-/// The colours the browser paints the traces of each polar plot with: every run of a plot
-/// (a speed, a setting, a direction) has its own colour, no two closer than a plainly visible
-/// step, the measured layer under a prediction excepted (it repeats its run's colour, faint);
-/// clockwise runs are dashed, counter-clockwise ones solid. Returns the most runs in one plot.
-fn check_trace_colours(name: &str, polars: &[&Value]) -> usize {
-    let mut most = 0;
-    for (i, p) in polars.iter().enumerate() {
-        let paths: Vec<&Value> = p["paths"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .filter(|c| c["layer"] != "measured")
-            .collect();
-        most = most.max(paths.len());
-        for (a, pa) in paths.iter().enumerate() {
-            let dashed = pa["dash"].as_str().unwrap_or("none") != "none";
-            assert_eq!(
-                dashed,
-                pa["direction"] == "cw",
-                "{name}: polar plot {i}: {} dashed {dashed}",
-                pa["run"]
-            );
-            for pb in &paths[a + 1..] {
-                let (ca, cb) = (
-                    rgb(pa["stroke"].as_str().unwrap()),
-                    rgb(pb["stroke"].as_str().unwrap()),
-                );
-                let d =
-                    ((ca[0] - cb[0]).powi(2) + (ca[1] - cb[1]).powi(2) + (ca[2] - cb[2]).powi(2))
-                        .sqrt();
-                assert!(
-                    d >= 20.0,
-                    "{name}: polar plot {i}: `{}` ({}) and `{}` ({}) are painted alike",
-                    pa["run"],
-                    pa["stroke"],
-                    pb["run"],
-                    pb["stroke"]
-                );
-            }
-        }
-    }
-    most
-}
-
-/// The largest deviation a polar plot draws, in its divisions: the farthest any point of a
-/// curve lies from the certified circle (radius 100 px at the centre (200, 200); 20 px a
-/// division).
-fn drawn_divisions(svg: &str) -> f64 {
-    svg.split("<path ")
-        .skip(1)
-        .filter(|p| !p.contains("data-layer=\"measured\""))
-        .filter_map(|p| p.split(" d=\"").nth(1)?.split('"').next())
-        .flat_map(|d| d.split_whitespace())
-        .filter_map(|xy| {
-            let (x, y) = xy.trim_start_matches(['M', 'L']).split_once(',')?;
-            let (x, y): (f64, f64) = (x.parse().ok()?, y.parse().ok()?);
-            Some((((x - 200.0).powi(2) + (y - 200.0).powi(2)).sqrt() - 100.0).abs() / 20.0)
-        })
-        .fold(0.0, f64::max)
-}
-
-/// Bar charts: every bar has a size; returns (fills of failing bars, fills of others).
-fn check_bars(name: &str, charts: &[&Value]) -> (Vec<String>, Vec<String>) {
-    let (mut hot, mut cold) = (Vec::new(), Vec::new());
-    for c in charts {
-        let rects = c["rects"].as_array().unwrap();
-        assert!(
-            !rects.is_empty(),
-            "{name}: a {} chart has no bars",
-            c["kind"]
-        );
-        for r in rects {
-            assert!(
-                num(&r["width"]) > 0.0 && num(&r["height"]) > 5.0,
-                "{name}: a bar is not drawn: {r}"
-            );
-            let fill = r["fill"].as_str().unwrap_or("").to_string();
-            if r["failing"] == "true" {
-                hot.push(fill);
-            } else {
-                cold.push(fill);
-            }
-        }
-    }
-    (hot, cold)
-}
+use std::time::Instant;
 
 #[test]
 fn reports_render_in_headless_chromium() {
@@ -538,7 +76,7 @@ fn reports_render_in_headless_chromium() {
         ]
         .concat(),
     );
-    ok(
+    let added = ok(
         &d,
         &[
             &["lab", "add", "accel_deflection"][..],
@@ -546,6 +84,41 @@ fn reports_render_in_headless_chromium() {
             &["--out", "next.json", "--report", "add.html"],
         ]
         .concat(),
+    );
+    // Asked by its kind, `lab add` says which variant it added, and that variant is the one
+    // written (issue 47: it used to add another than it said), in the version's note and the
+    // report alike.
+    let vname = added
+        .lines()
+        .find_map(|l| l.strip_prefix("added "))
+        .and_then(|l| l.split(" → ").next())
+        .unwrap_or_else(|| panic!("lab add names no variant:\n{added}"));
+    let next: Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("next.json")).unwrap()).unwrap();
+    let effect = next["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["kind"] == "accel_deflection")
+        .unwrap_or_else(|| panic!("no accel_deflection in next.json: {next:#}"));
+    let variant = vname.split(" (").next().unwrap();
+    let order: u64 = variant
+        .split("order=")
+        .nth(1)
+        .map_or(0, |o| o.split(',').next().unwrap().parse().unwrap());
+    assert!(
+        variant.starts_with("accel_deflection")
+            && (effect["diagonal"] == false) == variant.contains("full")
+            && effect["position"]["order"].as_u64().unwrap_or(0) == order,
+        "lab add said `{vname}` and wrote {effect}"
+    );
+    assert!(
+        next["note"]
+            .as_str()
+            .unwrap()
+            .starts_with(&format!("lab add {vname}")),
+        "{}",
+        next["note"]
     );
     let cal = d.join("calibs");
     std::fs::create_dir_all(&cal).unwrap();
@@ -660,6 +233,7 @@ fn reports_render_in_headless_chromium() {
                     "{name}: a polar plot without a curve"
                 );
                 let most = check_trace_colours(name, &polars);
+                check_polar_captions(name, &html);
                 eprintln!("{name}: up to {most} runs in one polar plot, each its own colour");
                 // The sphere, scanned with two styli and one of them at two head angles, is
                 // one trace per setting: never tip 1 and tip 2 pooled in one curve.
@@ -809,6 +383,8 @@ fn reports_render_in_headless_chromium() {
                     );
                 }
                 check_trace_colours(name, &polars);
+                check_polar_captions(name, &html);
+                check_after_scale(name, &html);
                 let (_, bars) = check_bars(name, &laid_out(name, &lay, "error-fall"));
                 assert!(
                     bars.len() >= 2,
@@ -1063,5 +639,6 @@ fn compare_report_draws_one_trace_per_direction_and_speed() {
         assert!(n >= 2);
     }
     let most = check_trace_colours("compare.html", &polars);
+    check_polar_captions("compare.html", &html);
     assert!(most >= 8, "compare.html: at most {most} runs in a plot");
 }

@@ -33,9 +33,10 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 /// Machines in the fleet (the SIGKILL and SIGTERM cases); the router restart and the
-/// partition take the first [`SMALL`]. At 50 machines every point arrived once, in order,
-/// equal to offline, but on this loaded 2-core machine B held 0.27–0.60 M points and the
-/// consumer paused 2.3–3.5 s (over the 2 s target): 20 here.
+/// partition take the first [`SMALL`]. At 50 machines (replayed at 4× real time, this loaded
+/// 2-core machine) the active instance's publishing fell 2–3 s behind (its lanes held up by
+/// the saturated bus): B held 0.55–0.59 M points, the consumer paused 2.6 and 3.1 s after a
+/// SIGKILL, and one SIGTERM run lost the tail of a machine's points (cause not found). 20 here.
 const FLEET: usize = 20;
 const SMALL: usize = 10;
 
@@ -274,9 +275,16 @@ impl Consumer {
     /// Checks that every machine's points arrived once, in order, equal to the offline
     /// correction; returns the longest pause of a machine's points after `after`, s.
     fn judge(self, n: usize, after: Instant) -> f64 {
+        self.judge_within(n, after, 0.0).0
+    }
+
+    /// As [`Consumer::judge`], the points' vectors (surface, tip centre, normal, each
+    /// correction) equal within `tol` mm (everything else exactly); also returns the largest
+    /// difference seen, mm.
+    fn judge_within(self, n: usize, after: Instant, tol: f64) -> (f64, f64) {
         self.rt.block_on(async { self.session.close().await }).ok();
         let got = self.got.lock().unwrap();
-        let mut longest = 0f64;
+        let (mut longest, mut largest) = (0f64, 0f64);
         for k in 0..n {
             let m = name(k);
             let offline = &fleet().off[&m];
@@ -297,15 +305,70 @@ impl Consumer {
                 live.len()
             );
             assert_eq!(live.len(), offline.len(), "{m}: live vs offline points");
-            let differ = live.iter().zip(offline).position(|(a, b)| *a != b);
-            assert!(
-                differ.is_none(),
-                "{m}: live point {} differs from offline",
-                differ.unwrap()
-            );
+            let differ = live.iter().zip(offline).position(|(a, b)| {
+                if tol == 0.0 {
+                    return **a != *b;
+                }
+                let d = difference(a, b);
+                largest = largest.max(d);
+                d > tol
+            });
+            if let Some(i) = differ {
+                panic!(
+                    "{m}: live point {i} differs from offline:\n{:?}\n{:?}",
+                    live[i], offline[i]
+                );
+            }
         }
-        longest
+        (longest, largest)
     }
+}
+
+/// The largest difference between two points' vectors, mm; infinite when anything else
+/// differs (`seq`, times, flags, version, segment, tip, the effects named).
+fn difference(a: &CorrectedPoint, b: &CorrectedPoint) -> f64 {
+    let same = (
+        a.seq,
+        a.t_ns,
+        a.sample_seq,
+        a.calibration_version,
+        a.estimator_valid,
+    ) == (
+        b.seq,
+        b.t_ns,
+        b.sample_seq,
+        b.calibration_version,
+        b.estimator_valid,
+    ) && (a.segment_id, a.tip_id, &a.machine_id)
+        == (b.segment_id, b.tip_id, &b.machine_id)
+        && a.corrections.len() == b.corrections.len()
+        && a.corrections
+            .iter()
+            .zip(&b.corrections)
+            .all(|(x, y)| x.effect == y.effect);
+    if !same {
+        return f64::INFINITY;
+    }
+    let v = |x: &Option<scancorr_proto::v1::Vec3>| x.as_ref().map(|v| [v.x, v.y, v.z]);
+    let mut d = 0f64;
+    for (x, y) in [
+        (v(&a.surface), v(&b.surface)),
+        (v(&a.tip_center), v(&b.tip_center)),
+        (v(&a.normal), v(&b.normal)),
+    ] {
+        match (x, y) {
+            (Some(x), Some(y)) => (0..3).for_each(|i| d = d.max((x[i] - y[i]).abs())),
+            (None, None) => {}
+            _ => return f64::INFINITY,
+        }
+    }
+    for (x, y) in a.corrections.iter().zip(&b.corrections) {
+        d = d
+            .max((x.dx - y.dx).abs())
+            .max((x.dy - y.dy).abs())
+            .max((x.dz - y.dz).abs());
+    }
+    d
 }
 
 /// The controllers: one `scancorr replay` per machine into the router at `port`.
@@ -576,7 +639,7 @@ fn a_partition_between_the_instances_is_a_split_brain_reported_and_no_point_doub
     let b_zid = hb["zid"].as_str().unwrap().to_string();
 
     let c = consumer(p1, n);
-    let replays = replays(&d, p1, n, "2");
+    let mut replays = replays(&d, p1, n, "2");
     std::thread::sleep(Duration::from_millis(1500));
     let cut = Instant::now();
     wire.cut();
@@ -598,20 +661,54 @@ fn a_partition_between_the_instances_is_a_split_brain_reported_and_no_point_doub
             && v["failover"]["split_brain_now"] == 0
     });
     let healed = cut.elapsed();
-    finish(replays);
     let log_b = std::fs::read_to_string(d.join("b.log")).unwrap();
     assert!(log_b.contains("split brain"), "{log_b}");
-    // B stops (standing by), then A, flushing.
-    b.kill();
+    // B, standing by again, missed the partition's samples: its own `seq` run behind A's. It
+    // matches its numbering with what A publishes; then A is SIGKILLed mid-run and B takes
+    // over with no gap and no point twice.
+    std::thread::sleep(Duration::from_millis(700));
+    let mut running = 0;
+    for r in replays.iter_mut() {
+        running += usize::from(r.0.try_wait().unwrap().is_none());
+    }
+    let killed = Instant::now();
+    a.kill();
+    finish(replays);
+    let hb2 = wait_health(&d, p1, "B active again for every machine", |v| {
+        v["zid"] == b_zid.as_str() && v["failover"]["active"] == n
+    });
+    let mut renumbered = 0;
+    for k in 0..n {
+        let st = c.rt.block_on(status(&c.session, &name(k)));
+        assert_eq!(st["failover"]["role"], "active", "{st}");
+        renumbered += st["output"]["standby"]["renumbered"].as_u64().unwrap();
+        assert_eq!(st["output"]["standby"]["held_overflow_points"], 0, "{st}");
+    }
     std::thread::sleep(Duration::from_millis(500));
-    a.term();
+    b.term();
     std::thread::sleep(Duration::from_millis(300));
-    c.judge(n, cut);
+    // B's estimator state was built without the partition's samples: its points equal the
+    // offline correction within picometres (3.4e-9 and 1.3e-8 mm measured), not bit for bit.
+    let (longest, largest) = c.judge_within(n, killed, 1e-6);
     eprintln!(
-        "partition: {n} machines; B took over on its side, the split brain was reported by both ({} and {} split brains) and resolved {:.1} s after the cut; every point once, in order, equal to offline",
+        "partition: {n} machines; B took over on its side, the split brain was reported by both ({} and {} split brains) and resolved {:.1} s after the cut; then A SIGKILLed with {running} replays running: B took over in {:.0} ms (its health), its numbering matched to A's for {renumbered} machines (it had missed the partition's samples), longest pause at the consumer {:.0} ms; every point once, in order, equal to offline within {largest:.1e} mm",
         ha["failover"]["machines"].as_object().unwrap().values().filter_map(|m| m["split_brains"].as_u64()).sum::<u64>(),
         hb["failover"]["machines"].as_object().unwrap().values().filter_map(|m| m["split_brains"].as_u64()).sum::<u64>(),
-        healed.as_secs_f64()
+        healed.as_secs_f64(),
+        took_ms(&hb2),
+        longest * 1e3
+    );
+    assert!(
+        running > 0,
+        "the replays were over before A was killed: no take-over mid-run"
+    );
+    assert_eq!(
+        renumbered, n as u64,
+        "B's numbering after the partition: every machine's matched to A's once"
+    );
+    assert!(
+        longest < 2.0,
+        "take-over took {longest:.2} s at the consumer"
     );
 }
 

@@ -85,10 +85,13 @@ def test_a_missing_or_unreadable_tls_file_is_named(tmp_path: pathlib.Path) -> No
         with pytest.raises(scancorr.TlsError) as e:
             scancorr.connect(zenoh_config=cfg, timeout=0.5)
         assert e.value.key == f"transport/link/tls/{key}" and e.value.path == str(missing)
-        assert str(e.value) == (
-            f"zenoh configuration {cfg}: `transport/link/tls/{key}`: cannot read the TLS certificate or key "
+        said = (
+            f"`transport/link/tls/{key}`: cannot read the TLS certificate or key "
             f"file {missing}: No such file or directory"
         )
+        assert str(e.value) == f"zenoh configuration {cfg}: {said}"
+        # The CLI's twin: the same words, the file named by the flag that gave it.
+        assert cli_error(tmp_path, "status", "--zenoh-config", str(cfg)) == f"--zenoh-config {cfg}: {said}"
         for n in have:
             (certs / n).unlink()
     # A folder where a file should be: unreadable, named.
@@ -152,6 +155,8 @@ def test_a_tls_handshake_the_router_refuses_is_refused(tmp_path: pathlib.Path) -
             scancorr.connect(zenoh_config=client("rogue"), timeout=1)
         assert str(e.value).startswith(f"cannot connect to {ep}: something listens at {ep} but no zenoh session")
         assert "TLS handshake" in str(e.value)
+        # The CLI's twin, with the same file: the same words.
+        assert without_zenoh(e.value) == cli_error(tmp_path, "status", "--zenoh-config", str(client("rogue")))
     finally:
         stop(router)
 

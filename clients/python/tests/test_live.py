@@ -168,3 +168,31 @@ def test_a_zenoh_configuration_file_reaches_the_service(ring: Dict, service: Ser
     bad.write_text("{ mode: 'nonsense' ")
     with pytest.raises(ValueError, match="bad.json5"):
         scancorr.connect(zenoh_config=bad)
+
+
+def test_the_readme_live_example_runs(ring: Dict, service: Service) -> None:
+    """The package README's live example as printed (its endpoint this test's scancorrd's; its
+    `import scancorr` the ten lines' above it) prints every point of a replayed ring, none
+    missed."""
+    import re
+
+    text = (ROOT / "clients" / "python" / "README.md").read_text()
+    code = re.findall(r"```python\n(.*?)```", text, re.S)[1]
+    assert 'scancorr.connect("tcp/127.0.0.1:7447")' in code, code
+    d = ring["dir"]
+    (d / "live_example.py").write_text("import scancorr\n" + code.replace("tcp/127.0.0.1:7447", service.endpoint))
+    with scancorr.connect(service.endpoint) as bus:
+        bus.put_calibration("m1", d / "drift.json")
+    ex = subprocess.Popen([sys.executable, "live_example.py"], cwd=d, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(2.0)  # connected, subscribed and routed
+        replay(d, "drift.mcap", service.endpoint)
+        out, err = ex.communicate(timeout=60)
+    finally:
+        ex.kill()
+    assert ex.returncode == 0, err
+    lines = out.splitlines()
+    assert lines and all(l.endswith("missed so far: 0") for l in lines), out
+    assert sum(int(l.split()[0]) for l in lines) == ring["offline"]["points"], out
+

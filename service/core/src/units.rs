@@ -193,6 +193,8 @@ pub const NAMED_VALUE_KEYS: &[&str] = &[
     "sigma_stat",
     "penalty_shift",
     "fold_spread",
+    "sigma_scan",
+    "model_spread",
     "truth",
     "true",
     "error",

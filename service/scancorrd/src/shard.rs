@@ -16,7 +16,7 @@
 //! shared only with its publishing thread.
 
 use crate::input::Input;
-use crate::outgoing::Outgoing;
+use crate::outgoing::{Mark, Outgoing, Span};
 use scancorr_core::calib::Model;
 use scancorr_core::sample::StreamId;
 use scancorr_core::wire;
@@ -77,6 +77,8 @@ pub(crate) struct Outbox {
     holding: std::sync::atomic::AtomicBool,
     /// Not flushed at shutdown (handed over to a standby).
     keep_tail: std::sync::atomic::AtomicBool,
+    /// Fail-over on: each publication of points carries its last point's [`Mark`].
+    marks: bool,
 }
 
 /// Where a machine's alarms are put.
@@ -211,8 +213,10 @@ impl Outbox {
         machine: String,
         max_bytes: usize,
         pool: Arc<Pool>,
+        marks: bool,
     ) -> Outbox {
         Outbox {
+            marks,
             points,
             alarms,
             machine,
@@ -245,12 +249,12 @@ impl Outbox {
         }
         st.bytes += o.len();
         match (st.queue.back_mut(), o) {
-            (Some(Outgoing::Points(b, n, at, seqs)), Outgoing::Points(more, m, later, next))
+            (Some(Outgoing::Points(b, n, at, span)), Outgoing::Points(more, m, later, next))
                 if b.len() + more.len() <= JOIN_UP_TO =>
             {
                 b.extend_from_slice(&more);
                 *n += m;
-                seqs.1 = next.1;
+                *span = span.then(next);
                 *at = at.or(later);
                 let queued = !std::mem::replace(&mut st.queued, true);
                 drop(st);
@@ -262,10 +266,20 @@ impl Outbox {
         !std::mem::replace(&mut st.queued, true)
     }
 
-    /// Publishes what is queued, until the queue is empty; `progress` counts each step.
-    fn drain(&self, progress: &AtomicU64) {
+    /// Publishes what is queued, until the queue is empty or, once [`JOIN_UP_TO`] bytes are
+    /// out, other outboxes wait for the lane (`lanes`): true then, the lane hands it back to
+    /// the end of the line. A standby's backlog published at a take-over thus goes out a
+    /// share per machine in turn, not one machine's whole backlog before the next one's first
+    /// point. `progress` counts each step.
+    fn drain(&self, lanes: &Lanes) -> bool {
+        let progress = &lanes.progress;
+        let mut sent = 0usize;
         let mut st = self.lock();
         while let Some(o) = st.queue.pop_front() {
+            if sent >= JOIN_UP_TO && lanes.others_wait() {
+                st.queue.push_front(o);
+                return true;
+            }
             st.bytes -= o.len();
             if st.hold.holding {
                 // A standby: kept, not published (see `standby`).
@@ -274,14 +288,24 @@ impl Outbox {
             }
             drop(st);
             let (r, n, arrived, last) = match o {
-                Outgoing::Points(b, n, at, (_, last)) => {
+                Outgoing::Points(b, n, at, span) => {
+                    sent += b.len();
                     // Zero-copy: zenoh reads the buffer, and hands it back to the pool when
                     // it is done with it.
                     let b = bytes::Bytes::from_owner(Pooled {
                         buf: b,
                         pool: self.pool.clone(),
                     });
-                    (self.points.put(b).wait(), n, at, Some(last))
+                    // With fail-over, the last point's mark rides along as the attachment:
+                    // a standby that receives the publication knows which points it holds
+                    // without decoding them (see `standby`).
+                    let put = self.points.put(b);
+                    let put = if self.marks {
+                        put.attachment(Mark::last_of(&span).to_bytes().to_vec())
+                    } else {
+                        put
+                    };
+                    (put.wait(), n, at, Some(span.seq.1))
                 }
                 Outgoing::Alarm(b) => (self.alarms.put(b), 0, None, None),
             };
@@ -304,13 +328,13 @@ impl Outbox {
             }
         }
         st.queued = false;
+        false
     }
 
     /// Withholds its output from now on (a hot standby): at most `max_bytes` held.
     pub(crate) fn hold(&self, max_bytes: usize) {
         let mut st = self.lock();
-        let published = st.last_seq;
-        st.hold.start(max_bytes, published);
+        st.hold.start(max_bytes);
         self.holding.store(true, Ordering::Relaxed);
     }
 
@@ -319,22 +343,24 @@ impl Outbox {
         self.holding.load(Ordering::Relaxed)
     }
 
-    /// The active instance was seen to publish points up to `seq`.
-    pub(crate) fn seen(&self, seq: u64) {
-        self.lock().hold.see(Some(seq));
+    /// The active instance was seen to publish points up to this one.
+    pub(crate) fn seen(&self, m: Mark) {
+        self.lock().hold.see(m);
     }
 
-    /// Publishes from now on, what is held and not seen published first. True when the
-    /// outbox must be handed to a lane.
-    pub(crate) fn release(&self) -> bool {
+    /// Publishes from now on, what is held and not seen published first, in the active
+    /// instance's numbering (what is queued too). Returns whether the outbox must be handed
+    /// to a lane, and by how much the points' `seq` were shifted (the shard shifts the
+    /// points it makes from now on alike).
+    pub(crate) fn release(&self) -> (bool, i64) {
         let mut st = self.lock();
-        let held = st.hold.release();
+        let queued: Vec<Outgoing> = st.queue.drain(..).collect();
+        let (held, shift) = st.hold.release(queued, JOIN_UP_TO);
         self.holding.store(false, Ordering::Relaxed);
-        for o in held.into_iter().rev() {
-            st.bytes += o.len();
-            st.queue.push_front(o);
-        }
-        !st.queue.is_empty() && !std::mem::replace(&mut st.queued, true)
+        st.bytes = held.iter().map(Outgoing::len).sum();
+        st.queue = held;
+        let hand = !st.queue.is_empty() && !std::mem::replace(&mut st.queued, true);
+        (hand, shift)
     }
 
     /// At shutdown, hand the machine over as it is (its buffered samples not flushed: a
@@ -467,6 +493,11 @@ impl Lanes {
         }
     }
 
+    /// Other outboxes wait for a lane.
+    fn others_wait(&self) -> bool {
+        !self.lock().ready.is_empty()
+    }
+
     /// Ends the lanes once they have published what was handed to them.
     fn close(&self) {
         self.lock().closed = true;
@@ -479,8 +510,11 @@ impl Lanes {
             if let Some(o) = st.ready.pop_front() {
                 drop(st);
                 self.progress.fetch_add(1, Ordering::Relaxed);
-                o.drain(&self.progress);
+                let more = o.drain(self);
                 st = self.lock();
+                if more {
+                    st.ready.push_back(o);
+                }
                 continue;
             }
             if st.closed {
@@ -531,6 +565,9 @@ pub(crate) struct Core {
     pub(crate) uncalibrated: Uncalibrated,
     /// Changed since its snapshot was last published.
     pub(crate) dirty: bool,
+    /// Added to its points' `seq`: the numbering of the instance it took the machine over
+    /// from, when this one's differs (it missed samples, or started later; see `standby`).
+    pub(crate) seq_shift: i64,
 }
 
 impl Core {
@@ -561,6 +598,7 @@ impl Core {
             told_shed: None,
             uncalibrated: Uncalibrated::default(),
             dirty: true,
+            seq_shift: 0,
         }
     }
 }
@@ -648,8 +686,8 @@ pub(crate) struct Pending {
     arrived: Option<Instant>,
     /// The size of the machine's last batch: the room the next one is given at once.
     last_len: usize,
-    /// The first and last `seq` of its points.
-    seqs: (u64, u64),
+    /// Which points.
+    span: Span,
 }
 
 /// What the corrector says about itself, for status and metrics.
@@ -949,8 +987,12 @@ impl Shard {
                 return;
             }
             Job::Release(slot) => {
-                if let Some((_, m)) = self.machines.get(slot) {
-                    if m.outbox.release() {
+                if let Some((_, m)) = self.machines.get_mut(slot) {
+                    // Its points made so far are renumbered with what it held.
+                    to_outbox(m, &mut self.ready);
+                    let (hand, shift) = m.outbox.release();
+                    m.seq_shift = m.seq_shift.wrapping_add(shift);
+                    if hand {
                         self.ready.push(m.outbox.clone());
                     }
                     self.hand_over();
@@ -1258,12 +1300,22 @@ fn publish(
             let room = (out.points.len() * (100 + 24 * m.ids.len())).max(last + last / 8);
             m.pending.bytes = m.outbox.pool.get(room);
         }
+        if m.seq_shift != 0 {
+            // Taken over in the numbering of the instance active before (see `standby`).
+            for x in &mut out.points {
+                x.seq = x.seq.wrapping_add_signed(m.seq_shift);
+            }
+        }
         let p = &mut m.pending;
         wire::encode_points(&out.points, machine, &m.ids, &mut p.bytes);
+        let (first, last) = (&out.points[0], &out.points[out.points.len() - 1]);
         if p.points == 0 {
-            p.seqs.0 = out.points[0].seq;
+            p.span.seq.0 = first.seq;
+            p.span.sample.0 = first.sample_seq;
         }
-        p.seqs.1 = out.points[out.points.len() - 1].seq;
+        p.span.seq.1 = last.seq;
+        p.span.sample.1 = last.sample_seq;
+        p.span.last_t_ns = last.t_ns;
         p.points += out.points.len() as u64;
         p.arrived = p.arrived.or(arrived);
     }
@@ -1303,7 +1355,7 @@ fn to_outbox(m: &mut Core, ready: &mut Vec<Arc<Outbox>>) {
         },
     );
     if m.outbox
-        .send(Outgoing::Points(p.bytes, p.points, p.arrived, p.seqs))
+        .send(Outgoing::Points(p.bytes, p.points, p.arrived, p.span))
     {
         ready.push(m.outbox.clone());
     }

@@ -1,6 +1,9 @@
 //! Helpers for tests that drive the `scancorr` binary as a separate process.
 #![allow(dead_code)]
 
+/// Headless Chromium and the reports' plot checks (report_html.rs, readme_blocks.rs).
+pub mod chromium;
+
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};

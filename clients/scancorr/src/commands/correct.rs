@@ -21,7 +21,16 @@ pub fn exec(
     for w in warnings {
         eprintln!("warning: {w}");
     }
+    // A feature map applies only to its own part program's scans: said as such.
+    let maps = cal.feature_map_ids();
     for e in &s.inactive_effects {
+        if maps.contains(e) {
+            eprintln!(
+                "warning: feature map `{e}` of the calibration applies to none of the {} points: a map applies only to its own part program's scans (segment ids, tip and head angles, place, speed)",
+                s.points
+            );
+            continue;
+        }
         eprintln!(
                     "warning: effect `{e}` of the calibration contributed to none of the {} points: inactive for lack of its signal (e.g. no rotation for servo effects, no deflection for probe effects)",
                     s.points

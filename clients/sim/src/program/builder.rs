@@ -110,7 +110,8 @@ impl<'a> Builder<'a> {
             defl,
         );
     }
-    /// A circle scan of a bore or boss: one turn plus the ramps, dwell before and after.
+    /// A circle scan of a bore or boss: one turn plus the ramps, dwell before and after; in
+    /// the feature's own plane when its axis is not z (a ring standing on its edge).
     pub(super) fn circle(&mut self, fid: u32, speed: f64, dir: f64, defl: f64, start: f64) {
         let f = self.features[fid as usize - 1].clone();
         let r_tip = self.stylus(self.tip).radius_mm;
@@ -134,6 +135,7 @@ impl<'a> Builder<'a> {
             sweep,
             wave_mm: 0.0,
             wave_cycles: 0.0,
+            plane: f.tilted_plane().map_or(horizontal(), |(e1, e2)| [e1, e2]),
         };
         self.scan(path, speed, ramp, fid, defl);
     }
@@ -191,6 +193,7 @@ impl<'a> Builder<'a> {
             // horizontally presses it in by δ·cos(lat) along the sphere's radius.
             wave_mm: -wave.0 / lat.cos(),
             wave_cycles: wave.1,
+            plane: horizontal(),
         };
         self.scan(path, speed, ramp, fid, defl);
     }

@@ -20,7 +20,8 @@ pub struct Feature {
     pub nominal_diameter_mm: f64,
     /// Calibration certificate's diameter (ring, sphere), mm.
     pub certificate_diameter_mm: Option<f64>,
-    /// Face normal (out of the material).
+    /// Face normal (out of the material); for a bore or boss, its axis when it does not stand
+    /// upright (zero: the axis along z, the circle horizontal).
     pub normal: [f64; 3],
     /// Form deviation: (harmonic or wavelength_mm, amplitude mm, phase rad).
     pub form: Vec<[f64; 3]>,
@@ -29,6 +30,12 @@ pub struct Feature {
 impl Feature {
     pub(super) fn c(&self) -> V3 {
         V3::from(self.center)
+    }
+    /// A bore's or boss's plane when its axis is not z: the in-plane axes (e1, e2) of
+    /// [`circle_plane`]; None for an upright one.
+    pub fn tilted_plane(&self) -> Option<(V3, V3)> {
+        let n = V3::from(self.normal).try_normalize(1e-9)?;
+        (n.z.abs() < 1.0 - 1e-9).then(|| circle_plane(&n))
     }
     /// Form deviation at angle θ (circles) or position s along the face.
     pub fn form_at(&self, s: f64) -> f64 {
@@ -49,6 +56,23 @@ impl Feature {
     /// (zero when not touching).
     pub fn push(&self, tip: &V3, r: f64) -> V3 {
         match self.kind {
+            FeatureKind::Bore if self.tilted_plane().is_some() => {
+                // A ring standing on its edge: the same contact in its own plane.
+                let (e1, e2) = self.tilted_plane().unwrap_or((V3::x(), V3::y()));
+                let d = tip - self.c();
+                let (a, b) = (d.dot(&e1), d.dot(&e2));
+                let dp = e1 * a + e2 * b;
+                let dist = dp.norm();
+                if dist == 0.0 {
+                    return V3::zeros();
+                }
+                let limit = self.radius_mm + self.form_at(b.atan2(a)) - r;
+                if dist > limit {
+                    -dp / dist * (dist - limit)
+                } else {
+                    V3::zeros()
+                }
+            }
             FeatureKind::Bore => {
                 let d = tip - self.c();
                 let dxy = V3::new(d.x, d.y, 0.0);
@@ -93,6 +117,19 @@ impl Feature {
     }
 }
 
+/// The in-plane axes of a circle whose axis is the unit `n` (not along z): e1 = n × z
+/// (normalised, the direction along a face of that normal, as the lab takes it), e2 = e1 × n
+/// (up for an axis in the horizontal plane). Rotation from e1 towards e2 is about −n.
+pub fn circle_plane(n: &V3) -> (V3, V3) {
+    let e1 = n.cross(&V3::z()).try_normalize(1e-9).unwrap_or(V3::x());
+    (e1, e1.cross(n))
+}
+
+/// The plane of a horizontal arc.
+pub(super) fn horizontal() -> [V3; 2] {
+    [V3::x(), V3::y()]
+}
+
 /// A carriage path.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Path {
@@ -103,7 +140,8 @@ pub enum Path {
         /// End.
         to: V3,
     },
-    /// Horizontal arc: centre, radius, start angle, signed sweep (CCW > 0).
+    /// Arc: centre, radius, start angle, signed sweep (CCW > 0 about `plane`'s e1 × e2) in
+    /// the plane spanned by `plane` (x, y: a horizontal arc).
     Arc {
         /// Centre (carriage coordinates).
         center: V3,
@@ -119,6 +157,8 @@ pub enum Path {
         wave_mm: f64,
         /// Waves per turn.
         wave_cycles: f64,
+        /// The arc's plane: unit axes e1 (angle 0) and e2 (angle π/2).
+        plane: [V3; 2],
     },
     /// The probe held at `at` while the carriage oscillates along `dir` (unit):
     /// `at + dir·amplitude·sin(s/amplitude)` at path length s, so a cruise speed v is a peak
@@ -171,10 +211,11 @@ impl Path {
                 sweep,
                 wave_mm,
                 wave_cycles,
+                plane: [e1, e2],
             } => {
                 let th = start + sweep.signum() * s / radius;
                 let r = radius + wave_mm * (wave_cycles * (th - start)).sin();
-                center + V3::new(r * th.cos(), r * th.sin(), 0.0)
+                center + e1 * (r * th.cos()) + e2 * (r * th.sin())
             }
             Path::Weave {
                 at, dir, amplitude, ..

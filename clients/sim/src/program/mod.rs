@@ -16,10 +16,12 @@ use std::f64::consts::{PI, TAU};
 
 mod builder;
 mod dynamics_faces;
+mod dynamics_vertical;
 mod geometry;
 mod thin_wall;
 
 use builder::*;
+use geometry::horizontal;
 pub use geometry::{Feature, Path, Segment};
 pub use thin_wall::{WALL_ARTIFACT, WALL_LENGTH_MM};
 
@@ -37,13 +39,14 @@ pub struct Plan {
 }
 
 /// Programs the simulator knows.
-pub const PROGRAMS: [&str; 22] = [
+pub const PROGRAMS: [&str; 23] = [
     "ring",
     "ring-speeds",
     "campaign",
     "part",
     "dynamics",
     "dynamics-faces",
+    "dynamics-vertical",
     "tips",
     "probe-force",
     "probe-force-quarter",
@@ -428,6 +431,8 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
         }
         // Faces touched while the carriage oscillates along and across their normals.
         "dynamics-faces" => dynamics_faces::plan(&mut b, position),
+        // The ring on its edge: circles in the XZ and YZ planes.
+        "dynamics-vertical" => dynamics_vertical::plan(&mut b, position),
         // A thin-walled part at two probing forces (F1, F2) and at three.
         "thin-wall" => thin_wall::plan(&mut b, position, &[0.1, 0.5]),
         "thin-wall-forces" => thin_wall::plan(&mut b, position, &[0.1, 0.3, 0.5]),

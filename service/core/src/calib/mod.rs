@@ -433,6 +433,16 @@ pub struct Model {
 }
 
 impl Calibration {
+    /// The ids of its `feature_map` effects: a map applies only to its own part program's
+    /// scans, so one that no scan uses is expected and said as such.
+    pub fn feature_map_ids(&self) -> Vec<String> {
+        self.effects
+            .iter()
+            .filter(|e| e.kind() == "feature_map")
+            .map(|e| e.id())
+            .collect()
+    }
+
     /// Parses a JSON document, naming the field on error. Does not validate values; see
     /// [`Calibration::build`].
     /// Anything after the document but white space is refused.

@@ -17,7 +17,12 @@
 //! a_j = −(HSZD − LSZD) = −(F2 − S1) at zero deflection and b_j = −e1/d1 per mm of deflection,
 //! so a fast scan at d1 gets a_j + b_j·d1 = −e2 and one at another deflection d gets
 //! −(HSZD − LSZD) − e1·d/d1. It applies to the fast scans' segment ids (a like part measured by
-//! the same part program has the same ids), at the fast speed (±5 %), with the same tip.
+//! the same part program has the same ids), at the fast speed (±5 %), with the same tip, and
+//! at the map's place: a point's carriage position c (scales + deflection) must satisfy
+//! | |c_xy − c₀| − R₀ | ≤ 1 mm and |c_z − z₀| ≤ 1 mm, c₀, R₀, z₀ S1's carriage path's centre,
+//! radius and mean height — a like part stands where the master did; another part program
+//! that reuses the segment ids at that speed on another feature gets no map (and the lab
+//! says a map applies to none of its scans).
 //!
 //! Uncertainties: per scan and bin σ = s/√n inflated by the lag-1 correlation of the points
 //! in the bin, propagated linearly through the equations above (the scans are independent).
@@ -52,6 +57,9 @@ const MIN_DEFLECTION_SPREAD_MM: f64 = 0.1;
 const MIN_BIN_POINTS: usize = 3;
 /// Speeds within this fraction are one speed.
 const SAME_SPEED: f64 = 0.01;
+/// How far a later scan's carriage path may be from the map's place (S1's path radius about
+/// its centre, and its height) and still get the map, mm.
+pub const PLACE_TOLERANCE_MM: f64 = 1.0;
 
 /// Options of the procedure.
 #[derive(Debug, Clone, Copy)]
@@ -741,11 +749,13 @@ fn one_map(
             speed_mm_s: Some(f2.speed),
             speed_tolerance_mm_s: Some(o.speed_tolerance * f2.speed),
             center_mm: center,
-            // A like part need not stand exactly where the master did: no place of its own
-            // beyond the segments and the centre the angle is taken about.
-            radius_mm: None,
-            z_mm: None,
-            place_tolerance_mm: 1.0,
+            // The place: S1's carriage path (its radius about the centre and its height). A
+            // like part by the same program stands where the master did (its angle is taken
+            // about the master's centre) within PLACE_TOLERANCE_MM; another program reusing
+            // these segment ids at this speed elsewhere, or on another size, gets no map.
+            radius_mm: Some(cc.radius),
+            z_mm: Some(carr.iter().map(|p| p.z).sum::<f64>() / carr.len().max(1) as f64),
+            place_tolerance_mm: PLACE_TOLERANCE_MM,
             latitude_deg: 0.0,
             values_mm: a,
             per_deflection: b,

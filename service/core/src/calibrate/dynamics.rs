@@ -27,6 +27,15 @@
 //!   parameters, so the geometry of the machine (not yet calibrated when this procedure
 //!   runs) does not leak into them.
 //!
+//! Rings standing on their edge (`scancorr sim --program dynamics-vertical`: the ring's axis
+//! along Y or X, the circle in the XZ or YZ plane, the stylus turned along the axis) obey the
+//! same equation with n_i, A_i, the lever and the static pattern's angle θ_i taken in the
+//! ring's own plane (the lab fits the circle there): their carriage accelerates along Z and
+//! their probe measures along Z, so P's Z row and column (P_zx, P_zy, P_zz, P_xz, P_yz) and the
+//! servo phase of Z against X (b0, b1, b2 of `phase_z`; on a YZ ring, of Z against Y) act on
+//! them — terms a horizontal ring cannot see; with the rings at several places along X, their
+//! change along X as well.
+//!
 //! Face scans accelerated along and across their normal (`scancorr sim --program
 //! dynamics-faces`): the probe held on a face while the carriage oscillates, p(t) = p̄_w +
 //! u·A·sin(2πft) (u the face's normal, or one of its tangents when sliding), at ≥ 2 frequencies
@@ -65,7 +74,7 @@ use crate::calib::Calibration;
 use crate::effects::{accel_deflection, servo_gain, servo_phase, Effect, EffectConfig};
 use crate::lab::analysis::Prepared;
 use crate::lab::dataset::Dataset;
-use crate::lab::fit::Normal;
+use crate::lab::fit::{FeatureFit, Normal};
 use crate::lab::nominal::AxisFit;
 use crate::lab::program::FeatureKind;
 use crate::sample::Vec3;
@@ -95,9 +104,10 @@ pub struct Scan {
     /// The same after the fit, µm.
     pub delta_r_after_um: f64,
     /// ΔR along X (at θ = 0 and π: the constant and cos 2θ terms of the deviation), without
-    /// the fitted dynamics, µm.
+    /// the fitted dynamics, µm. For a ring standing on its edge: along the plane's first
+    /// axis (X in the XZ plane, Y in the YZ plane).
     pub delta_r_x_um: f64,
-    /// ΔR along Y (θ = ±π/2), µm.
+    /// ΔR along Y (θ = ±π/2), µm; for a ring standing on its edge, along Z.
     pub delta_r_y_um: f64,
 }
 
@@ -106,6 +116,8 @@ pub struct Scan {
 pub struct Position {
     /// Ring centre, mm.
     pub center_mm: [f64; 3],
+    /// The ring's plane: `xy` (upright), `xz` or `yz` (standing on its edge).
+    pub plane: String,
     /// Its scans.
     pub scans: Vec<Scan>,
     /// ΔR along X per acceleration v²/r over its scans (a line through the origin), µm per
@@ -326,8 +338,7 @@ fn static_row(ds: &Dataset, prep: &Prepared, st: &Statics, i: usize, out: &mut V
     let Some(f) = &prep.art.features[p.feature] else {
         return;
     };
-    let d = p.surface - f.center;
-    let th = d.y.atan2(d.x);
+    let th = ring_angle(f, &(p.surface - f.center));
     out.push((c, 1.0));
     for k in 1..=HARMONICS {
         let a = k as f64 * th;
@@ -338,6 +349,31 @@ fn static_row(ds: &Dataset, prep: &Prepared, st: &Statics, i: usize, out: &mut V
     out.push((c, tau));
     out.push((c + 1, tau * th.cos()));
     out.push((c + 2, tau * th.sin()));
+}
+
+/// The angle of `d` (from a ring's centre) in the ring's plane: about Z from X for an upright
+/// ring; from e1 towards e2 of [`crate::lab::program::circle_plane`] for one standing on its edge (e1 along X for
+/// a ring in the XZ plane, −Y in the YZ plane; e2 along Z).
+fn ring_angle(f: &FeatureFit, d: &Vec3) -> f64 {
+    if f.axes.0 == Vec3::zeros() {
+        return d.y.atan2(d.x);
+    }
+    let (n, e1) = f.axes;
+    d.dot(&e1.cross(&n)).atan2(d.dot(&e1))
+}
+
+/// The plane of a ring: `xy`, `xz`, `yz` (or `tilted`).
+fn ring_plane(f: &FeatureFit) -> &'static str {
+    let n = f.axes.0.abs();
+    if f.axes.0 == Vec3::zeros() || n.z > 0.999 {
+        "xy"
+    } else if n.y > 0.999 {
+        "xz"
+    } else if n.x > 0.999 {
+        "yz"
+    } else {
+        "tilted"
+    }
 }
 
 /// The constant column of a position term's column `c` (P: 9 per monomial; the phase of Y
@@ -733,9 +769,10 @@ pub fn run(
     if !not_seen.is_empty() {
         undetermined.push(format!(
             "{} (rings in a horizontal plane neither accelerate along Z nor measure along it: \
-             a ring in a vertical plane determines them; P's Z row and column also come from \
-             faces scanned while the carriage oscillates along and across their normals, \
-             `scancorr sim --program dynamics-faces`)",
+             rings in a vertical plane (a ring standing on its edge, in the XZ and YZ planes) \
+             determine them, `scancorr sim --program dynamics-vertical`; P's Z row and column also come from faces \
+             scanned while the carriage oscillates along and across their normals, `scancorr \
+             sim --program dynamics-faces`)",
             not_seen.join(", ")
         ));
     }
@@ -752,7 +789,7 @@ pub fn run(
     // only the tangential acceleration of spin-up and slow-down tells them apart.
     let mut confounded = vec![];
     let col = |n: &str| names.iter().position(|x| x == n);
-    for ax in ["x", "y"] {
+    for ax in AX {
         let (Some(a), Some(b)) = (
             col(&format!("dynamics.P_{ax}{ax}.1")),
             col(&format!("dynamics.gain_{ax}.f2.1")),
@@ -817,10 +854,9 @@ pub fn run(
             e.2 += 1;
             continue;
         }
-        let th = prep.art.features[p.feature].as_ref().map_or(0.0, |f| {
-            let d = p.surface - f.center;
-            d.y.atan2(d.x)
-        });
+        let th = prep.art.features[p.feature]
+            .as_ref()
+            .map_or(0.0, |f| ring_angle(f, &(p.surface - f.center)));
         let e = acc
             .entry((p.feature, (p.speed * 10.0).round() as i64, p.direction))
             .or_insert((0.0, 0.0, 0, 0.0));
@@ -829,7 +865,7 @@ pub fn run(
         e.2 += 1;
         e.3 += (prep.art.residual[i] + stat) * (2.0 * th).cos();
     }
-    let positions = usable
+    let positions: Vec<Position> = usable
         .iter()
         .map(|&f| {
             let fit = prep.art.features[f].as_ref().unwrap();
@@ -865,6 +901,7 @@ pub fn run(
             };
             Position {
                 center_mm: fit.center.into(),
+                plane: ring_plane(fit).into(),
                 dr_x_per_accel_um_per_m_s2: slope(|s| s.delta_r_x_um),
                 dr_y_per_accel_um_per_m_s2: slope(|s| s.delta_r_y_um),
                 scans,
@@ -894,6 +931,13 @@ pub fn run(
              come from them off arcs, apart from the arcs' gain",
             weaves.len(),
             st.places.iter().filter(|q| q.ring.is_none()).count()
+        ));
+    }
+    let on_edge = positions.iter().filter(|p| p.plane != "xy").count();
+    if on_edge > 0 {
+        notes.push(format!(
+            "{on_edge} ring positions standing on their edge (XZ and YZ planes): P's Z row and \
+             column and the phase of Z against X come from them"
         ));
     }
     notes.push(format!(

@@ -257,6 +257,13 @@ pub fn widen_by_alternatives(o: &mut FitOutcome, model_spread: &[ModelSpread]) {
 
 /// The largest change of each parameter of the base fit `base_o` among the near-equal moves
 /// of `results`.
+///
+/// A parameter the near-equal model does not have — its effect dropped or replaced by another
+/// kind, or swapped for a variant without that term — is 0 there (the library's convention:
+/// an absent term contributes nothing), so its change is its whole value. This is the
+/// model-averaged ("unconditional") spread of Burnham & Anderson (2002, §4.3: a parameter is
+/// taken as 0 in the models that exclude it); it is largest where the data cannot say
+/// whether the term is there at all.
 fn model_spreads(
     base_o: &FitOutcome,
     base: &Score,
@@ -264,39 +271,53 @@ fn model_spreads(
     noise_um: f64,
 ) -> Vec<ModelSpread> {
     let mut out: Vec<ModelSpread> = vec![];
+    let mut note = |id: &str, name: &str, shift: f64, by: &str| {
+        if !shift.is_finite() {
+            return;
+        }
+        match out.iter_mut().find(|m| m.effect == id && m.name == name) {
+            Some(m) if m.shift >= shift => {}
+            Some(m) => {
+                m.shift = shift;
+                m.by = by.to_string();
+            }
+            None => out.push(ModelSpread {
+                effect: id.to_string(),
+                name: name.to_string(),
+                shift,
+                by: by.to_string(),
+            }),
+        }
+    };
     for (c, _, _, score, o, _) in results {
         if !near_equal(base, score, noise_um) {
             continue;
         }
-        for (cfg, ps) in o.configs.iter().zip(&o.params) {
-            let id = cfg.id();
-            let Some(bi) = base_o.configs.iter().position(|b| b.id() == id) else {
-                continue;
-            };
-            for p in ps {
-                let Some(bp) = base_o.params[bi].iter().find(|q| q.name == p.name) else {
+        for (bcfg, bps) in base_o.configs.iter().zip(&base_o.params) {
+            let id = bcfg.id();
+            // The same effect and variant, else another variant of the same kind (a swap),
+            // else none (dropped or replaced by another kind).
+            let alt = o
+                .configs
+                .iter()
+                .position(|a| a.id() == id)
+                .or_else(|| o.configs.iter().position(|a| a.kind() == bcfg.kind()));
+            let same_variant = alt.is_some_and(|a| o.configs[a].id() == id);
+            for bp in bps {
+                if bp.sigma.is_none() {
                     continue;
+                }
+                let in_alt = alt.and_then(|a| o.params[a].iter().find(|q| q.name == bp.name));
+                let shift = match in_alt {
+                    Some(p) if p.sigma.is_some() => (p.value - bp.value).abs(),
+                    // Undetermined in the alternative: it says nothing of this value.
+                    Some(_) => continue,
+                    // The same effect fitted without this parameter (not fitted in the
+                    // alternative's space): nothing to compare.
+                    None if same_variant => continue,
+                    None => bp.value.abs(),
                 };
-                if bp.sigma.is_none() || p.sigma.is_none() {
-                    continue;
-                }
-                let shift = (p.value - bp.value).abs();
-                if !shift.is_finite() {
-                    continue;
-                }
-                match out.iter_mut().find(|m| m.effect == id && m.name == p.name) {
-                    Some(m) if m.shift >= shift => {}
-                    Some(m) => {
-                        m.shift = shift;
-                        m.by = c.effect.clone();
-                    }
-                    None => out.push(ModelSpread {
-                        effect: id.clone(),
-                        name: p.name.clone(),
-                        shift,
-                        by: c.effect.clone(),
-                    }),
-                }
+                note(&id, &bp.name, shift, &c.effect);
             }
         }
     }

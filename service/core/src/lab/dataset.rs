@@ -209,7 +209,14 @@ impl Runs<'_> {
             let f = &self.features[fi].1;
             let coord = match f.kind {
                 FeatureKind::Face => p.surface.dot(&Vec3::from(f.normal)),
-                _ => (p.surface - Vec3::from(f.nominal_center)).xy().norm(),
+                _ => match super::program::circle_plane(f.normal) {
+                    // A ring standing on its edge: the radius in its own plane.
+                    Some((n, _, _)) => {
+                        let d = p.surface - Vec3::from(f.nominal_center);
+                        (d - n * d.dot(&n)).norm()
+                    }
+                    None => (p.surface - Vec3::from(f.nominal_center)).xy().norm(),
+                },
             };
             if let [Some((i0, c0)), Some((_, c1))] = self.last_two {
                 if index == i0 + 2 {
@@ -447,12 +454,7 @@ pub fn build(bags: &[BagData], cal: &Calibration, o: &BuildOptions) -> Result<Da
         .collect();
     // A feature map applies only to its own part program's scans: one that none of these
     // scans is is expected, and said once.
-    let maps: Vec<String> = cal
-        .effects
-        .iter()
-        .filter(|e| e.kind() == "feature_map")
-        .map(|e| e.id())
-        .collect();
+    let maps = cal.feature_map_ids();
     if let Some(first) = with_points.first() {
         let mut idle_maps = 0;
         for e in first.iter() {

@@ -8,7 +8,7 @@
 //! move the apparent centre stay visible.
 
 use super::dataset::{Dataset, LabPoint};
-use super::program::FeatureKind;
+use super::program::{circle_plane, FeatureKind};
 use crate::sample::Vec3;
 use nalgebra::{DMatrix, DVector};
 
@@ -127,7 +127,19 @@ pub fn fit_artifacts(ds: &Dataset, surfaces: &[Vec3], use_point: &[bool]) -> Art
         match spec.kind {
             FeatureKind::Bore | FeatureKind::Boss => {
                 let fixed = spec.certificate_diameter_mm.map(|d| d / 2.0);
-                let Some((c, r)) = circle_fit(&pts, fixed) else {
+                // A ring standing on its edge is fitted in its own plane.
+                let tilted = circle_plane(spec.normal);
+                let fitted = match tilted {
+                    None => circle_fit(&pts, fixed),
+                    Some((n, e1, e2)) => {
+                        let local: Vec<Vec3> = pts
+                            .iter()
+                            .map(|p| Vec3::new(p.dot(&e1), p.dot(&e2), p.dot(&n)))
+                            .collect();
+                        circle_fit(&local, fixed).map(|(c, r)| (e1 * c.x + e2 * c.y + n * c.z, r))
+                    }
+                };
+                let Some((c, r)) = fitted else {
                     features.push(None);
                     continue;
                 };
@@ -139,7 +151,7 @@ pub fn fit_artifacts(ds: &Dataset, surfaces: &[Vec3], use_point: &[bool]) -> Art
                     plane: [0.0; 3],
                     plane_z: false,
                     kind: spec.kind,
-                    axes: (Vec3::zeros(), Vec3::zeros()),
+                    axes: tilted.map_or((Vec3::zeros(), Vec3::zeros()), |(n, e1, _)| (n, e1)),
                     n: pts.len(),
                 }));
             }
@@ -211,6 +223,15 @@ pub fn deviation(f: &FeatureFit, p: &Vec3) -> (f64, Vec3) {
                 n,
             )
         }
+        _ if f.axes.0 != Vec3::zeros() => {
+            // In the plane of a ring standing on its edge.
+            let n = f.axes.0;
+            let d = p - f.center;
+            let d = d - n * d.dot(&n);
+            let rho = d.norm();
+            let u = if rho > 0.0 { d / rho } else { f.axes.1 };
+            (rho - f.radius, u)
+        }
         _ => {
             let d = Vec3::new(p.x - f.center.x, p.y - f.center.y, 0.0);
             let rho = d.norm();
@@ -238,8 +259,13 @@ pub fn nuisance_row(fit: &ArtifactFit, p: &LabPoint, surface: &Vec3, out: &mut V
         }
         _ => {
             let (_, u) = deviation(f, surface);
-            out.push((c0, -u.x));
-            out.push((c0 + 1, -u.y));
+            let (e1, e2) = if f.axes.0 != Vec3::zeros() {
+                (f.axes.1, f.axes.1.cross(&f.axes.0))
+            } else {
+                (Vec3::x(), Vec3::y())
+            };
+            out.push((c0, -u.dot(&e1)));
+            out.push((c0 + 1, -u.dot(&e2)));
             if !f.fixed_radius {
                 out.push((c0 + 2, -1.0));
             }

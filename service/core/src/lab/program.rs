@@ -4,6 +4,7 @@
 //! the `scancorr.program` metadata record; a bag without it can name its artifact on the
 //! command line (`--artifact ring:d=50.0012`).
 
+use crate::sample::Vec3;
 use serde::{Deserialize, Serialize};
 
 /// How a feature's surface meets the probe.
@@ -87,12 +88,25 @@ pub struct ProgramSpec {
     pub segments: Vec<SegmentSpec>,
 }
 
+/// The plane of a bore or boss whose axis (`normal`, the spec's) is not z — a ring standing on
+/// its edge: (n, e1, e2) with n the unit axis, e1 = n × z normalised, e2 = e1 × n (rotation
+/// from e1 towards e2 is about −n). None for an upright circle (axis zero or along z).
+pub fn circle_plane(normal: [f64; 3]) -> Option<(Vec3, Vec3, Vec3)> {
+    let n = Vec3::from(normal).try_normalize(1e-9)?;
+    if n.z.abs() >= 1.0 - 1e-9 {
+        return None;
+    }
+    let e1 = n.cross(&Vec3::z()).normalize();
+    Some((n, e1, e1.cross(&n)))
+}
+
 /// Parses `ring:d=50.0012`, `sphere:d=25.0004`, `straightedge`, `plane` (a bag's only artifact,
 /// for bags without a program record).
 pub fn parse_artifact(s: &str) -> Result<FeatureSpec, String> {
     let (kind, rest) = s.split_once(':').unwrap_or((s, ""));
     let mut d = None;
     let mut normal = [0.0, -1.0, 0.0];
+    let mut axis_given = false;
     for kv in rest.split(',').filter(|k| !k.is_empty()) {
         let (k, v) = kv
             .split_once('=')
@@ -105,9 +119,10 @@ pub fn parse_artifact(s: &str) -> Result<FeatureSpec, String> {
         };
         match k {
             "d" | "diameter" => d = Some(num(v)?),
-            "nx" => normal[0] = num(v)?,
-            "ny" => normal[1] = num(v)?,
-            "nz" => normal[2] = num(v)?,
+            "nx" | "ny" | "nz" => {
+                axis_given = true;
+                normal[["nx", "ny", "nz"].iter().position(|x| *x == k).unwrap_or(0)] = num(v)?
+            }
             _ => return Err(format!("`{k}`: unknown key (use d=, nx=, ny=, nz=)")),
         }
     }
@@ -133,6 +148,12 @@ pub fn parse_artifact(s: &str) -> Result<FeatureSpec, String> {
         nominal_center: [0.0; 3],
         nominal_diameter_mm: d.unwrap_or(0.0),
         certificate_diameter_mm: d,
-        normal,
+        // A ring's or sphere's axis only when stated (a ring standing on its edge); otherwise
+        // upright (zero).
+        normal: if fk == FeatureKind::Face || axis_given {
+            normal
+        } else {
+            [0.0; 3]
+        },
     })
 }

@@ -15,6 +15,15 @@
 //! is min_ν ‖y' + C'θ̂ + N'ν‖². Everything is computed from the folds' normal equations, so a
 //! candidate costs a small solve once the Gram matrices are accumulated.
 //!
+//! Uncertainty of a penalised parameter (see [`Param`](super::types::Param)): σ² =
+//! max(σ_stat, σ_scan, spread)² + shift², σ_stat² = s²·[(A + λP + R)⁻¹]_jj the Bayesian
+//! variance of a penalised fit (Wahba 1983, Nychka 1988: it carries the smoothing's bias on
+//! average over a table), shift = |θ̂(λ, R) − θ̂(λ_least, R_least)| the plug-in estimate of
+//! the bias the chosen penalty adds (θ̂_u − θ̂_λ = (A + λP)⁻¹λPθ̂_u exactly, the bias with the
+//! least-penalised fit for the truth). A table knot no scan sees (its data column below
+//! 10⁻³ of its group's strongest) has its value from the penalty alone: reported without σ,
+//! as not determined, not with the penalty's σ around it.
+//!
 //! Source idea: cross-validated model selection (Stone 1974) and smoothing splines /
 //! Tikhonov regularisation of tables (Whittaker 1923; Reinsch 1967).
 
@@ -148,6 +157,10 @@ pub struct Space {
     /// Columns far weaker than their effect's strongest (e.g. z acceleration when every scan
     /// is horizontal): numerical noise, not fitted, reported as undetermined.
     weak: Vec<bool>,
+    /// Table columns the data does not see (a z straightness under horizontal rings, a knot
+    /// beyond the scans): fitted, as the smoothness carries its neighbours into them, but
+    /// their value is the penalty's alone, so they are reported as not determined.
+    unseen: Vec<bool>,
     /// The held-out points are the fit bags' alternate scans, scored as fold 1 (see
     /// [`folds`]): the held-out figures are then the cross-validated ones.
     internal: bool,
@@ -365,6 +378,7 @@ impl Space {
             pinv(&m)
         });
         let mut weak = vec![false; n_fx];
+        let mut unseen = vec![false; n_fx];
         for b in &out {
             let rms: Vec<f64> = (b.off..b.off + b.n)
                 .map(|c| (g[0].m[(c, c)] + g[1].m[(c, c)]).max(0.0).sqrt())
@@ -382,11 +396,18 @@ impl Space {
                     if cols.iter().all(|j| rms[*j] <= WEAK_COLUMN * top) {
                         cols.iter().for_each(|j| weak[b.off + j] = true);
                     }
+                    // Within a table that is fitted: the columns far weaker than the group's
+                    // strongest carry no data of their own.
+                    let top_g = cols.iter().map(|j| rms[*j]).fold(0.0, f64::max);
+                    for j in &cols {
+                        unseen[b.off + j] = rms[*j] <= WEAK_COLUMN * top_g;
+                    }
                 }
             }
         }
         Ok(Space {
             weak,
+            unseen,
             internal: held_within_fit_bags(ds, prep),
             rows,
             n_clusters: clusters.len(),
@@ -798,9 +819,13 @@ impl Space {
                 let st = stat.max(scan.filter(|s| s.is_finite()).unwrap_or(0.0));
                 let total = (st.max(spread).powi(2) + shift.powi(2)).sqrt();
                 let r2 = 1.0 - 1.0 / (sol.cov[(col, col)] * diag[col]).max(1.0);
-                let ident = !sol.unidentifiable.contains(&col) && total.is_finite();
+                let unseen = self.unseen[block.off + j];
+                let ident = !sol.unidentifiable.contains(&col) && total.is_finite() && !unseen;
                 let moved = ident && shift > st.max(spread);
-                let note = if !ident {
+                let note = if unseen {
+                    unidentifiable.push(format!("{}: {name}", block.config.id()));
+                    Some("not seen by this data (no scan moves it): its value is the smoothness penalty's, carried from the knots beside it; not determined".into())
+                } else if !ident {
                     unidentifiable.push(format!("{}: {name}", block.config.id()));
                     Some("not determined by this data: kept at the minimum-norm value".into())
                 } else if moved {
@@ -1148,6 +1173,20 @@ mod tests {
             o2.explained
         );
         assert!(o.params.iter().flatten().all(|p| p.value.is_finite()));
+        // The straightedge's normal is −y: the y table is measured, the z table is not seen
+        // at all (its values are the smoothness penalty's) and is reported as not determined.
+        let (seen, unseen): (Vec<&Param>, Vec<&Param>) =
+            o.params[0].iter().partition(|p| p.name.contains("x→y"));
+        assert!(!seen.is_empty() && !unseen.is_empty());
+        assert!(seen.iter().all(|p| p.sigma.is_some()), "{seen:?}");
+        assert!(
+            unseen
+                .iter()
+                .all(|p| p.sigma.is_none()
+                    && p.note.as_deref().is_some_and(|n| n.contains("not seen"))),
+            "{unseen:?}"
+        );
+        assert!(o.unidentifiable.len() >= unseen.len());
 
         // Noise only: the table gains nothing worth half the noise floor on the other scans.
         let mut quiet = straightedge();

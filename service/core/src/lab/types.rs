@@ -119,8 +119,15 @@ pub fn prepare(ds: &Dataset) -> Result<Prepared, LabError> {
 /// least-penalised fit of their ladders — a ridge estimator's covariance omits its bias —
 /// and model the largest change of the value among the models the data scores near-equal to
 /// this one (a move within the significance threshold: what the choice of model moves; set
-/// by [`super::analysis::widen_by_alternatives`]). A parameter the data does not determine
-/// has no σ and is listed in `unidentifiable`.
+/// by [`super::analysis::widen_by_alternatives`]; a near-equal model without the parameter —
+/// its effect dropped or swapped for another kind or a variant without that term — counts
+/// it as 0, Burnham & Anderson 2002 §4.3). σ_stat from the penalised matrix (A + λP)⁻¹ is
+/// the Bayesian σ of a smoothing spline (Wahba 1983), which carries the smoothing's bias on
+/// average over the table; the shift carries it where λ was raised above the ladder's least.
+/// A parameter the data does not determine has no σ and is listed in `unidentifiable`: a
+/// column the normal matrix leaves in its null space, and a table knot no scan sees (its
+/// column weaker than 10⁻³ of its table group's strongest: a z straightness under
+/// horizontal rings), whose value is the smoothness penalty's alone.
 #[derive(Debug, Clone, Serialize)]
 pub struct Param {
     /// Name with unit.

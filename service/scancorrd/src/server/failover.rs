@@ -9,8 +9,13 @@
 //!   `grace_ms` for the active one's last points in flight, then takes over: it declares its
 //!   tokens, reloads the stored calibration if the store holds a newer one, and its outbox
 //!   publishes what the active one was not seen to publish, then goes on live (`standby`).
-//! * A standby follows the active one's points (a subscriber on the machine's points key,
-//!   decoding only while it holds) to drop what was published from what it holds.
+//! * A standby follows the active one's points (a subscriber on the machine's points key) to
+//!   drop what was published from what it holds, and to match its `seq` with the active
+//!   one's (see `standby`). Each publication carries the mark of its last point as its
+//!   attachment (`seq`, `sample_seq`, `t_ns`; 24 bytes), so the standby does not decode
+//!   the points. The mark travels in the very message a consumer receives: a separate
+//!   message after it (tried) can be lost when the active instance is killed while the
+//!   points got through, and the standby would then publish them a second time.
 //! * Split brain: an active instance that sees another active token for its machine says so
 //!   (log, health, metrics, counted); the one active since later (the pair `since_ms`, `zid`
 //!   compared, so both decide alike with no exchange) steps back to standby. It stops
@@ -26,6 +31,7 @@
 //! one extra test per published batch (`holding`) is false.
 
 use super::*;
+use crate::outgoing::Mark;
 use scancorr_proto::Message;
 use std::collections::BTreeSet;
 use std::time::SystemTime;
@@ -105,14 +111,22 @@ fn order(id: &str) -> (u64, &str) {
     }
 }
 
-/// The newest `seq` of a points batch, decoded only as far as it takes.
-fn newest_seq(payload: &[u8]) -> Option<u64> {
-    let b = scancorr_proto::v1::CorrectedPointBatch::decode(payload).ok()?;
-    b.columns
-        .iter()
-        .flat_map(|c| c.seq.iter().copied())
-        .chain(b.points.iter().map(|p| p.seq))
-        .max()
+/// The newest point of a publication of points: its attachment (the [`Mark`] an instance
+/// with fail-over puts on each), else decoded (an instance without it).
+fn newest_point(s: &zenoh::sample::Sample) -> Option<Mark> {
+    if let Some(m) = s.attachment().and_then(|a| Mark::from_bytes(&a.to_bytes())) {
+        return Some(m);
+    }
+    let b = scancorr_proto::v1::CorrectedPointBatch::decode(&*s.payload().to_bytes()).ok()?;
+    b.into_points()
+        .ok()?
+        .into_iter()
+        .max_by_key(|p| p.seq)
+        .map(|p| Mark {
+            seq: p.seq,
+            sample_seq: p.sample_seq,
+            t_ns: p.t_ns,
+        })
 }
 
 impl State {
@@ -205,8 +219,8 @@ impl State {
             .declare_subscriber(Stream::Points.key(p, name))
             .callback(move |s| {
                 if ob.holding() {
-                    if let Some(seq) = newest_seq(&s.payload().to_bytes()) {
-                        ob.seen(seq);
+                    if let Some(m) = newest_point(&s) {
+                        ob.seen(m);
                     }
                 }
             })

@@ -680,6 +680,7 @@ impl State {
                 name.to_string(),
                 self.cfg.max_queued_bytes_per_machine,
                 self.pool.clone(),
+                self.cfg.failover.enabled,
             ));
             let fo = if self.cfg.failover.enabled {
                 if role == failover::Role::Standby {

@@ -585,7 +585,13 @@ fn judge_tables(
                     truth: tr,
                     zero: false,
                     joint: false,
-                    parts: [None; 5],
+                    parts: [
+                        ps[j].sigma_stat,
+                        ps[j].sigma_scan,
+                        ps[j].fold_spread,
+                        ps[j].penalty_shift,
+                        ps[j].model_spread,
+                    ],
                 }),
                 _ => t.not_determined += 1,
             }
@@ -673,6 +679,9 @@ fn report(path: &str, t: &mut Tally, o: &Options) -> Result<serde_json::Value> {
         "skipped": t.skipped,
         "table_knots": t.knots.len(),
         "table_knots_within_2sigma": k2,
+        "table_knots_within_3sigma_or_5pct": frac(&t.knots, Judged::in3),
+        "table_knots_median_abs_z": median(t.knots.iter().map(|j| j.z().abs()).collect()),
+        "table_knots_judged": t.knots.iter().map(judged_json).collect::<Vec<_>>(),
         "seconds_median": secs,
         "worst": worst.iter().map(|j| serde_json::json!({
             "machine_seed": j.machine, "effect": j.effect, "name": j.name,

@@ -2,6 +2,7 @@
 //! calibration, printing every parameter with its uncertainty, writing the new version. The
 //! logic is `scancorr_core::calibrate`.
 
+mod args;
 mod dynamic_map;
 mod dynamics;
 pub mod plate;
@@ -28,66 +29,16 @@ pub enum CalibrateCmd {
     /// Qualify the styli on a master sphere: the offset of each tip and head angle from the
     /// reference tip gives the stylus lengths, the sphere's apparent size each tip's effective
     /// radius, the drift with temperature each stylus's expansion coefficient.
-    Tips {
-        /// Bags of the qualification (the master sphere measured by every tip).
-        #[arg(long, required = true)]
-        bag: Vec<PathBuf>,
-        /// The calibration to start from (catalogue styli or an earlier qualification).
-        #[arg(long)]
-        calib: PathBuf,
-        /// The new calibration version.
-        #[arg(long)]
-        out: PathBuf,
-        /// The reference tip (default: the lowest tip id measured at head angles 0, 0).
-        #[arg(long)]
-        reference_tip: Option<u32>,
-        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `settings`, …).
-        #[arg(long)]
-        json: bool,
-        /// Write an HTML report: each setting against the reference before and after, the
-        /// reference's drift in time, every parameter.
-        #[arg(long)]
-        report: Option<PathBuf>,
-    },
+    Tips(tips::Args),
     /// The scales' expansion: a ball bar (two spheres of a certified centre distance) along
     /// each axis read several times as the room's temperature changes gives each scale's
     /// expansion coefficient (the change of the length with the scale's temperature) and the
     /// machine's length error at 20 °C, each ± σ. Writes the `scale_thermal` effect.
-    Scales {
-        /// Bags of the measurement (`scancorr sim --program scales`).
-        #[arg(long, required = true)]
-        bag: Vec<PathBuf>,
-        /// The calibration to start from (its scale_thermal is replaced).
-        #[arg(long)]
-        calib: PathBuf,
-        /// The new calibration version.
-        #[arg(long)]
-        out: PathBuf,
-        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `readings`).
-        #[arg(long)]
-        json: bool,
-    },
+    Scales(scales::Args),
     /// Extrapolation to zero probing force: the same circles on the master sphere scanned
     /// at two or more deflections by each tip give that tip's force coefficients (stylus
     /// bending per mm of deflection along each probe axis).
-    ProbeForce {
-        /// Bags of the measurement (each tip on the sphere at ≥ 2 deflections).
-        #[arg(long, required = true)]
-        bag: Vec<PathBuf>,
-        /// The calibration to start from (its probe_force effect is replaced).
-        #[arg(long)]
-        calib: PathBuf,
-        /// The new calibration version.
-        #[arg(long)]
-        out: PathBuf,
-        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `settings`, …).
-        #[arg(long)]
-        json: bool,
-        /// Write an HTML report: each setting's radius against deflection before and after,
-        /// every parameter.
-        #[arg(long)]
-        report: Option<PathBuf>,
-    },
+    ProbeForce(probe_force::Args),
     /// The S1/F1/F2 joint method: a circle scanned slowly at deflection d1 (S1) and fast at
     /// d2 (F1) and at d1 (F2), in one direction, gives a per-point map of the fast scan's error
     /// (extrapolated to zero deflection against the slow scan) for that feature and speed; the
@@ -144,46 +95,7 @@ pub enum CalibrateCmd {
     /// reference: distance probes on the carriage stepped along the travel (three probes
     /// with pitch, two probes, or one probe on a shear micro-stage). Writes the axis's
     /// guide_straightness (and pitch) table with its uncertainties.
-    Straightness {
-        /// three-probe, two-probe or shear-stage.
-        #[arg(long)]
-        method: String,
-        /// Bag of the measurement (scales, distance probes, and the stage).
-        #[arg(long)]
-        bag: PathBuf,
-        /// Bag of the reversal measurement (three probes: the straightedge turned over),
-        /// which separates the probes' zero offsets (otherwise a parabola is not seen).
-        #[arg(long)]
-        reversal: Option<PathBuf>,
-        /// The calibration to start from (the axis's guide table is replaced).
-        #[arg(long)]
-        calib: PathBuf,
-        /// The guide's axis (the carriage's travel).
-        #[arg(long, default_value = "x")]
-        axis: String,
-        /// The axis the probes read along (default: y for x, x for y and z).
-        #[arg(long)]
-        toward: Option<String>,
-        /// The new calibration version.
-        #[arg(long)]
-        out: PathBuf,
-        /// Print JSON: per station `stations_mm`, `guide_straightness_mm`,
-        /// `part_straightness_mm`, `pitch_rad`, each with `…_u`, and `cannot_see`.
-        #[arg(long)]
-        json: bool,
-        /// Write an HTML report: guide and part profiles with uncertainty bands, the pitch.
-        #[arg(long)]
-        report: Option<PathBuf>,
-        /// Three probes without a reversal: the straightedge's bow (sag about its chord over
-        /// the measured span) is at most this, µm (its certificate or grade): the probes'
-        /// offsets' parabola is then estimated by least squares, ± σ, instead of unseen.
-        #[arg(long)]
-        straightedge_bow_um: Option<f64>,
-        /// With --straightedge-bow-um: each probe's zero offset after zeroing is within ± this,
-        /// µm.
-        #[arg(long)]
-        probe_zero_um: Option<f64>,
-    },
+    Straightness(straightness::Args),
     /// A plate's features (holes) measured against nominal: the similarity (offset,
     /// rotation, scale), the anisotropic scale/shear (quadrupole; scale per axis and
     /// squareness), higher-order terms chosen by cross-validation over holes, each ± σ, and
@@ -211,38 +123,8 @@ pub fn exec(cmd: CalibrateCmd) -> Result<()> {
             json,
             report,
         } => dynamic_map::exec(bag, calib, out, bins, tolerance_um, json, report),
-        CalibrateCmd::Straightness {
-            method,
-            bag,
-            reversal,
-            calib,
-            axis,
-            toward,
-            out,
-            json,
-            report,
-            straightedge_bow_um,
-            probe_zero_um,
-        } => straightness::run(straightness::Args {
-            method,
-            bag,
-            reversal,
-            calib,
-            axis,
-            toward,
-            out,
-            json,
-            report,
-            straightedge_bow_um,
-            probe_zero_um,
-        }),
-        CalibrateCmd::ProbeForce {
-            bag,
-            calib,
-            out,
-            json,
-            report,
-        } => probe_force::exec(bag, calib, out, json, report),
+        CalibrateCmd::Straightness(a) => straightness::run(a),
+        CalibrateCmd::ProbeForce(a) => probe_force::exec(a),
         CalibrateCmd::Dynamics {
             bag,
             calib,
@@ -250,19 +132,7 @@ pub fn exec(cmd: CalibrateCmd) -> Result<()> {
             json,
             report,
         } => dynamics::exec(bag, calib, out, json, report),
-        CalibrateCmd::Scales {
-            bag,
-            calib,
-            out,
-            json,
-        } => scales::exec(bag, calib, out, json),
-        CalibrateCmd::Tips {
-            bag,
-            calib,
-            out,
-            reference_tip,
-            json,
-            report,
-        } => tips::exec(bag, calib, out, reference_tip, json, report),
+        CalibrateCmd::Scales(a) => scales::exec(a),
+        CalibrateCmd::Tips(a) => tips::exec(a),
     }
 }

@@ -1,26 +1,30 @@
 //! `scancorr calibrate probe-force`: extrapolation to zero force — its text and JSON output.
 
+use super::args::{helps, PrintArgs, VersionArgs};
 use super::procedure::{open, outcome_json, points_without, Opened};
 use crate::shared::calib::{closing, commit_version, now_rfc3339};
 use anyhow::Result;
 use scancorr_core::calibrate::probe_force;
 use scancorr_core::lab::version;
-use std::path::PathBuf;
+
+/// Arguments of `calibrate probe-force`.
+#[derive(clap::Args, Debug)]
+#[command(mut_args(helps("probe-force")))]
+pub struct Args {
+    #[command(flatten)]
+    io: VersionArgs,
+    #[command(flatten)]
+    print: PrintArgs,
+}
 
 /// Runs the procedure.
-pub(super) fn exec(
-    bag: Vec<PathBuf>,
-    calib: PathBuf,
-    out: PathBuf,
-    json: bool,
-    report: Option<PathBuf>,
-) -> Result<()> {
+pub(super) fn exec(a: Args) -> Result<()> {
     let Opened {
         out_file,
         report_file,
         start,
         bags,
-    } = open(&bag, &calib, &out, report.as_deref())?;
+    } = open(&a.io.bag, &a.io.calib, &a.io.out, a.print.report.as_deref())?;
     // The force correction and the static maps are what this procedure measures: the points
     // are taken without (the new maps replace the start's of the same tip and segments).
     let ds = points_without(&bags, &start, &["probe_force", "feature_map"], 2)?;
@@ -46,8 +50,8 @@ pub(super) fn exec(
         report_file,
         || crate::report::probe_force(&start, &o, ds.noise_floor_um),
     )?;
-    if json {
-        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
+    if a.print.json {
+        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &a.io.out)?;
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
         return Ok(());
     }
@@ -127,7 +131,7 @@ pub(super) fn exec(
     for u in &o.undetermined {
         outln!("  not determined: {u}")?;
     }
-    closing(&o.notes, &out, &new, &start)
+    closing(&o.notes, &a.io.out, &new, &start)
 }
 
 /// Prints the static error maps, if any.

@@ -1,21 +1,32 @@
 //! `scancorr calibrate scales`: the scales' expansion from a ball bar read at several
 //! temperatures — its text and JSON output.
 
+use super::args::{helps, VersionArgs};
 use super::procedure::{open, outcome_json, points_without, print_param, Opened};
 use crate::shared::calib::{closing, commit_version, now_rfc3339};
 use anyhow::Result;
 use scancorr_core::calibrate::scales;
 use scancorr_core::lab::version;
-use std::path::PathBuf;
+
+/// Arguments of `calibrate scales`.
+#[derive(clap::Args, Debug)]
+#[command(mut_args(helps("scales")))]
+pub struct Args {
+    #[command(flatten)]
+    io: VersionArgs,
+    /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `readings`).
+    #[arg(long)]
+    json: bool,
+}
 
 /// Runs the procedure.
-pub(super) fn exec(bag: Vec<PathBuf>, calib: PathBuf, out: PathBuf, json: bool) -> Result<()> {
+pub(super) fn exec(a: Args) -> Result<()> {
     let Opened {
         out_file,
         report_file,
         start,
         bags,
-    } = open(&bag, &calib, &out, None)?;
+    } = open(&a.io.bag, &a.io.calib, &a.io.out, None)?;
     // The scales' expansion is what this procedure measures: the points are taken without it.
     let ds = points_without(&bags, &start, &["scale_thermal"], 1)?;
     let o = scales::run(&ds, &start)?;
@@ -37,8 +48,8 @@ pub(super) fn exec(bag: Vec<PathBuf>, calib: PathBuf, out: PathBuf, json: bool) 
         report_file,
         String::new,
     )?;
-    if json {
-        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
+    if a.json {
+        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &a.io.out)?;
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
         return Ok(());
     }
@@ -77,5 +88,5 @@ pub(super) fn exec(bag: Vec<PathBuf>, calib: PathBuf, out: PathBuf, json: bool) 
     for u in &o.undetermined {
         outln!("  not determined: {u}")?;
     }
-    closing(&o.notes, &out, &new, &start)
+    closing(&o.notes, &a.io.out, &new, &start)
 }

@@ -3,6 +3,7 @@
 //! and writes the guide's table as a new calibration version. The logic is
 //! `scancorr_core::calibrate::separation`.
 
+use super::args::{helps, PrintArgs};
 use crate::shared::calib::{self, now_rfc3339};
 use crate::shared::output::outputs;
 use anyhow::{Context, Result};
@@ -18,19 +19,41 @@ use scancorr_core::wire;
 use std::path::{Path, PathBuf};
 
 /// Arguments of `calibrate straightness`.
+#[derive(clap::Args, Debug)]
+#[command(mut_args(helps("straightness")))]
 pub struct Args {
+    /// three-probe, two-probe or shear-stage.
+    #[arg(long)]
     pub method: String,
+    /// Bag of the measurement (scales, distance probes, and the stage).
+    #[arg(long)]
     pub bag: PathBuf,
+    /// Bag of the reversal measurement (three probes: the straightedge turned over),
+    /// which separates the probes' zero offsets (otherwise a parabola is not seen).
+    #[arg(long)]
     pub reversal: Option<PathBuf>,
+    /// The calibration to start from (the axis's guide table is replaced).
+    #[arg(long)]
     pub calib: PathBuf,
+    /// The guide's axis (the carriage's travel).
+    #[arg(long, default_value = "x")]
     pub axis: String,
+    /// The axis the probes read along (default: y for x, x for y and z).
+    #[arg(long)]
     pub toward: Option<String>,
+    /// The new calibration version.
+    #[arg(long)]
     pub out: PathBuf,
-    pub json: bool,
-    pub report: Option<PathBuf>,
-    /// Bound on the straightedge's bow, µm (three probes without a reversal).
+    #[command(flatten)]
+    pub print: PrintArgs,
+    /// Three probes without a reversal: the straightedge's bow (sag about its chord over
+    /// the measured span) is at most this, µm (its certificate or grade): the probes'
+    /// offsets' parabola is then estimated by least squares, ± σ, instead of unseen.
+    #[arg(long)]
     pub straightedge_bow_um: Option<f64>,
-    /// Bound on each probe's zero offset, µm (with the bow's).
+    /// With --straightedge-bow-um: each probe's zero offset after zeroing is within ± this,
+    /// µm.
+    #[arg(long)]
     pub probe_zero_um: Option<f64>,
 }
 
@@ -204,7 +227,7 @@ pub fn run(a: Args) -> Result<()> {
     let [out_file, report_file] = outputs(
         [
             ("--out", Some(a.out.as_path())),
-            ("--report", a.report.as_deref()),
+            ("--report", a.print.report.as_deref()),
         ],
         &inputs,
     )?;
@@ -278,7 +301,7 @@ pub fn run(a: Args) -> Result<()> {
     for w in &warnings {
         eprintln!("warning: {w}");
     }
-    if a.json {
+    if a.print.json {
         let mut v = serde_json::to_value(&o)?;
         v["warnings"] = serde_json::to_value(&warnings)?;
         v["version"] = new.version.into();

@@ -4,6 +4,7 @@
 //! with its cross-validated and held-out error, every coefficient ± σ. The logic is
 //! `scancorr_core::calibrate::thermal_drift`.
 
+use super::args::{helps, PrintArgs};
 use crate::report::thermal::{term_name, term_unit};
 use crate::shared::output::{outputs, put};
 use anyhow::{bail, Context, Result};
@@ -19,6 +20,7 @@ use std::path::PathBuf;
 
 /// Arguments of `calibrate thermal-drift`.
 #[derive(ClapArgs, Debug)]
+#[command(mut_args(helps("thermal-drift")))]
 pub struct Args {
     /// The recording: a table with a header row (comma, semicolon, tab or whitespace
     /// separated), one row per instant.
@@ -72,13 +74,8 @@ pub struct Args {
     /// model (the temperature terms the corrector holds) goes into the calibration along it.
     #[arg(long, requires = "calib")]
     pub axis: Vec<String>,
-    /// Print JSON.
-    #[arg(long)]
-    pub json: bool,
-    /// Write an HTML report: per channel the drift against time (measured, nominal, model),
-    /// the residual, and the drift against the sensor it follows most.
-    #[arg(long)]
-    pub report: Option<PathBuf>,
+    #[command(flatten)]
+    pub print: PrintArgs,
 }
 
 /// The named columns of the table at `path`: every cell a finite number, or an error naming
@@ -427,7 +424,7 @@ pub fn run(a: Args) -> Result<()> {
     let [out_file, report_file] = outputs(
         [
             ("--out", a.out.as_deref()),
-            ("--report", a.report.as_deref()),
+            ("--report", a.print.report.as_deref()),
         ],
         &inputs,
     )?;
@@ -514,7 +511,7 @@ pub fn run(a: Args) -> Result<()> {
         put(&report_file, crate::report::thermal_drift(&rec, &fit))?;
         crate::shared::output::commit_all([report_file])?;
     }
-    if a.json {
+    if a.print.json {
         let mut v = serde_json::to_value(&fit)?;
         // Per-row series are for the report, not the summary.
         if let Some(chs) = v["channels"].as_array_mut() {

@@ -1,32 +1,38 @@
 //! `scancorr calibrate tips`: master-sphere qualification — its text and JSON output.
 
+use super::args::{helps, PrintArgs, VersionArgs};
 use super::procedure::{open, options, outcome_json, points_without, print_param, Opened};
 use crate::shared::calib::{commit_version, now_rfc3339};
 use anyhow::Result;
 use scancorr_core::calibrate::tips;
 use scancorr_core::lab::dataset::{self};
 use scancorr_core::lab::version;
-use std::path::PathBuf;
+
+/// Arguments of `calibrate tips`.
+#[derive(clap::Args, Debug)]
+#[command(mut_args(helps("tips")))]
+pub struct Args {
+    #[command(flatten)]
+    io: VersionArgs,
+    /// The reference tip (default: the lowest tip id measured at head angles 0, 0).
+    #[arg(long)]
+    reference_tip: Option<u32>,
+    #[command(flatten)]
+    print: PrintArgs,
+}
 
 /// Runs the procedure.
-pub(super) fn exec(
-    bag: Vec<PathBuf>,
-    calib: PathBuf,
-    out: PathBuf,
-    reference_tip: Option<u32>,
-    json: bool,
-    report: Option<PathBuf>,
-) -> Result<()> {
+pub(super) fn exec(a: Args) -> Result<()> {
     let Opened {
         out_file,
         report_file,
         start,
         bags,
-    } = open(&bag, &calib, &out, report.as_deref())?;
+    } = open(&a.io.bag, &a.io.calib, &a.io.out, a.print.report.as_deref())?;
     // The stylus thermal correction is what this procedure measures: the points are
     // taken without it.
     let ds = points_without(&bags, &start, &["stylus_thermal"], 1)?;
-    let outcome = tips::run(&ds, &start, reference_tip)?;
+    let outcome = tips::run(&ds, &start, a.reference_tip)?;
     let mut new = version::next(&start, outcome.calibration.effects.clone(), &now_rfc3339());
     new.geometry = outcome.calibration.geometry.clone();
     // The same bags corrected with the new version: what the qualification leaves.
@@ -67,14 +73,14 @@ pub(super) fn exec(
         report_file,
         || crate::report::tips(&start, &outcome, after, ds.noise_floor_um),
     )?;
-    if json {
+    if a.print.json {
         let mut v = outcome_json(
             &outcome,
             &outcome.params,
             ds.noise_floor_um,
             &new,
             &start,
-            &out,
+            &a.io.out,
         )?;
         v["consistency_after_um"] = after.into();
         if outcome.reference_alone {
@@ -135,7 +141,7 @@ pub(super) fn exec(
         }
         outln!(
             "→ {} (version {}, parent {})",
-            out.display(),
+            a.io.out.display(),
             new.version,
             start.version
         )?;

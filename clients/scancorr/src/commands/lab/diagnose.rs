@@ -3,7 +3,7 @@
 use super::args::LabCmd;
 use super::data::{dataset_for, load};
 use super::plotdata;
-use super::print::print_diagnosis;
+use super::print::{json_with_profile_units, print_diagnosis};
 use crate::report;
 use crate::shared::output::commit_all;
 use crate::shared::output::{outputs, put};
@@ -47,7 +47,10 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
         eprintln!("csv: {} in {}", files.join(", "), d.display());
     }
     if json {
-        outln!("{}", serde_json::to_string_pretty(&dg)?)?;
+        outln!(
+            "{}",
+            serde_json::to_string_pretty(&json_with_profile_units(&dg)?)?
+        )?;
     } else {
         print_diagnosis(&dg, &data, &model)?;
     }

@@ -115,7 +115,7 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
     }
     let plan = write_plan(&d, &l, last, &out_dir, &plan_artifact, plan_minutes, &data)?;
     if json {
-        let mut j = serde_json::to_value(&d)?;
+        let mut j = super::print::json_with_profile_units(&d)?;
         if let Some(p) = &plan {
             j["plan"] = serde_json::to_value(p)?;
         }

@@ -435,6 +435,12 @@ fn print_prediction(
                 ""
             }
         )?;
+        if !pred.beyond_reach.is_empty() {
+            outln!(
+                "    of which {} beyond reach of any place with these artifacts (data they cannot give: an error of z alone shifts a horizontal ring as a whole; a term a model effect carries)",
+                pred.beyond_reach.len()
+            )?;
+        }
     }
     if let Some((_, noise, rho)) = measured {
         outln!(

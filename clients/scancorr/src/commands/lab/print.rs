@@ -8,6 +8,39 @@ use scancorr_core::lab::analysis::{self, Comparison, Diagnosis};
 use scancorr_core::Calibration;
 use std::path::Path;
 
+/// A diagnosis or discovery as JSON, each unexplained structure's profile abscissa named by
+/// its unit as every key of the CLI's JSON states one (`x_mm` along an axis, `x_deg` along the
+/// probing direction, from the profile's `coordinate`); an abscissa of another unit keeps `x`,
+/// which the units test then names.
+pub(super) fn json_with_profile_units(v: &impl serde::Serialize) -> Result<serde_json::Value> {
+    fn walk(v: &mut serde_json::Value) {
+        match v {
+            serde_json::Value::Object(o) => {
+                if let Some(serde_json::Value::Object(p)) = o.get_mut("profile") {
+                    let unit = p.get("coordinate").and_then(|c| c.as_str()).and_then(|c| {
+                        if c.ends_with(", mm") {
+                            Some("x_mm")
+                        } else if c.ends_with(", °") {
+                            Some("x_deg")
+                        } else {
+                            None
+                        }
+                    });
+                    if let (Some(k), Some(x)) = (unit, p.remove("x")) {
+                        p.insert(k.to_string(), x);
+                    }
+                }
+                o.values_mut().for_each(walk);
+            }
+            serde_json::Value::Array(a) => a.iter_mut().for_each(walk),
+            _ => {}
+        }
+    }
+    let mut j = serde_json::to_value(v)?;
+    walk(&mut j);
+    Ok(j)
+}
+
 pub(super) fn print_compare(c: &Comparison, cal: &Calibration) -> Result<()> {
     outln!(
         "calibration v{} ({} effects): {} points",

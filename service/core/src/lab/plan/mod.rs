@@ -480,11 +480,13 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
     }
     rest.extend(later);
     let mut used = 0.0;
+    // Whether the ring was placed for the rigid body (then what no place reaches is said).
+    let mut rigid_placed = false;
     for g in first.into_iter().chain(rest) {
-        let g = match g {
-            Some(g) => g,
+        let (g, for_rigid) = match g {
+            Some(g) => (g, false),
             None => match rigid_group(cal, req, off1, big, t1.id, &program, budget, &tip_r)? {
-                Some(g) => g,
+                Some(g) => (g, true),
                 None => continue,
             },
         };
@@ -504,6 +506,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         if t <= budget {
             program = trial;
             used = t;
+            rigid_placed |= for_rigid;
             taken.push(summary);
         } else {
             left_out.push(summary);
@@ -519,7 +522,10 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
     program
         .validate()
         .map_err(|e| LabError::Data(format!("the planned program: {e}")))?;
-    let prediction = predict(cal, &program, &req.candidates, &req.assumptions)?;
+    let mut prediction = predict(cal, &program, &req.candidates, &req.assumptions)?;
+    if rigid_placed {
+        prediction.beyond_reach = beyond_reach(cal, req, &program, &prediction, off1, big, t1.id)?;
+    }
     Ok(Planned {
         minutes: used / 60.0,
         program,
@@ -527,6 +533,45 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         left_out,
         prediction,
     })
+}
+
+/// Parameters no campaign with these artifacts can determine beside this model: those left
+/// undetermined by the plan with every place of the rigid body's pool added (the ring at
+/// each, both ways). With rings in the horizontal plane, an error that depends on z alone is a
+/// shift of each ring's centre (the fit's own nuisance), and a term a model effect carries
+/// (a guide table's straightness and yaw) is that effect's: no place tells them apart. The
+/// plan can only be asked to determine the others.
+#[allow(clippy::too_many_arguments)]
+fn beyond_reach(
+    cal: &Calibration,
+    req: &PlanRequest,
+    program: &Program,
+    planned: &Prediction,
+    off1: Vec3,
+    d: f64,
+    tip: u32,
+) -> Result<Vec<String>, LabError> {
+    let (places, _) = rigid_pool(req, off1, d);
+    let pool = greedy::pool_program(&places, d, tip, "every place of the rigid body's pool");
+    let mut all = program.clone();
+    let base = all.features.len();
+    all.features.extend(pool.features);
+    all.scans.extend(pool.scans.into_iter().map(|mut s| {
+        s.feature += base;
+        s
+    }));
+    // Every 24th point: which columns the design spans, not their σ.
+    let a = Assumptions {
+        stride: req.assumptions.stride.max(24),
+        ..req.assumptions.clone()
+    };
+    let reach = predict(cal, &all, &req.candidates, &a)?;
+    // A parameter the plan itself determines is within reach, whatever the coarser look says.
+    Ok(reach
+        .undetermined
+        .into_iter()
+        .filter(|p| planned.undetermined.contains(p))
+        .collect())
 }
 
 /// Lines of the pool of ring places for the rigid body, as fractions of the travel: along
@@ -547,28 +592,16 @@ const POOL_LINES: [(usize, [f64; 2]); 8] = [
 /// Machine time below which the rigid body's places are not planned, s.
 const RIGID_MIN_S: f64 = 180.0;
 
-/// The ring placements for the rigid body, chosen one by one (see [`greedy`]) from the ring
-/// stepped by its diameter (at least 40 mm) along the [`POOL_LINES`] over 10–90 % of the
-/// travel, within the time `program` leaves of `budget` s. None: no gain, or less than
-/// [`RIGID_MIN_S`] left.
-#[allow(clippy::too_many_arguments)]
-fn rigid_group(
-    cal: &Calibration,
+/// The pool of ring places for the rigid body: the ring stepped by its diameter (at least
+/// 40 mm) along the [`POOL_LINES`] over 10–90 % of the travel; with each place its line's index,
+/// axis and coordinate along it.
+#[allow(clippy::type_complexity)]
+fn rigid_pool(
     req: &PlanRequest,
     off1: Vec3,
     d: f64,
-    tip: u32,
-    program: &Program,
-    budget: f64,
-    tip_r: &dyn Fn(u32) -> f64,
-) -> Result<Option<Group>, LabError> {
+) -> (Vec<greedy::Place>, Vec<(usize, usize, f64)>) {
     let tr = req.travel_mm;
-    let left = budget - machine_time_s(program, tip_r);
-    // Fewer than about ten places cannot follow each error's shape along its axis: their time
-    // goes to the other groups.
-    if left < RIGID_MIN_S {
-        return Ok(None);
-    }
     let step = d.max(40.0);
     let mut places: Vec<greedy::Place> = vec![];
     let mut line_of: Vec<(usize, usize, f64)> = vec![];
@@ -606,6 +639,32 @@ fn rigid_group(
             });
         }
     }
+    (places, line_of)
+}
+
+/// The ring placements for the rigid body, chosen one by one (see [`greedy`]) from the ring
+/// stepped by its diameter (at least 40 mm) along the [`POOL_LINES`] over 10–90 % of the
+/// travel, within the time `program` leaves of `budget` s. None: no gain, or less than
+/// [`RIGID_MIN_S`] left.
+#[allow(clippy::too_many_arguments)]
+fn rigid_group(
+    cal: &Calibration,
+    req: &PlanRequest,
+    off1: Vec3,
+    d: f64,
+    tip: u32,
+    program: &Program,
+    budget: f64,
+    tip_r: &dyn Fn(u32) -> f64,
+) -> Result<Option<Group>, LabError> {
+    let left = budget - machine_time_s(program, tip_r);
+    // Fewer than about ten places cannot follow each error's shape along its axis: their time
+    // goes to the other groups.
+    if left < RIGID_MIN_S {
+        return Ok(None);
+    }
+    let step = d.max(40.0);
+    let (places, line_of) = rigid_pool(req, off1, d);
     let mut chosen = greedy::choose(cal, &places, d, tip, left, &req.assumptions, tip_r)?;
     let why = "rigid-body errors: the ring placed where it most reduces the predicted variance of the rigid-body terms (each error's shape along its axis, the lab's spline variant; two levels of the other axes for the Abbe levers), one place at a time";
     // Along the lines in order; the last chosen dropped while the moves make it too long.

@@ -290,6 +290,11 @@ pub struct Prediction {
     /// Parameters confounded with others (variance inflation above [`JOINT_VIF`]): their σ
     /// is the lab's penalty's, not a prediction (`effect: name`).
     pub confounded: Vec<String>,
+    /// Parameters no campaign with the artifacts owned can determine beside this model
+    /// (`effect: name`; see `plan`'s `beyond_reach`): undetermined here for want of data the
+    /// artifacts cannot give, not of places. Empty when not examined.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub beyond_reach: Vec<String>,
     /// Points the lab would fit.
     pub points: usize,
     /// The noise and correlation assumed: µm, ρ.
@@ -511,6 +516,7 @@ pub fn predict_on(
         correlations,
         undetermined,
         confounded,
+        beyond_reach: vec![],
         points: n_fit,
         noise_um: a.noise_um,
         rho: a.rho,
