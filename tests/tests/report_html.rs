@@ -519,6 +519,15 @@ fn compare_report_draws_one_trace_per_direction_and_speed() {
     let path = d.join("compare.html");
     let html = std::fs::read_to_string(&path).unwrap();
     assert_self_contained("compare.html", &html);
+    // The summary names the model's effects in words (none: the nominal model).
+    let start: Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("start.json")).unwrap()).unwrap();
+    let said = match start["effects"].as_array().map_or(0, |a| a.len()) {
+        0 => "(no effects: the nominal model)".to_string(),
+        1 => "(1 effect: ".to_string(),
+        n => format!("({n} effects: "),
+    };
+    assert!(html.contains(&said), "compare.html does not say {said}");
     let dom = dump_dom(&chrome, &d, "dom-compare", &path, &[]);
     let p = plots(&dom);
     let polar = of_kind(&p, "polar");

@@ -180,11 +180,17 @@ fn breakdown(cmp: &Comparison) -> String {
 
 fn summary(cal: &Calibration, cmp: &Comparison) -> String {
     let mut s = format!(
-        "<p>Calibration <b>v{}</b> of machine <b>{}</b> ({} effect(s): {}). {} points.</p><table><tr><th>figure</th><th>µm</th></tr><tr><td>deviation RMS</td><td>{:.3}</td></tr><tr><td>peak-to-valley</td><td>{:.3}</td></tr><tr><td>noise floor</td><td>{:.3}</td></tr></table>",
+        "<p>Calibration <b>v{}</b> of machine <b>{}</b> ({}). {} points.</p><table><tr><th>figure</th><th>µm</th></tr><tr><td>deviation RMS</td><td>{:.3}</td></tr><tr><td>peak-to-valley</td><td>{:.3}</td></tr><tr><td>noise floor</td><td>{:.3}</td></tr></table>",
         cal.version,
         esc(&cal.machine_id),
-        cal.effects.len(),
-        esc(&cal.effects.iter().map(|e| e.id()).collect::<Vec<_>>().join(", ")),
+        match cal.effects.len() {
+            0 => "no effects: the nominal model".to_string(),
+            n => format!(
+                "{n} effect{}: {}",
+                if n == 1 { "" } else { "s" },
+                esc(&cal.effects.iter().map(|e| e.id()).collect::<Vec<_>>().join(", "))
+            ),
+        },
         cmp.points,
         cmp.rms_um,
         cmp.pv_um,

@@ -121,7 +121,12 @@ pub fn parse_artifact(s: &str) -> Result<FeatureSpec, String> {
             "d" | "diameter" => d = Some(num(v)?),
             "nx" | "ny" | "nz" => {
                 axis_given = true;
-                normal[["nx", "ny", "nz"].iter().position(|x| *x == k).unwrap_or(0)] = num(v)?
+                let i = match k {
+                    "nx" => 0,
+                    "ny" => 1,
+                    _ => 2,
+                };
+                normal[i] = num(v)?;
             }
             _ => return Err(format!("`{k}`: unknown key (use d=, nx=, ny=, nz=)")),
         }
@@ -156,4 +161,30 @@ pub fn parse_artifact(s: &str) -> Result<FeatureSpec, String> {
             [0.0; 3]
         },
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_artifacts_axis_only_when_stated() {
+        // An upright ring: no axis (fitted in the horizontal plane).
+        let up = parse_artifact("ring:d=50").unwrap();
+        assert_eq!(up.normal, [0.0; 3]);
+        assert!(circle_plane(up.normal).is_none());
+        // A ring standing on its edge, its axis along y: fitted in the XZ plane.
+        let edge = parse_artifact("ring:d=50,nx=0,ny=1,nz=0").unwrap();
+        assert_eq!(edge.normal, [0.0, 1.0, 0.0]);
+        let (n, e1, e2) = circle_plane(edge.normal).unwrap();
+        assert!((n.dot(&e1)).abs() < 1e-12 && (n.dot(&e2)).abs() < 1e-12);
+        assert!((e1.norm() - 1.0).abs() < 1e-12 && (e2.norm() - 1.0).abs() < 1e-12);
+        // Each key sets its own component.
+        assert_eq!(
+            parse_artifact("ring:d=50,nz=0.5").unwrap().normal,
+            [0.0, -1.0, 0.5]
+        );
+        assert!(parse_artifact("ring:d=50,nw=1").is_err());
+        assert!(parse_artifact("ring:nz=1").is_err());
+    }
 }
