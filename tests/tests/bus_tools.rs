@@ -364,3 +364,87 @@ fn names_from_flags_are_checked_before_use() {
     }
     assert!(!d.join("x.mcap").exists());
 }
+
+/// The audit's `by` comes from the connection, not from `$USER`: with `$USER` and `$LOGNAME`
+/// unset, a put and a rollback are recorded with the session's zenoh id and the process's
+/// uid, never `unknown`. (Through a TLS router the certificate's subject is added:
+/// router_acl.rs, the lab's rollback, also with `$USER` unset.)
+#[test]
+fn the_audit_names_the_connection_with_user_unset() {
+    let d = scratch("bus-audit-nouser");
+    let port = free_port();
+    let ep = format!("tcp/127.0.0.1:{port}");
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--seed",
+            "4702",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "v1.json",
+        ],
+    );
+    let svc = Service::start(&d, port);
+    let nameless = |args: &[&str]| {
+        let mut a: Vec<&str> = args.to_vec();
+        a.extend(["--connect", ep.as_str()]);
+        let o = Command::new(scancorr())
+            .args(&a)
+            .env_remove("USER")
+            .env_remove("LOGNAME")
+            .current_dir(&d)
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "scancorr {a:?} with $USER unset: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8(o.stdout).unwrap()
+    };
+    for _ in 0..2 {
+        nameless(&["calib", "put", "--machine", "m1", "--file", "v1.json"]);
+    }
+    nameless(&["calib", "rollback", "--machine", "m1", "--to", "1"]);
+    let h: serde_json::Value = serde_json::from_str(&nameless(&[
+        "calib",
+        "history",
+        "--machine",
+        "m1",
+        "--json",
+    ]))
+    .unwrap();
+    let by: Vec<&str> = h
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["audit"]["by"].as_str().unwrap())
+        .collect();
+    assert_eq!(by.len(), 3, "{h}");
+    let uid = std::fs::read_to_string("/proc/self/status")
+        .unwrap()
+        .lines()
+        .find_map(|l| l.strip_prefix("Uid:"))
+        .and_then(|l| l.split_whitespace().next().map(String::from))
+        .unwrap();
+    let mut zids = std::collections::BTreeSet::new();
+    for b in &by {
+        assert!(!b.contains("unknown") && !b.contains("unnamed"), "{by:#?}");
+        assert!(b.starts_with(&format!("uid {uid}@")), "{by:#?}");
+        let zid = b
+            .split(", zenoh id ")
+            .nth(1)
+            .unwrap_or_else(|| panic!("no zenoh id: {by:#?}"));
+        assert!(
+            zid.len() >= 8 && zid.chars().all(|c| c.is_ascii_hexdigit()),
+            "{by:#?}"
+        );
+        zids.insert(zid.to_string());
+    }
+    assert_eq!(zids.len(), 3, "each command its own session: {by:#?}");
+    svc.stop();
+}

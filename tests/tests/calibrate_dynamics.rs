@@ -115,11 +115,11 @@ fn dynamics_recovers_the_machine_from_the_nominal_model() {
     assert!(n >= 30, "{n} parameters: {r:#}");
     for name in [
         "dynamics.tau_x_s",
-        "dynamics.P_xy.1",
-        "dynamics.P_yy.y",
-        "dynamics.P_xx.z",
-        "dynamics.phase_y.b1.1",
-        "dynamics.gain_x.f2.1",
+        "dynamics.P_xy.1_mm_per_mm_s2",
+        "dynamics.P_yy.y_mm_per_mm_s2",
+        "dynamics.P_xx.z_mm_per_mm_s2",
+        "dynamics.phase_y.b1.1_rad_per_hz",
+        "dynamics.gain_x.f2.1_per_hz2",
     ] {
         assert!(r["params"][name].is_number(), "{name} missing: {r:#}");
     }
@@ -279,15 +279,15 @@ fn face_weaves_separate_the_compliance_from_the_gain() {
     // f² term (zero on this machine: its arcs' gain is its compliance) within 3σ of it, and no
     // longer named confounded with P.
     for ax in ["x", "y"] {
-        let (p, sp) = got(&format!("dynamics.P_{ax}{ax}.1"));
+        let (p, sp) = got(&format!("dynamics.P_{ax}{ax}.1_mm_per_mm_s2"));
         assert!(sp <= 1e-6, "P_{ax}{ax}.1 = {p} ± {sp}");
-        let (g, sg) = got(&format!("dynamics.gain_{ax}.f2.1"));
+        let (g, sg) = got(&format!("dynamics.gain_{ax}.f2.1_per_hz2"));
         assert!(g.abs() <= 3.0 * sg, "gain_{ax}.f2.1 = {g} ± {sg}");
     }
     assert!(!r["confounded"].to_string().contains("P_xx.1"), "{r:#}");
     // P's Z row and column, which horizontal rings cannot see, from the faces.
     for name in ["P_zz.1", "P_xz.1", "P_zx.1", "P_yz.1", "P_zy.1"] {
-        got(&format!("dynamics.{name}"));
+        got(&format!("dynamics.{name}_mm_per_mm_s2"));
     }
     // The faces' dynamics explained: each weave left at the noise.
     let floor = r["noise_floor_um"].as_f64().unwrap();
@@ -399,16 +399,16 @@ fn vertical_rings_determine_the_z_row_and_column_and_the_z_phase() {
     }
     eprintln!("{in2} of {n} Z terms within 2σ");
     for name in [
-        "P_zz.1",
-        "P_zx.1",
-        "P_xz.1",
-        "P_zy.1",
-        "P_yz.1",
-        "P_zx.x",
-        "P_zz.z",
-        "phase_z.b0.1",
-        "phase_z.b1.1",
-        "phase_z.b2.1",
+        "P_zz.1_mm_per_mm_s2",
+        "P_zx.1_mm_per_mm_s2",
+        "P_xz.1_mm_per_mm_s2",
+        "P_zy.1_mm_per_mm_s2",
+        "P_yz.1_mm_per_mm_s2",
+        "P_zx.x_mm_per_mm_s2",
+        "P_zz.z_mm_per_mm_s2",
+        "phase_z.b0.1_rad",
+        "phase_z.b1.1_rad_per_hz",
+        "phase_z.b2.1_rad_per_hz2",
     ] {
         got(&format!("dynamics.{name}"));
     }

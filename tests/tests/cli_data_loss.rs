@@ -394,3 +394,74 @@ fn a_closed_stdout_is_a_quiet_exit() {
         assert_eq!(o.status.code(), Some(0), "scancorr {args:?}: {err}");
     }
 }
+
+/// `scancorr sim --program ring --seed 4703 EXTRA…`.
+fn sim<'a>(extra: &[&'a str]) -> Vec<&'a str> {
+    let mut a = vec!["sim", "--program", "ring", "--seed", "4703"];
+    a.extend(extra);
+    a
+}
+
+/// Raw messages in a bag.
+fn raw_messages(bag: &Path) -> usize {
+    let r = scancorr_bag::BagReader::open(bag).unwrap();
+    r.messages()
+        .unwrap()
+        .filter(|m| scancorr_bag::Stream::RAW.contains(&m.as_ref().unwrap().stream))
+        .count()
+}
+
+/// `record --keys 'cmm/m1/**'` of a run faster than real time records every raw message
+/// (issue 47: it lost 8 130 raw samples where `cmm/m1/raw/**` got all). With the points and
+/// their Foxglove channels to write as well, the recorder used to write slower than the run
+/// arrived; zenoh's subscriber queue (256 samples) then held the recorder's link, and
+/// scancorrd dropped the raw messages it forwards to it (droppable, in their own lane). The
+/// recorder now queues what arrives without holding the link.
+#[test]
+fn record_of_everything_faster_than_real_time_loses_no_raw_sample() {
+    let d = scratch("loss-record-all");
+    let port = free_port();
+    let ep = format!("tcp/127.0.0.1:{port}");
+    ok(
+        &d,
+        &sim(&["--out", "offline.mcap", "--calib-out", "v1.json"]),
+    );
+    let expected = raw_messages(&d.join("offline.mcap"));
+    let svc = Service::start(&d, port);
+    calib_put(&d, "m1", "v1.json", &ep);
+    let rec = Command::new(scancorr())
+        .args([
+            "record",
+            "--keys",
+            "cmm/m1/**",
+            "--out",
+            "all.mcap",
+            "--idle",
+            "3",
+            "--seconds",
+            "120",
+            "--connect",
+            &ep,
+        ])
+        .current_dir(&d)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    ok(
+        &d,
+        &sim(&["--live", "--live-rate", "max", "--connect", &ep]),
+    );
+    let rec = rec.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&rec.stderr).to_string();
+    assert!(rec.status.success(), "record failed:\n{err}");
+    assert!(!err.contains("missing"), "{err}");
+    let bag = d.join("all.mcap");
+    assert_eq!(raw_messages(&bag), expected, "{err}");
+    assert!(
+        !points(&bag).is_empty(),
+        "the points were recorded too: {err}"
+    );
+    svc.stop();
+}

@@ -297,6 +297,7 @@ fn every_json_output_states_its_units_by_the_table() {
         .1;
     let st: serde_json::Value = serde_json::from_str(st).unwrap();
     let html = std::fs::read_to_string(d.join("st.html")).unwrap();
+    let mut pvs = vec![];
     for (which, x, v) in [
         ("guide", "stations_mm", "guide_straightness_mm"),
         ("part", "part_positions_mm", "part_straightness_mm"),
@@ -321,6 +322,43 @@ fn every_json_output_states_its_units_by_the_table() {
             pv > 0.1 && (stated - pv).abs() <= 0.006,
             "{which}: the report states {stated} µm, the profile is {pv} µm peak-to-valley"
         );
+        // The JSON states the same straightness, over the length its profile spans.
+        let j = &st["straightness"][which];
+        let (jpv, len) = (j["pv_um"].as_f64(), j["length_mm"].as_f64());
+        let xs = arr(x);
+        let span = xs.iter().cloned().fold(f64::MIN, f64::max)
+            - xs.iter().cloned().fold(f64::MAX, f64::min);
+        assert!(
+            jpv.is_some_and(|j| (j - pv).abs() <= 1e-3 && (j - stated).abs() <= 0.006)
+                && len.is_some_and(|l| (l - span).abs() < 1e-3 && l > 10.0),
+            "calibrate straightness --json states {j} for the {which}: the profile is {pv} µm \
+             peak-to-valley over {span} mm, the report states {stated} µm"
+        );
+        pvs.push((which, jpv.unwrap(), span));
+    }
+    // And so does the text, as the JSON rounds it.
+    let text = ok(
+        d,
+        &[
+            "calibrate",
+            "straightness",
+            "--bag",
+            "st.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "st-text.json",
+            "--method",
+            "three-probe",
+        ],
+    );
+    let line = text
+        .lines()
+        .find(|l| l.contains("peak-to-valley about the least-squares line"))
+        .unwrap_or_else(|| panic!("calibrate straightness states no peak-to-valley:\n{text}"));
+    for (which, pv, span) in &pvs {
+        let want = format!("{which} {pv:.2} µm over {span:.0} mm");
+        assert!(line.contains(&want), "`{want}` not in: {line}");
     }
     // A custom term's coefficient carries the unit of its expression: mm per mm/s for a
     // velocity, mm for a dimensionless sine.
@@ -385,4 +423,83 @@ fn pv_about_line_um(x: &[f64], v: &[f64]) -> f64 {
         (a.0.min(*r), a.1.max(*r))
     });
     (hi - lo) * 1e3
+}
+/// `calibrate dynamics --json` and `calibrate dynamic-map --json`, each from the user's nominal
+/// start (machines 4751 and 4753, no other test uses them): every key states its unit by the
+/// table — P in mm per mm/s² (as fitted: 1 mm per mm/s² is 10⁶ µm per m/s²), the servo phase in
+/// rad, rad/Hz, rad/Hz², the gain in 1/Hz, 1/Hz², τ in s, a map's error per mm of deflection
+/// in mm/mm — and the simulator's truth file names each parameter alike.
+#[test]
+fn the_dynamic_procedures_state_their_units_by_the_table() {
+    let runs: Vec<(String, serde_json::Value, serde_json::Value)> = std::thread::scope(|s| {
+        let jobs: Vec<_> = [("dynamics", "4751", false), ("dynamic-map", "4753", true)]
+            .into_iter()
+            .map(|(p, machine, catalogue)| {
+                s.spawn(move || {
+                    let dir = scratch(&format!("cli-units-{p}"));
+                    measure_from_nominal(&dir, p, machine, machine, "m.mcap", catalogue);
+                    let out = ok(
+                        &dir,
+                        &[
+                            "calibrate",
+                            p,
+                            "--bag",
+                            "m.mcap",
+                            "--calib",
+                            "nominal.json",
+                            "--out",
+                            "new.json",
+                            "--json",
+                        ],
+                    );
+                    let mut bad = vec![];
+                    let v = walk(&format!("calibrate {p} --json"), &out, &mut bad);
+                    assert!(bad.is_empty(), "{} key(s):\n{}", bad.len(), bad.join("\n"));
+                    let truth: serde_json::Value = serde_json::from_str(
+                        &std::fs::read_to_string(dir.join("truth.json")).unwrap(),
+                    )
+                    .unwrap();
+                    (p.to_string(), v, truth)
+                })
+            })
+            .collect();
+        jobs.into_iter().map(|j| j.join().unwrap()).collect()
+    });
+    for (p, v, truth) in &runs {
+        let params = v["params"].as_object().unwrap();
+        let unit = |k: &str| units::key_unit(k).unwrap_or_else(|| panic!("{p}: `{k}`"));
+        if p == "dynamics" {
+            let mut seen = std::collections::BTreeMap::new();
+            for (k, x) in params {
+                let u = unit(k.as_str());
+                *seen.entry(u).or_insert(0) += 1;
+                // Named as the truth names it, in its unit (a unit apart would be 10³–10⁶ off).
+                let t = truth["params"][k]
+                    .as_f64()
+                    .unwrap_or_else(|| panic!("{k}: no truth under that name"));
+                let (x, s) = (x.as_f64().unwrap(), v["uncertainty"][k].as_f64().unwrap());
+                assert!(
+                    (x - t).abs() <= (5.0 * s).max(0.5 * t.abs()),
+                    "{k}: {x} ± {s}, truth {t}"
+                );
+                if k.contains(".P_") {
+                    // s²: a compliance of tens of µm per m/s² is some 1e-5.
+                    assert!(u == "mm per mm/s²" && x.abs() < 1e-3, "{k} = {x} ({u})");
+                }
+            }
+            eprintln!("calibrate dynamics --json: parameters by unit {seen:?}");
+            assert!(
+                seen.get("mm per mm/s²").is_some_and(|n| *n >= 10),
+                "{seen:?}"
+            );
+            assert!(seen.get("s").is_some_and(|n| *n >= 2), "{seen:?}");
+            assert!(seen.get("rad/Hz").is_some_and(|n| *n >= 1), "{seen:?}");
+        } else {
+            let us: Vec<&str> = params.keys().map(|k| unit(k.as_str())).collect();
+            assert!(
+                us.contains(&"mm/mm") && us.contains(&"mm"),
+                "{p}: {params:?}"
+            );
+        }
+    }
 }

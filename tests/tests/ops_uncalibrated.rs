@@ -264,3 +264,107 @@ fn publishing_to_an_uncalibrated_machine_fails_loudly() {
     calib_put(&d, "m1", "v1.json", &ep);
     replay_max(&d, "r.mcap", &ep);
 }
+
+/// `tail` of a machine that streams with no calibration says so — the machine is not
+/// corrected because scancorrd has no calibration for it, and how to put one — instead of
+/// blaming the streams: while it streams (the no-calibration alarm, then the error) and
+/// afterwards (from the machine's status, at once and as the error).
+#[test]
+fn tail_of_an_uncalibrated_machine_names_the_missing_calibration() {
+    let d = scratch("ops-uncalibrated-tail");
+    let port = free_port();
+    let _svc = Service::start(&d, port);
+    let ep = format!("tcp/127.0.0.1:{port}");
+    ok(
+        &d,
+        &[
+            "sim",
+            "--program",
+            "ring",
+            "--seed",
+            "4701",
+            "--out",
+            "r.mcap",
+            "--calib-out",
+            "v1.json",
+        ],
+    );
+    let needles = [
+        "machine `m1` is not corrected",
+        "no calibration in use",
+        "scancorr calib put --machine m1",
+    ];
+    // Tailing while the machine streams.
+    let tail = Command::new(scancorr())
+        .args([
+            "tail",
+            "--machine",
+            "m1",
+            "--seconds",
+            "8",
+            "--connect",
+            &ep,
+        ])
+        .current_dir(&d)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    fails(
+        &d,
+        &[
+            "replay",
+            "--bag",
+            "r.mcap",
+            "--speed",
+            "max",
+            "--connect",
+            &ep,
+        ],
+        &["no calibration in use"],
+    );
+    let out = tail.wait_with_output().unwrap();
+    let (so, se) = (
+        String::from_utf8_lossy(&out.stdout).to_string(),
+        String::from_utf8_lossy(&out.stderr).to_string(),
+    );
+    assert_eq!(out.status.code(), Some(1), "{so}\n{se}");
+    assert!(
+        so.contains("m1 NOT CORRECTED: streaming with no calibration in use"),
+        "the no-calibration alarm, said as such:\n{so}"
+    );
+    assert!(!so.contains("ALARM RAISED"), "{so}");
+    assert!(!se.contains("raw streams reaching"), "{se}");
+    assert!(se.contains("received no point on `cmm/m1/**`"), "{se}");
+    // Tailing afterwards: said at once (a warning) and as the error, with the count.
+    let err = fails(
+        &d,
+        &[
+            "tail",
+            "--machine",
+            "m1",
+            "--seconds",
+            "1",
+            "--connect",
+            &ep,
+        ],
+        &needles,
+    );
+    assert!(
+        err.contains("warning: machine `m1` is not corrected"),
+        "{err}"
+    );
+    assert!(!err.contains("raw streams reaching"), "{err}");
+    let samples = ok(
+        &d,
+        &["status", "--machine", "m1", "--json", "--connect", &ep],
+    );
+    let st: Value = serde_json::from_str(&samples).unwrap();
+    let n = st["uncorrected_samples"].as_u64().unwrap();
+    assert!(n > 0, "{st}");
+    assert!(
+        err.contains(&format!("({n} sample(s) streamed uncorrected")),
+        "{err}"
+    );
+}

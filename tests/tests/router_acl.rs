@@ -100,6 +100,20 @@ fn cli(dir: &Path, cfg: &Path, args: &[&str]) -> std::process::Output {
     run(dir, &a)
 }
 
+/// `cli` with `$USER` and `$LOGNAME` unset: the audit names the connection anyway.
+fn cli_nameless(dir: &Path, cfg: &Path, args: &[&str]) -> std::process::Output {
+    let mut a: Vec<&str> = args.to_vec();
+    a.extend(["--zenoh-config", cfg.to_str().unwrap()]);
+    Command::new(scancorr())
+        .env("SCANCORR_FORCE", "1")
+        .env_remove("USER")
+        .env_remove("LOGNAME")
+        .args(&a)
+        .current_dir(dir)
+        .output()
+        .expect("scancorr runs")
+}
+
 fn status(dir: &Path, op: &Path, machine: &str) -> Value {
     let out = cli(dir, op, &["status", "--machine", machine, "--json"]);
     assert!(
@@ -348,9 +362,10 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
         ),
         "operator calib put v2",
     );
-    // The lab rolls back (its rights are an operator's) and reads the history.
+    // The lab rolls back (its rights are an operator's) and reads the history. (With `$USER`
+    // and `$LOGNAME` unset: its audit record names it by its connection all the same.)
     succeeded(
-        cli(
+        cli_nameless(
             &d,
             &lab,
             &["calib", "rollback", "--machine", "m1", "--to", "1"],
@@ -374,6 +389,8 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
             .iter()
             .all(|b| b.contains(", zenoh id ") && b.ends_with(", certificate CN operator"))
             && by[2].ends_with(", certificate CN lab-metrology")
+            && by[2].starts_with("uid ")
+            && by[2].contains(", zenoh id ")
             && by.iter().all(|b| !b.contains("unknown")),
         "{by:#?}"
     );
@@ -460,8 +477,20 @@ with scancorr.connect(zenoh_config=sys.argv[1], query_timeout=3) as bus:
     };
     // Controller m1 publishes its own machine's raw streams: the service corrects them.
     succeeded(scan("m1", "1"), "controller-m1 → m1");
-    // … and m2's: refused by the router; the service sees nothing of it.
-    let _ = scan("m2", "2");
+    // … and m2's: refused by the router; the service sees nothing of it, and the CLI says it
+    // was refused (the key, its certificate, the rule), not lost, and fails.
+    let refused = scan("m2", "2");
+    let err = String::from_utf8_lossy(&refused.stderr).to_string();
+    assert_eq!(refused.status.code(), Some(1), "{err}");
+    for needle in [
+        "refused",
+        "`cmm/m2/raw/",
+        "certificate CN `controller-m1`",
+        "no rule of subject controller-m1 allows it",
+    ] {
+        assert!(err.contains(needle), "`{needle}` not in:\n{err}");
+    }
+    assert!(!err.contains("lost on the way"), "{err}");
     let s1 = settled(&d, &op, "m1");
     let s2 = status(&d, &op, "m2");
     assert_eq!(s1["samples_in"], 51829, "m1: {s1}");

@@ -206,8 +206,11 @@ def test_a_query_the_router_denies_is_refused_not_missing(tmp_path: pathlib.Path
             "(its liveliness token `cmm/m1/scancorrd` is seen): the query was refused on its way"
         ), e.value
         assert "access control" in str(e.value)
-        with pytest.raises(scancorr.Refused):
+        # The CLI's twin names the refusal as a refusal, in the same words.
+        assert cli_error(tmp_path, "calib", "history", "--machine", "m1", "--connect", ep) == str(e.value)
+        with pytest.raises(scancorr.Refused) as g:
             bus.get_calibration("m1")
+        assert cli_error(tmp_path, "calib", "get", "--machine", "m1", "--connect", ep) == str(g.value)
         assert bus.status("m1")["calibration_version"] == 1  # status queries are allowed
         with pytest.raises(scancorr.NoService) as n:
             bus.history("m9")

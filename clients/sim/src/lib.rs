@@ -188,6 +188,9 @@ pub const PROBE_TAU_S: f64 = 0.002;
 /// the arcs' gain of this machine is its compliance, the structure's plus the mount mode's
 /// on the diagonal of P).
 pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
+    // Each name ends with its unit: P in mm per mm/s² (s²), the phase's b0, b1, b2 in rad,
+    // rad/Hz, rad/Hz², the gain's f¹ and f² terms in 1/Hz and 1/Hz².
+    const PHASE_UNITS: [&str; 3] = ["_rad", "_rad_per_hz", "_rad_per_hz2"];
     let mut p = BTreeMap::new();
     const AX: [&str; 3] = ["x", "y", "z"];
     const MONO: [&str; 4] = ["1", "x", "y", "z"];
@@ -198,14 +201,14 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
             format!("dynamics.tau_{a}_s"),
             1.0 / m.servo[i].kp - PROBE_TAU_S - m.readout_delay_s[i] - m.latching.tau_s[i],
         );
-        p.insert(format!("dynamics.gain_{a}.f1.1"), 0.0);
-        p.insert(format!("dynamics.gain_{a}.f2.1"), 0.0);
+        p.insert(format!("dynamics.gain_{a}.f1.1_per_hz"), 0.0);
+        p.insert(format!("dynamics.gain_{a}.f2.1_per_hz2"), 0.0);
     }
     for (k, mono) in MONO.iter().enumerate() {
         for (i, a) in AX.iter().enumerate() {
             for (j, b) in AX.iter().enumerate() {
                 p.insert(
-                    format!("dynamics.P_{a}{b}.{mono}"),
+                    format!("dynamics.P_{a}{b}.{mono}_mm_per_mm_s2"),
                     -m.compliance_total(k, i, j),
                 );
             }
@@ -219,7 +222,10 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
                 } else {
                     0.0
                 };
-                p.insert(format!("dynamics.phase_{a}.b{b}.{mono}"), v);
+                p.insert(
+                    format!("dynamics.phase_{a}.b{b}.{mono}{}", PHASE_UNITS[b]),
+                    v,
+                );
             }
         }
     }

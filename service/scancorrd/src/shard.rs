@@ -348,6 +348,11 @@ impl Outbox {
         self.lock().hold.see(m);
     }
 
+    /// When the active instance's last publication was seen (while holding).
+    pub(crate) fn last_seen(&self) -> Option<Instant> {
+        self.lock().hold.seen_at()
+    }
+
     /// Publishes from now on, what is held and not seen published first, in the active
     /// instance's numbering (what is queued too). Returns whether the outbox must be handed
     /// to a lane, and by how much the points' `seq` were shifted (the shard shifts the

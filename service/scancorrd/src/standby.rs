@@ -46,8 +46,10 @@ pub(crate) struct Hold {
     pub(crate) holding: bool,
     held: VecDeque<Outgoing>,
     held_bytes: usize,
-    /// The newest point the active instance was seen to publish (its numbering).
+    /// The newest point the active instance was seen to publish (its numbering), and when
+    /// its last publication was seen.
     seen: Option<Mark>,
+    seen_at: Option<Instant>,
     /// Its newest marks (the newest last), for matching the numbering.
     marks: VecDeque<Mark>,
     /// The active instance's `seq` minus this one's for the same point, once matched.
@@ -106,6 +108,7 @@ impl Hold {
         self.holding = true;
         self.max_bytes = max_bytes;
         self.seen = None;
+        self.seen_at = None;
         self.marks.clear();
         self.shift = None;
         self.next_try = None;
@@ -140,6 +143,7 @@ impl Hold {
 
     /// The active instance was seen to publish up to the point `m`.
     pub(crate) fn see(&mut self, m: Mark) {
+        self.seen_at = Some(Instant::now());
         if self.seen.is_none_or(|s| m.seq > s.seq) {
             self.seen = Some(m);
         }
@@ -198,6 +202,11 @@ impl Hold {
                 return;
             }
         }
+    }
+
+    /// When the active instance's last publication was seen (none since holding started).
+    pub(crate) fn seen_at(&self) -> Option<Instant> {
+        self.seen_at
     }
 
     /// `seq` in the active instance's numbering (as matched).

@@ -321,10 +321,21 @@ pub fn candidate_label(c: &CandidateReport, model: &BTreeMap<String, String>) ->
     }
 }
 
+/// The order of a diagnosis's rows ([`tidy_diagnosis`]) and what "explained" means, as every
+/// output states it.
+pub const DIAGNOSIS_ORDER: &str = "ranked: the significant first, then by the share of the cross-validated residual each removes (CV expl.: every effect refitted, each alternate scan predicted from the others), largest first; held expl: the same share of the held-out data's mean square (negative: worse)";
+
+/// The share of the held-out data's mean square a candidate removes, 1 − (after/before)²
+/// (negative: the held-out data gets worse); `None` without held-out data.
+pub fn heldout_explained(c: &CandidateReport) -> Option<f64> {
+    let (b, a) = (c.heldout_rms_before_um, c.heldout_rms_after_um);
+    (b > 0.0 && b.is_finite() && a.is_finite()).then(|| 1.0 - (a / b).powi(2))
+}
+
 /// A diagnosis as every output shows it: the significant candidates first, each group by the
-/// held-out residual explained (largest first, then by label); a candidate whose label repeats
-/// an earlier one's is left out (the better of the two is kept), and so is a repeated note of
-/// what was not tested.
+/// share of the cross-validated residual explained (largest first, then by label); a
+/// candidate whose label repeats an earlier one's is left out (the better of the two is kept),
+/// and so is a repeated note of what was not tested.
 pub fn tidy_diagnosis(d: &mut Diagnosis, model: &BTreeMap<String, String>) {
     d.candidates.sort_by(|a, b| {
         b.significant
@@ -348,7 +359,11 @@ pub fn diagnose(
     model: &BTreeMap<String, String>,
 ) -> String {
     let mut body = summary(cal, cmp);
-    body += "<h2>Candidate effects, ranked by held-out residual explained</h2>";
+    let _ = write!(
+        body,
+        "<h2>Candidate effects</h2><p data-order=\"1\">{}.</p>",
+        esc(&DIAGNOSIS_ORDER.replacen("ranked", "Ranked", 1))
+    );
     let rows: Vec<(String, f64, bool)> = d
         .candidates
         .iter()
@@ -361,15 +376,18 @@ pub fn diagnose(
             )
         })
         .collect();
-    body += &format!("<figure>{}<figcaption>Explained fraction of the held-out residual (red: significant)</figcaption></figure>", bars("ranking", &rows, "%", None));
-    body += "<table><tr><th>candidate</th><th>explained</th><th>significant</th><th>held-out µm</th><th>fit µm</th><th>ΔBIC</th><th>parameters</th></tr>";
+    body += &format!("<figure>{}<figcaption>Share of the cross-validated residual each candidate removes (red: significant); the table gives the held-out data's share beside it</figcaption></figure>", bars("ranking", &rows, "%", None));
+    body += "<table><tr><th>candidate</th><th>CV explained</th><th>held-out explained</th><th>significant</th><th>cross-validated µm</th><th>held-out µm</th><th>fit µm</th><th>ΔBIC</th><th>parameters</th></tr>";
     for c in d.candidates.iter().take(15) {
         let _ = write!(
             body,
-            "<tr><td>{}</td><td>{:.1} %</td><td>{}</td><td>{:.3} → {:.3}</td><td>{:.3} → {:.3}</td><td>{:.0}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{:.1} %</td><td>{}</td><td>{}</td><td>{:.3} → {:.3}</td><td>{:.3} → {:.3}</td><td>{:.3} → {:.3}</td><td>{:.0}</td><td>{}</td></tr>",
             esc(&candidate_label(c, model)),
             c.explained * 100.0,
+            heldout_explained(c).map_or("—".to_string(), |h| format!("{:.1} %", h * 100.0)),
             if c.significant { "yes" } else { "no" },
+            c.cv_rms_before_um,
+            c.cv_rms_after_um,
             c.heldout_rms_before_um,
             c.heldout_rms_after_um,
             c.rms_before_um,
@@ -414,7 +432,24 @@ pub fn diagnose(
     page("scancorr lab — diagnose", &body)
 }
 
+/// The figures of a `lab add`, each defined once and used by its text, JSON and report alike:
+/// "before" is the parent version as it is (not refitted), "after" the new version, each
+/// measured on the fit data and on the held-out data; the cross-validated pair is another
+/// thing — the parent's model refitted and the new model, each alternate scan predicted from
+/// the others — and is labelled so.
+pub struct AddFigures {
+    /// RMS on the fit data, before → after, µm.
+    pub fit_um: [f64; 2],
+    /// RMS on the held-out data, before → after, µm.
+    pub held_um: [f64; 2],
+    /// Cross-validated RMS, the parent's model refitted → the new model, µm.
+    pub cv_um: [f64; 2],
+    /// The held-out data are --validate bags (else the alternate scans of the fit bags).
+    pub validated: bool,
+}
+
 /// `lab add --report`: before/after.
+#[allow(clippy::too_many_arguments)]
 pub fn add(
     old: &Calibration,
     new: &Calibration,
@@ -423,20 +458,44 @@ pub fn add(
     cb: &Comparison,
     dsa: &Dataset,
     ca: &Comparison,
+    f: &AddFigures,
 ) -> String {
-    let mut body = format!("<p>{}</p>", esc(&new.note));
+    let (vo, vn) = (old.version, new.version);
+    let held = if f.validated {
+        "held-out data (--validate)"
+    } else {
+        "held-out data (alternate scans)"
+    };
+    let mut body = format!(
+        "<p>{}</p><p data-figures=\"1\"><b>Before</b> is v{vo} as it is (not refitted); <b>after</b> is v{vn}. Fit data: <b data-before-um=\"fit\">{:.3}</b> → <b data-after-um=\"fit\">{:.3}</b> µm RMS; {held}: <b data-before-um=\"held\">{:.3}</b> → <b data-after-um=\"held\">{:.3}</b> µm RMS. Cross-validated (each alternate scan predicted from the others; v{vo}'s model refitted → v{vn}'s): {:.3} → {:.3} µm RMS. Noise floor {:.3} µm.</p>",
+        esc(&new.note),
+        f.fit_um[0],
+        f.fit_um[1],
+        f.held_um[0],
+        f.held_um[1],
+        f.cv_um[0],
+        f.cv_um[1],
+        ca.noise_floor_um
+    );
     let rows = vec![
-        (format!("v{} before", old.version), cb.rms_um, false),
-        (format!("v{} after", new.version), ca.rms_um, false),
+        (format!("v{vo} before, fit data"), f.fit_um[0], false),
+        (format!("v{vn} after, fit data"), f.fit_um[1], false),
+        (format!("v{vo} before, held-out"), f.held_um[0], false),
+        (format!("v{vn} after, held-out"), f.held_um[1], false),
     ];
     body += &format!(
-        "<figure>{}<figcaption>Error fall: deviation RMS</figcaption></figure>",
+        "<figure>{}<figcaption>Error fall: RMS on the fit data and on the {held}, before (v{vo} as it is) and after (v{vn})</figcaption></figure>",
         bars(
             "error-fall",
             &rows,
             "µm",
             Some((ca.noise_floor_um, "noise floor"))
         )
+    );
+    let _ = write!(
+        body,
+        "<p data-all-points=\"1\">The plots below show every point, fit and held-out together, each placement's position fitted: deviation RMS over all points v{vo} {:.3} → v{vn} {:.3} µm (another figure than the two above, for that reason).</p>",
+        cb.rms_um, ca.rms_um
     );
     body += &polars(dsa, ca, Some((dsb, cb)));
     body += &params_table(

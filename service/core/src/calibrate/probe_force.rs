@@ -22,6 +22,12 @@
 //! from k_u, k_v, and the angle around each circle separates k_u from k_v (cos² against sin²).
 //! The RMS of the fit about the zero-force map is reported per setting.
 //!
+//! Variant (d) — radial approaches at a few positions, the deflection growing along each —
+//! has no sphere to fit: each position's points share one normal n̄ (their mean probing
+//! direction) and one static term ρ_p (its distance), with no harmonics and no drift
+//! (a position cannot carry a pattern round the sphere, and a drift along n̄ over an approach
+//! is the deflection's own ramp): n̄·(p + R·(K_t·d)) = ρ_p.
+//!
 //! Variant (b) — a circle at a constant deflection and one whose deflection varies
 //! sinusoidally around it — enters the same fit (its points carry their own deflections). Such
 //! a varying scan also gets the real-time form ([`super::zero_force`]): per wave, the points
@@ -65,6 +71,8 @@ const WEAK_COLUMN: f64 = 0.03;
 const AXES: [&str; 3] = ["u", "v", "w"];
 /// Points within this latitude (degrees) belong to one circle.
 const LATITUDE_DEG: f64 = 4.0;
+/// Approaches within this angle about the sphere's axis (degrees) are one position.
+const POSITION_DEG: f64 = 10.0;
 /// Harmonics of each circle's static pattern.
 const HARMONICS: usize = 12;
 /// Static-pattern columns per circle: mean radius, cos and sin of each harmonic.
@@ -333,8 +341,11 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     for g in &groups {
         let pts: Vec<Vec3> = g.idx.iter().map(|&i| ds.points[i].surface).collect();
         let r_cert = spheres[&g.feature];
+        // Only scans that go round the sphere (arcs) determine it: a sphere fitted to straight
+        // approaches at a few positions can pass the radius check and give bogus normals.
+        let arcs = g.idx.iter().any(|&i| ds.points[i].direction != 0);
         lin.push(match shape::fit_sphere(&pts) {
-            Ok(f) if (f.radius - r_cert).abs() < 0.05 * r_cert => Lin {
+            Ok(f) if arcs && (f.radius - r_cert).abs() < 0.05 * r_cert => Lin {
                 center: f.center,
                 radius: f.radius,
                 sphere: true,
@@ -349,31 +360,68 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     // Each point's normal (out of the material): from the sphere's centre where the sphere
     // was fitted, else the probing direction (the deflection in machine axes, which the
     // stylus's uneven bending tilts by a few mrad).
+    // Without a sphere fit (approaches at a few positions) the points of one position (its
+    // latitude within LATITUDE_DEG, its angle about the sphere's axis within POSITION_DEG)
+    // share one normal, their mean probing direction: a single point's direction carries the
+    // probe's noise (mrad at the smallest deflections), which would make the normal, and every
+    // column built from it, change with the deflection.
+    let raw_dir = |i: usize| {
+        let c = &ds.points[i].ctx;
+        (c.machine_from_probe * c.deflection_probe).normalize()
+    };
+    let position_key = |gi: usize, i: usize| -> (usize, i64, i64) {
+        let n = raw_dir(i);
+        let lat = n.z.clamp(-1.0, 1.0).asin().to_degrees();
+        let th = n.y.atan2(n.x).to_degrees();
+        (
+            gi,
+            (lat / LATITUDE_DEG).round() as i64,
+            (th / POSITION_DEG).round() as i64,
+        )
+    };
+    let mut position_dir: BTreeMap<(usize, i64, i64), Vec3> = BTreeMap::new();
+    for (gi, g) in groups.iter().enumerate() {
+        if !lin[gi].sphere {
+            for &i in &g.idx {
+                *position_dir
+                    .entry(position_key(gi, i))
+                    .or_insert_with(Vec3::zeros) += raw_dir(i);
+            }
+        }
+    }
     let dir = |gi: usize, i: usize| -> Vec3 {
         if lin[gi].sphere {
             (ds.points[i].surface - lin[gi].center).normalize()
         } else {
-            let c = &ds.points[i].ctx;
-            (c.machine_from_probe * c.deflection_probe).normalize()
+            position_dir[&position_key(gi, i)].normalize()
         }
     };
     // Circles: the points of one setting at one latitude, every deflection. Each circle's
     // static pattern (its mean radius and HARMONICS harmonics of the angle about the sphere's
-    // axis) is the static error map at that latitude, common to every deflection.
-    let mut circles: BTreeMap<(usize, i64), usize> = BTreeMap::new();
+    // axis) is the static error map at that latitude, common to every deflection. Without a
+    // sphere fit each position is its own "circle" with one static term (its distance) and no
+    // harmonics or drift: a few positions cannot carry a pattern round the sphere, and a
+    // drift along one direction over an approach is the deflection's own ramp.
+    let mut circles: BTreeMap<(usize, i64, i64), usize> = BTreeMap::new();
     let mut circle_of = vec![usize::MAX; ds.points.len()];
     for (gi, g) in groups.iter().enumerate() {
         for &i in &g.idx {
-            let lat = dir(gi, i).z.clamp(-1.0, 1.0).asin().to_degrees();
-            let key = (gi, (lat / LATITUDE_DEG).round() as i64);
+            let key = if lin[gi].sphere {
+                let lat = dir(gi, i).z.clamp(-1.0, 1.0).asin().to_degrees();
+                (gi, (lat / LATITUDE_DEG).round() as i64, 0)
+            } else {
+                position_key(gi, i)
+            };
             let n = circles.len();
             circle_of[i] = *circles.entry(key).or_insert(n);
         }
     }
     let n_circles = circles.len();
     let mut circles_of_group = vec![vec![]; groups.len()];
-    for ((gi, _), c) in &circles {
+    let mut position_only = vec![false; n_circles];
+    for ((gi, _, _), c) in &circles {
         circles_of_group[*gi].push(*c);
+        position_only[*c] = !lin[*gi].sphere;
     }
     let n_cols = n_dense + (DRIFT + PER_CIRCLE) * n_circles;
     // Each circle's mean time (its drift is linear about it).
@@ -444,10 +492,13 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         let dt = (p.ctx.t_ns as f64 * 1e-9 - t_circle[ci]) / 100.0;
         let c0 = DRIFT * ci;
         sparse.clear();
-        sparse.extend([(c0, -n.x * dt), (c0 + 1, -n.y * dt), (c0 + 2, -n.z * dt)]);
         let k0 = DRIFT * n_circles + PER_CIRCLE * ci;
-        let th = n.y.atan2(n.x);
         sparse.push((k0, -1.0));
+        if position_only[ci] {
+            return n.dot(&(p.surface - l.center)) - l.radius;
+        }
+        sparse.extend([(c0, -n.x * dt), (c0 + 1, -n.y * dt), (c0 + 2, -n.z * dt)]);
+        let th = n.y.atan2(n.x);
         for h in 1..=HARMONICS {
             let a = h as f64 * th;
             sparse.push((k0 + 2 * h - 1, -a.cos()));
@@ -579,17 +630,25 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     // circle's radius — would bias the coefficients alike, so the σ grow by its reduced χ²
     // (Birge ratio).
     let mut chi2 = 0.0;
-    for c in cells.values() {
+    // (An approach's position has no pattern round the sphere: its cells give their means.)
+    let mut cell_terms = 0usize;
+    for ((ci, _), c) in &cells {
         let n = c[3] / inflate;
         if n < 1.0 {
             continue;
         }
         let m = c[0] / c[3];
-        let (a, b) = (2.0 * c[1] / c[3], 2.0 * c[2] / c[3]);
-        chi2 += m * m / (point_var / n) + (a * a + b * b) / (2.0 * point_var / n);
+        chi2 += m * m / (point_var / n);
+        cell_terms += 1;
+        if !position_only[*ci] {
+            let (a, b) = (2.0 * c[1] / c[3], 2.0 * c[2] / c[3]);
+            chi2 += (a * a + b * b) / (2.0 * point_var / n);
+            cell_terms += 2;
+        }
     }
     let fitted = (0..n_force).filter(|&c| !weak[c]).count();
-    let cell_dof = (3 * cells.len()).saturating_sub(3 * n_circles + fitted);
+    let circle_terms: usize = position_only.iter().map(|&p| if p { 1 } else { 3 }).sum();
+    let cell_dof = cell_terms.saturating_sub(circle_terms + fitted);
     let chi2_red = if cell_dof > 0 {
         chi2 / cell_dof as f64
     } else {
@@ -737,7 +796,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     // The static map of each circle at its knots: mean radius plus harmonics, with the σ of
     // that linear combination of the circle's columns.
     let mut static_maps = vec![];
-    for ((gi, _), &c) in &circles {
+    for ((gi, _, _), &c) in &circles {
         let (gi, g) = (*gi, &groups[*gi]);
         if !lin[gi].sphere {
             continue;

@@ -383,17 +383,20 @@ impl Space {
             let rms: Vec<f64> = (b.off..b.off + b.n)
                 .map(|c| (g[0].m[(c, c)] + g[1].m[(c, c)]).max(0.0).sqrt())
                 .collect();
-            let top = rms.iter().cloned().fold(0.0, f64::max);
+            // Strongest column of the same unit: an effect whose parameters are in mm and
+            // rad (the rigid body: a translation's column is 1, a rotation's its Abbe lever,
+            // up to ~10³ mm) must not call its translations weak beside its rotations.
+            let tops = unit_tops(&b.config.param_names(), &rms);
             if b.smooth.is_empty() {
                 for (j, r) in rms.iter().enumerate() {
-                    weak[b.off + j] = *r <= WEAK_COLUMN * top;
+                    weak[b.off + j] = *r <= WEAK_COLUMN * tops[j];
                 }
             } else {
                 // A table is smoothed where the data is thin; only a table the data does not
                 // see at all (a z error under horizontal scans) is left out whole.
                 for group in &b.smooth {
                     let cols: Vec<usize> = group.iter().flatten().map(|(j, _)| *j).collect();
-                    if cols.iter().all(|j| rms[*j] <= WEAK_COLUMN * top) {
+                    if cols.iter().all(|j| rms[*j] <= WEAK_COLUMN * tops[*j]) {
                         cols.iter().for_each(|j| weak[b.off + j] = true);
                     }
                     // Within a table that is fitted: the columns far weaker than the group's
@@ -931,6 +934,32 @@ pub fn predicted(
             s
         })
         .collect())
+}
+
+/// The unit of a parameter from its name's last parenthesis (`EXX at x=530 mm (mm)` → `mm`,
+/// `AZY c1 (rad)` → `rad`); empty when it states none.
+fn unit_of(name: &str) -> &str {
+    match (name.rfind('('), name.rfind(')')) {
+        (Some(a), Some(b)) if b > a => &name[a + 1..b],
+        _ => "",
+    }
+}
+
+/// For each column, the strongest column `rms` of its effect in the same unit (by
+/// [`unit_of`] its name in `names`; all of them when the names do not match the columns).
+/// A column is weak beside the strongest of its own kind: a translation's column (mm) beside
+/// a rotation's (rad, times a lever of hundreds of mm) is not weak.
+pub(crate) fn unit_tops(names: &[String], rms: &[f64]) -> Vec<f64> {
+    let all = rms.iter().cloned().fold(0.0, f64::max);
+    if names.len() != rms.len() {
+        return vec![all; rms.len()];
+    }
+    let mut top = std::collections::BTreeMap::<&str, f64>::new();
+    for (n, r) in names.iter().zip(rms) {
+        let t = top.entry(unit_of(n)).or_insert(0.0);
+        *t = t.max(*r);
+    }
+    names.iter().map(|n| top[unit_of(n)]).collect()
 }
 
 /// Pseudo-inverse of a symmetric positive semi-definite matrix.

@@ -14,6 +14,12 @@
 //! one line. What it withholds from a peer (egress) is at DEBUG
 //! (`RUST_LOG=warn,scancorr_router::acl=debug`).
 //!
+//! A peer may ask what the access control denied it: the queryable `@scancorr/router/denied`
+//! (`?zid=<its zenoh id>`) answers the puts, queries and declarations it tried and was refused
+//! in the last 10 minutes, each with its key expression, count and rule — a router's access
+//! control drops a denied message without telling its sender, so `scancorr replay` and
+//! `sim --live` ask here when their messages are not confirmed, and report a refusal.
+//!
 //! A TLS handshake that fails (a peer with no certificate, one of another CA, plain TCP on
 //! the TLS port, a handshake timeout) is a WARN line `TLS handshake failed: …` with rustls'
 //! reason (zenoh-link-tls 1.10.2 says it as an accept error with a hint about the open-file
@@ -112,7 +118,8 @@ async fn run(a: Args) -> Result<(), String> {
         .ok()
         .and_then(|j| serde_json::from_str::<serde_json::Value>(&j).ok())
         .unwrap_or_default();
-    spawn_writer(tapped, off, Acl::from_json(&acl));
+    let book = Arc::new(Mutex::new(Book::default()));
+    spawn_writer(tapped, off, Acl::from_json(&acl), book.clone());
     cfg.insert_json5("mode", "\"router\"")
         .map_err(|e| format!("mode: {e}"))?;
     if !a.listen.is_empty() {
@@ -127,6 +134,20 @@ async fn run(a: Args) -> Result<(), String> {
     let session = zenoh::open(cfg)
         .await
         .map_err(|e| format!("{}: {e}", a.config.display()))?;
+    // What the access control denied a peer, for the peer to ask (`scancorr replay` and
+    // `sim --live` do when their messages are not confirmed).
+    let _denied = session
+        .declare_queryable(DENIED_KEY)
+        .callback(move |q| {
+            let zid = q.parameters().get("zid").unwrap_or("").to_string();
+            let list = book
+                .lock()
+                .map(|b| b.of(&zid, Instant::now()))
+                .unwrap_or_default();
+            let _ = zenoh::Wait::wait(q.reply(DENIED_KEY, list.to_string()));
+        })
+        .await
+        .map_err(|e| format!("declaring {DENIED_KEY}: {e}"))?;
     if json {
         eprintln!(
             "{}",
@@ -170,7 +191,7 @@ async fn run(a: Args) -> Result<(), String> {
 
 use std::collections::{HashMap, HashSet};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 use tracing::callsite::Identifier;
 use tracing::{Event, Metadata, Subscriber};
@@ -822,8 +843,110 @@ fn write_line(l: Line) {
     }
 }
 
+/// The queryable at which a peer asks what the access control denied it (`?zid=<its zenoh
+/// id>`): a JSON list of `{message, flow, key, peer, rule, count, last_s_ago}`, what it tried
+/// (ingress) in the last [`BOOK_KEEP`]. The configuration's access control must allow the query
+/// (ingress) and its reply (egress) on this key (`deploy/router.json5`: `own-denials`). Any
+/// peer allowed to ask may ask about any zenoh id: it learns key expressions and rule names.
+const DENIED_KEY: &str = "@scancorr/router/denied";
+/// A denial is kept this long for its peer to ask.
+const BOOK_KEEP: Duration = Duration::from_secs(600);
+
+/// One kind of denial of one peer: (message, key) with its count.
+struct Noted {
+    message: &'static str,
+    key: String,
+    peer: String,
+    rule: String,
+    count: u64,
+    last: Instant,
+}
+
+/// The denials of every peer (ingress), for it to ask: at most 4096 peers, 256 kinds each.
+#[derive(Default)]
+struct Book {
+    by_zid: HashMap<String, Vec<Noted>>,
+}
+
+impl Book {
+    /// Notes a denial (`w` names the peer and the rule, once per kind).
+    fn note(
+        &mut self,
+        w: &Writer,
+        zid: &str,
+        what: &str,
+        key: &str,
+        error: Option<&str>,
+        now: Instant,
+    ) {
+        let (message, flow) = message_kind(what);
+        if flow != "ingress" {
+            return;
+        }
+        if self.by_zid.len() >= 4096 && !self.by_zid.contains_key(zid) {
+            self.by_zid
+                .retain(|_, v| v.iter().any(|n| now.duration_since(n.last) < BOOK_KEEP));
+            if self.by_zid.len() >= 4096 {
+                return;
+            }
+        }
+        let list = self.by_zid.entry(zid.to_string()).or_default();
+        if let Some(n) = list
+            .iter_mut()
+            .find(|n| n.message == message && n.key == key)
+        {
+            n.count += 1;
+            n.last = now;
+            return;
+        }
+        list.retain(|n| now.duration_since(n.last) < BOOK_KEEP);
+        if list.len() >= 256 {
+            return;
+        }
+        let peer = w.peers.get(zid).cloned().unwrap_or_default();
+        let rule = match error {
+            Some(e) => format!("authorization error: {e}"),
+            None => w.acl.rule(&w.acl.subjects_of(&peer), message, flow, key),
+        };
+        list.push(Noted {
+            message,
+            key: key.to_string(),
+            peer: peer_label(&peer, zid),
+            rule,
+            count: 1,
+            last: now,
+        });
+    }
+
+    /// What `zid` was denied, as the queryable answers.
+    fn of(&self, zid: &str, now: Instant) -> serde_json::Value {
+        let list: Vec<serde_json::Value> = self
+            .by_zid
+            .get(zid)
+            .map(|v| {
+                v.iter()
+                    .filter(|n| now.duration_since(n.last) < BOOK_KEEP)
+                    .map(|n| {
+                        serde_json::json!({
+                            "message": n.message, "flow": "ingress", "key": n.key,
+                            "peer": n.peer, "rule": n.rule, "count": n.count,
+                            "last_s_ago": now.duration_since(n.last).as_secs(),
+                        })
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        serde_json::Value::Array(list)
+    }
+}
+
 /// The writer thread: denials from the tap, switched-off sites, the window's summary.
-fn spawn_writer(rx: Receiver<Tapped>, allowed: Arc<RwLock<HashSet<Identifier>>>, acl: Acl) {
+fn spawn_writer(
+    rx: Receiver<Tapped>,
+    allowed: Arc<RwLock<HashSet<Identifier>>>,
+    acl: Acl,
+    book: Arc<Mutex<Book>>,
+) {
     let _ = std::thread::Builder::new()
         .name("acl-log".into())
         .spawn(move || {
@@ -835,6 +958,21 @@ fn spawn_writer(rx: Receiver<Tapped>, allowed: Arc<RwLock<HashSet<Identifier>>>,
                 }
                 match got {
                     Ok(Tapped::Event(e)) => {
+                        if let AclEvent::Denied {
+                            zid,
+                            subject,
+                            what,
+                            key,
+                            error,
+                        } = &e
+                        {
+                            if let Some(s) = subject {
+                                w.peer(zid.clone(), s.clone());
+                            }
+                            if let Ok(mut b) = book.lock() {
+                                b.note(&w, zid, what, key, error.as_deref(), Instant::now());
+                            }
+                        }
                         if let Some(l) = w.take(e, Instant::now()) {
                             write_line(l);
                         }
@@ -933,7 +1071,7 @@ mod tests {
         );
         assert_eq!(
             r,
-            "no rule of subject auditors allows it (default_permission: deny); its rules for query ingress: ask-status, ask-calibration"
+            "no rule of subject auditors allows it (default_permission: deny); its rules for query ingress: ask-status, ask-calibration, own-denials"
         );
         let r = acl.rule(
             &acl.subjects_of("Interface(lo)+CertCommonName(app-shape-analysis)+Transport(Tls)+1"),

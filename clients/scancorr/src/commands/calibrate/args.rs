@@ -47,6 +47,14 @@ const HELP: &[(&str, &str, &str)] = &[
     ("probe-force", "report", "Write an HTML report: each setting's radius against deflection before and after, every parameter"),
     ("straightness", "json", "Print JSON: per station `stations_mm`, `guide_straightness_mm`, `part_straightness_mm`, `pitch_rad`, each with `…_u`, and `cannot_see`"),
     ("straightness", "report", "Write an HTML report: guide and part profiles with uncertainty bands, the pitch"),
+    ("dynamics", "bag", "Bags of the ring measurement"),
+    ("dynamics", "calib", "The calibration to start from (its dynamic effects are replaced)"),
+    ("dynamics", "json", "Print JSON (`params` and `uncertainty` by the simulator's truth names, `positions`, …)"),
+    ("dynamics", "report", "Write an HTML report: ΔR against acceleration per position before and after, the fitted compliance along each line of positions, every parameter"),
+    ("dynamic-map", "bag", "Bags of the measurement (S1, F1 and F2 of one circle)"),
+    ("dynamic-map", "calib", "The calibration to start from (its maps of these scans are replaced)"),
+    ("dynamic-map", "json", "Print JSON (`params` and `uncertainty`, `maps` with every bin's S1, F1, F2, HSZD, LSZD, e1, e2 and their σ in µm)"),
+    ("dynamic-map", "report", "Write an HTML report: the scans, the extrapolations to zero deflection and e2 per map"),
     ("thermal-drift", "report", "Write an HTML report: per channel the drift against time (measured, nominal, model), the residual, and the drift against the sensor it follows most"),
 ];
 

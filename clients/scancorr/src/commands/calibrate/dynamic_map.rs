@@ -1,28 +1,48 @@
 //! `scancorr calibrate dynamic-map`: the S1/F1/F2 joint method — its text and JSON output.
 
-use super::procedure::{open, outcome_json, points_without, Opened};
+use super::args::{helps, PrintArgs, VersionArgs};
+use super::procedure::{open, outcome_json, points_without, renamed, Opened};
 use crate::shared::calib::{closing, commit_version, now_rfc3339};
 use anyhow::Result;
 use scancorr_core::calibrate::dynamic_map;
 use scancorr_core::lab::version;
-use std::path::PathBuf;
+
+/// Arguments of `calibrate dynamic-map`.
+#[derive(clap::Args, Debug)]
+#[command(mut_args(helps("dynamic-map")))]
+pub struct Args {
+    #[command(flatten)]
+    io: VersionArgs,
+    /// Angle bins (the map's knots) around the circle.
+    #[arg(long, default_value_t = 72)]
+    bins: usize,
+    /// Speed search: the slow/fast difference (RMS over the bins of F2 − S1, µm) a speed
+    /// may show without a map; speeds are taken rising, maps stored only where it is left.
+    #[arg(long)]
+    tolerance_um: Option<f64>,
+    #[command(flatten)]
+    print: PrintArgs,
+}
+
+/// A map's parameter: its name without its unit (`m1.radius_change`), the unit of its JSON key
+/// (`_mm`, or `_mm_per_mm` for the error per mm of deflection, which the core names
+/// `…_per_mm`), the text's factor and unit.
+fn unit_of(name: &str) -> (&str, &'static str, f64, &'static str) {
+    match name.strip_suffix("_per_mm") {
+        Some(stem) => (stem, "_mm_per_mm", 1e3, "µm per mm of deflection"),
+        None => (name.strip_suffix("_mm").unwrap_or(name), "_mm", 1e3, "µm"),
+    }
+}
 
 /// Runs the procedure.
-pub(super) fn exec(
-    bag: Vec<PathBuf>,
-    calib: PathBuf,
-    out: PathBuf,
-    bins: usize,
-    tolerance_um: Option<f64>,
-    json: bool,
-    report: Option<PathBuf>,
-) -> Result<()> {
+pub(super) fn exec(a: Args) -> Result<()> {
+    let (out, json, bins, tolerance_um) = (a.io.out, a.print.json, a.bins, a.tolerance_um);
     let Opened {
         out_file,
         report_file,
         start,
         bags,
-    } = open(&bag, &calib, &out, report.as_deref())?;
+    } = open(&a.io.bag, &a.io.calib, &out, a.print.report.as_deref())?;
     // The maps are what this procedure measures: the points are taken without them (every
     // point: a fast scan has a few dozen per bin).
     let ds = points_without(&bags, &start, &["feature_map"], 1)?;
@@ -58,7 +78,20 @@ pub(super) fn exec(
         || crate::report::dynamic_map(&start, &o, ds.noise_floor_um),
     )?;
     if json {
-        let v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
+        // Each key states its unit (the table of `scancorr_core::units`).
+        let named = renamed(&o.params, |n| {
+            let (stem, key, _, _) = unit_of(n);
+            format!("{stem}{key}")
+        });
+        let mut v = outcome_json(&o, &named, ds.noise_floor_um, &new, &start, &out)?;
+        // A scan's segment is an id: `segment_id`, as the table names ids.
+        for m in v["maps"].as_array_mut().into_iter().flatten() {
+            for s in m["scans"].as_array_mut().into_iter().flatten() {
+                if let Some(id) = s.as_object_mut().and_then(|o| o.remove("segment")) {
+                    s["segment_id"] = id;
+                }
+            }
+        }
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
         return Ok(());
     }
@@ -94,16 +127,12 @@ pub(super) fn exec(
     }
     outln!("parameters (± standard uncertainty):")?;
     for p in &o.params {
+        let (stem, _, k, unit) = unit_of(&p.name);
         outln!(
-            "  {:<44} {:>9.3} ± {:.3} µm{}",
-            p.name,
-            p.value * 1e3,
-            p.sigma * 1e3,
-            if p.name.ends_with("_per_mm") {
-                " per mm of deflection"
-            } else {
-                ""
-            }
+            "  {:<44} {:>9.3} ± {:.3} {unit}",
+            stem,
+            p.value * k,
+            p.sigma * k
         )?;
     }
     for s in &o.speed_search {

@@ -2,36 +2,79 @@
 //! gain from rings at several speeds, P's diagonal and Z row and column from faces scanned
 //! while the carriage oscillates (`sim --program dynamics-faces`) — its text and JSON output.
 
-use super::procedure::{open, outcome_json, points_without, Opened};
+use super::args::{helps, PrintArgs, VersionArgs};
+use super::procedure::{open, outcome_json, points_without, renamed, Opened};
 use crate::shared::calib::{closing, commit_version, now_rfc3339};
 use anyhow::Result;
 use scancorr_core::calibrate::{dynamics, Param};
 use scancorr_core::lab::analysis;
 use scancorr_core::lab::dataset::{self};
 use scancorr_core::lab::version;
-use std::path::PathBuf;
 
-/// A dynamic parameter in its engineering unit: (value, σ, unit).
-fn dynamic_unit(p: &Param) -> (f64, f64, &'static str) {
-    let n = p.name.as_str();
-    let (k, u) = if n.ends_with("_s") {
-        (1e3, "ms")
-    } else if n.contains(".P_") {
-        (1e6, "µm per m/s²")
-    } else if n.contains(".b0.") {
-        (1e6, "µrad")
-    } else if n.contains(".b1.") {
-        (1e6, "µrad/Hz")
-    } else if n.contains(".b2.") {
-        (1e6, "µrad/Hz²")
-    } else if n.contains(".f1.") {
-        (1e6, "ppm/Hz")
-    } else if n.contains(".f2.") {
-        (1e6, "ppm/Hz²")
-    } else {
-        (1.0, "")
-    };
-    (p.value * k, p.sigma * k, u)
+/// Arguments of `calibrate dynamics`.
+#[derive(clap::Args, Debug)]
+#[command(mut_args(helps("dynamics")))]
+pub struct Args {
+    #[command(flatten)]
+    io: VersionArgs,
+    #[command(flatten)]
+    print: PrintArgs,
+}
+
+/// A dynamic parameter's unit, by what its name holds (`.P_`): the JSON key's suffix (the value
+/// as fitted, in that unit, as `scancorr_core::units` reads it), and the engineering unit the
+/// text states, with its factor.
+struct Unit {
+    holds: &'static str,
+    key: &'static str,
+    factor: f64,
+    text: &'static str,
+}
+
+/// τ's name ends with its unit already (`dynamics.tau_x_s`); P, the phase and the gain name
+/// theirs only in JSON (`dynamics.P_xy.1_mm_per_mm_s2`).
+const UNITS: &[Unit] = &[
+    unit(".tau_", "_s", 1e3, "ms"),
+    unit(".P_", "_mm_per_mm_s2", 1e6, "µm per m/s²"),
+    unit(".b0.", "_rad", 1e6, "µrad"),
+    unit(".b1.", "_rad_per_hz", 1e6, "µrad/Hz"),
+    unit(".b2.", "_rad_per_hz2", 1e6, "µrad/Hz²"),
+    unit(".f1.", "_per_hz", 1e6, "ppm/Hz"),
+    unit(".f2.", "_per_hz2", 1e6, "ppm/Hz²"),
+];
+
+/// A row of [`UNITS`].
+const fn unit(holds: &'static str, key: &'static str, factor: f64, text: &'static str) -> Unit {
+    Unit {
+        holds,
+        key,
+        factor,
+        text,
+    }
+}
+
+/// A dynamic parameter's name without its unit (`dynamics.P_xy.1`, `dynamics.tau_x`) and its
+/// unit.
+fn unit_of(name: &str) -> Option<(&str, &'static Unit)> {
+    let u = UNITS.iter().find(|u| name.contains(u.holds))?;
+    Some((name.strip_suffix(u.key).unwrap_or(name), u))
+}
+
+/// The JSON key of a dynamic parameter: its name with its unit (`dynamics.P_xy.1_mm_per_mm_s2`,
+/// `dynamics.phase_y.b1.1_rad_per_hz`), as the simulator's truth file names it.
+fn json_key(name: &str) -> String {
+    match unit_of(name) {
+        Some((stem, u)) => format!("{stem}{}", u.key),
+        None => name.to_string(),
+    }
+}
+
+/// A dynamic parameter in its engineering unit: (name without its unit, value, σ, unit).
+fn dynamic_unit(p: &Param) -> (&str, f64, f64, &'static str) {
+    match unit_of(&p.name) {
+        Some((stem, u)) => (stem, p.value * u.factor, p.sigma * u.factor, u.text),
+        None => (p.name.as_str(), p.value, p.sigma, ""),
+    }
 }
 
 /// The face scans accelerated in place: what moved, what was measured, before → after.
@@ -60,19 +103,14 @@ fn print_faces(faces: &[dynamics::FaceScan]) -> Result<()> {
 }
 
 /// Runs the procedure.
-pub(super) fn exec(
-    bag: Vec<PathBuf>,
-    calib: PathBuf,
-    out: PathBuf,
-    json: bool,
-    report: Option<PathBuf>,
-) -> Result<()> {
+pub(super) fn exec(a: Args) -> Result<()> {
+    let (out, json) = (a.io.out, a.print.json);
     let Opened {
         out_file,
         report_file,
         start,
         bags,
-    } = open(&bag, &calib, &out, report.as_deref())?;
+    } = open(&a.io.bag, &a.io.calib, &out, a.print.report.as_deref())?;
     crate::shared::output::stage("refitting the nominal model's time constants …");
     let raw: Vec<&dyn dataset::Samples> = bags.iter().map(|b| &*b.samples).collect();
     let (refit, axes) = scancorr_core::lab::nominal::fit_nominal(&raw, &start)?;
@@ -110,7 +148,9 @@ pub(super) fn exec(
         || crate::report::dynamics(&start, &o, ds.noise_floor_um),
     )?;
     if json {
-        let mut v = outcome_json(&o, &o.params, ds.noise_floor_um, &new, &start, &out)?;
+        // Each key states its unit (the table of `scancorr_core::units`).
+        let named = renamed(&o.params, json_key);
+        let mut v = outcome_json(&o, &named, ds.noise_floor_um, &new, &start, &out)?;
         v["nominal"] = serde_json::to_value(&axes)?;
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
         return Ok(());
@@ -157,8 +197,8 @@ pub(super) fn exec(
     )?;
     outln!("parameters (± standard uncertainty; P per monomial of the position over 500 mm):")?;
     for p in &o.params {
-        let (v, s, u) = dynamic_unit(p);
-        outln!("  {:<28} {:>11.4} ± {:.4} {u}", p.name, v, s)?;
+        let (name, v, s, u) = dynamic_unit(p);
+        outln!("  {:<28} {:>11.4} ± {:.4} {u}", name, v, s)?;
     }
     for c in &o.confounded {
         outln!("  confounded: {c}")?;

@@ -17,7 +17,6 @@ mod zero_force;
 
 use anyhow::Result;
 use clap::Subcommand;
-use std::path::PathBuf;
 
 #[derive(Subcommand)]
 pub enum CalibrateCmd {
@@ -43,54 +42,12 @@ pub enum CalibrateCmd {
     /// d2 (F1) and at d1 (F2), in one direction, gives a per-point map of the fast scan's error
     /// (extrapolated to zero deflection against the slow scan) for that feature and speed; the
     /// map corrects later fast scans of like parts by the same part program (same segment ids).
-    DynamicMap {
-        /// Bags of the measurement (S1, F1 and F2 of one circle).
-        #[arg(long, required = true)]
-        bag: Vec<PathBuf>,
-        /// The calibration to start from (its maps of these scans are replaced).
-        #[arg(long)]
-        calib: PathBuf,
-        /// The new calibration version.
-        #[arg(long)]
-        out: PathBuf,
-        /// Angle bins (the map's knots) around the circle.
-        #[arg(long, default_value_t = 72)]
-        bins: usize,
-        /// Speed search: the slow/fast difference (RMS over the bins of F2 − S1, µm) a speed
-        /// may show without a map; speeds are taken rising, maps stored only where it is left.
-        #[arg(long)]
-        tolerance_um: Option<f64>,
-        /// Print JSON (`params` and `uncertainty`, `maps` with every bin's S1, F1, F2, HSZD,
-        /// LSZD, e1, e2 and their σ in µm).
-        #[arg(long)]
-        json: bool,
-        /// Write an HTML report: the scans, the extrapolations to zero deflection and e2 per
-        /// map.
-        #[arg(long)]
-        report: Option<PathBuf>,
-    },
+    DynamicMap(dynamic_map::Args),
     /// The ring-gauge procedure: one ring at ≥ 5 positions along X (and along Y and Z), each
     /// at several speeds in both directions, gives the nominal time constants, the deflection
     /// matrix P(x, y, z) with cross-coupling, the servo phase with position-dependent
     /// coefficients and the servo gain in the form held-out rings prefer.
-    Dynamics {
-        /// Bags of the ring measurement.
-        #[arg(long, required = true)]
-        bag: Vec<PathBuf>,
-        /// The calibration to start from (its dynamic effects are replaced).
-        #[arg(long)]
-        calib: PathBuf,
-        /// The new calibration version.
-        #[arg(long)]
-        out: PathBuf,
-        /// Print JSON (`params` and `uncertainty` by the simulator's truth names, `positions`, …).
-        #[arg(long)]
-        json: bool,
-        /// Write an HTML report: ΔR against acceleration per position before and after, the
-        /// fitted compliance along each line of positions, every parameter.
-        #[arg(long)]
-        report: Option<PathBuf>,
-    },
+    Dynamics(dynamics::Args),
     /// Error separation of a guide's straightness from a straightedge's, without a perfect
     /// reference: distance probes on the carriage stepped along the travel (three probes
     /// with pitch, two probes, or one probe on a shear micro-stage). Writes the axis's
@@ -114,24 +71,10 @@ pub fn exec(cmd: CalibrateCmd) -> Result<()> {
         CalibrateCmd::Plate(a) => plate::run(a),
         CalibrateCmd::ZeroForce(a) => zero_force::run(a),
         CalibrateCmd::ThermalDrift(a) => thermal::run(a),
-        CalibrateCmd::DynamicMap {
-            bag,
-            calib,
-            out,
-            bins,
-            tolerance_um,
-            json,
-            report,
-        } => dynamic_map::exec(bag, calib, out, bins, tolerance_um, json, report),
+        CalibrateCmd::DynamicMap(a) => dynamic_map::exec(a),
         CalibrateCmd::Straightness(a) => straightness::run(a),
         CalibrateCmd::ProbeForce(a) => probe_force::exec(a),
-        CalibrateCmd::Dynamics {
-            bag,
-            calib,
-            out,
-            json,
-            report,
-        } => dynamics::exec(bag, calib, out, json, report),
+        CalibrateCmd::Dynamics(a) => dynamics::exec(a),
         CalibrateCmd::Scales(a) => scales::exec(a),
         CalibrateCmd::Tips(a) => tips::exec(a),
     }

@@ -106,6 +106,16 @@ pub(super) fn outcome_json(
     Ok(v)
 }
 
+/// `ps` under the names `key` gives them (a JSON key that states its unit).
+pub(super) fn renamed(ps: &[Param], key: impl Fn(&str) -> String) -> Vec<Param> {
+    ps.iter()
+        .map(|p| Param {
+            name: key(&p.name),
+            ..p.clone()
+        })
+        .collect()
+}
+
 /// A parameter ± its σ, one line of a procedure's text output.
 pub(super) fn print_param(p: &Param) -> String {
     let (scale, unit) = if p.name.ends_with("_mm") {

@@ -136,6 +136,79 @@ fn rms(v: &[f64]) -> f64 {
     (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt()
 }
 
+/// Straightness as a metrologist states it (ISO 12780): a profile's peak-to-valley about its
+/// least-squares line, µm, over the length the profile spans — the figure the report states
+/// (`report::straightness_pv_um`, the same function). `None` with fewer than three points.
+struct Pv {
+    pv_um: Option<f64>,
+    from_mm: f64,
+    to_mm: f64,
+    /// The profile's standard uncertainty, RMS over its points, µm.
+    u_rms_um: f64,
+}
+
+impl Pv {
+    fn of(x: &[f64], v: &[f64], u: &[f64]) -> Pv {
+        let xs = x
+            .iter()
+            .zip(v)
+            .filter(|(x, v)| x.is_finite() && v.is_finite());
+        let (from_mm, to_mm) = xs.fold((f64::INFINITY, f64::NEG_INFINITY), |a, (x, _)| {
+            (a.0.min(*x), a.1.max(*x))
+        });
+        let pv_um = crate::report::straightness_pv_um(x, v);
+        Pv {
+            pv_um,
+            from_mm: if pv_um.is_some() { from_mm } else { 0.0 },
+            to_mm: if pv_um.is_some() { to_mm } else { 0.0 },
+            u_rms_um: rms(u) * 1e3,
+        }
+    }
+
+    fn json(&self) -> serde_json::Value {
+        let r = |v: f64| (v * 1e4).round() / 1e4;
+        match self.pv_um {
+            Some(p) => serde_json::json!({
+                "pv_um": r(p),
+                "length_mm": r(self.to_mm - self.from_mm),
+                "from_mm": r(self.from_mm),
+                "to_mm": r(self.to_mm),
+                "profile_u_rms_um": r(self.u_rms_um),
+            }),
+            None => serde_json::json!({ "note": "too few points for a straightness value" }),
+        }
+    }
+
+    fn text(&self) -> String {
+        match self.pv_um {
+            Some(p) => format!(
+                "{p:.2} µm over {:.0} mm ({:.0}–{:.0} mm; profile σ {:.3} µm RMS)",
+                self.to_mm - self.from_mm,
+                self.from_mm,
+                self.to_mm,
+                self.u_rms_um
+            ),
+            None => "— (too few points)".into(),
+        }
+    }
+}
+
+/// The guide's and the part's straightness ([`Pv`]).
+fn straightness_pv(s: &scancorr_core::calibrate::straightness::Separation) -> (Pv, Pv) {
+    (
+        Pv::of(
+            &s.stations_mm,
+            &s.guide_straightness_mm,
+            &s.guide_straightness_mm_u,
+        ),
+        Pv::of(
+            &s.part_positions_mm,
+            &s.part_straightness_mm,
+            &s.part_straightness_mm_u,
+        ),
+    )
+}
+
 /// Prints the separated profiles with their uncertainties, the flatness and the parameters.
 fn print_text(o: &separation::Outcome, ax: Axis, toward: Axis) -> Result<()> {
     let s = &o.separation;
@@ -180,6 +253,12 @@ fn print_text(o: &separation::Outcome, ax: Axis, toward: Axis) -> Result<()> {
             s.part_straightness_mm_u[k] * 1e3
         )?;
     }
+    let (g, p) = straightness_pv(s);
+    outln!(
+        "  straightness, peak-to-valley about the least-squares line (ISO 12780): guide {}, part {}",
+        g.text(),
+        p.text()
+    )?;
     if let Some(f) = o.flatness_mm {
         outln!(
             "  flatness of the surface over {} lines: {:.3} µm peak-to-valley about its \
@@ -259,9 +338,11 @@ pub fn run(a: Args) -> Result<()> {
     warnings.extend(o.warnings.iter().cloned());
     let s = &o.separation;
     let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
+    let (pv_g, pv_p) = straightness_pv(s);
     new.note = format!(
         "calibrate straightness: {}, {} stations along {} ({:.0}–{:.0} mm), straightness \
-         towards {}{}; guide {:.3} µm RMS (± {:.3} µm), part {:.3} µm RMS; cannot see: {}",
+         towards {}{}; guide {} peak-to-valley, {:.3} µm RMS (± {:.3} µm), part {} \
+         peak-to-valley, {:.3} µm RMS; cannot see: {}",
         s.method,
         s.stations_mm.len(),
         ax.name(),
@@ -273,8 +354,10 @@ pub fn run(a: Args) -> Result<()> {
         } else {
             ""
         },
+        pv_g.text(),
         rms(&s.guide_straightness_mm) * 1e3,
         rms(&s.guide_straightness_mm_u) * 1e3,
+        pv_p.text(),
         rms(&s.part_straightness_mm) * 1e3,
         s.cannot_see.join(", ")
     );
@@ -293,7 +376,11 @@ pub fn run(a: Args) -> Result<()> {
                 "part_straightness_rms_um",
                 rms(&s.part_straightness_mm) * 1e3,
             ),
-        ],
+        ]
+        .into_iter()
+        .chain(pv_g.pv_um.map(|v| ("guide_straightness_pv_um", v)))
+        .chain(pv_p.pv_um.map(|v| ("part_straightness_pv_um", v)))
+        .collect(),
         out_file,
         report_file,
         || crate::report::straightness(&start, &o, &warnings),
@@ -304,6 +391,12 @@ pub fn run(a: Args) -> Result<()> {
     if a.print.json {
         let mut v = serde_json::to_value(&o)?;
         v["warnings"] = serde_json::to_value(&warnings)?;
+        // The straightness a metrologist states, as the report states it.
+        v["straightness"] = serde_json::json!({
+            "definition": "peak-to-valley about the least-squares line (ISO 12780)",
+            "guide": pv_g.json(),
+            "part": pv_p.json(),
+        });
         v["version"] = new.version.into();
         v["parent_version"] = start.version.into();
         v["out"] = a.out.display().to_string().into();

@@ -67,12 +67,20 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
     version::describe(&mut new, &what, ds.noise_floor_um, &prep, &after);
     new.build().context("the fitted calibration")?;
     put(&out_file, new.to_json())?;
+    // "Before" is the parent as it is, "after" the new version, each on the fit and the
+    // held-out data: one definition for the text, the JSON and the report.
+    let figures = report::AddFigures {
+        fit_um: [prep.rms_fit_um, after.rms_fit_um],
+        held_um: [prep.rms_held_um, after.rms_held_um],
+        cv_um: [o.cv_rms_before_um, o.cv_rms_after_um],
+        validated: !data.validate.is_empty(),
+    };
     if report.is_some() {
         let cmp_b = analysis::compare(&ds)?;
         let cmp_a = analysis::compare(&ds_after)?;
         put(
             &report_out,
-            report::add(&l.cal, &new, &o, &ds, &cmp_b, &ds_after, &cmp_a),
+            report::add(&l.cal, &new, &o, &ds, &cmp_b, &ds_after, &cmp_a, &figures),
         )?;
     }
     // Every output complete: only now do they replace anything.
@@ -94,6 +102,7 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
         "heldout_improved": after.rms_held_um < prep.rms_held_um,
         "cv_rms_before_um": o.cv_rms_before_um,
         "cv_rms_after_um": o.cv_rms_after_um,
+        "figures": figures_json(&figures, l.cal.version, new.version),
         "advice": advice,
         "out": out,
     });
@@ -116,27 +125,54 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
             new.version,
             l.cal.version
         )?;
-        outln!(
-            "  RMS on fit data   {:>8} → {:>8} µm",
-            um(prep.rms_fit_um),
-            um(after.rms_fit_um)
-        )?;
-        outln!(
-            "  RMS held out      {:>8} → {:>8} µm   (noise floor {} µm)",
-            um(prep.rms_held_um),
-            um(after.rms_held_um),
-            um(ds.noise_floor_um)
-        )?;
-        if data.validate.is_empty() {
-            outln!(
-                        "  (no --validate: the alternate scans held out above are fitted too; each half predicted by the other: {} → {} µm)",
-                        um(o.cv_rms_before_um),
-                        um(o.cv_rms_after_um)
-                    )?;
-        }
+        print_figures(&figures, l.cal.version, new.version, ds.noise_floor_um)?;
         print_params(&o)?;
     }
     Ok(())
+}
+
+/// What each of `lab add`'s figures is (its JSON's `figures`): the one definition of
+/// "before" (the parent as it is) and "after", and the cross-validated pair, another thing.
+fn figures_json(f: &report::AddFigures, parent: u64, new: u64) -> serde_json::Value {
+    serde_json::json!({
+        "before": format!("v{parent} as it is (not refitted)"),
+        "after": format!("v{new}"),
+        "rms": "on the fit data",
+        "heldout_rms": if f.validated {
+            "on the --validate bags"
+        } else {
+            "on the held-out alternate scans of the fit bags (fitted too)"
+        },
+        "cv_rms": format!(
+            "cross-validated (each alternate scan predicted from the others): v{parent}'s model refitted → v{new}'s"
+        ),
+    })
+}
+
+/// `lab add`'s figures in its text, each labelled as [`figures_json`] defines it.
+fn print_figures(f: &report::AddFigures, parent: u64, new: u64, noise_um: f64) -> Result<()> {
+    outln!("  before: v{parent} as it is (not refitted); after: v{new}")?;
+    outln!(
+        "  RMS on fit data   {:>8} → {:>8} µm",
+        um(f.fit_um[0]),
+        um(f.fit_um[1])
+    )?;
+    outln!(
+        "  RMS held out      {:>8} → {:>8} µm   (noise floor {} µm; {})",
+        um(f.held_um[0]),
+        um(f.held_um[1]),
+        um(noise_um),
+        if f.validated {
+            "the --validate bags"
+        } else {
+            "no --validate: the alternate scans of the fit bags, fitted too"
+        }
+    )?;
+    outln!(
+        "  cross-validated   {:>8} → {:>8} µm   (v{parent}'s model refitted → v{new}'s, each alternate scan predicted from the others)",
+        um(f.cv_um[0]),
+        um(f.cv_um[1])
+    )
 }
 
 /// The candidate moves of `lab add`: the custom effect (its `--term`s), one variant, or every

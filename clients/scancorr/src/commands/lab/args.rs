@@ -123,6 +123,13 @@ pub enum LabCmd {
         /// Print JSON.
         #[arg(long)]
         json: bool,
+        /// Write the refitted version even when it is worse than the one it starts from.
+        /// Worse: a larger RMS on the fit data, or on the --validate data when given, by more
+        /// than 3 % + 0.05 × the noise floor (above 1 % + 0.02 × the floor: a warning only).
+        /// Without this flag such a refit is refused: nothing is written and the exit code is
+        /// 1; with it, it is written with a warning.
+        #[arg(long)]
+        accept_worse: bool,
     },
     /// The error fall across calibration versions.
     History {

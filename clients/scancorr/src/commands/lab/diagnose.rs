@@ -47,10 +47,18 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
         eprintln!("csv: {} in {}", files.join(", "), d.display());
     }
     if json {
-        outln!(
-            "{}",
-            serde_json::to_string_pretty(&json_with_profile_units(&dg)?)?
-        )?;
+        // The rows' order and each candidate's share of the held-out data, stated as the
+        // text and the report state them.
+        let mut j = json_with_profile_units(&dg)?;
+        j["ranked_by"] = report::DIAGNOSIS_ORDER.into();
+        if let Some(cs) = j["candidates"].as_array_mut() {
+            for (v, c) in cs.iter_mut().zip(&dg.candidates) {
+                if let Some(h) = report::heldout_explained(c) {
+                    v["heldout_explained_fraction"] = h.into();
+                }
+            }
+        }
+        outln!("{}", serde_json::to_string_pretty(&j)?)?;
     } else {
         print_diagnosis(&dg, &data, &model)?;
     }

@@ -199,26 +199,47 @@ pub(super) fn print_diagnosis(
         .max()
         .unwrap_or(0)
         .max(34);
+    outln!("  {}", crate::report::DIAGNOSIS_ORDER)?;
     outln!(
-        "  {:<w$} {:>9} {:>4} {:>11} {:>11} {:>9}",
+        "  {:<w$} {:>9} {:>9} {:>4} {:>13} {:>13} {:>13} {:>8}",
         "candidate",
-        "explained",
+        "CV expl.",
+        "held expl",
         "sig",
+        "CV µm",
         "held-out µm",
         "fit µm",
         "ΔBIC"
     )?;
+    let pair = |a: f64, b: f64| format!("{a:.3}→{b:.3}");
     for c in d.candidates.iter().take(12) {
         outln!(
-            "  {:<w$} {:>8.1}% {:>4} {:>5}→{:<5} {:>5}→{:<5} {:>9.0}",
+            "  {:<w$} {:>8.1}% {:>9} {:>4} {:>13} {:>13} {:>13} {:>8.0}",
             label(c),
             c.explained * 100.0,
+            crate::report::heldout_explained(c)
+                .map_or("—".to_string(), |h| format!("{:.1}%", h * 100.0)),
             if c.significant { "yes" } else { "no" },
-            format!("{:.3}", c.heldout_rms_before_um),
-            format!("{:.3}", c.heldout_rms_after_um),
-            format!("{:.3}", c.rms_before_um),
-            format!("{:.3}", c.rms_after_um),
+            pair(c.cv_rms_before_um, c.cv_rms_after_um),
+            pair(c.heldout_rms_before_um, c.heldout_rms_after_um),
+            pair(c.rms_before_um, c.rms_after_um),
             c.delta_bic
+        )?;
+    }
+    // As printed (one decimal of a per cent): the rows this line counts are those a reader sees.
+    let shown = |x: f64| (x * 1000.0).round() / 10.0;
+    let contradicted = d
+        .candidates
+        .iter()
+        .take(12)
+        .filter(|c| {
+            shown(c.explained) > 0.0
+                && crate::report::heldout_explained(c).is_some_and(|h| shown(h) <= 0.0)
+        })
+        .count();
+    if contradicted > 0 {
+        outln!(
+            "  {contradicted} of these remove cross-validated residual yet leave the held-out data no better (held expl ≤ 0): they fit the scans of these placements, not the held-out data"
         )?;
     }
     if !d.candidates.iter().any(|c| c.significant) {

@@ -422,11 +422,14 @@ pub fn predict_on(
         }
     }
     let mut keep = vec![true; k];
-    for (m, &o) in models.iter().zip(&offs) {
+    // (the strongest of its own unit: a translation's column beside a rotation's times its
+    // lever is not weak, as in the lab's `select`).
+    for ((m, &o), (_, c)) in models.iter().zip(&offs).zip(configs) {
         let n = m.n_params();
-        let top = (o..o + n).map(|j| ss[j].sqrt()).fold(0.0, f64::max);
-        for j in o..o + n {
-            keep[j] = top > 0.0 && ss[j].sqrt() > 1e-3 * top;
+        let rms: Vec<f64> = (o..o + n).map(|j| ss[j].sqrt()).collect();
+        let tops = crate::lab::select::unit_tops(&c.param_names(), &rms);
+        for (j, (r, top)) in rms.iter().zip(&tops).enumerate() {
+            keep[o + j] = *top > 0.0 && *r > 1e-3 * top;
         }
     }
     let kept: Vec<usize> = (0..k).filter(|j| keep[*j]).collect();
