@@ -8,8 +8,8 @@ mod lab;
 mod svg;
 pub mod thermal;
 
-pub use calibrate::{dynamic_map, dynamics, probe_force, straightness, tips};
 pub use calibrate::straightness_pv_um;
+pub use calibrate::{dynamic_map, dynamics, probe_force, straightness, tips};
 pub use lab::{add, compare, diagnose, discover, history, history_text, HistoryRow};
 pub use lab::{candidate_label, model_variants, tidy_diagnosis};
 pub use lab::{heldout_explained, AddFigures, DIAGNOSIS_ORDER};
