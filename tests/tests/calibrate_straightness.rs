@@ -691,3 +691,69 @@ fn three_probes_without_a_reversal_estimate_the_parabola_from_the_stated_bow() {
         assert!(!e.contains("NaN"), "{e}");
     }
 }
+
+/// Two unequal shears on the stage (0, 20 and 30 mm at a 10 mm step, NUDT's single-probe
+/// form; the first station also at 10 mm, the recursion's start values), from the nominal
+/// start on machine 67 with run seed 12 (no other test's): guide, part and pitch within the
+/// probe noise of the truth and within their stated σ; a curved stage path is said to be a
+/// parabola no reading shows, with its size.
+#[test]
+fn two_unequal_shears_on_the_stage_reconstruct_the_profiles() {
+    let dir = scratch("straightness-shear-unequal");
+    nominal(&dir);
+    ok(
+        &dir,
+        &[
+            "sim",
+            "--program",
+            "straightness-shear-unequal",
+            "--machine-seed",
+            MACHINE,
+            "--seed",
+            "12",
+            "--out",
+            "tu.mcap",
+            "--truth",
+            "tu.json",
+        ],
+    );
+    let r = calibrate(&dir, "shear-stage", "tu.mcap", "cu.json", &[]);
+    let t = json(&std::fs::read_to_string(dir.join("tu.json")).unwrap());
+    let noise = t["probe_noise_mm"].as_f64().unwrap();
+    let method = r["method"].as_str().unwrap();
+    assert!(method.contains("with pitch"), "{method}");
+    let (g, p, th, u) = errors(&r, &t, 1);
+    eprintln!(
+        "two unequal shears: guide {:.4} µm, part {:.4} µm, pitch {:.3} µrad (σ {:.4} µm)",
+        g * 1e3,
+        p * 1e3,
+        th.unwrap() * 1e6,
+        u * 1e3
+    );
+    assert!(g <= 2.0 * noise && p <= 2.0 * noise, "{g} {p}");
+    // The stated σ are honest: the guide's errors (its line out) within 2σ.
+    let xs = arr(&r["stations_mm"]);
+    let (tx, tg) = (arr(&t["stations_mm"]), arr(&t["guide_straightness_mm"]));
+    let e: Vec<f64> = xs
+        .iter()
+        .zip(arr(&r["guide_straightness_mm"]))
+        .map(|(x, v)| v - at(&tx, &tg, *x))
+        .collect();
+    let e = detrend(&xs, &e, 1);
+    let us = arr(&r["guide_straightness_mm_u"]);
+    let within = e
+        .iter()
+        .zip(&us)
+        .filter(|(e, u)| e.abs() <= 2.0 * **u)
+        .count() as f64
+        / e.len() as f64;
+    eprintln!("guide within 2σ: {:.0} %", within * 100.0);
+    assert!(within >= 0.8, "{within}");
+    let cannot = r["cannot_see"].to_string();
+    assert!(cannot.contains("parabola"), "{cannot}");
+    let notes = r["notes"].to_string();
+    assert!(
+        notes.contains("sagitta") && notes.contains("fall between nodes"),
+        "{notes}"
+    );
+}

@@ -25,10 +25,11 @@ use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
 
 /// The separation programs.
-pub const PROGRAMS: [&str; 3] = [
+pub const PROGRAMS: [&str; 4] = [
     "straightness-three-probe",
     "straightness-two-probe",
     "straightness-shear-stage",
+    "straightness-shear-unequal",
 ];
 
 /// What the mount carries and how the carriage steps.
@@ -41,6 +42,10 @@ pub struct Setup {
     /// Shears the stage takes at every station, mm (empty: no stage); the stage carries
     /// probe 1 at lever 0.
     pub shears_mm: Vec<f64>,
+    /// Shears the stage takes at the first station besides `shears_mm`, mm (two unequal
+    /// shears: the recursion's start values).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub start_shears_mm: Vec<f64>,
     /// Carriage step between stations, mm.
     pub step_mm: f64,
     /// Carriage positions of the stations, mm.
@@ -59,6 +64,7 @@ impl Setup {
                 program: program.into(),
                 probe_levers_mm: vec![-25.0, 0.0, 25.0],
                 shears_mm: vec![],
+                start_shears_mm: vec![],
                 step_mm: 25.0,
                 stations_mm: stations(175.0, 825.0, 25.0),
             },
@@ -66,6 +72,7 @@ impl Setup {
                 program: program.into(),
                 probe_levers_mm: vec![0.0, 25.0],
                 shears_mm: vec![],
+                start_shears_mm: vec![],
                 step_mm: 25.0,
                 stations_mm: stations(150.0, 825.0, 25.0),
             },
@@ -75,8 +82,19 @@ impl Setup {
                 // The step (the two-point method), and twice the step (with it, the exact
                 // three-point reconstruction).
                 shears_mm: vec![0.0, 20.0, 40.0],
+                start_shears_mm: vec![],
                 step_mm: 20.0,
                 stations_mm: stations(150.0, 810.0, 20.0),
+            },
+            "straightness-shear-unequal" => Setup {
+                program: program.into(),
+                probe_levers_mm: vec![0.0],
+                // Two unequal shears, 2 and 3 carriage steps (NUDT's single-probe form), and
+                // at the first station the step too: the recursion's start values.
+                shears_mm: vec![0.0, 20.0, 30.0],
+                start_shears_mm: vec![10.0],
+                step_mm: 10.0,
+                stations_mm: stations(150.0, 800.0, 10.0),
             },
             _ => {
                 return Err(format!(
@@ -365,7 +383,12 @@ pub fn run(
         let shears: Vec<Option<f64>> = if setup.shears_mm.is_empty() {
             vec![None]
         } else {
-            setup.shears_mm.iter().map(|s| Some(*s)).collect()
+            let mut v = setup.shears_mm.clone();
+            if xk == setup.stations_mm[0] {
+                v.extend_from_slice(&setup.start_shears_mm);
+                v.sort_by(f64::total_cmp);
+            }
+            v.into_iter().map(Some).collect()
         };
         for shear in shears {
             let real_shear = shear.map(|s| s * (1.0 + inst.stage_scale_error));
@@ -430,7 +453,7 @@ pub fn run(
             if setup.shears_mm.is_empty() {
                 part.push(x + l);
             }
-            for s in &setup.shears_mm {
+            for s in setup.shears_mm.iter().chain(&setup.start_shears_mm) {
                 part.push(x + l + s);
             }
         }

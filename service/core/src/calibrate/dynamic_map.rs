@@ -26,6 +26,19 @@
 //!
 //! Uncertainties: per scan and bin σ = s/√n inflated by the lag-1 correlation of the points
 //! in the bin, propagated linearly through the equations above (the scans are independent).
+//! To that is added, in quadrature, what the scales' expansion leaves (ISO 1: a scale at T_i
+//! reads long by α_i·(T_i − T_ref)·(s_i − o_i)), which no bin's scatter shows: the room warms
+//! between and during the scans, so each scan's circle grows (a constant per map), turns into
+//! an ellipse (X and Y scales apart) and, within one revolution, drifts (a ramp in time, a
+//! sawtooth in the angle: harmonics falling as 1/k) — one pattern over all bins, different
+//! each run. Per scan and axis i the radial shift per unit α_i of every point,
+//! q_i = (T_i(t) − T_i,S1)·(s_i − o_i)·n_i (T_i(t) the scan's measured scale temperature as a
+//! line in time, n the point's radial direction), goes through what the data goes through (its
+//! own centre taken out, S1's radius subtracted, binned, then the equations above): G_i per
+//! bin. Then σ² += Σ_i (G_i·σ_α,i)², with σ_α,i = α_i/10 of the start's `scale_thermal` when it
+//! corrects the scales, else a typical scale's α (11.5 ppm/K: steel) — the coefficient unknown
+//! within that. The summary parameters (bin means) take the mean of G, which does not average
+//! out over the bins. Without scale sensors in the bags this part is left out (noted).
 //!
 //! Speed search (with a tolerance): where the bags hold F1 and F2 at several speeds, the speeds
 //! are taken in rising order and the slow/fast difference at each — the RMS over the bins of
@@ -60,6 +73,120 @@ const SAME_SPEED: f64 = 0.01;
 /// How far a later scan's carriage path may be from the map's place (S1's path radius about
 /// its centre, and its height) and still get the map, mm.
 pub const PLACE_TOLERANCE_MM: f64 = 1.0;
+/// A typical scale's expansion coefficient (steel), 1/K: the uncertainty of a coefficient the
+/// start does not correct.
+const ALPHA_TYPICAL_PER_K: f64 = 11.5e-6;
+/// With the start's `scale_thermal`: the share of its coefficients taken as their uncertainty.
+const ALPHA_SHARE: f64 = 0.1;
+/// Scale temperature sensors, x, y, z.
+const SCALE_SENSORS: [&str; 3] = ["scale_x", "scale_y", "scale_z"];
+
+/// The scales' expansion as the σ sees it: each axis's sensor slot, the uncertainty of its
+/// coefficient (1/K) and its zero point (mm).
+#[derive(Debug, Clone, Copy)]
+struct Thermal {
+    slots: [Option<usize>; 3],
+    sigma_alpha: [f64; 3],
+    origin: [f64; 3],
+}
+
+impl Thermal {
+    fn of(ds: &Dataset, start: &Calibration) -> Thermal {
+        let slots = SCALE_SENSORS.map(|n| ds.sensors.find(n));
+        let corrected = start.effects.iter().find_map(|e| match e {
+            EffectConfig::ScaleThermal(c) => Some(c),
+            _ => None,
+        });
+        match corrected {
+            Some(c) => Thermal {
+                slots,
+                sigma_alpha: c.alpha_per_k.map(|a| ALPHA_SHARE * a.abs()),
+                origin: c.origin_mm,
+            },
+            None => Thermal {
+                slots,
+                sigma_alpha: [ALPHA_TYPICAL_PER_K; 3],
+                origin: [0.0; 3],
+            },
+        }
+    }
+}
+
+/// One scan's temperature of scale `slot` as a line in time: (t₀ s, T at t₀, slope K/s), from
+/// the points that carry a reading (the sensors' noise averaged out).
+fn temp_line(ds: &Dataset, idx: &[usize], slot: usize) -> Option<(f64, f64, f64)> {
+    let pts: Vec<(f64, f64)> = idx
+        .iter()
+        .map(|&i| &ds.points[i].ctx)
+        .filter(|c| c.temps_valid & (1 << slot) != 0 && c.temps[slot].is_finite())
+        .map(|c| (c.t_ns as f64 * 1e-9, c.temps[slot]))
+        .collect();
+    if pts.len() < 2 {
+        return None;
+    }
+    let n = pts.len() as f64;
+    let t0 = pts.iter().map(|p| p.0).sum::<f64>() / n;
+    let m = pts.iter().map(|p| p.1).sum::<f64>() / n;
+    let stt: f64 = pts.iter().map(|p| (p.0 - t0).powi(2)).sum();
+    let sty: f64 = pts.iter().map(|p| (p.0 - t0) * (p.1 - m)).sum();
+    Some((t0, m, if stt > 0.0 { sty / stt } else { 0.0 }))
+}
+
+/// Per axis, one scan's radial shift per unit α in each bin (its own centre taken out, as its
+/// circle fit does), and its constant (S1's is its radius's share). `tref` the reference
+/// temperatures; None when a scale has no readings in the scan.
+fn thermal_bins(
+    ds: &Dataset,
+    sc: &ScanPts,
+    th_of: &dyn Fn(usize) -> Option<(usize, f64, Vec3)>,
+    n: usize,
+    thermal: &Thermal,
+    tref: [f64; 3],
+) -> Option<([Vec<f64>; 3], [f64; 3])> {
+    let mut bins: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; n]);
+    let mut consts = [0.0; 3];
+    for ax in 0..3 {
+        let Some(slot) = thermal.slots[ax] else {
+            continue;
+        };
+        let (t0, a, b) = temp_line(ds, &sc.idx, slot)?;
+        // Rows (bin, cos θ, sin θ, q).
+        let rows: Vec<(usize, f64, f64, f64)> = sc
+            .idx
+            .iter()
+            .filter_map(|&i| {
+                let (j, th, nr) = th_of(i)?;
+                let c = &ds.points[i].ctx;
+                let t = a + b * (c.t_ns as f64 * 1e-9 - t0) - tref[ax];
+                Some((
+                    j,
+                    th.cos(),
+                    th.sin(),
+                    t * (c.scale[ax] - thermal.origin[ax]) * nr[ax],
+                ))
+            })
+            .collect();
+        // Least squares of q on (1, cos θ, sin θ): the circle fit's radius and centre.
+        let mut m = nalgebra::Matrix3::<f64>::zeros();
+        let mut v = nalgebra::Vector3::<f64>::zeros();
+        for r in &rows {
+            let x = nalgebra::Vector3::new(1.0, r.1, r.2);
+            m += x * x.transpose();
+            v += x * r.3;
+        }
+        let k = m.try_inverse()? * v;
+        consts[ax] = k[0];
+        let mut cnt = vec![0usize; n];
+        for r in &rows {
+            bins[ax][r.0] += r.3 - k[1] * r.1 - k[2] * r.2;
+            cnt[r.0] += 1;
+        }
+        for (b, c) in bins[ax].iter_mut().zip(&cnt) {
+            *b /= (*c).max(1) as f64;
+        }
+    }
+    Some((bins, consts))
+}
 
 /// Options of the procedure.
 #[derive(Debug, Clone, Copy)]
@@ -158,6 +285,11 @@ pub struct Map {
     pub e2_rms_um: f64,
     /// RMS of e2's σ over the bins, µm.
     pub e2_u_rms_um: f64,
+    /// Its part from the points' scatter in the bins alone, µm RMS.
+    pub e2_u_noise_rms_um: f64,
+    /// Its part from the scales' expansion (one pattern over the bins), µm RMS; 0 without
+    /// scale temperatures.
+    pub e2_u_scales_rms_um: f64,
     /// RMS of the dynamic part at zero deflection (HSZD − LSZD = F2 − S1), µm.
     pub dynamic_rms_um: f64,
     /// RMS of e1, µm.
@@ -346,6 +478,7 @@ pub fn run(ds: &Dataset, start: &Calibration, o: &Options) -> Result<Outcome, Pr
     let mut skipped: Vec<(bool, String)> = vec![];
     let mut search = vec![];
     let mut complete = 0usize;
+    let thermal = Thermal::of(ds, start);
     for ((fi, tip, h, dir), segs) in &groups {
         let f = &ds.features[*fi].1;
         let label = format!(
@@ -468,7 +601,7 @@ pub fn run(ds: &Dataset, start: &Calibration, o: &Options) -> Result<Outcome, Pr
                 ));
                 continue;
             }
-            match one_map(ds, &label, *tip, *h, *dir, [s1, f1, f2], o) {
+            match one_map(ds, &label, *tip, *h, *dir, [s1, f1, f2], o, &thermal) {
                 Ok(x) => found.push(x),
                 Err(e) => skipped.push((true, format!("{label}: {e}"))),
             }
@@ -531,7 +664,7 @@ pub fn run(ds: &Dataset, start: &Calibration, o: &Options) -> Result<Outcome, Pr
     calibration
         .effects
         .extend(configs.into_iter().map(EffectConfig::FeatureMap));
-    let notes = vec![
+    let mut notes = vec![
         "the maps hold only what differs between the fast and the slow scans (and the \
          deflection's error at speed): errors common to both stay with the other effects"
             .to_string(),
@@ -548,6 +681,28 @@ pub fn run(ds: &Dataset, start: &Calibration, o: &Options) -> Result<Outcome, Pr
                 .to_string()
         },
     ];
+    notes.push(if thermal.slots.iter().all(|s| s.is_none()) {
+        "no scale temperatures in the bags: what the scales' expansion moves between and during \
+         the scans is not in the maps' σ"
+            .to_string()
+    } else if start
+        .effects
+        .iter()
+        .any(|e| matches!(e, EffectConfig::ScaleThermal(_)))
+    {
+        format!(
+            "the scales' expansion is corrected by the start's `scale_thermal`; {:.0} % of its \
+             coefficients is in the maps' σ",
+            ALPHA_SHARE * 100.0
+        )
+    } else {
+        format!(
+            "the start does not correct the scales' expansion: what the room's drift moves \
+             between and during the scans (for a typical {:.1} ppm/K, from the measured scale \
+             temperatures) is in the maps' σ; `calibrate scales` first removes most of it",
+            ALPHA_TYPICAL_PER_K * 1e6
+        )
+    });
     Ok(Outcome {
         calibration,
         params,
@@ -567,6 +722,7 @@ fn one_map(
     dir: i32,
     [s1, f1, f2]: [&ScanPts; 3],
     o: &Options,
+    thermal: &Thermal,
 ) -> Result<(Map, feature_map::Config, Vec<Param>), String> {
     let n = o.bins;
     // The map's centre: S1's carriage path (scales + deflection), where the map's angle is
@@ -587,8 +743,45 @@ fn one_map(
     };
     let r_s1 = fit(s1, "S1")?.radius;
     let mut stats = vec![];
+    // The scales' expansion per unit α, per scan, axis and bin (see the module doc); None
+    // when a scan has no scale temperatures.
+    let mut therm: Option<Vec<[Vec<f64>; 3]>> = Some(vec![]);
+    let mut s1_const = [0.0; 3];
+    let tref: [f64; 3] = std::array::from_fn(|ax| {
+        thermal.slots[ax]
+            .and_then(|sl| temp_line(ds, &s1.idx, sl))
+            .map_or(0.0, |l| l.1)
+    });
     for (role, sc) in [("S1", s1), ("F1", f1), ("F2", f2)] {
         let c = fit(sc, role)?.center;
+        let th_of = |i: usize| {
+            let p = &ds.points[i];
+            let (th, _) = feature_map::angle(&p.ctx, center)?;
+            let u = th / TAU * n as f64;
+            let d = (p.surface - c).xy();
+            let r = d.norm();
+            (r > 0.0).then(|| {
+                (
+                    (u.round() as usize) % n,
+                    th,
+                    Vec3::new(d.x / r, d.y / r, 0.0),
+                )
+            })
+        };
+        if let Some(t) = therm.as_mut() {
+            match thermal_bins(ds, sc, &th_of, n, thermal, tref) {
+                Some((mut g, k)) => {
+                    if role == "S1" {
+                        s1_const = k;
+                    }
+                    for (ax, b) in g.iter_mut().enumerate() {
+                        b.iter_mut().for_each(|x| *x -= s1_const[ax]);
+                    }
+                    t.push(g);
+                }
+                None => therm = None,
+            }
+        }
         let mut bins: Vec<Vec<BinPoint>> = vec![vec![]; n];
         for &i in &sc.idx {
             let p = &ds.points[i];
@@ -641,6 +834,8 @@ fn one_map(
         e2_u_um: vec![],
         e2_rms_um: 0.0,
         e2_u_rms_um: 0.0,
+        e2_u_noise_rms_um: 0.0,
+        e2_u_scales_rms_um: 0.0,
         dynamic_rms_um: 0.0,
         e1_rms_um: 0.0,
         dynamic_u_rms_um: 0.0,
@@ -651,6 +846,9 @@ fn one_map(
     // e2 = F2 − LSZD. Each is linear in S1, F1, F2: σ by their coefficients.
     let (mut a, mut b, mut u, mut dynamic, mut dyn_u, mut k_u) =
         (vec![], vec![], vec![], vec![], vec![], vec![]);
+    let (mut noise_e2, mut therm_e2, mut dyn_total) = (vec![], vec![], vec![]);
+    // Per summary parameter (e2, the dynamic part, k): the bins' mean thermal part per axis.
+    let mut jsum = [[0.0; 3]; 3];
     for j in 0..n {
         let (bs, b1, b2) = (stats[0][j], stats[1][j], stats[2][j]);
         let dd = b1.defl - b2.defl;
@@ -671,12 +869,40 @@ fn one_map(
             ((c[0] * bs.sigma).powi(2) + (c[1] * b1.sigma).powi(2) + (c[2] * b2.sigma).powi(2))
                 .sqrt()
         };
+        // The scales' expansion through the same coefficients: per axis, per unit α.
+        let tj = |c: [f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|ax| {
+                therm.as_ref().map_or(0.0, |g| {
+                    c[0] * g[0][ax][j] + c[1] * g[1][ax][j] + c[2] * g[2][ax][j]
+                })
+            })
+        };
+        let tvar = |t: [f64; 3]| {
+            (0..3)
+                .map(|ax| (t[ax] * thermal.sigma_alpha[ax]).powi(2))
+                .sum::<f64>()
+        };
         // Coefficients of (S1, F1, F2).
-        let e1_u = sig([0.0, b2.defl / dd, -b2.defl / dd]);
-        let e2_u = sig([-1.0, bs.defl / dd, 1.0 - bs.defl / dd]);
         let g = (b2.defl - bs.defl) / dd;
-        dyn_u.push(sig([-1.0, -g, 1.0 + g]));
-        k_u.push(sig([0.0, 1.0 / dd, -1.0 / dd]));
+        let (e1c, e2c) = (
+            [0.0, b2.defl / dd, -b2.defl / dd],
+            [-1.0, bs.defl / dd, 1.0 - bs.defl / dd],
+        );
+        let (dync, kc) = ([-1.0, -g, 1.0 + g], [0.0, 1.0 / dd, -1.0 / dd]);
+        let e1_u = sig(e1c).hypot(tvar(tj(e1c)).sqrt());
+        let e2_noise = sig(e2c);
+        let e2_therm = tvar(tj(e2c)).sqrt();
+        let e2_u = e2_noise.hypot(e2_therm);
+        noise_e2.push(e2_noise);
+        therm_e2.push(um(e2_therm));
+        dyn_u.push(sig(dync));
+        k_u.push(sig(kc));
+        for (sum, c) in jsum.iter_mut().zip([e2c, dync, kc]) {
+            for (s, t) in sum.iter_mut().zip(tj(c)) {
+                *s += t / n as f64;
+            }
+        }
+        dyn_total.push(sig(dync).hypot(tvar(tj(dync)).sqrt()));
         m.s1_um.push(um(bs.value));
         m.s1_u_um.push(um(bs.sigma));
         m.f1_um.push(um(b1.value));
@@ -701,7 +927,9 @@ fn one_map(
     m.e2_u_rms_um = rms(&m.e2_u_um);
     m.dynamic_rms_um = um(rms(&dynamic));
     m.e1_rms_um = rms(&m.e1_um);
-    m.dynamic_u_rms_um = um(rms(&dyn_u));
+    m.dynamic_u_rms_um = um(rms(&dyn_total));
+    m.e2_u_noise_rms_um = um(rms(&noise_e2));
+    m.e2_u_scales_rms_um = rms(&therm_e2);
     for (k, (role, sc)) in [("S1", s1), ("F1", f1), ("F2", f2)].into_iter().enumerate() {
         m.scans.push(Scan {
             role,
@@ -715,23 +943,29 @@ fn one_map(
     // Summary parameters: the bins' means (radius changes), σ from the bins' σ.
     let nn = n as f64;
     let mean = |v: &[f64]| v.iter().sum::<f64>() / nn;
-    let mean_sigma = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt() / nn;
+    // The bins' noise averages out over them; the scales' part (one pattern) only as its mean.
+    let mean_sigma = |v: &[f64], k: usize| {
+        let t: f64 = (0..3)
+            .map(|ax| (jsum[k][ax] * thermal.sigma_alpha[ax]).powi(2))
+            .sum();
+        (v.iter().map(|x| x * x).sum::<f64>() / (nn * nn) + t).sqrt()
+    };
     let e2: Vec<f64> = m.e2_um.iter().map(|x| x * 1e-3).collect();
     let params = vec![
         Param {
             name: format!("{}.radius_change_mm", m.id),
             value: mean(&e2),
-            sigma: mean_sigma(&u),
+            sigma: mean_sigma(&noise_e2, 0),
         },
         Param {
             name: format!("{}.dynamic_radius_change_mm", m.id),
             value: mean(&dynamic),
-            sigma: mean_sigma(&dyn_u),
+            sigma: mean_sigma(&dyn_u, 1),
         },
         Param {
             name: format!("{}.deflection_error_per_mm", m.id),
             value: -mean(&b),
-            sigma: mean_sigma(&k_u),
+            sigma: mean_sigma(&k_u, 2),
         },
     ];
     let cfg =

@@ -61,6 +61,16 @@
 //! m = x, y, z) is fitted only where the points that carry it spread over ≥ 25 mm along m
 //! (ξ's weighted standard deviation ≥ 0.05); otherwise it is named as not determined.
 //!
+//! The stylus's bending with its deflection (`probe_force`) must be corrected by the start:
+//! at speed the deflection takes up the servo's tracking error, which differs per axis (Y lags
+//! X by τ_y − τ_x: on an arc a tilted ellipse of the carriage's path, turning with the
+//! direction), and an uncorrected stylus under-reports it by its k — a term ∝ f of the same
+//! form on a ring as the readouts' delays, about 2π·k̄·(τ_y − τ_x) in b1 of Y, k̄ the mean of
+//! the stylus's k along X and Y (its cos 2θ part goes into sin 4θ, not the phase). Fitted beside
+//! the phase it is one column with b1 (tried: b1 went from −3.1·10⁻⁴ to +1.6·10⁻⁴ rad/Hz on
+//! machine 233, truth −6.3·10⁻⁴); so it is named in `confounded`, with its size per unit k
+//! from the refitted time constants, when the start has no `probe_force`.
+//!
 //! Spin-up and slow-down points are used: their acceleration and frequency are what the
 //! estimator says they are. Weighted least squares over all points, the covariance scaled by
 //! the residual variance and by (1 + ρ)/(1 − ρ) for the residuals' lag-1 correlation ρ.
@@ -87,6 +97,9 @@ const HARMONICS: usize = 8;
 const WEAK_COLUMN: f64 = 1e-3;
 /// Least ring positions along X.
 const MIN_X_POSITIONS: usize = 5;
+/// A stylus's bending per mm of deflection, typical (a 50 mm steel stylus), for the size of
+/// what the uncorrected bending puts into the phase.
+const BENDING_TYPICAL: f64 = 0.012;
 const AX: [&str; 3] = ["x", "y", "z"];
 
 /// One scan of a ring: speed, direction, what it shows.
@@ -813,6 +826,40 @@ pub fn run(
                 var.max(0.0).sqrt() * 1e6
             ));
         }
+    }
+
+    // Without the stylus's bending corrected, the deflection takes up the servo's tracking
+    // error (Y lags X by τ_y − τ_x: on an arc a tilted ellipse of the carriage's path that
+    // turns with the direction) and the stylus under-reports it by its k: a term ∝ f with the
+    // phase's signature, the same form as the readouts' delays on a ring (see the module doc).
+    let bending_corrected = start
+        .effects
+        .iter()
+        .any(|e| matches!(e, EffectConfig::ProbeForce(_)));
+    let tau = |a: &str| nominal.iter().find(|f| f.axis == a).map(|f| f.tau_after_s);
+    for ax in ["y", "z"] {
+        let (Some(c), Some(ta), Some(tx)) =
+            (col(&format!("dynamics.phase_{ax}.b1.1")), tau(ax), tau("x"))
+        else {
+            continue;
+        };
+        if bending_corrected || theta[c] == 0.0 {
+            continue;
+        }
+        let per_k = std::f64::consts::TAU * (ta - tx);
+        confounded.push(format!(
+            "phase_{ax}.b1.1 and the stylus's bending (the start corrects no bending): at speed \
+             the deflection takes up the servo's tracking error — {ax} lags X by τ_{ax} − τ_x = \
+             {:.2} ms, a tilted ellipse of the carriage's path that turns with the direction — \
+             and a stylus bending by k per mm of deflection under-reports it: about \
+             {per_k:+.2e}·k̄ rad/Hz in b1, k̄ the mean of its k in the ring's plane \
+             ({:+.1e} rad/Hz at k̄ = {BENDING_TYPICAL}), beside the readouts' delays, on a \
+             ring the same form. Run `calibrate probe-force` first: with \
+             the bending corrected b1 is the readouts' (the simulator's machine 233: \
+             −3.1·10⁻⁴ rad/Hz without, −6.36·10⁻⁴ with no bending against −6.32·10⁻⁴).",
+            (ta - tx) * 1e3,
+            per_k * BENDING_TYPICAL
+        ));
     }
 
     // --- the calibration ---

@@ -22,6 +22,19 @@
 //! from k_u, k_v, and the angle around each circle separates k_u from k_v (cos² against sin²).
 //! The RMS of the fit about the zero-force map is reported per setting.
 //!
+//! What the start leaves of the dynamics (the nominal start has none) must not pass for force.
+//! Two measures ([`Options`]): (1) only points at the programmed speed are used — no dwell,
+//! spin-up or slow-down — so every deflection of a circle is compared at the same speed and
+//! centripetal acceleration, and what the dynamics do there is the same at each and goes into
+//! the static map (the patent's two forces along one path); (2) unless the start carries
+//! `accel_deflection`, the structure's compliance under the carriage's acceleration a (the
+//! estimated one) is fitted beside the force, one per machine axis (the sphere stands at one
+//! place): the left-hand side gains Σ_j C_j·n_j·a_j, with the prior C_j = 0 ± σ_C (σ_C = 30 µm
+//! per m/s², a bridge CMM's) as a pseudo-observation of weight s²/σ_C² (s² the fit's point
+//! variance). Where the scans' accelerations do not follow the deflection the data determine
+//! C; where they do (a wave, a = −ω²·d) the prior's σ goes into the force coefficients' σ
+//! through their correlation (σ_k ≈ σ_C·ω² for a wave's share) instead of a bias of C·ω².
+//!
 //! Variant (d) — radial approaches at a few positions, the deflection growing along each —
 //! has no sphere to fit: each position's points share one normal n̄ (their mean probing
 //! direction) and one static term ρ_p (its distance), with no harmonics and no drift
@@ -51,7 +64,7 @@ use crate::calib::Calibration;
 use crate::effects::{
     feature_map, probe_force, scale_thermal, stylus_thermal, Effect, EffectConfig,
 };
-use crate::lab::dataset::Dataset;
+use crate::lab::dataset::{Dataset, Phase};
 use crate::lab::fit::Normal;
 use crate::lab::program::FeatureKind;
 use crate::sample::Vec3;
@@ -75,8 +88,6 @@ const LATITUDE_DEG: f64 = 4.0;
 const POSITION_DEG: f64 = 10.0;
 /// Harmonics of each circle's static pattern.
 const HARMONICS: usize = 12;
-/// Static-pattern columns per circle: mean radius, cos and sin of each harmonic.
-const PER_CIRCLE: usize = 1 + 2 * HARMONICS;
 /// Drift columns per circle: the centre moving linearly in time (mm per 100 s) while its
 /// deflections are scanned.
 const DRIFT: usize = 3;
@@ -238,9 +249,47 @@ fn level_of(levels: &[f64], d: f64) -> usize {
         .unwrap_or(0)
 }
 
+/// How [`run_with`] treats what the starting calibration leaves uncorrected. The default
+/// (every point, no compliance) is [`run`]'s; variants (b)–(d) want both measures (`calibrate
+/// probe-force --steady-only --compliance-prior 30`).
+#[derive(Debug, Clone, Copy)]
+pub struct Options {
+    /// Only points at the scan's programmed speed (no dwell, no spin-up or slow-down): every
+    /// deflection is then compared at the same kinematic state, so what the start leaves of
+    /// the dynamics is the same at each and goes into the static map.
+    pub steady_only: bool,
+    /// The prior σ of each axis's compliance (s²) fitted beside the force when the start has
+    /// no `accel_deflection`; `None` fits none.
+    pub compliance_prior_s2: Option<f64>,
+    /// Harmonics of each circle's static pattern.
+    pub harmonics: usize,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            steady_only: false,
+            compliance_prior_s2: None,
+            harmonics: HARMONICS,
+        }
+    }
+}
+
 /// Fits the force coefficients: `ds` built from the bags with `start` without its
 /// `probe_force` effect (this procedure measures it).
 pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError> {
+    run_with(ds, start, Options::default())
+}
+
+/// [`run`] with explicit [`Options`].
+pub fn run_with(
+    ds: &Dataset,
+    start: &Calibration,
+    opts: Options,
+) -> Result<Outcome, ProcedureError> {
+    let harmonics = opts.harmonics.max(1);
+    // Static-pattern columns per circle: mean radius, cos and sin of each harmonic.
+    let per_circle = 1 + 2 * harmonics;
     let spheres: BTreeMap<usize, f64> = ds
         .features
         .iter()
@@ -260,7 +309,12 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     let mut by_key: BTreeMap<(u32, [i64; 2], usize), Vec<usize>> = BTreeMap::new();
     for (i, p) in ds.points.iter().enumerate() {
         // (A point without deflection has no probing direction and says nothing of the force.)
-        if spheres.contains_key(&p.feature) && p.ctx.deflection_probe.norm() > MIN_DEFLECTION_MM {
+        // Only points at the programmed speed (see [`Options::steady_only`]).
+        let steady = !opts.steady_only || (p.speed > 0.0 && p.phase == Phase::Steady);
+        if spheres.contains_key(&p.feature)
+            && p.ctx.deflection_probe.norm() > MIN_DEFLECTION_MM
+            && steady
+        {
             let h = [p.ctx.head_a1_deg, p.ctx.head_a2_deg].map(|a| (a * 1e3).round() as i64);
             by_key
                 .entry((p.ctx.tip_id, h, p.feature))
@@ -327,7 +381,12 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     .iter()
     .filter_map(|c| c.build(&mut sensors).ok().map(|b| b.model))
     .collect();
-    let n_dense = n_force + thermal.iter().map(|m| m.n_params()).sum::<usize>();
+    let n_thermal = n_force + thermal.iter().map(|m| m.n_params()).sum::<usize>();
+    // Nuisance: the structure's compliance under the carriage's acceleration, one per machine
+    // axis (the sphere stands at one place), unless the start corrects it.
+    let compliance_corrected = start.effects.iter().any(|e| e.kind() == "accel_deflection");
+    let compliance_prior = opts.compliance_prior_s2.filter(|_| !compliance_corrected);
+    let n_dense = n_thermal + if compliance_prior.is_some() { 3 } else { 0 };
     let tip_col = |t: u32| 3 + 3 * tips.iter().position(|x| *x == t).expect("listed tip");
     // Per setting: its own sphere fit (the point of linearisation).
     // Where the points cover too little of the sphere to fit it (approaches at a few
@@ -423,7 +482,28 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         circles_of_group[*gi].push(*c);
         position_only[*c] = !lin[*gi].sphere;
     }
-    let n_cols = n_dense + (DRIFT + PER_CIRCLE) * n_circles;
+    let n_cols = n_dense + (DRIFT + per_circle) * n_circles;
+    // Each position's mean distance (approaches): its rows are taken about it. Its static
+    // term absorbs it either way, but a distance of millimetres in the rows is lost to
+    // rounding in the normal equations wherever a column is nearly constant over a position
+    // (a temperature that barely changes), leaving the fit's residual at the distance.
+    let mut circle_ref = vec![0.0; n_circles];
+    {
+        let mut n_ref = vec![0usize; n_circles];
+        for (gi, g) in groups.iter().enumerate() {
+            for &i in &g.idx {
+                let c = circle_of[i];
+                if position_only[c] {
+                    let l = &lin[gi];
+                    circle_ref[c] += dir(gi, i).dot(&(ds.points[i].surface - l.center)) - l.radius;
+                    n_ref[c] += 1;
+                }
+            }
+        }
+        for (r, n) in circle_ref.iter_mut().zip(&n_ref) {
+            *r /= (*n).max(1) as f64;
+        }
+    }
     // Each circle's mean time (its drift is linear about it).
     let mut t_circle = vec![0.0; n_circles];
     let mut n_in = vec![0usize; n_circles];
@@ -453,7 +533,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
                 m.regressors(&ds.points[i].ctx, &mut r[off..off + k]);
                 off += k;
             }
-            for (a, b) in thermal_mean.iter_mut().zip(&r).skip(n_force) {
+            for (a, b) in thermal_mean[..n_thermal].iter_mut().zip(&r).skip(n_force) {
                 if b.iter().all(|x| x.is_finite()) {
                     *a += b;
                 }
@@ -464,7 +544,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     for a in &mut thermal_mean {
         *a /= n_mean.max(1) as f64;
     }
-    let mut sparse = Vec::with_capacity(DRIFT + PER_CIRCLE);
+    let mut sparse = Vec::with_capacity(DRIFT + per_circle);
     let row = |gi: usize,
                i: usize,
                dense: &mut Vec<f64>,
@@ -481,6 +561,11 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             m.regressors(&p.ctx, &mut r[off..off + k]);
             off += k;
         }
+        for j in 0..n_dense - n_thermal {
+            let mut a = Vec3::zeros();
+            a[j] = p.ctx.est_acc[j];
+            r[n_thermal + j] = a;
+        }
         for ((d, ri), mi) in dense.iter_mut().zip(r.iter()).zip(&thermal_mean) {
             *d = if ri.iter().all(|x| x.is_finite()) {
                 n.dot(&(ri - mi))
@@ -492,14 +577,14 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         let dt = (p.ctx.t_ns as f64 * 1e-9 - t_circle[ci]) / 100.0;
         let c0 = DRIFT * ci;
         sparse.clear();
-        let k0 = DRIFT * n_circles + PER_CIRCLE * ci;
+        let k0 = DRIFT * n_circles + per_circle * ci;
         sparse.push((k0, -1.0));
         if position_only[ci] {
-            return n.dot(&(p.surface - l.center)) - l.radius;
+            return n.dot(&(p.surface - l.center)) - l.radius - circle_ref[ci];
         }
         sparse.extend([(c0, -n.x * dt), (c0 + 1, -n.y * dt), (c0 + 2, -n.z * dt)]);
         let th = n.y.atan2(n.x);
-        for h in 1..=HARMONICS {
+        for h in 1..=harmonics {
             let a = h as f64 * th;
             sparse.push((k0 + 2 * h - 1, -a.cos()));
             sparse.push((k0 + 2 * h, -a.sin()));
@@ -526,6 +611,17 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             let y = row(gi, i, &mut dense, &mut r, &mut sparse);
             n_rows += 1;
             ne.add(&dense, &sparse, y);
+        }
+    }
+    // The compliance's prior, 0 ± σ_C per axis: a pseudo-observation of weight s²/σ_C², s²
+    // the points' variance — first the noise floor's, corrected below once the fit's own is
+    // known. Where the scans determine the compliance (accelerations that the deflection does
+    // not follow) the data outweigh it; where they cannot tell it from the force (a wave whose
+    // acceleration is in phase with its deflection) its σ goes into the force coefficients'.
+    let floor_var = (ds.noise_floor_um * 1e-3).powi(2).max(1e-12);
+    if let Some(sc) = compliance_prior {
+        for c in n_thermal..n_dense {
+            ne.m[(c, c)] += floor_var / (sc * sc);
         }
     }
     // The machine-wide k has no rows (every tip is listed); a tip's axis the measurement
@@ -556,7 +652,14 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             ne.b[c] = 0.0;
         }
     }
-    let sol = ne.solve();
+    let (sol, pad) = solve_padded(&ne);
+    if sol.rank <= pad {
+        return Err(ProcedureError::IllConditioned(
+            "the normal equations of the force fit could not be solved (no direction of them \
+             determined)"
+                .into(),
+        ));
+    }
     // The same without any force correction: what the static maps and drifts alone leave.
     let ss_before = {
         let mut n0 = ne.clone();
@@ -565,7 +668,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
             n0.m.column_mut(c).fill(0.0);
             n0.b[c] = 0.0;
         }
-        let x0: Vec<f64> = n0.solve().x.iter().copied().collect();
+        let x0: Vec<f64> = solve_padded(&n0).0.x.iter().copied().collect();
         let mut ss = 0.0;
         for (gi, g) in groups.iter().enumerate() {
             for &i in &g.idx {
@@ -615,7 +718,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         0.0
     };
     let inflate = (1.0 + rho) / (1.0 - rho);
-    let dof = (n_rows as f64 - sol.rank as f64).max(1.0);
+    let dof = (n_rows as f64 - (sol.rank - pad) as f64).max(1.0);
     let point_var = ss_after / dof;
     if !(point_var > 0.0 && point_var.is_finite()) {
         return Err(ProcedureError::IllConditioned(
@@ -656,6 +759,22 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     };
     let birge = chi2_red.max(1.0);
     let sigma2 = point_var * inflate * birge;
+    // The compliance's prior at the fit's own variance (above: the noise floor's), once.
+    let (sol, theta) = match compliance_prior {
+        Some(sc) if sigma2 > floor_var => {
+            for c in n_thermal..n_dense {
+                ne.m[(c, c)] += (sigma2 - floor_var) / (sc * sc);
+            }
+            match solve_padded(&ne) {
+                (again, p) if again.rank > p => {
+                    let theta: Vec<f64> = again.x.iter().copied().collect();
+                    (again, theta)
+                }
+                _ => (sol, theta),
+            }
+        }
+        _ => (sol, theta),
+    };
     let sig = |c: usize| (sol.cov[(c, c)].max(0.0) * sigma2).sqrt();
 
     let mut params = vec![];
@@ -707,7 +826,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         // The zero-force radius: the circles' mean radii (each circle's weight its points).
         let (mut rsum, mut vsum, mut nsum) = (0.0, 0.0, 0.0);
         for &c in &circles_of_group[gi] {
-            let col = n_dense + DRIFT * n_circles + PER_CIRCLE * c;
+            let col = n_dense + DRIFT * n_circles + per_circle * c;
             let m = n_in[c] as f64;
             rsum += m * theta[col];
             vsum += m * m * sig(col).powi(2);
@@ -727,8 +846,8 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         for &i in &g.idx {
             let n = dir(gi, i);
             let th = n.y.atan2(n.x);
-            let k0 = n_dense + DRIFT * n_circles + PER_CIRCLE * circle_of[i];
-            let f: f64 = (2..=HARMONICS)
+            let k0 = n_dense + DRIFT * n_circles + per_circle * circle_of[i];
+            let f: f64 = (2..=harmonics)
                 .map(|h| {
                     let a = h as f64 * th;
                     theta[k0 + 2 * h - 1] * a.cos() + theta[k0 + 2 * h] * a.sin()
@@ -801,7 +920,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         if !lin[gi].sphere {
             continue;
         }
-        let k0 = n_dense + DRIFT * n_circles + PER_CIRCLE * c;
+        let k0 = n_dense + DRIFT * n_circles + per_circle * c;
         let members: Vec<usize> = g
             .idx
             .iter()
@@ -820,7 +939,7 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         for j in 0..STATIC_KNOTS {
             let th = std::f64::consts::TAU * j as f64 / STATIC_KNOTS as f64;
             let mut w = vec![(k0, 1.0)];
-            for h in 1..=HARMONICS {
+            for h in 1..=harmonics {
                 let a = h as f64 * th;
                 w.push((k0 + 2 * h - 1, a.cos()));
                 w.push((k0 + 2 * h, a.sin()));
@@ -893,7 +1012,6 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
     }
     // The real-time form on the scans whose deflection varies within them.
     let point_sigma = (point_var * inflate).sqrt();
-    let compliance_corrected = start.effects.iter().any(|e| e.kind() == "accel_deflection");
     let mut real_time = vec![];
     for (gi, g) in groups.iter().enumerate() {
         let mut by_seg: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
@@ -1072,6 +1190,34 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
          speed): their σ is the statistical part only; the force coefficients are free of it"
             .to_string(),
     ];
+    if opts.steady_only {
+        notes.push(
+            "only points at each scan's programmed speed are used (no dwell, spin-up or \
+             slow-down): every deflection is compared at the same kinematic state"
+                .to_string(),
+        );
+    }
+    // The fitted compliance, per axis, µm per m/s² (s² × 1e6).
+    let compliance_text = compliance_prior.map(|sc| {
+        let v: Vec<String> = (0..3)
+            .map(|j| {
+                let c = n_thermal + j;
+                format!(
+                    "{} {:+.1} ± {:.1}",
+                    ["X", "Y", "Z"][j],
+                    theta[c] * 1e6,
+                    sig(c) * 1e6
+                )
+            })
+            .collect();
+        format!(
+            "the structure's compliance under the carriage's acceleration is fitted beside the \
+             force, each axis with a prior 0 ± {:.0} µm per m/s² (a bridge CMM's): {} µm per \
+             m/s²; what the scans cannot tell from the force is in the coefficients' σ",
+            sc * 1e6,
+            v.join(", ")
+        )
+    });
     // A wave of the deflection accelerates the carriage in phase with it: unless the start
     // corrects the compliance, a typical one biases the coefficients by C·(a per d).
     if let Some(worst) = real_time
@@ -1091,6 +1237,12 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
                  of deflection; the start's accel_deflection corrects the structure's bending \
                  under it"
             ));
+        } else if let Some(text) = &compliance_text {
+            notes.push(format!(
+                "the deflection's waves accelerate the carriage by up to {worst:.1} mm/s² per mm \
+                 of deflection, in phase with the deflection (a compliance of 30 µm per m/s² \
+                 would pass for {bias:.5} of force coefficient): {text}"
+            ));
         } else if bias > sigma_k {
             notes.push(format!(
                 "confounded: the deflection's waves accelerate the carriage by up to \
@@ -1106,6 +1258,9 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
                  coefficients by {bias:.6}, below their σ ({sigma_k:.5})"
             ));
         }
+    }
+    if let (Some(text), true) = (&compliance_text, real_time.is_empty()) {
+        notes.push(text.clone());
     }
     if groups.iter().any(|g| g.head != [0.0, 0.0]) {
         notes.push(
@@ -1166,6 +1321,22 @@ pub fn run(ds: &Dataset, start: &Calibration) -> Result<Outcome, ProcedureError>
         undetermined,
         notes,
     })
+}
+
+/// Solves `ne` with every column that carries no information (all zero: a position's unused
+/// harmonics and drift, a coefficient not determined) set to the identity, and how many. The
+/// eigen-decomposition of a matrix with many exactly zero rows can fail outright (every
+/// eigenvalue NaN), which left every coefficient 0 ± 0 on some runs of the approaches.
+fn solve_padded(ne: &Normal) -> (crate::lab::fit::Solved, usize) {
+    let mut n = ne.clone();
+    let mut pad = 0;
+    for c in 0..n.b.len() {
+        if n.m[(c, c)] == 0.0 {
+            n.m[(c, c)] = 1.0;
+            pad += 1;
+        }
+    }
+    (n.solve(), pad)
 }
 
 #[cfg(test)]

@@ -32,10 +32,23 @@
 //! head angle ≥ 2 times the α's are fitted first from the visits' deviations from their own
 //! head angle's mean (that constant projected out, with 3 degrees of freedom per head angle
 //! taken from the χ² scale) and held in the lengths' fit. A coefficient is stored only when
-//! more than 2σ from zero. The scales' expansion between the carriage positions of the tips
-//! (the offsets × α_scale × ΔT_scale) follows the room as the styli's does: without a
-//! `scale_thermal` in the start it is taken for the styli's (said in the notes). Only the
-//! reference measured (re-qualifying it alone): its effective radius; the rest is kept.
+//! more than 2σ from zero. Only the reference measured (re-qualifying it alone): its
+//! effective radius; the rest is kept.
+//!
+//! What the settings cannot separate from the parameters is carried in their σ: the estimate
+//! is linear in the offsets, θ = M·b (the structure chosen above), so an unknown term u·c in
+//! b, u = 0 ± σ_u, adds σ_u²·(M·c)(M·c)ᵀ to the covariance.
+//! - The scales' expansion, when the start has no `scale_thermal`: between the carriage
+//!   positions of a tip and the reference the scales read α_s,j·(T_s,j − 20 °C)·(o − o_ref)_j
+//!   less (ISO 1; T_s,j the scale's sensor, else the stylus's), which follows the room as the
+//!   styli's growth does, and its constant part is in the lengths. α_s,j = 0 ± 12 ppm/K per
+//!   axis (glass-ceramic to steel, aluminium at 2σ). A coefficient this leaves within 2σ of
+//!   zero is named confounded with the scales' expansion, not stored: `calibrate scales`
+//!   first, then `tips`, separates them.
+//! - One head angle per stylus: the machine's geometry between the carriage positions of a
+//!   tip and the reference is one constant per (tip, head angle), which the lengths take in
+//!   the axes they span; σ_g² = Σ (group means' residuals)² / (3·groups − limbs), the size
+//!   of what is left in the axes they do not span.
 //!
 //! Source idea: probe qualification on a reference sphere, the offset of each tip from the
 //! reference tip's (s12 = S2 − S1) solved for the stylus lengths from the trusted head and
@@ -56,6 +69,10 @@ use std::collections::BTreeMap;
 /// fitted at all, K (ten times the stylus sensor's noise): whether a range suffices is then
 /// the fit's σ — what it takes is stated in the module's doc.
 const MIN_TEMP_RANGE_K: f64 = 0.02;
+
+/// The scales' expansion coefficient assumed when the starting calibration states none, per
+/// K: 0 ± 12 ppm/K covers glass-ceramic (≈ 0), steel (11.5) and, at 2σ, aluminium (23).
+const SCALE_ALPHA_PRIOR_PER_K: f64 = 12e-6;
 
 /// One setting: a tip at one head angle, measuring the sphere.
 #[derive(Debug, Clone, Serialize)]
@@ -215,6 +232,21 @@ pub fn run(
         .min()
         .unwrap_or(0);
     let slot = ds.sensors.find("stylus");
+    // A sensor's mean over a setting's points (None without a valid reading).
+    let mean_temp = |g: &Group, s: usize| -> Option<f64> {
+        let v: Vec<f64> = g
+            .idx
+            .iter()
+            .map(|&i| &ds.points[i].ctx)
+            .filter(|c| c.temps_valid & (1 << s) != 0)
+            .map(|c| c.temps[s])
+            .collect();
+        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    };
+    let scale_slots = ["scale_x", "scale_y", "scale_z"].map(|n| ds.sensors.find(n));
+    // Each setting's scale temperatures (the stylus's stands in for a scale without a sensor:
+    // both follow the room).
+    let mut scale_temps: Vec<Option<[f64; 3]>> = vec![];
     let mut settings = vec![];
     for g in &gs {
         let pts: Vec<Vec3> = g.idx.iter().map(|&i| ds.points[i].surface).collect();
@@ -250,16 +282,13 @@ pub fn run(
             .map(|&i| (ds.points[i].ctx.t_ns - t0) as f64 * 1e-9)
             .sum::<f64>()
             / n;
-        let temp_c = slot.and_then(|s| {
-            let v: Vec<f64> = g
-                .idx
-                .iter()
-                .map(|&i| &ds.points[i].ctx)
-                .filter(|c| c.temps_valid & (1 << s) != 0)
-                .map(|c| c.temps[s])
-                .collect();
-            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-        });
+        let temp_c = slot.and_then(|s| mean_temp(g, s));
+        let st = scale_slots.map(|s| s.and_then(|s| mean_temp(g, s)).or(temp_c));
+        scale_temps.push(
+            st.iter()
+                .all(|t| t.is_some())
+                .then(|| st.map(|t| t.unwrap_or(20.0))),
+        );
         settings.push(Setting {
             tip: g.tip,
             head_deg: g.head,
@@ -409,9 +438,9 @@ pub fn run(
         notes.push(
             "the starting calibration has no scales' expansion (`scale_thermal`): the scales' \
              growth between the carriage positions of the tips (the offsets × α_scale × the \
-             scales' temperature change) follows the room as the styli's does and is taken \
-             for it — measure the scales first (`scancorr calibrate scales`) for the styli's \
-             own coefficients"
+             scales' temperature change) follows the room as the styli's does; the styli's \
+             coefficients and lengths carry it in their σ (α_scale 0 ± 12 ppm/K) — measure \
+             the scales first (`scancorr calibrate scales`) for the styli's own coefficients"
                 .into(),
         );
     }
@@ -546,14 +575,14 @@ pub fn run(
             .iter()
             .any(|((t, _, _), rows)| *t == k && rows.len() >= 2)
     });
-    let mut alpha_from_repeats = false;
-    if fit_alpha && every_stylus_repeated {
+    // The rows of (1) for a right-hand side `rhs`: each repeated group's deviations from its
+    // own weighted mean (the group's offset projected out).
+    let repeat_rows = |rhs: &[f64]| {
         let (mut ar, mut br, mut wr) = (vec![], vec![], vec![]);
         let mut groups_used = 0usize;
         for rows in repeats.values().filter(|r| r.len() >= 2) {
             groups_used += 1;
             for ax in 0..3 {
-                // Projecting out the group's own offset: deviations from its weighted mean.
                 let sw: f64 = rows.iter().map(|&r| w[3 * r + ax]).sum();
                 let mean = |f: &dyn Fn(usize) -> f64| {
                     rows.iter()
@@ -562,7 +591,7 @@ pub fn run(
                         / sw
                 };
                 let mean_a: Vec<f64> = alpha_cols.iter().map(|&c| mean(&|k| a[k][c])).collect();
-                let mean_b = mean(&|k| b[k]);
+                let mean_b = mean(&|k| rhs[k]);
                 for &r in rows {
                     let k = 3 * r + ax;
                     ar.push(
@@ -572,11 +601,16 @@ pub fn run(
                             .map(|(&c, mu)| a[k][c] - mu)
                             .collect::<Vec<_>>(),
                     );
-                    br.push(b[k] - mean_b);
+                    br.push(rhs[k] - mean_b);
                     wr.push(w[k]);
                 }
             }
         }
+        (ar, br, wr, groups_used)
+    };
+    let mut alpha_from_repeats = false;
+    if fit_alpha && every_stylus_repeated {
+        let (ar, br, wr, groups_used) = repeat_rows(&b);
         if let Some((t, c, rms)) = weighted_lsq(&ar, &br, &wr) {
             // The χ² scale with the degrees of freedom the group offsets took (3 per group).
             let (m, n) = (ar.len() as f64, alpha_cols.len() as f64);
@@ -668,6 +702,101 @@ pub fn run(
                 .into(),
         );
     }
+    // What the data cannot tell from the parameters, propagated into their covariance: the
+    // estimate is linear in the right-hand side (θ = M·b, the structure chosen above), so an
+    // unknown term σ·c in b moves θ by σ·M·c.
+    let replay = |rhs: &[f64]| -> Vec<f64> {
+        let mut th = vec![0.0; n_all];
+        if alpha_from_repeats {
+            let (ar, br, wr, _) = repeat_rows(rhs);
+            if let Some((t, _, _)) = weighted_lsq(&ar, &br, &wr) {
+                for (i, &ci) in alpha_cols.iter().enumerate() {
+                    th[ci] = t[i];
+                }
+            }
+        }
+        let bf: Vec<f64> = a
+            .iter()
+            .zip(rhs)
+            .map(|(row, y)| y - alpha_cols.iter().map(|&c| row[c] * th[c]).sum::<f64>())
+            .collect();
+        let sub: Vec<Vec<f64>> = a
+            .iter()
+            .map(|r| cols.iter().map(|&c| r[c]).collect())
+            .collect();
+        if let Some((t, _, _)) = weighted_lsq(&sub, &bf, &w) {
+            for (i, &ci) in cols.iter().enumerate() {
+                th[ci] = t[i];
+            }
+        }
+        th
+    };
+    let mut add_nuisance = |sigma: f64, column: &[f64]| -> Vec<f64> {
+        let m = replay(column);
+        for i in 0..n_all {
+            for j in 0..n_all {
+                cov[(i, j)] += sigma * sigma * m[i] * m[j];
+            }
+        }
+        m
+    };
+    // (a) The scales' expansion, when the start has none: between the carriage positions of
+    // a tip and the reference the scales read α_s,j·(T_s,j − 20 °C)·(o − o_ref)_j less, which
+    // follows the room as the styli's growth does.
+    let no_scale_thermal = !start.effects.iter().any(|e| e.kind() == "scale_thermal");
+    let mut scale_share = vec![0.0; n_all];
+    if no_scale_thermal && others.iter().all(|&i| scale_temps[i].is_some()) {
+        for j in 0..3 {
+            let mut column = vec![0.0; a.len()];
+            for (n_row, &i) in others.iter().enumerate() {
+                let ts = scale_temps[i].expect("checked")[j];
+                column[3 * n_row + j] = -(ts - 20.0) * (offset_cal(i) - o_ref)[j];
+            }
+            let m = add_nuisance(SCALE_ALPHA_PRIOR_PER_K, &column);
+            for (v, mi) in scale_share.iter_mut().zip(&m) {
+                *v += (SCALE_ALPHA_PRIOR_PER_K * mi).powi(2);
+            }
+        }
+    }
+    // (b) One head angle per stylus: the machine's geometry between the carriage positions
+    // of a tip and the reference is one constant per (tip, head angle), taken by the lengths
+    // in the axes they span; its size is what is left in the axes they do not (the group
+    // means' residuals over their degrees of freedom).
+    if !with_rot {
+        let mut ss = 0.0;
+        for rows in repeats.values() {
+            for ax in 0..3 {
+                let (mut sw, mut sr) = (0.0, 0.0);
+                for &r in rows {
+                    let k = 3 * r + ax;
+                    let pred: f64 = a[k].iter().zip(&theta).map(|(x, t)| x * t).sum();
+                    sw += w[k];
+                    sr += w[k] * (b[k] - pred);
+                }
+                ss += (sr / sw).powi(2);
+            }
+        }
+        let dof = 3 * repeats.len() as i64 - limb_cols.len() as i64;
+        if dof >= 1 {
+            let sigma_g = (ss / dof as f64).sqrt();
+            for rows in repeats.values() {
+                for ax in 0..3 {
+                    let mut column = vec![0.0; a.len()];
+                    for &r in rows {
+                        column[3 * r + ax] = 1.0;
+                    }
+                    add_nuisance(sigma_g, &column);
+                }
+            }
+        } else {
+            undetermined.push(
+                "the machine's geometry between the tips' carriage positions: one head angle \
+                 per stylus and as many limbs as axes leave nothing to measure it by; it is in \
+                 the lengths, not in their σ"
+                    .into(),
+            );
+        }
+    }
     // Residuals.
     let mut res_ss = 0.0;
     for (n_row, &i) in others.iter().enumerate() {
@@ -742,8 +871,20 @@ pub fn run(
         for (&(tip, field), &c) in &col {
             if field == "alpha_per_k" && fitted[c] {
                 let sigma = cov[(c, c)].max(0.0).sqrt();
+                let from_scales = scale_share[c].sqrt();
                 if theta[c].abs() > 2.0 * sigma {
                     th.alpha_per_tip.insert(tip, theta[c]);
+                } else if from_scales > 0.5 * sigma {
+                    undetermined.push(format!(
+                        "tip{tip}.alpha_per_k: {:.1} ± {:.1} ppm/K, confounded with the \
+                         scales' expansion (± {:.1} ppm/K of it from the scales' unknown \
+                         0 ± {:.0} ppm/K: the start has no `scale_thermal`; not stored): measure \
+                         the scales first (`scancorr calibrate scales`) and qualify again",
+                        theta[c] * 1e6,
+                        sigma * 1e6,
+                        from_scales * 1e6,
+                        SCALE_ALPHA_PRIOR_PER_K * 1e6
+                    ));
                 } else {
                     undetermined.push(format!(
                         "tip{tip}.alpha_per_k: {:.1} ± {:.1} ppm/K, not 2σ from zero (not \

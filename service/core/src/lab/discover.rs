@@ -937,6 +937,12 @@ pub fn discover(
     let mut fin = analysis::fit_effects(&ds, &prep, &cal.effects)?;
     // σ carries what the choice of model moves (the near-equal moves of the last diagnosis).
     analysis::widen_by_alternatives(&mut fin, &last_dg.model_spread);
+    // … and what the arc's description moves (the commanded arcs against the estimated path's).
+    on_progress(
+        "refitting with each arc taken from the estimated path (what the arc's description moves)",
+    );
+    let arcs = analysis::arc_source_spread(bags, &ds, &o.build, &fin)?;
+    analysis::widen_by_arc_source(&mut fin, &arcs);
     let fin_params = fin.by_effect();
     Ok(Discovery {
         start_heldout_rms_um: p0.rms_held_um,

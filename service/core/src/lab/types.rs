@@ -121,7 +121,10 @@ pub fn prepare(ds: &Dataset) -> Result<Prepared, LabError> {
 /// this one (a move within the significance threshold: what the choice of model moves; set
 /// by [`super::analysis::widen_by_alternatives`]; a near-equal model without the parameter —
 /// its effect dropped or swapped for another kind or a variant without that term — counts
-/// it as 0, Burnham & Anderson 2002 §4.3). σ_stat from the penalised matrix (A + λP)⁻¹ is
+/// it as 0, Burnham & Anderson 2002 §4.3); in `lab discover`'s final model, model also
+/// carries, in quadrature, the change when each commanded arc is taken from the estimated
+/// path instead (the corrector's two descriptions of one arc; set by
+/// [`super::analysis::widen_by_arc_source`]). σ_stat from the penalised matrix (A + λP)⁻¹ is
 /// the Bayesian σ of a smoothing spline (Wahba 1983), which carries the smoothing's bias on
 /// average over the table; the shift carries it where λ was raised above the ladder's least.
 /// A parameter the data does not determine has no σ and is listed in `unidentifiable`: a

@@ -24,7 +24,13 @@
 //!   compared, so both decide alike with no exchange) steps back to standby. It stops
 //!   publishing in the liveliness callback itself, as the token arrives: a partition that
 //!   heals brings the other's token before any raw sample the link carries after it, so no
-//!   point of the healed link is published twice.
+//!   point of the healed link is published twice. The one stepping back keeps its active
+//!   token [`SPLIT_TOKEN_LINGER`] longer (it publishes nothing meanwhile), so that the other
+//!   sees it and reports the split brain too: when the link heals, each router sends the
+//!   tokens it holds once its routing trees are computed (100 ms after the link comes up, on
+//!   each side independently), and a token undeclared before its router got there was never
+//!   seen on the other side (one of ten machines in a test run: the instance staying active
+//!   then reported nothing for it).
 //! * An instance that loses its router (client mode) steps back at once for every machine it
 //!   serves: cut off, it receives no raw sample, and a standby on the bus takes over; it comes
 //!   back standing by. A standby cut off from its router does not take over (it would serve
@@ -43,6 +49,10 @@ use zenoh::sample::SampleKind;
 /// A standby waits at most this long after the active token went for the active instance's
 /// publications to stop arriving (see `Event::Due`).
 const QUIET_MAX: Duration = Duration::from_millis(1500);
+
+/// An instance stepping back from a split brain keeps its active token this much longer, so
+/// that the instance staying active sees it (see the module's doc).
+pub(super) const SPLIT_TOKEN_LINGER: Duration = Duration::from_millis(1500);
 
 /// What is sent to the control task about a machine's fail-over.
 pub(super) enum Event {
@@ -336,7 +346,7 @@ impl State {
                         let later = order(&me) > order(&id);
                         error!(machine, this = %me, other = %id, steps_back = later, "split brain: another instance is active for this machine too (a partition healed?): points may have been published twice while both were; the instance active since later steps back to standby");
                         if later {
-                            self.step_back(&machine).await;
+                            self.step_back(&machine, SPLIT_TOKEN_LINGER).await;
                             warn!(machine, "split brain resolved: this instance stands by");
                         }
                     }
@@ -472,8 +482,10 @@ impl State {
         );
     }
 
-    /// Steps back from active to standby (split brain, this instance active since later).
-    async fn step_back(&mut self, name: &str) {
+    /// Steps back from active to standby (split brain, this instance active since later; or
+    /// cut off from its router). Its tokens go after `linger` (it publishes nothing meanwhile:
+    /// its outbox holds from now on).
+    async fn step_back(&mut self, name: &str, linger: Duration) {
         let max = self.cfg.failover.max_held_bytes;
         let token = match self.standby_token(name).await {
             Ok(t) => Some(t),
@@ -486,7 +498,15 @@ impl State {
             return;
         };
         m.outbox.hold(max);
-        m.tokens.clear();
+        let tokens = std::mem::take(&mut m.tokens);
+        if linger.is_zero() {
+            drop(tokens);
+        } else {
+            tokio::spawn(async move {
+                tokio::time::sleep(linger).await;
+                drop(tokens);
+            });
+        }
         if let Some(fo) = m.fo.as_mut() {
             *fo.active_id.lock().unwrap_or_else(|e| e.into_inner()) = None;
             fo.role = Role::Standby;
@@ -514,8 +534,10 @@ impl State {
                 "no router: stepping back to standby for every machine this instance was active for (a standby on the bus takes them over)"
             );
         }
+        // At once: a token kept past the loss would be declared again when a router is back,
+        // and the instance that took over meanwhile would take it for a split brain.
         for name in active {
-            self.step_back(&name).await;
+            self.step_back(&name, Duration::ZERO).await;
         }
     }
 

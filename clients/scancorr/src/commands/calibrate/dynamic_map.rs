@@ -114,9 +114,11 @@ pub(super) fn exec(a: Args) -> Result<()> {
             )?;
         }
         outln!(
-            "    e2 (fast scan's error at d1) {:.3} µm RMS (σ per bin {:.3} µm RMS); dynamic part at zero deflection {:.3} µm RMS; e1 (deflection at speed) {:.3} µm RMS; {} bins; applies to segments {:?}, tip {}, {:.0} mm/s",
+            "    e2 (fast scan's error at d1) {:.3} µm RMS (σ per bin {:.3} µm RMS: the points' scatter {:.3}, the scales' expansion {:.3}); dynamic part at zero deflection {:.3} µm RMS; e1 (deflection at speed) {:.3} µm RMS; {} bins; applies to segments {:?}, tip {}, {:.0} mm/s",
             m.e2_rms_um,
             m.e2_u_rms_um,
+            m.e2_u_noise_rms_um,
+            m.e2_u_scales_rms_um,
             m.dynamic_rms_um,
             m.e1_rms_um,
             m.theta_deg.len(),

@@ -15,6 +15,17 @@ pub struct Args {
     io: VersionArgs,
     #[command(flatten)]
     print: PrintArgs,
+    /// Only points at each scan's programmed speed (no dwell, spin-up or slow-down): every
+    /// deflection is compared at the same kinematic state. For variants whose deflections are
+    /// not scanned alike (c: a quarter beside a full turn; d: approaches; b: a wave).
+    #[arg(long)]
+    steady_only: bool,
+    /// Fit the structure's compliance under the carriage's acceleration beside the force, each
+    /// axis with the prior 0 ± this many µm per m/s² (unless the start has `accel_deflection`):
+    /// a wave of the deflection (b) accelerates the carriage in phase with it, and what the
+    /// scans cannot separate goes into the coefficients' σ instead of a bias.
+    #[arg(long, value_name = "UM_PER_M_S2")]
+    compliance_prior: Option<f64>,
 }
 
 /// Runs the procedure.
@@ -28,7 +39,20 @@ pub(super) fn exec(a: Args) -> Result<()> {
     // The force correction and the static maps are what this procedure measures: the points
     // are taken without (the new maps replace the start's of the same tip and segments).
     let ds = points_without(&bags, &start, &["probe_force", "feature_map"], 2)?;
-    let o = probe_force::run(&ds, &start)?;
+    let mut opts = probe_force::Options {
+        steady_only: a.steady_only,
+        ..Default::default()
+    };
+    if let Some(c) = a.compliance_prior {
+        if !(c.is_finite() && c > 0.0) {
+            anyhow::bail!(
+                "--compliance-prior {c}: the prior σ of the compliance must be a positive number \
+                 of µm per m/s² (a bridge CMM's: 30)"
+            );
+        }
+        opts.compliance_prior_s2 = Some(c * 1e-6);
+    }
+    let o = probe_force::run_with(&ds, &start, opts)?;
     let mut new = version::next(&start, o.calibration.effects.clone(), &now_rfc3339());
     new.geometry = o.calibration.geometry.clone();
     new.note = format!(

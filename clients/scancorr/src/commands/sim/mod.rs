@@ -12,7 +12,7 @@ pub struct SimCli {
     /// Scan program: ring, ring-speeds, campaign, part, dynamics, tips, probe-force,
     /// probe-force-quarter, probe-force-approach, probe-force-sine, geometry, straightedge; or a straightness
     /// error-separation measurement: straightness-three-probe, straightness-two-probe,
-    /// straightness-shear-stage.
+    /// straightness-shear-stage, straightness-shear-unequal.
     #[arg(long, default_value = "ring")]
     program: String,
     /// Seed of the run (noise, temperatures).

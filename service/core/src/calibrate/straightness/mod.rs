@@ -55,6 +55,36 @@
 //!   constant slope: it goes out with the line, exactly (the outputs do not change with e).
 //!   One probe has one offset, a constant: no parabola.
 //!
+//!   **Two unequal shears** (NUDT's single-probe form: shears {0, s1, s2}, s1 = p·h,
+//!   s2 = q·h, q > p ≥ 1, not the equal case p = 1, q = 2, with the carriage stepping by the
+//!   grid pitch h). Eliminating X_K and φ_K from a station's three readings leaves one
+//!   equation, (q − p)·Y_K − q·Y_{K+p} + p·Y_{K+q} = (q − p)·m_0 − q·m_{s1} + p·m_{s2}, a
+//!   recursion of order q: it needs q start values, of which the line is two. The q − 2 others
+//!   are the roots of (q − p) − q·r^p + p·r^q other than the double root 1 (p = 2, q = 3:
+//!   r = −1/2, a pattern halving from the first station on), which no such station sees. The
+//!   exact reconstruction reads them: one station (the first) also at every grid node between
+//!   0 and s2, where the stage's readings give Y_0 … Y_q up to the line; every later station
+//!   then gives the next node exactly, Y_{K+q} = [q·Y_{K+p} − (q − p)·Y_K + g_K]/p. The least
+//!   squares above is this recursion when the readings are on the nodes, and weighs it with
+//!   the readings' σ otherwise; without the start station it refuses (the patterns undetermined)
+//!   and says which station to add. The start station must be at the end where the roots lie
+//!   outside the unit circle (the propagated σ show it: they grow as |r|^K).
+//!
+//!   **A curved stage path.** The stage's travel off its line by c·s² (sagitta
+//!   b = c·(s_max − s_min)²/4 over the shears) adds c·s² to every reading at shear s: the same at
+//!   every station, it equals the part and guide both bent by c·x² and the pitch by 2c·x, so
+//!   with the pitch separated no reading can show it (`cannot_see: parabola`) — over a travel
+//!   L it is b·(L/(s_max − s_min))² peak-to-valley, thousands of times the sagitta. The output
+//!   states the profiles' response to 10 nm of sagitta (the same solve on the readings c·s²).
+//!   Calibrate the stage's path on an optical flat, or measure the straightedge turned over
+//!   (Y → −Y, c·s² stays). Without the pitch (two shears {0, l}) it is a constant per step,
+//!   a line: removed.
+//!
+//!   **Between nodes.** A reading at fraction f of an interval is the part interpolated
+//!   linearly; its error is f·(1 − f)·h²/2·Y'' ≤ h²/8·|Y''|. The stage's real shears (its
+//!   sensor's, not the commanded ones) are never exactly on the nodes: the output counts these
+//!   readings and bounds the error by max f·(1 − f)/2 · max|Δ²Y| of the fitted part.
+//!
 //! Uncertainties. With the weights fixed by the readings' standard errors, every output is a
 //! linear map of the readings; the map's response to each reading is computed (the same
 //! recursion or solve on a unit reading) and σ_i² = Σ_r (∂out_i/∂m_r)²·u_r², scaled by the
@@ -65,7 +95,9 @@
 //! Industries, Tanaka et al., CIRP Annals 1981), the sequential two-point method, reversal
 //! to separate the probes' zero offsets, and single-probe error separation on a shear
 //! micro-stage (NUDT): the sheared readings of one probe stand in for a multi-probe head,
-//! the stage's sensor giving the spacing.
+//! the stage's sensor giving the spacing; with two unequal shears the recursion's start values
+//! read at one station (the generalised three-point recursion; for lateral-shearing data the
+//! exact two-shear reconstruction, Elster & Weingärtner, J. Opt. Soc. Am. A 16, 1999).
 
 use super::{Param, ProcedureError};
 use nalgebra::DMatrix;

@@ -166,6 +166,8 @@ fn shear_least_squares(
     let n = ny + ns + if pitch { ns } else { 0 };
     // Sparse rows of the design matrix; count readings between nodes.
     let mut between = 0usize;
+    // Per reading: f·(1 − f) of its place in its interval, and its distance to a node, mm.
+    let mut interp: Vec<(f64, f64)> = Vec::with_capacity(rows.len());
     let design: Vec<Vec<(usize, f64)>> = rows
         .iter()
         .map(|row| {
@@ -177,6 +179,8 @@ fn shear_least_squares(
             if f.abs() > 1e-9 && (f - 1.0).abs() > 1e-9 {
                 between += 1;
             }
+            let fc = f.clamp(0.0, 1.0);
+            interp.push((fc * (1.0 - fc), fc.min(1.0 - fc) * h));
             if (1.0 - f).abs() > 1e-12 {
                 e.push((i0, 1.0 - f));
             }
@@ -263,11 +267,16 @@ fn shear_least_squares(
                 at = *p;
             }
         }
+        let unequal = if pitch {
+            start_values_hint(rows, xs, h)
+        } else {
+            String::new()
+        };
         return Err(ProcedureError::IllConditioned(format!(
             "the shear readings leave {} pattern(s) of the part and guide undetermined (the \
              largest near x = {at:.3} mm): each station's shears ({}) must, with the {:.3} mm \
              step between stations, see every grid node (pitch {h:.3} mm) from more than one \
-             station — add a shear per station{}, or step the carriage by less",
+             station — add a shear per station{}, or step the carriage by less{unequal}",
             weak.len(),
             shear_list(rows, 0),
             xs[1] - xs[0],
@@ -315,19 +324,86 @@ fn shear_least_squares(
         }
         split(col)
     });
+    // Interpolation between nodes: f·(1 − f)·h²/2·Y'' at most, Y'' from the fitted part.
+    let curv = est
+        .part
+        .windows(3)
+        .map(|w| (w[0] - 2.0 * w[1] + w[2]).abs())
+        .fold(0.0, f64::max);
+    let (fmax, dmax) = interp
+        .iter()
+        .fold((0.0_f64, 0.0_f64), |a, &(f, d)| (a.0.max(f), a.1.max(d)));
+    let interp_bound = fmax / 2.0 * curv;
+    let part_u = sig.part.iter().map(|v| v * v).sum::<f64>() / ny as f64;
     let mut notes = vec![
         "guide: the carriage's lateral motion at the probe's zero shear, listed at the \
          carriage positions x_K"
             .to_string(),
-        format!(
-            "part on a grid of pitch {h:.4} mm, {:.3} … {:.3} mm; {between} of {} readings \
-             fall between nodes and use linear interpolation of the part (error up to \
-             h²/8·|Y''|)",
-            nodes[0],
-            nodes[ny - 1],
-            rows.len()
-        ),
+        if between == 0 {
+            format!(
+                "part on a grid of pitch {h:.4} mm, {:.3} … {:.3} mm; every one of the {} \
+                 readings is on a node: the reconstruction is exact (nothing interpolated)",
+                nodes[0],
+                nodes[ny - 1],
+                rows.len()
+            )
+        } else {
+            format!(
+                "part on a grid of pitch {h:.4} mm, {:.3} … {:.3} mm; {between} of {} readings \
+                 fall between nodes (by up to {dmax:.4} mm: the stage's real shears, not the \
+                 commanded ones) and use linear interpolation of the part there: an error of \
+                 at most f·(1 − f)·h²/2·|Y''| = {:.5} µm (|Y''| the fitted part's largest, \
+                 noise included), against the part's σ of {:.4} µm RMS",
+                nodes[0],
+                nodes[ny - 1],
+                rows.len(),
+                interp_bound * 1e3,
+                part_u.sqrt() * 1e3
+            )
+        },
     ];
+    // A curved stage path: readings c·s², c for 10 nm of sagitta over the shears.
+    let (smin, smax) = rows
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, r| (a.0.min(r.1), a.1.max(r.1)));
+    let span = smax - smin;
+    let mut path_pv = (0.0, 0.0);
+    if span > 0.0 {
+        let c = 4.0 * PATH_SAGITTA_MM / (span * span);
+        let mut atwv = vec![0.0; n];
+        for ((e, wr), row) in design.iter().zip(&w).zip(rows) {
+            for &(i, ci) in e {
+                atwv[i] += wr * ci * c * row.1 * row.1;
+            }
+        }
+        let resp: Vec<f64> = (0..n)
+            .map(|i| (0..n).map(|j| minv[(i, j)] * atwv[j]).sum())
+            .collect();
+        let r = split(resp).finish(&lay);
+        path_pv = (peak_to_valley(&r.part), peak_to_valley(&r.guide));
+    }
+    let path_seen = path_pv.0.max(path_pv.1) > 1e-3 * PATH_SAGITTA_MM;
+    if pitch && path_seen {
+        notes.push(format!(
+            "the stage's path is taken as straight: a path bent by c·s² (its sagitta over the \
+             shears {smin:.1} … {smax:.1} mm) adds c·s² to every reading, which no reading \
+             tells from the part and guide bent by c·x² (and the pitch by 2c·x) — 0.01 µm of \
+             sagitta is {:.3} µm peak-to-valley on the part and {:.3} µm on the guide over \
+             this travel; calibrate the stage's path on an optical flat, or measure the \
+             straightedge turned over",
+            path_pv.0 * 1e3,
+            path_pv.1 * 1e3
+        ));
+    } else if path_seen {
+        notes.push(format!(
+            "the stage's path is taken as straight: a path bent by c·s² over the shears \
+             {smin:.1} … {smax:.1} mm is partly seen by the redundant readings (reduced χ²), \
+             the rest bends the profiles — 0.01 µm of sagitta moves the part by {:.3} µm and \
+             the guide by {:.3} µm peak-to-valley",
+            path_pv.0 * 1e3,
+            path_pv.1 * 1e3
+        ));
+    }
     if pitch {
         notes.push(
             "pitch separated about its mean: per station the readings give the slope \
@@ -352,10 +428,10 @@ fn shear_least_squares(
             ));
         }
     }
-    let cannot: &[&str] = if pitch {
-        &["line", "pitch_constant"]
-    } else {
-        &["line", "pitch"]
+    let cannot: &[&str] = match (pitch, path_seen) {
+        (true, true) => &["line", "pitch_constant", "parabola"],
+        (true, false) => &["line", "pitch_constant"],
+        (false, _) => &["line", "pitch"],
     };
     let method = format!(
         "shear stage, least squares {} ({})",
@@ -367,6 +443,37 @@ fn shear_least_squares(
         if pitch { "with pitch" } else { "no pitch" }
     );
     output(method, lay, est, sig, cannot, chi2_red, vec![], notes)
+}
+
+/// The sagitta of a curved stage path whose effect the output states, mm.
+const PATH_SAGITTA_MM: f64 = 1e-5;
+
+/// Peak-to-valley of a profile, mm.
+fn peak_to_valley(v: &[f64]) -> f64 {
+    v.iter().copied().fold(f64::MIN, f64::max) - v.iter().copied().fold(f64::MAX, f64::min)
+}
+
+/// With the pitch: which start station would fix the patterns the stations' shears leave
+/// (two unequal shears, the module doc), for the message.
+fn start_values_hint(rows: &[(usize, f64, f64, f64)], xs: &[f64], h: f64) -> String {
+    let (smin, smax) = rows
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, r| (a.0.min(r.1), a.1.max(r.1)));
+    let q = ((smax - smin) / h).round();
+    if !(q > 2.0 && q <= 200.0) {
+        return String::new();
+    }
+    let nodes: Vec<String> = (0..=q as usize)
+        .map(|i| format!("{:.3}", smin + i as f64 * h))
+        .collect();
+    format!(
+        "; with unequal shears spanning {q} grid steps each station gives one equation of a \
+         recursion that needs {q} start values, the line two of them: read one station (the \
+         first, x = {:.3} mm) also at every grid node of the shears, {} mm — the exact \
+         reconstruction",
+        xs[0],
+        nodes.join(", ")
+    )
 }
 
 /// The distinct shears of one station, for messages.

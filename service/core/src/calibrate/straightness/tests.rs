@@ -363,7 +363,8 @@ fn shear_three_point_exact_recovers_and_removes_the_stage_error() {
     let a = shear_stage(&r0, &ShearOptions::default()).unwrap();
     let b = shear_stage(&r1, &ShearOptions::default()).unwrap();
     assert!(b.method.contains("on the grid nodes"), "{}", b.method);
-    assert_eq!(b.cannot_see, ["line", "pitch_constant"]);
+    // A curved stage path would be a parabola no reading shows: said.
+    assert_eq!(b.cannot_see, ["line", "pitch_constant", "parabola"]);
     assert_eq!(b.part_positions_mm.len(), N + 2);
     assert!((b.part_positions_mm[0] - (X0 - L)).abs() < 1e-9);
     let (yp, xg, th) = truths(&b, pitch);
@@ -845,4 +846,101 @@ fn the_stated_bounds_are_checked() {
         assert!(e.contains("bow bound must be a positive length"), "{e}");
         assert!(!e.contains("NaN"), "{e}");
     }
+}
+
+/// Readings of one probe on the stage, carriage stepping by `step` from X0 over `n` stations,
+/// shears `shears` at each and `start` more at the first; a stage path c·s².
+fn unequal_readings(
+    step: f64,
+    n: usize,
+    shears: &[f64],
+    start: &[f64],
+    path_c: f64,
+    noise: f64,
+    rng: &mut Rng,
+) -> Vec<ShearReading> {
+    let mut out = vec![];
+    for k in 0..n {
+        let x = X0 + k as f64 * step;
+        let extra: &[f64] = if k == 0 { start } else { &[] };
+        for &s in shears.iter().chain(extra) {
+            let v = part(x + s) - guide(x) - pitch(x) * s
+                + 3e-4 * s
+                + path_c * s * s
+                + 0.02
+                + noise * rng.gauss();
+            out.push(ShearReading {
+                x_mm: x,
+                shear_mm: s,
+                value_mm: v,
+                u_mm: noise.max(1e-7),
+            });
+        }
+    }
+    out
+}
+
+/// Two unequal shears (0, 20, 30 mm at a 10 mm step; the NUDT form): refused without the
+/// start station, with the station to add named; exact with it (noise-free to 1e-9 mm),
+/// within the propagated σ with noise; a curved stage path flagged as the parabola it makes,
+/// its stated size the profiles' actual change.
+#[test]
+fn two_unequal_shears_are_exact_from_a_start_station() {
+    let (h, n) = (10.0, 50);
+    let mut rng = Rng(31);
+    let bare = unequal_readings(h, n, &[0.0, 20.0, 30.0], &[], 0.0, 0.0, &mut rng);
+    let e = err_text(shear_stage(&bare, &ShearOptions::default()));
+    assert!(
+        e.contains("undetermined") && e.contains("start values") && e.contains("10.000"),
+        "{e}"
+    );
+    let exact = unequal_readings(h, n, &[0.0, 20.0, 30.0], &[10.0], 0.0, 0.0, &mut rng);
+    let sep = shear_stage(&exact, &ShearOptions::default()).unwrap();
+    assert!(sep.method.contains("on the grid nodes"), "{}", sep.method);
+    assert!(sep.notes[1].contains("exact"), "{}", sep.notes[1]);
+    let (yp, xg, th) = truths(&sep, pitch);
+    let err = rms(diff(&sep.part_straightness_mm, &yp).into_iter())
+        + rms(diff(&sep.guide_straightness_mm, &xg).into_iter());
+    let errp = rms(diff(sep.pitch_rad.as_ref().unwrap(), &th).into_iter());
+    assert!(
+        err < 1e-9 && errp < 1e-12,
+        "noise-free: {err:e} mm, {errp:e} rad"
+    );
+    // With noise: within the σ.
+    let noisy = unequal_readings(h, n, &[0.0, 20.0, 30.0], &[10.0], 0.0, NOISE, &mut rng);
+    let sep = shear_stage(&noisy, &ShearOptions::default()).unwrap();
+    check(
+        "unequal part",
+        &sep.part_straightness_mm,
+        &sep.part_straightness_mm_u,
+        &yp,
+    );
+    check(
+        "unequal guide",
+        &sep.guide_straightness_mm,
+        &sep.guide_straightness_mm_u,
+        &xg,
+    );
+    check(
+        "unequal pitch",
+        sep.pitch_rad.as_ref().unwrap(),
+        sep.pitch_rad_u.as_ref().unwrap(),
+        &th,
+    );
+    // A stage path with 10 nm of sagitta over the shears 0 … 30 mm: c = 4·b/30².
+    let c = 4.0 * 1e-5 / 900.0;
+    let bent = unequal_readings(h, n, &[0.0, 20.0, 30.0], &[10.0], c, 0.0, &mut rng);
+    let sb = shear_stage(&bent, &ShearOptions::default()).unwrap();
+    assert!(sb.cannot_see.iter().any(|c| c == "parabola"));
+    let d = diff(&sb.part_straightness_mm, &yp);
+    let pv =
+        d.iter().copied().fold(f64::MIN, f64::max) - d.iter().copied().fold(f64::MAX, f64::min);
+    let note = sb
+        .notes
+        .iter()
+        .find(|t| t.contains("sagitta"))
+        .expect("the path's note");
+    let quoted = format!("{:.3} µm peak-to-valley on the part", pv * 1e3);
+    assert!(note.contains(&quoted), "{quoted}: {note}");
+    assert!(pv > 0.5e-3, "10 nm of sagitta is a large parabola: {pv}");
 }

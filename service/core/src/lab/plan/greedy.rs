@@ -16,6 +16,16 @@
 //! demanding: the shape of every error between the knots), or the calibration's own
 //! `rigid_body` when it has one; the other effects are taken as known (the groups before
 //! determine them).
+//!
+//! Each place on a line along z is offered twice: with the first stylus alone (both ways), and
+//! with every stylus and head angle as well (each other one once); the others with the first
+//! stylus alone. An error of the z axis alone (its
+//! straightness EXZ, EYZ and its rotations AXZ, AYZ, AZZ, functions of z) moves one stylus's
+//! ring as a whole, which the placement takes; between styli it does not: a longer stylus
+//! puts the ram Δz lower at the same ring (the straightness's slope times Δz) and a rotation
+//! moves each ball by its own offset (δ = θ × o). Only the second kind of place sees them.
+//! Since the two cost different machine time t_f, the criterion is the gain per second,
+//! g_f / t_f (still diminishing, so the lazy evaluation holds); taking a place takes its twin.
 
 use super::*;
 use nalgebra::{DMatrix, SymmetricEigen};
@@ -27,6 +37,8 @@ pub struct Place {
     pub center: Vec3,
     /// The line it lies on (e.g. `x at y 400, z -350`).
     pub line: String,
+    /// Scanned with every stylus and head angle, not only the first (see the module).
+    pub styli: bool,
 }
 
 /// What the greedy choice gives.
@@ -34,7 +46,7 @@ pub struct Place {
 pub struct Chosen {
     /// Indices into the pool, in the order chosen.
     pub order: Vec<usize>,
-    /// Relative gain of each choice (the first is 1).
+    /// Relative gain per second of each choice (the first is 1).
     pub gains: Vec<f64>,
     /// Normalised terms the pool could see, and those the chosen places see.
     pub terms_seen: (usize, usize),
@@ -48,8 +60,24 @@ const MIN_GAIN: f64 = 2e-3;
 /// is a few harmonics).
 const POOL_STRIDE: usize = 48;
 
-/// The pool program: each place a ring of diameter `d` with one turn each way at 30 mm/s.
-pub fn pool_program(places: &[Place], d: f64, tip: u32, why: &str) -> Program {
+/// The scans of pool place `i`: the ring at 30 mm/s with `styli[0]` (the first tip, head
+/// angle A1) both ways; at a place with `styli` set, once more with each other (tip, A1).
+pub fn place_scans(i: usize, pl: &Place, styli: &[(u32, f64)], why: &str) -> Vec<Scan> {
+    let mut v = vec![];
+    if let Some(&(tip, a1)) = styli.first() {
+        v.push(circle(i, 30.0, 1, 0.3, tip, a1, why));
+        v.push(circle(i, 30.0, -1, 0.3, tip, a1, why));
+    }
+    if pl.styli {
+        for &(tip, a1) in styli.iter().skip(1) {
+            v.push(circle(i, 30.0, 1, 0.3, tip, a1, why));
+        }
+    }
+    v
+}
+
+/// The pool program: each place a ring of diameter `d` with its [`place_scans`].
+pub fn pool_program(places: &[Place], d: f64, styli: &[(u32, f64)], why: &str) -> Program {
     let mut p = Program {
         name: "pool".into(),
         note: String::new(),
@@ -58,26 +86,26 @@ pub fn pool_program(places: &[Place], d: f64, tip: u32, why: &str) -> Program {
     };
     for (i, pl) in places.iter().enumerate() {
         p.features.push(ring_at(pl.center, d));
-        p.scans.push(circle(i, 30.0, 1, 0.3, tip, 0.0, why));
-        p.scans.push(circle(i, 30.0, -1, 0.3, tip, 0.0, why));
+        p.scans.extend(place_scans(i, pl, styli, why));
     }
     p
 }
 
 /// Chooses places from `places` (see the module) within about `budget_s` of machine time
-/// (each place's two scans and a step's move; the caller orders them along their lines and
-/// trims the last chosen if the moves made it longer).
+/// (each place's scans and a step's move; the caller orders them along their lines and
+/// trims the last chosen if the moves made it longer). `styli`: the first (tip, A1) and the
+/// others a place with `styli` set is scanned with.
 #[allow(clippy::too_many_arguments)]
 pub fn choose(
     cal: &Calibration,
     places: &[Place],
     d: f64,
-    tip: u32,
+    styli: &[(u32, f64)],
     budget_s: f64,
     a: &Assumptions,
     tip_r: &dyn Fn(u32) -> f64,
 ) -> Result<Chosen, LabError> {
-    let pool = pool_program(places, d, tip, "");
+    let pool = pool_program(places, d, styli, "");
     let ac = Assumptions {
         stride: POOL_STRIDE,
         heldout_alternate: false,
@@ -260,25 +288,31 @@ pub fn choose(
     let mut order = vec![];
     let mut gains = vec![];
     let mut first = None;
-    // Machine time of one place: its two scans, and the move from the last by about a step.
-    let one = pool_program(&places[..1.min(places.len())], d, tip, "");
-    let per_place = machine_time_s(&one, tip_r) + d / MOVE_SPEED_MM_S + 0.3;
+    // Machine time of each place: its scans, and the move from the last by about a step.
+    let per_place: Vec<f64> = places
+        .iter()
+        .map(|pl| {
+            let one = pool_program(std::slice::from_ref(pl), d, styli, "");
+            machine_time_s(&one, tip_r) + d / MOVE_SPEED_MM_S + 0.3
+        })
+        .collect();
     let mut used = 0.0;
     loop {
-        // The place with the largest bound, re-evaluated until it stays on top.
+        // The place with the largest bound on its gain per second, re-evaluated until it
+        // stays on top.
         let pick = loop {
             let best = (0..places.len())
                 .filter(|f| !taken[*f])
                 .max_by(|a, b| bound[*a].total_cmp(&bound[*b]).then(b.cmp(a)));
             let Some(f) = best else { break None };
             let (g, z, winv) = gain_of(&ainv, f);
-            bound[f] = g;
+            bound[f] = g / per_place[f];
             let next = (0..places.len())
                 .filter(|x| !taken[*x] && *x != f)
                 .map(|x| bound[x])
                 .fold(f64::NEG_INFINITY, f64::max);
-            if g >= next {
-                break Some((f, g, z, winv));
+            if bound[f] >= next {
+                break Some((f, bound[f], z, winv));
             }
         };
         let Some((f, g, z, winv)) = pick else { break };
@@ -286,11 +320,16 @@ pub fn choose(
         if !(g0 > 0.0) || g < MIN_GAIN * g0 {
             break;
         }
-        taken[f] = true;
-        if used + per_place > budget_s {
+        // A place is taken once, with or without the other styli.
+        for (x, pl) in places.iter().enumerate() {
+            if (pl.center - places[f].center).norm() < 1.0 {
+                taken[x] = true;
+            }
+        }
+        if used + per_place[f] > budget_s {
             break;
         }
-        used += per_place;
+        used += per_place[f];
         ainv -= &z * winv * z.transpose();
         order.push(f);
         gains.push(g / g0);

@@ -214,6 +214,18 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         let p = TipPose::new(t1, 0.0, 0.0);
         p.shank + p.bent
     };
+    // The first tip, then every other at head angles 0° and 90° (as on the sphere): the
+    // styli a rigid-body place may be scanned with, and their offsets.
+    let styli: Vec<(u32, f64, Vec3)> = tips
+        .iter()
+        .flat_map(|t| {
+            let a1s: &[f64] = if t.id == t1.id { &[0.0] } else { &[0.0, 90.0] };
+            a1s.iter().map(move |a1| {
+                let p = TipPose::new(t, *a1, 0.0);
+                (t.id, *a1, p.shank + p.bent)
+            })
+        })
+        .collect();
     // Carriage positions as fractions of the travel; features where the first tip reaches.
     let at = |fx: f64, fy: f64, fz: f64| {
         Vec3::new(
@@ -485,7 +497,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
     for g in first.into_iter().chain(rest) {
         let (g, for_rigid) = match g {
             Some(g) => (g, false),
-            None => match rigid_group(cal, req, off1, big, t1.id, &program, budget, &tip_r)? {
+            None => match rigid_group(cal, req, &styli, big, &program, budget, &tip_r)? {
                 Some(g) => (g, true),
                 None => continue,
             },
@@ -524,7 +536,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         .map_err(|e| LabError::Data(format!("the planned program: {e}")))?;
     let mut prediction = predict(cal, &program, &req.candidates, &req.assumptions)?;
     if rigid_placed {
-        prediction.beyond_reach = beyond_reach(cal, req, &program, &prediction, off1, big, t1.id)?;
+        prediction.beyond_reach = beyond_reach(cal, req, &program, &prediction, &styli, big)?;
     }
     Ok(Planned {
         minutes: used / 60.0,
@@ -537,22 +549,32 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
 
 /// Parameters no campaign with these artifacts can determine beside this model: those left
 /// undetermined by the plan with every place of the rigid body's pool added (the ring at
-/// each, both ways). With rings in the horizontal plane, an error that depends on z alone is a
-/// shift of each ring's centre (the fit's own nuisance), and a term a model effect carries
-/// (a guide table's straightness and yaw) is that effect's: no place tells them apart. The
-/// plan can only be asked to determine the others.
+/// each, both ways, and with every stylus). With rings in the horizontal plane, an error that
+/// moves every stylus's ring alike (the z axis's positioning, EZZ; a squareness to z) is a
+/// shift of the ring's centre (the fit's own nuisance), and a term a model effect carries (a
+/// guide table's straightness and yaw) is that effect's: no place tells them apart. The plan
+/// can only be asked to determine the others.
 #[allow(clippy::too_many_arguments)]
 fn beyond_reach(
     cal: &Calibration,
     req: &PlanRequest,
     program: &Program,
     planned: &Prediction,
-    off1: Vec3,
+    styli: &[(u32, f64, Vec3)],
     d: f64,
-    tip: u32,
 ) -> Result<Vec<String>, LabError> {
-    let (places, _) = rigid_pool(req, off1, d);
-    let pool = greedy::pool_program(&places, d, tip, "every place of the rigid body's pool");
+    // Every place with every stylus: what any campaign of these places could see.
+    let (places, _) = rigid_pool(req, styli, d);
+    let places: Vec<greedy::Place> = places
+        .into_iter()
+        .filter(|p| !p.styli)
+        .map(|mut p| {
+            p.styli = styli.len() > 1;
+            p
+        })
+        .collect();
+    let configs: Vec<(u32, f64)> = styli.iter().map(|s| (s.0, s.1)).collect();
+    let pool = greedy::pool_program(&places, d, &configs, "every place of the rigid body's pool");
     let mut all = program.clone();
     let base = all.features.len();
     all.features.extend(pool.features);
@@ -593,15 +615,18 @@ const POOL_LINES: [(usize, [f64; 2]); 8] = [
 const RIGID_MIN_S: f64 = 180.0;
 
 /// The pool of ring places for the rigid body: the ring stepped by its diameter (at least
-/// 40 mm) along the [`POOL_LINES`] over 10–90 % of the travel; with each place its line's index,
-/// axis and coordinate along it.
+/// 40 mm) along the [`POOL_LINES`] over 10–90 % of the travel, where the first stylus
+/// (`styli[0]`) reaches; each place once with the first stylus alone and, on the lines along
+/// z where every stylus of `styli` keeps the carriage inside the travel, once with all (see
+/// [`greedy`]); with each place its line's index, axis and coordinate along it.
 #[allow(clippy::type_complexity)]
 fn rigid_pool(
     req: &PlanRequest,
-    off1: Vec3,
+    styli: &[(u32, f64, Vec3)],
     d: f64,
 ) -> (Vec<greedy::Place>, Vec<(usize, usize, f64)>) {
     let tr = req.travel_mm;
+    let off1 = styli.first().map(|s| s.2).unwrap_or_else(Vec3::zeros);
     let step = d.max(40.0);
     let mut places: Vec<greedy::Place> = vec![];
     let mut line_of: Vec<(usize, usize, f64)> = vec![];
@@ -632,11 +657,26 @@ fn rigid_pool(
             if places.iter().any(|p| (p.center - c).norm() < 1.0) {
                 continue;
             }
-            line_of.push((li, *ax, c[*ax]));
-            places.push(greedy::Place {
-                center: c,
-                line: line.clone(),
-            });
+            // On the lines along z (the z axis's own errors vary along z alone; elsewhere the
+            // Abbe levers of two levels see the other axes' rotations), where every stylus's
+            // carriage position stays inside the travel.
+            let inside = *ax == 2
+                && styli.len() > 1
+                && styli.iter().all(|s| {
+                    let q = c - s.2;
+                    (0..3).all(|a| q[a] >= tr[a][0] && q[a] <= tr[a][1])
+                });
+            for with in [false, true] {
+                if with && !inside {
+                    continue;
+                }
+                line_of.push((li, *ax, c[*ax]));
+                places.push(greedy::Place {
+                    center: c,
+                    line: line.clone(),
+                    styli: with,
+                });
+            }
         }
     }
     (places, line_of)
@@ -650,9 +690,8 @@ fn rigid_pool(
 fn rigid_group(
     cal: &Calibration,
     req: &PlanRequest,
-    off1: Vec3,
+    styli: &[(u32, f64, Vec3)],
     d: f64,
-    tip: u32,
     program: &Program,
     budget: f64,
     tip_r: &dyn Fn(u32) -> f64,
@@ -664,9 +703,10 @@ fn rigid_group(
         return Ok(None);
     }
     let step = d.max(40.0);
-    let (places, line_of) = rigid_pool(req, off1, d);
-    let mut chosen = greedy::choose(cal, &places, d, tip, left, &req.assumptions, tip_r)?;
-    let why = "rigid-body errors: the ring placed where it most reduces the predicted variance of the rigid-body terms (each error's shape along its axis, the lab's spline variant; two levels of the other axes for the Abbe levers), one place at a time";
+    let (places, line_of) = rigid_pool(req, styli, d);
+    let configs: Vec<(u32, f64)> = styli.iter().map(|s| (s.0, s.1)).collect();
+    let mut chosen = greedy::choose(cal, &places, d, &configs, left, &req.assumptions, tip_r)?;
+    let why = "rigid-body errors: the ring placed where it most reduces the predicted variance of the rigid-body terms per second (each error's shape along its axis, the lab's spline variant; two levels of the other axes for the Abbe levers; every stylus at some places, for the z axis's own errors), one place at a time";
     // Along the lines in order; the last chosen dropped while the moves make it too long.
     loop {
         if chosen.order.is_empty() {
@@ -688,9 +728,10 @@ fn rigid_group(
         };
         for (i, f) in ord.iter().enumerate() {
             g.features.push(ring_at(places[*f].center, d));
-            g.scans.push(circle(i, 30.0, 1, 0.3, tip, 0.0, why));
-            g.scans.push(circle(i, 30.0, -1, 0.3, tip, 0.0, why));
+            g.scans
+                .extend(greedy::place_scans(i, &places[*f], &configs, why));
         }
+        let with_styli = ord.iter().filter(|f| places[**f].styli).count();
         let mut trial = program.clone();
         let base = trial.features.len();
         trial.features.extend(g.features.iter().cloned());
@@ -720,10 +761,10 @@ fn rigid_group(
             }
         }
         g.what = format!(
-            "ring d={d} mm at {} places chosen one by one for the rigid body ({} of {} pool places every {step:.0} mm, the last worth {:.1} % of the first; its terms seen: {} of {}): {}; 30 mm/s both ways",
+            "ring d={d} mm at {} places chosen one by one for the rigid body ({} of {} pool places every {step:.0} mm, the last worth {:.1} % of the first per second; its terms seen: {} of {}): {}; 30 mm/s both ways; at {with_styli} of them every stylus and head angle as well (the z axis's own errors are seen only between styli)",
             ord.len(),
             ord.len(),
-            places.len(),
+            places.iter().filter(|p| !p.styli).count(),
             100.0 * chosen.gains.get(ord.len() - 1).copied().unwrap_or(0.0),
             chosen.terms_seen.1,
             chosen.terms_seen.0,
