@@ -37,6 +37,9 @@ pub(crate) struct Routes {
     table: RwLock<Table>,
     /// Messages of machines not served that the control task had no room for.
     busy: AtomicU64,
+    /// Messages on a key that names no valid machine and stream that the control task had no
+    /// room for: refused as a bad key all the same (the key, not the queue, refuses them).
+    busy_bad_key: AtomicU64,
 }
 
 #[derive(Default)]
@@ -111,6 +114,7 @@ impl Routes {
             epoch: Instant::now(),
             table: RwLock::default(),
             busy: AtomicU64::new(0),
+            busy_bad_key: AtomicU64::new(0),
         }
     }
 
@@ -153,18 +157,26 @@ impl Routes {
     }
 
     /// A message [`Routes::route`] gave the control task, for which its queue had no room:
-    /// shed (counted on the machine's status when it is served, else as `control_busy`).
+    /// shed (counted on the machine's status when it is served, as a bad key when its key
+    /// names no valid machine and stream — as the control task would have — else as
+    /// `control_busy`).
     pub(crate) fn busy(&self, s: &zenoh::sample::Sample) {
-        let machine = Stream::parse_key(&self.prefix, s.key_expr().as_str()).map(|(m, _)| m);
-        if let Some(m) = machine {
-            self.done(m);
-            if let Some(r) = self.read().routes.get(m) {
-                r.input.arrived.fetch_add(1, Ordering::Relaxed);
-                r.input.shed_queue_full.fetch_add(1, Ordering::Relaxed);
-                return;
-            }
+        let Some((m, _)) = Stream::parse_key(&self.prefix, s.key_expr().as_str()) else {
+            self.busy_bad_key.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
+        self.done(m);
+        if let Some(r) = self.read().routes.get(m) {
+            r.input.arrived.fetch_add(1, Ordering::Relaxed);
+            r.input.shed_queue_full.fetch_add(1, Ordering::Relaxed);
+            return;
         }
         self.busy.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Messages on a bad key that the control task had no room for.
+    pub(crate) fn busy_bad_key_count(&self) -> u64 {
+        self.busy_bad_key.load(Ordering::Relaxed)
     }
 
     /// Messages of machines not served that the control task had no room for.

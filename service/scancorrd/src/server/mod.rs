@@ -734,6 +734,7 @@ impl State {
     fn refused_now(&self) -> Refused {
         Refused {
             control_busy: self.routes.busy_count(),
+            bad_key: self.refused.bad_key + self.routes.busy_bad_key_count(),
             ..self.refused.clone()
         }
     }
