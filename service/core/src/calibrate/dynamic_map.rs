@@ -78,8 +78,6 @@ pub const PLACE_TOLERANCE_MM: f64 = 1.0;
 const ALPHA_TYPICAL_PER_K: f64 = 11.5e-6;
 /// With the start's `scale_thermal`: the share of its coefficients taken as their uncertainty.
 const ALPHA_SHARE: f64 = 0.1;
-/// Scale temperature sensors, x, y, z.
-const SCALE_SENSORS: [&str; 3] = ["scale_x", "scale_y", "scale_z"];
 
 /// The scales' expansion as the σ sees it: each axis's sensor slot, the uncertainty of its
 /// coefficient (1/K) and its zero point (mm).
@@ -92,7 +90,7 @@ struct Thermal {
 
 impl Thermal {
     fn of(ds: &Dataset, start: &Calibration) -> Thermal {
-        let slots = SCALE_SENSORS.map(|n| ds.sensors.find(n));
+        let slots = crate::effects::scale_thermal::SENSORS.map(|n| ds.sensors.find(n));
         let corrected = start.effects.iter().find_map(|e| match e {
             EffectConfig::ScaleThermal(c) => Some(c),
             _ => None,

@@ -243,7 +243,7 @@ pub fn run(
             .collect();
         (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
     };
-    let scale_slots = ["scale_x", "scale_y", "scale_z"].map(|n| ds.sensors.find(n));
+    let scale_slots = crate::effects::scale_thermal::SENSORS.map(|n| ds.sensors.find(n));
     // Each setting's scale temperatures (the stylus's stands in for a scale without a sensor:
     // both follow the room).
     let mut scale_temps: Vec<Option<[f64; 3]>> = vec![];

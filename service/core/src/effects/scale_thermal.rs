@@ -35,8 +35,12 @@ pub struct Config {
 fn twenty() -> f64 {
     20.0
 }
+/// The scales' temperature sensors by their usual names (x, y, z): the document's default, and
+/// what a procedure reads when the start has no `scale_thermal` to name them.
+pub const SENSORS: [&str; 3] = ["scale_x", "scale_y", "scale_z"];
+
 fn default_sensors() -> [String; 3] {
-    ["scale_x".into(), "scale_y".into(), "scale_z".into()]
+    SENSORS.map(String::from)
 }
 
 /// Hot-path form.
