@@ -396,12 +396,44 @@ fn from_nominal_with_cyclic_error() {
 /// (0.725 → 0.727 µm) were taken that way; the spline kept the held-out ring at 0.159 µm to
 /// the end (dropping it: 0.132 µm). Now such a move is refused, and a drop the held-out data
 /// asks for is made. Other machines of the same setup, not tests: 53 (run seed 3) 1.41×, the
-/// held-out drop taking out a spline `rigid_body` after the cyclic error was found; 43 (run
-/// seed 9) still stalls at 14.8× (beside the guide variant taken at step 3, the cyclic error's
-/// custom effect makes the held-out ring worse, 1.62 → 2.92 µm; before it, better).
+/// held-out drop taking out a spline `rigid_body` after the cyclic error was found; 43: see
+/// [`four_extras_where_the_first_run_stalls`].
 #[test]
 fn from_nominal_with_four_extras_at_once() {
     extras_case(CI_STRIDE, 1.5);
+}
+
+/// The four extras on a machine where the first run stalls (machine 43, run seed 9; no other
+/// test uses machine 43): the effects taken before the structure was found stand in its way
+/// (on run seed 6, a pitch table about the wrong axis and a second-order rigid body make the
+/// held-out ring worse once the 4 mm cyclic error is added beside them: 1.57 → 2.60 µm, where
+/// added alone it improves it, 1.57 → 1.14), so the loop ended at 14.4× (run seed 6) and
+/// 5.9× (run seed 9) the floor. `discover` now runs once more from the refit start with the
+/// structure first and keeps the run that ends lower on the held-out data: 1.34× (run seed 9,
+/// this stride; 2 min 40 s on a loaded 2-core machine, 97 s CPU). Asserted: the restart is
+/// said and kept, the run ends within 1.5× the floor with no step worse and the custom effects
+/// added by the loop itself.
+#[test]
+fn four_extras_where_the_first_run_stalls() {
+    let c = Campaign::new(
+        "extras-stall",
+        43,
+        9,
+        &["cyclic_error", "probe_lobing", "squareness", "backlash"],
+    );
+    let d = c.discover_stride("nominal.json", "steps", CI_STRIDE);
+    let restart = d["restart"].as_str().unwrap_or_default();
+    assert!(
+        restart.contains("restarted from the refit start") && restart.contains("kept:"),
+        "the restart is said and kept: {restart:?}"
+    );
+    assert!(
+        !d["abandoned"].as_array().map(Vec::is_empty).unwrap_or(true),
+        "the first run's steps are listed as abandoned"
+    );
+    check_outcome_within(&c, &d, "steps", &[], 1.5, &["custom"]);
+    check_no_step_worse(&d);
+    assert!(!custom_steps(&d).is_empty(), "{d:#}");
 }
 
 /// The two cases above at the lab's default stride (every 4th point): the full study, about

@@ -50,13 +50,18 @@ pub const LIBRARY_EFFECTS: [&str; 6] = [
     "guide_straightness",
 ];
 /// Effects outside the library (off unless switched on; never in a calibration).
-pub const EXTRA_EFFECTS: [&str; 6] = [
+///
+/// `deflection_quadratic` is the compliance's change quadratic in X
+/// ([`TrueMachine::compliance_x2`]): the library's `accel_deflection` describes it (position
+/// order 2, the ξx² monomial), so when it is on the true calibration carries it.
+pub const EXTRA_EFFECTS: [&str; 7] = [
     "cyclic_error",
     "backlash",
     "latching",
     "probe_lobing",
     "rigid_body",
     "squareness",
+    "deflection_quadratic",
 ];
 
 /// Faults for the judgement stage.
@@ -211,6 +216,14 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
                     format!("dynamics.P_{a}{b}.{mono}_mm_per_mm_s2"),
                     -m.compliance_total(k, i, j),
                 );
+                // P's term quadratic in X (P2 of P = P0 + P1·ξx + P2·ξx²; zero unless
+                // `deflection_quadratic` is on).
+                if k == 0 {
+                    p.insert(
+                        format!("dynamics.P_{a}{b}.x2_mm_per_mm_s2"),
+                        -m.compliance_x2[i][j],
+                    );
+                }
             }
         }
     }
@@ -335,6 +348,10 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
     m.mount_compliance_s2
         .iter_mut()
         .for_each(|c| *c *= k("accel_deflection"));
+    let q = k("deflection_quadratic");
+    if q != 0.0 {
+        m.compliance_x2 = m.quadratic_compliance().map(|r| r.map(|c| c * q));
+    }
     m.styli
         .iter_mut()
         .for_each(|s| s.alpha_per_k *= k("stylus_thermal"));
@@ -406,13 +423,18 @@ pub fn calibration_for(
         .collect();
     let on = |n: &str| f.get(n).copied().unwrap_or(0.0) != 0.0 && !hide.iter().any(|h| h == n);
     if on("accel_deflection") {
-        let mut e = fx::accel_deflection::Config::zeros(1, false);
-        for (k, p) in e.p.iter_mut().enumerate() {
+        let quadratic = m.compliance_x2.iter().flatten().any(|c| *c != 0.0);
+        let mut e = fx::accel_deflection::Config::zeros(if quadratic { 2 } else { 1 }, false);
+        for (k, p) in e.p.iter_mut().enumerate().take(4) {
             for i in 0..3 {
                 for j in 0..3 {
                     p[i][j] = -m.compliance_total(k, i, j);
                 }
             }
+        }
+        if quadratic {
+            // The position basis's fifth monomial is ξx².
+            e.p[4] = m.compliance_x2.map(|r| r.map(|c| -c));
         }
         c.effects.push(EffectConfig::AccelDeflection(e));
     }
@@ -706,15 +728,31 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
     let mut tr = Rng::new(o.seed, "thermal");
     let t0_air = 20.0 + tr.range(0.2, 0.8);
     let drift = tr.range(2.5, 3.5);
+    // A program record that asks for a temperature span gets it (the air's rise over the run).
+    let drift = o
+        .program_record
+        .as_ref()
+        .and_then(|p| p.temperature.as_ref())
+        .map_or(drift, |t| t.span_k);
     let wobble = tr.range(0.03, 0.08);
     let scale_off = [
         tr.range(-0.3, 0.3),
         tr.range(-0.3, 0.3),
         tr.range(-0.3, 0.3),
     ];
-    let air =
-        |t: f64| t0_air + drift * t / total + wobble * (std::f64::consts::TAU * t / 240.0).sin();
-    let mut t_stylus = t0_air + 0.1;
+    // With a span asked for, the room has been warming at that rate for a while: the air leads
+    // the scales by rate·τ (their lag) and the styli follow it, so each rises by the span over
+    // the program from its usual start, not by the span less its lag's start-up.
+    let rate = drift / total;
+    let spanned = o
+        .program_record
+        .as_ref()
+        .is_some_and(|p| p.temperature.is_some());
+    let lead = if spanned { rate * 120.0 } else { 0.0 };
+    let air = |t: f64| {
+        t0_air + lead + drift * t / total + wobble * (std::f64::consts::TAU * t / 240.0).sin()
+    };
+    let mut t_stylus = t0_air + 0.1 + if spanned { rate * 80.0 } else { 0.0 };
     let mut t_scale = [0, 1, 2].map(|i| t0_air - 0.2 + scale_off[i]);
     let mut t_range: BTreeMap<String, [f64; 2]> = BTreeMap::new();
 

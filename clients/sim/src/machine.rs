@@ -164,6 +164,12 @@ pub struct TrueMachine {
     /// Structure compliance C(p) = C_1 + C_x ξx + C_y ξy + C_z ξz (ξ = p/500 mm), s²: the probe
     /// body is displaced by −C(p)·a (quasi-statically) when the carriages accelerate by a.
     pub compliance: [[[f64; 3]; 3]; 4],
+    /// The compliance's change quadratic in X, C_x2 (s²): C(p) above plus C_x2·ξx², the bridge
+    /// bending more towards the middle of its travel than a line says (the ring-gauge patent's
+    /// example error is quadratic in X). Zero unless `deflection_quadratic` is switched on
+    /// (`sim --with deflection_quadratic`), so no other machine changes.
+    #[serde(default, skip_serializing_if = "is_zero_matrix")]
+    pub compliance_x2: [[f64; 3]; 3],
     /// Resonance of the structure per axis, Hz.
     pub structure_freq_hz: [f64; 3],
     /// Damping ratio of the structure.
@@ -224,6 +230,10 @@ pub struct TrueMachine {
     /// `rigid_body` is switched on).
     #[serde(default)]
     pub rigid_body: RigidBody,
+}
+
+fn is_zero_matrix(m: &[[f64; 3]; 3]) -> bool {
+    m.iter().flatten().all(|v| *v == 0.0)
 }
 
 /// Latching instants of the scale counters: the reading of axis i at controller time t is
@@ -545,6 +555,7 @@ impl TrueMachine {
             machine_seed: seed,
             servo,
             compliance: c,
+            compliance_x2: [[0.0; 3]; 3],
             structure_freq_hz: [
                 jitter(&mut r, 48.0, 0.1),
                 jitter(&mut r, 42.0, 0.1),
@@ -653,7 +664,19 @@ impl TrueMachine {
         for (k, w) in xi.iter().enumerate() {
             m += Matrix3::from_fn(|i, j| self.compliance[k][i][j]) * *w;
         }
-        m
+        m + Matrix3::from_fn(|i, j| self.compliance_x2[i][j]) * xi[1] * xi[1]
+    }
+
+    /// The quadratic-in-X compliance as `deflection_quadratic` switches it on (scale 1): 40 %
+    /// of the constant compliance on P_xx, 30 % on P_yy and on the nodding P_zx — what the
+    /// machine's own draw gives, so no random number is drawn for it.
+    pub fn quadratic_compliance(&self) -> [[f64; 3]; 3] {
+        let c = &self.compliance[0];
+        [
+            [0.4 * c[0][0], 0.0, 0.0],
+            [0.0, 0.3 * c[1][1], 0.0],
+            [0.3 * c[2][0], 0.0, 0.0],
+        ]
     }
 
     /// The quasi-static compliance the corrector can describe, per monomial k (1, ξx, ξy, ξz)

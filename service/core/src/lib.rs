@@ -11,7 +11,8 @@
 //!    by `t_ns` with bounded buffering and per-stream watermarks, one output point per scale
 //!    sample, every dropped sample counted by [`DropReason`].
 //! 2. [`estimator`] — the motion estimator: E = G_N·C with G_N = G1·G2 ([`transfer`]),
-//!    acceleration A = Ë of the estimate, rotation frequency f = sqrt(|A_n|/Rs)/(2π).
+//!    acceleration A = Ë of the estimate, rotation frequency f = |r × V|/(2π|r|²), r = E − c
+//!    (the estimate's rate about the commanded centre).
 //! 3. [`effects`] — one module per physical effect, each a correction vector that is linear in
 //!    its parameters, exposing its regressors so the lab can fit it.
 //! 4. [`synthesis`](corrector) — surface point = scales + Σ corrections + deflection + tip

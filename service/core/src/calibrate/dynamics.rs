@@ -8,7 +8,13 @@
 //! e_i = n_i·[P(p_i)·A_i] + n_i·δφ_i + n_i·δg_i + s_q(θ_i) + ε_i,
 //!
 //! * P(p) = Σ_m ξ_m(p)·P_m, the compliance with cross-coupling, linear in the position
-//!   (ξ = 1, x, y, z over 500 mm), A the estimated acceleration (`accel_deflection`);
+//!   (ξ = 1, x, y, z over 500 mm) and quadratic in X: P = P0 + P1·ξx + P2·ξx² (+ the Y and Z
+//!   lines), A the estimated acceleration (`accel_deflection`, position order 2, its ξx²
+//!   monomial). The data decide P2: its entries are fitted where the rings' X positions leave
+//!   ξx² a spread of ≥ 0.05 after a line in ξx (else "not determined", naming the positions
+//!   that would), and kept when the residual's χ² (lag-corrected) drops by more than BIC's
+//!   q·ln(n_eff) for its q entries; otherwise the linear fit stands and P2's fitted values
+//!   ± σ are reported beside (`quadratic`);
 //! * δφ the servo phase of Y (and Z) against X on arcs, φ = b0 + b1·f + b2·f², each b linear
 //!   in the position, changing sign with the direction (`servo_phase`, order 1);
 //! * δg the servo gain, δg_i = (α_i,2·f² [+ α_i,1·f])·(s_i − c_i) (`servo_gain`): its
@@ -71,6 +77,16 @@
 //! machine 233, truth −6.3·10⁻⁴); so it is named in `confounded`, with its size per unit k
 //! from the refitted time constants, when the start has no `probe_force`.
 //!
+//! ΔR per scan, as the patent reports it: the deviation after the position's static pattern,
+//! e(θ) ≈ a0 + a2·cos 2θ + b2·sin 2θ (θ in the ring's plane from its first axis), gives ΔR along
+//! X = a0 + a2 and along Y = a0 − a2, the ellipse's largest and smallest radius change
+//! a0 ± √(a2² + b2²) and the direction of the largest; each with its σ (the scan's residual
+//! variance after the fit, lag-corrected, through the estimator's weights, widened for the
+//! static pattern it is taken against). ΔR/a per position is the σ-weighted line through the
+//! origin of ΔR against v²/r over its scans, its σ widened by the scatter (Birge ratio ≥ 1).
+//! The static phase φ0 (the phase's f⁰ term, b0 of the constant monomial) is stored in the
+//! calibration's `servo_phase` and under the patent's name among its metrics.
+//!
 //! Spin-up and slow-down points are used: their acceleration and frequency are what the
 //! estimator says they are. Weighted least squares over all points, the covariance scaled by
 //! the residual variance and by (1 + ρ)/(1 − ρ) for the residuals' lag-1 correlation ρ.
@@ -78,6 +94,9 @@
 //! Source idea: the surface-shape measuring device's ring-gauge procedure (rings at several
 //! positions × speeds × both directions; the deflection matrix P(x) with cross-coupling, the
 //! phase b2·f² + b1·f + φ0, the gain in its theoretical form and as a polynomial in f).
+
+mod delta_r;
+mod quadratic;
 
 use super::{Param, ProcedureError};
 use crate::calib::Calibration;
@@ -88,6 +107,9 @@ use crate::lab::fit::{FeatureFit, Normal};
 use crate::lab::nominal::AxisFit;
 use crate::lab::program::FeatureKind;
 use crate::sample::Vec3;
+use delta_r::{through_origin, ScanSums};
+use quadratic::quadratic_test;
+pub use quadratic::Quadratic;
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -122,6 +144,19 @@ pub struct Scan {
     pub delta_r_x_um: f64,
     /// ΔR along Y (θ = ±π/2), µm; for a ring standing on its edge, along Z.
     pub delta_r_y_um: f64,
+    /// σ of ΔR along X, µm: the scan's residual after the fit (lag-corrected) through the
+    /// estimator a0 + a2, with the share of the position's static pattern it is taken against.
+    pub delta_r_x_sigma_um: f64,
+    /// σ of ΔR along Y, µm.
+    pub delta_r_y_sigma_um: f64,
+    /// The largest radius change over the ring (the ellipse's long axis, a0 + √(a2² + b2²)), µm.
+    pub delta_r_max_um: f64,
+    /// The smallest (its short axis), µm.
+    pub delta_r_min_um: f64,
+    /// σ of the largest and the smallest, µm.
+    pub delta_r_max_sigma_um: f64,
+    /// The long axis's direction from the plane's first axis (X on an upright ring), deg.
+    pub delta_r_max_at_deg: f64,
 }
 
 /// One ring placement.
@@ -136,8 +171,12 @@ pub struct Position {
     /// ΔR along X per acceleration v²/r over its scans (a line through the origin), µm per
     /// m/s².
     pub dr_x_per_accel_um_per_m_s2: f64,
+    /// σ of ΔR/a along X, µm per m/s².
+    pub dr_x_per_accel_sigma_um_per_m_s2: f64,
     /// The same along Y, µm per m/s².
     pub dr_y_per_accel_um_per_m_s2: f64,
+    /// σ of ΔR/a along Y, µm per m/s².
+    pub dr_y_per_accel_sigma_um_per_m_s2: f64,
 }
 
 /// One face scan accelerated in place (a weave).
@@ -189,6 +228,13 @@ pub struct Outcome {
     pub positions: Vec<Position>,
     /// Face scans accelerated in place, before and after the fit.
     pub faces: Vec<FaceScan>,
+    /// P's term quadratic in X: the data's decision.
+    pub quadratic: Quadratic,
+    /// The static phase φ0 of Y and Z against X (the phase's f⁰ term, `servo_phase` b0 of the
+    /// constant monomial), rad ± σ, where determined: stored in the calibration's servo_phase
+    /// and, by this name, among its metrics (`dynamics_phi0_y_rad`).
+    #[serde(skip)]
+    pub phase0: Vec<Param>,
     /// Residual RMS after the static patterns, before and after the fit, µm.
     pub residual_before_um: f64,
     /// After.
@@ -197,16 +243,28 @@ pub struct Outcome {
     pub notes: Vec<String>,
 }
 
+/// Monomials of P the procedure fits: 1, ξx, ξy, ξz and ξx² — the position basis's first five
+/// (order 2; its other quadratic monomials are not fitted).
+const P_MONOMIALS: usize = 5;
+/// P's columns: nine per monomial.
+const P_COLS: usize = 9 * P_MONOMIALS;
+/// P2's columns (the ξx² monomial).
+const P2_COLS: std::ops::Range<usize> = 36..45;
+/// The phase's columns: Y then Z, 4 monomials × (b0, b1, b2) each.
+const PHASE_COLS: std::ops::Range<usize> = P_COLS..P_COLS + 24;
+
 struct Model {
     configs: Vec<EffectConfig>,
     built: Vec<crate::effects::Model>,
+    /// Per effect, which of its parameters are columns (P: its first five monomials).
+    keep: Vec<Vec<usize>>,
     n: usize,
 }
 
 impl Model {
     fn new(gain_powers: Vec<u32>, ds: &Dataset) -> Model {
         let configs = vec![
-            EffectConfig::AccelDeflection(accel_deflection::Config::zeros(1, false)),
+            EffectConfig::AccelDeflection(accel_deflection::Config::zeros(2, false)),
             EffectConfig::ServoPhase(servo_phase::Config::zeros(1)),
             EffectConfig::ServoGain(servo_gain::Config::zeros(0, gain_powers)),
         ];
@@ -215,18 +273,28 @@ impl Model {
             .iter()
             .map(|c| c.build(&mut sensors).expect("zero configs build").model)
             .collect();
-        let n = built.iter().map(|b| b.n_params()).sum();
-        Model { configs, built, n }
+        let keep: Vec<Vec<usize>> = built
+            .iter()
+            .enumerate()
+            .map(|(e, b)| (0..if e == 0 { P_COLS } else { b.n_params() }).collect())
+            .collect();
+        let n = keep.iter().map(|k| k.len()).sum();
+        Model {
+            configs,
+            built,
+            keep,
+            n,
+        }
     }
     fn row(&self, ds: &Dataset, prep: &Prepared, i: usize, out: &mut Vec<f64>) {
         out.clear();
         let g = prep.art.grad[i];
-        let mut r = vec![Vec3::zeros(); 40];
-        for b in &self.built {
+        let mut r = vec![Vec3::zeros(); 100];
+        for (b, keep) in self.built.iter().zip(&self.keep) {
             let k = b.n_params();
             b.regressors(&ds.points[i].ctx, &mut r[..k]);
-            out.extend(r[..k].iter().map(|v| {
-                let x = g.dot(v);
+            out.extend(keep.iter().map(|c| {
+                let x = g.dot(&r[*c]);
                 if x.is_finite() {
                     x
                 } else {
@@ -234,6 +302,29 @@ impl Model {
                 }
             }));
         }
+    }
+    /// The fitted effects from the columns' values `theta`: P of position order 2 when its ξx²
+    /// term is kept, else order 1 (as before the quadratic term).
+    fn effects(&self, theta: &[f64], quadratic: bool) -> Result<Vec<EffectConfig>, ProcedureError> {
+        let mut out = vec![];
+        let mut off = 0;
+        for (e, (c, keep)) in self.configs.iter().zip(&self.keep).enumerate() {
+            let cols = &theta[off..off + keep.len()];
+            off += keep.len();
+            let (c, full) = if e == 0 && !quadratic {
+                let c = EffectConfig::AccelDeflection(accel_deflection::Config::zeros(1, false));
+                let full = cols[..36].to_vec();
+                (c, full)
+            } else {
+                let mut full = vec![0.0; c.params().len()];
+                for (t, k) in cols.iter().zip(keep) {
+                    full[*k] = *t;
+                }
+                (c.clone(), full)
+            };
+            out.push(c.with_params(&full).map_err(ProcedureError::Missing)?);
+        }
+        Ok(out)
     }
 }
 
@@ -389,16 +480,27 @@ fn ring_plane(f: &FeatureFit) -> &'static str {
     }
 }
 
-/// The constant column of a position term's column `c` (P: 9 per monomial; the phase of Y
-/// and Z after it: 3 per monomial), None for a constant or the gain.
-fn constant_partner(c: usize) -> Option<usize> {
-    if c < 36 {
-        (c >= 9).then_some(c % 9)
-    } else if c < 60 {
-        let k = c - 36;
-        (k % 12 >= 3).then_some(36 + (k / 12) * 12 + k % 3)
+/// What a position term's column `c` must be told apart from: the constant column (P: 9 per
+/// monomial; the phase of Y and Z after it: 3 per monomial), and for P's ξx² term also its ξx
+/// term. Empty for a constant or the gain.
+fn partners(c: usize) -> Vec<usize> {
+    if P2_COLS.contains(&c) {
+        vec![c % 9, c % 9 + 9]
+    } else if c < P_COLS {
+        if c >= 9 {
+            vec![c % 9]
+        } else {
+            vec![]
+        }
+    } else if PHASE_COLS.contains(&c) {
+        let k = c - P_COLS;
+        if k % 12 >= 3 {
+            vec![P_COLS + (k / 12) * 12 + k % 3]
+        } else {
+            vec![]
+        }
     } else {
-        None
+        vec![]
     }
 }
 
@@ -614,8 +716,8 @@ pub fn run(
         let diag: Vec<f64> = (0..m.n).map(|c| total(n, c, c)).collect();
         let mut drop = vec![];
         let mut off = 0;
-        for b in &m.built {
-            let k = b.n_params();
+        for keep in &m.keep {
+            let k = keep.len();
             let top = diag[off..off + k].iter().cloned().fold(0.0, f64::max);
             for c in off..off + k {
                 if diag[c] <= WEAK_COLUMN * WEAK_COLUMN * top {
@@ -625,14 +727,31 @@ pub fn run(
             off += k;
         }
         for c in 0..m.n {
-            let Some(c0) = constant_partner(c) else {
-                continue;
-            };
-            if diag[c] <= 0.0 || drop.contains(&c) || drop.contains(&c0) || diag[c0] <= 0.0 {
+            let ps = partners(c);
+            if ps.is_empty()
+                || diag[c] <= 0.0
+                || drop.contains(&c)
+                || ps.iter().any(|p| drop.contains(p) || diag[*p] <= 0.0)
+            {
                 continue;
             }
-            let cross = total(n, c, c0);
-            let var = (diag[c] - cross * cross / diag[c0]) / diag[c0];
+            // ξ's weighted variance left after the partners (the constant; for ξx² also ξx):
+            // the Schur complement of the column against them, per the constant's weight.
+            let c0 = ps[0];
+            let var = if ps.len() == 1 {
+                let cross = total(n, c, c0);
+                (diag[c] - cross * cross / diag[c0]) / diag[c0]
+            } else {
+                let c1 = ps[1];
+                let (a, b, d) = (diag[c0], total(n, c1, c0), diag[c1]);
+                let det = a * d - b * b;
+                let (u, v) = (total(n, c, c0), total(n, c, c1));
+                if det <= 0.0 {
+                    0.0
+                } else {
+                    (diag[c] - (d * u * u - 2.0 * b * u * v + a * v * v) / det) / diag[c0]
+                }
+            };
             if var < MIN_SPREAD * MIN_SPREAD {
                 drop.push(c);
                 if mi == 0 {
@@ -667,7 +786,15 @@ pub fn run(
         let mut n = 0;
         for test in 0..3 {
             let train: Vec<&Normal> = (0..4).filter(|f| *f != test).map(|f| &ne[mi][f]).collect();
-            let sol = sum(&train).solve();
+            // The gain's form is chosen on the linear P (as before its ξx² term; BIC decides
+            // that term afterwards on the chosen form).
+            let mut t = sum(&train);
+            for c in P2_COLS {
+                t.m.row_mut(c).fill(0.0);
+                t.m.column_mut(c).fill(0.0);
+                t.b[c] = 0.0;
+            }
+            let sol = t.solve();
             let theta: Vec<f64> = sol.x.iter().take(m.n).copied().collect();
             let mut stn = Normal::new(n_static);
             for &i in &rows {
@@ -713,8 +840,11 @@ pub fn run(
     }
     let ss0 = st0.solve().ss;
     let n = all.n as f64;
-    let k = (sol.rank).max(1) as f64;
     let inflate = (1.0 + prep.rho) / (1.0 - prep.rho).max(1e-3);
+    // P's term quadratic in X: the data decide (BIC on the lag-corrected χ²); without it the
+    // fit is the linear one, as before.
+    let (sol, quadratic) = quadratic_test(&all, sol, inflate, &narrow);
+    let k = (sol.rank).max(1) as f64;
     let sigma2 = sol.ss / (n - k).max(1.0) * inflate;
 
     // --- parameters by name ---
@@ -735,7 +865,7 @@ pub fn run(
         ));
     }
     let mut names = vec![];
-    for mono in ["1", "x", "y", "z"] {
+    for mono in ["1", "x", "y", "z", "x2"] {
         for i in AX {
             for j in AX {
                 names.push(format!("dynamics.P_{i}{j}.{mono}"));
@@ -760,6 +890,10 @@ pub fn run(
     let mut not_seen = vec![];
     let mut one_place = vec![];
     for (c, name) in names.iter().enumerate() {
+        if P2_COLS.contains(&c) && quadratic.decision != "selected" {
+            // Reported in `quadratic` (its own fit, its test, or why it is not determined).
+            continue;
+        }
         let seen = all.m[(c, c)] > 0.0 && !sol.unidentifiable.contains(&c);
         if !seen {
             let short = name.trim_start_matches("dynamics.").to_string();
@@ -866,20 +1000,42 @@ pub fn run(
     let mut cal = start.clone();
     cal.effects
         .retain(|e| !matches!(e.kind(), "accel_deflection" | "servo_phase" | "servo_gain"));
-    let mut off = 0;
-    for c in &m.configs {
-        let k = c.params().len();
-        let fitted = c
-            .with_params(&theta[off..off + k])
-            .map_err(ProcedureError::Missing)?;
-        cal.effects.push(fitted);
-        off += k;
+    cal.effects
+        .extend(m.effects(&theta, quadratic.decision == "selected")?);
+    let mut quadratic = quadratic;
+    quadratic.params = quadratic
+        .cols
+        .iter()
+        .map(|(c, v, s)| Param {
+            name: names[*c].clone(),
+            value: *v,
+            sigma: *s,
+        })
+        .collect();
+    if quadratic.decision != "selected" {
+        notes.push(quadratic.say());
+    }
+    // The static phase φ0 (the phase's f⁰ term, `servo_phase` b0 of the constant monomial):
+    // stored in the calibration's servo_phase (y[0][0], z[0][0]) and, by the patent's name,
+    // among its metrics.
+    let mut phase0 = vec![];
+    for ax in ["y", "z"] {
+        let name = format!("dynamics.phase_{ax}.b0.1");
+        if let Some(p) = params.iter().find(|p| p.name == name) {
+            phase0.push(Param {
+                name: format!("dynamics.phi0_{ax}"),
+                value: p.value,
+                sigma: p.sigma,
+            });
+        }
     }
 
     // --- ΔR per scan, before and after: the residual with each placement's static pattern and
     // drift from the joint fit taken out, without and with the fitted dynamics ---
-    // Per scan: Σe before, Σe after, count, Σe·cos 2θ before (the X/Y split of ΔR).
-    let mut acc: BTreeMap<(usize, i64, i32), (f64, f64, usize, f64)> = BTreeMap::new();
+    // Per scan: Σe before, Σe after, count, Σe·cos 2θ and Σe·sin 2θ before (the X/Y split of ΔR
+    // and the ellipse's axes), Σe² after, Σcos 2θ, Σcos² 2θ (their σ).
+    let mut acc: BTreeMap<(usize, i64, i32), ScanSums> = BTreeMap::new();
+    let mut per_place = vec![0usize; usable.len()];
     let mut weave_of = vec![usize::MAX; ds.points.len()];
     for (k, w) in weaves.iter().enumerate() {
         for &i in &w.points {
@@ -906,51 +1062,46 @@ pub fn run(
             .map_or(0.0, |f| ring_angle(f, &(p.surface - f.center)));
         let e = acc
             .entry((p.feature, (p.speed * 10.0).round() as i64, p.direction))
-            .or_insert((0.0, 0.0, 0, 0.0));
-        e.0 += prep.art.residual[i] + stat;
-        e.1 += prep.art.residual[i] + stat + dynamic;
-        e.2 += 1;
-        e.3 += (prep.art.residual[i] + stat) * (2.0 * th).cos();
+            .or_default();
+        let (before, after) = (
+            prep.art.residual[i] + stat,
+            prep.art.residual[i] + stat + dynamic,
+        );
+        let (c2, s2) = ((2.0 * th).cos(), (2.0 * th).sin());
+        e.before += before;
+        e.after += after;
+        e.n += 1;
+        e.cos2 += before * c2;
+        e.sin2 += before * s2;
+        e.after2 += after * after;
+        e.c += c2;
+        e.cc += c2 * c2;
+        if let Some(j) = usable.iter().position(|u| *u == p.feature) {
+            per_place[j] += 1;
+        }
     }
     let positions: Vec<Position> = usable
         .iter()
-        .map(|&f| {
+        .enumerate()
+        .map(|(j, &f)| {
             let fit = prep.art.features[f].as_ref().unwrap();
             let scans: Vec<Scan> = acc
                 .range((f, i64::MIN, i32::MIN)..=(f, i64::MAX, i32::MAX))
-                .map(|((_, v, d), (a, b, n, c2))| {
-                    let v = *v as f64 / 10.0;
-                    let n = *n as f64;
-                    // e(θ) ≈ a0 + a2·cos 2θ + …: ΔR along X is a0 + a2, along Y a0 − a2.
-                    let (a0, a2) = (a / n, 2.0 * c2 / n);
-                    Scan {
-                        speed_mm_s: v,
-                        direction: *d,
-                        accel_mm_s2: v * v / fit.radius,
-                        delta_r_um: a0 * 1e3,
-                        delta_r_after_um: b / n * 1e3,
-                        delta_r_x_um: (a0 + a2) * 1e3,
-                        delta_r_y_um: (a0 - a2) * 1e3,
-                    }
+                .map(|((_, v, d), e)| {
+                    e.scan(*v as f64 / 10.0, *d, fit.radius, inflate, per_place[j])
                 })
                 .collect();
-            // ΔR along X and Y per acceleration: least squares through the origin.
-            let slope = |pick: fn(&Scan) -> f64| {
-                let (sxy, sxx) = scans.iter().fold((0.0, 0.0), |(sxy, sxx), s| {
-                    let a = s.accel_mm_s2 * 1e-3;
-                    (sxy + pick(s) * a, sxx + a * a)
-                });
-                if sxx > 0.0 {
-                    sxy / sxx
-                } else {
-                    0.0
-                }
-            };
+            let (dr_x, dr_x_sigma) =
+                through_origin(&scans, |s| (s.delta_r_x_um, s.delta_r_x_sigma_um));
+            let (dr_y, dr_y_sigma) =
+                through_origin(&scans, |s| (s.delta_r_y_um, s.delta_r_y_sigma_um));
             Position {
                 center_mm: fit.center.into(),
                 plane: ring_plane(fit).into(),
-                dr_x_per_accel_um_per_m_s2: slope(|s| s.delta_r_x_um),
-                dr_y_per_accel_um_per_m_s2: slope(|s| s.delta_r_y_um),
+                dr_x_per_accel_um_per_m_s2: dr_x,
+                dr_x_per_accel_sigma_um_per_m_s2: dr_x_sigma,
+                dr_y_per_accel_um_per_m_s2: dr_y,
+                dr_y_per_accel_sigma_um_per_m_s2: dr_y_sigma,
                 scans,
             }
         })
@@ -1003,6 +1154,8 @@ pub fn run(
         gain,
         positions,
         faces,
+        quadratic,
+        phase0,
         residual_before_um: (ss0 / n).sqrt() * 1e3,
         residual_after_um: (sol.ss / n).sqrt() * 1e3,
         notes,

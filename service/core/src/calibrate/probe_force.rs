@@ -28,12 +28,14 @@
 //! centripetal acceleration, and what the dynamics do there is the same at each and goes into
 //! the static map (the patent's two forces along one path); (2) unless the start carries
 //! `accel_deflection`, the structure's compliance under the carriage's acceleration a (the
-//! estimated one) is fitted beside the force, one per machine axis (the sphere stands at one
-//! place): the left-hand side gains Σ_j C_j·n_j·a_j, with the prior C_j = 0 ± σ_C (σ_C = 30 µm
-//! per m/s², a bridge CMM's) as a pseudo-observation of weight s²/σ_C² (s² the fit's point
-//! variance). Where the scans' accelerations do not follow the deflection the data determine
-//! C; where they do (a wave, a = −ω²·d) the prior's σ goes into the force coefficients' σ
-//! through their correlation (σ_k ≈ σ_C·ω² for a wave's share) instead of a bias of C·ω².
+//! estimated one) is a nuisance beside the force, one per machine axis (the sphere stands at
+//! one place): the left-hand side would gain Σ_j C_j·n_j·a_j with C_j = 0 ± σ_C (σ_C = 30 µm
+//! per m/s², a bridge CMM's). It is not fitted: the fit is linear, so a term c·C shifts the
+//! estimate by M·c·C (M = (AᵀA)⁻¹Aᵀ), and σ_C²·(Mc)(Mc)ᵀ is added to the covariance; the
+//! values do not change. On a wave (a = −ω²·d) the force and the compliance are one column up
+//! to the scans' small differences: fitting both let those decide C and moved the force
+//! coefficients by 0.5 % with every effect off in the simulator; as a nuisance the wave's share
+//! σ_k ≈ σ_C·ω² goes into the coefficients' σ.
 //!
 //! Variant (d) — radial approaches at a few positions, the deflection growing along each —
 //! has no sphere to fit: each position's points share one normal n̄ (their mean probing
@@ -258,8 +260,8 @@ pub struct Options {
     /// deflection is then compared at the same kinematic state, so what the start leaves of
     /// the dynamics is the same at each and goes into the static map.
     pub steady_only: bool,
-    /// The prior σ of each axis's compliance (s²) fitted beside the force when the start has
-    /// no `accel_deflection`; `None` fits none.
+    /// The σ of each axis's compliance (s²), a nuisance 0 ± σ in the coefficients' σ (not
+    /// fitted) when the start has no `accel_deflection`; `None` leaves it out.
     pub compliance_prior_s2: Option<f64>,
     /// Harmonics of each circle's static pattern.
     pub harmonics: usize,
@@ -613,16 +615,19 @@ pub fn run_with(
             ne.add(&dense, &sparse, y);
         }
     }
-    // The compliance's prior, 0 ± σ_C per axis: a pseudo-observation of weight s²/σ_C², s²
-    // the points' variance — first the noise floor's, corrected below once the fit's own is
-    // known. Where the scans determine the compliance (accelerations that the deflection does
-    // not follow) the data outweigh it; where they cannot tell it from the force (a wave whose
-    // acceleration is in phase with its deflection) its σ goes into the force coefficients'.
-    let floor_var = (ds.noise_floor_um * 1e-3).powi(2).max(1e-12);
+    // Nuisance terms u = 0 ± σ_u, not fitted: the fit is linear, so such a term c·u shifts the
+    // estimate by M·c·u (M = (AᵀA)⁻¹Aᵀ) and adds σ_u²·(Mc)(Mc)ᵀ to its covariance; the
+    // values do not change. (1) The structure's compliance, one per axis, 0 ± σ_C: a wave of
+    // the deflection accelerates the carriage in phase with it, so the force and the
+    // compliance are one column up to the scans' small differences, and fitting both let
+    // those (nm) decide a compliance of tens of µm per m/s² and move the force coefficients
+    // by it (0.5 % on the sine program with every effect off). (The drift of a circle scanned
+    // only in part at one deflection, a quarter beside a full turn, takes the force's shape
+    // over the part as well; as a nuisance of 1 nm/s it left the quarter's k_v −3σ with the
+    // effects on, so it stays fitted.)
+    let mut nuisance: Vec<(usize, f64)> = vec![];
     if let Some(sc) = compliance_prior {
-        for c in n_thermal..n_dense {
-            ne.m[(c, c)] += floor_var / (sc * sc);
-        }
+        nuisance.extend((n_thermal..n_dense).map(|c| (c, sc)));
     }
     // The machine-wide k has no rows (every tip is listed); a tip's axis the measurement
     // barely sees (no deflection along it) is not determined.
@@ -651,6 +656,30 @@ pub fn run_with(
             ne.m.column_mut(c).fill(0.0);
             ne.b[c] = 0.0;
         }
+    }
+    // Each nuisance column's Aᵀc (the normal matrix is kept in its lower triangle), then the
+    // column out of the fit.
+    let is_nuisance = |c: usize| nuisance.iter().any(|(j, _)| *j == c);
+    let n_all = ne.b.len();
+    let nuisance_g: Vec<(f64, Vec<f64>)> = nuisance
+        .iter()
+        .map(|&(j, su)| {
+            let g = (0..n_all)
+                .map(|i| {
+                    if is_nuisance(i) || (i < n_dense && weak[i]) {
+                        0.0
+                    } else {
+                        ne.m[(i.max(j), i.min(j))]
+                    }
+                })
+                .collect();
+            (su, g)
+        })
+        .collect();
+    for &(c, _) in &nuisance {
+        ne.m.row_mut(c).fill(0.0);
+        ne.m.column_mut(c).fill(0.0);
+        ne.b[c] = 0.0;
     }
     let (sol, pad) = solve_padded(&ne);
     if sol.rank <= pad {
@@ -759,23 +788,31 @@ pub fn run_with(
     };
     let birge = chi2_red.max(1.0);
     let sigma2 = point_var * inflate * birge;
-    // The compliance's prior at the fit's own variance (above: the noise floor's), once.
-    let (sol, theta) = match compliance_prior {
-        Some(sc) if sigma2 > floor_var => {
-            for c in n_thermal..n_dense {
-                ne.m[(c, c)] += (sigma2 - floor_var) / (sc * sc);
-            }
-            match solve_padded(&ne) {
-                (again, p) if again.rank > p => {
-                    let theta: Vec<f64> = again.x.iter().copied().collect();
-                    (again, theta)
-                }
-                _ => (sol, theta),
-            }
-        }
-        _ => (sol, theta),
+    // What each nuisance would shift the estimate by per unit: M·c = (AᵀA)⁻¹·Aᵀc.
+    let shifts: Vec<(f64, Vec<f64>)> = nuisance_g
+        .iter()
+        .map(|(su, g)| {
+            let d = (0..n_all)
+                .map(|a| {
+                    if is_nuisance(a) {
+                        return 0.0;
+                    }
+                    (0..n_all)
+                        .filter(|&b| g[b] != 0.0)
+                        .map(|b| sol.cov[(a, b)] * g[b])
+                        .sum()
+                })
+                .collect();
+            (*su, d)
+        })
+        .collect();
+    let widen = |c: usize| -> f64 {
+        shifts
+            .iter()
+            .map(|(su, d): &(f64, Vec<f64>)| (su * d[c]).powi(2))
+            .sum()
     };
-    let sig = |c: usize| (sol.cov[(c, c)].max(0.0) * sigma2).sqrt();
+    let sig = |c: usize| (sol.cov[(c, c)].max(0.0) * sigma2 + widen(c)).sqrt();
 
     let mut params = vec![];
     let mut per_tip: BTreeMap<u32, [f64; 3]> = BTreeMap::new();
@@ -1197,25 +1234,17 @@ pub fn run_with(
                 .to_string(),
         );
     }
-    // The fitted compliance, per axis, µm per m/s² (s² × 1e6).
+    // The compliance as a nuisance: the largest shift it could give a force coefficient.
     let compliance_text = compliance_prior.map(|sc| {
-        let v: Vec<String> = (0..3)
-            .map(|j| {
-                let c = n_thermal + j;
-                format!(
-                    "{} {:+.1} ± {:.1}",
-                    ["X", "Y", "Z"][j],
-                    theta[c] * 1e6,
-                    sig(c) * 1e6
-                )
-            })
-            .collect();
+        let worst = shifts[..3]
+            .iter()
+            .flat_map(|(su, d)| (0..n_force).map(move |c| (su * d[c]).abs()))
+            .fold(0.0, f64::max);
         format!(
-            "the structure's compliance under the carriage's acceleration is fitted beside the \
-             force, each axis with a prior 0 ± {:.0} µm per m/s² (a bridge CMM's): {} µm per \
-             m/s²; what the scans cannot tell from the force is in the coefficients' σ",
-            sc * 1e6,
-            v.join(", ")
+            "the structure's compliance under the carriage's acceleration is taken as 0 ± {:.0} \
+             µm per m/s² per axis (a bridge CMM's) and not fitted (the scans cannot tell it from \
+             the force): it is in the coefficients' σ, up to {worst:.6} of one",
+            sc * 1e6
         )
     });
     // A wave of the deflection accelerates the carriage in phase with it: unless the start

@@ -287,10 +287,13 @@ impl super::dataset::Samples for WithoutArcs {
 /// bags with every commanded arc left out, so that the corrector takes the arc (centre,
 /// radius, rotation frequency f) from the estimated path instead
 /// ([`crate::estimator::osculating_arc`]). The two are the corrector's two descriptions of
-/// the same motion; on a steady circle they agree, yet on the simulator the servo phase's
-/// b1 fitted under the commanded arcs is 0.6–1.3 % steeper (and b0 5–9e-7 rad from 0) while
-/// under the estimated arcs it is within 0.2 % of the truth: a systematic of the arc's
-/// description that no statistic of one fit can show. Its size is a model-form uncertainty
+/// the same motion; on a steady circle they agree. On the simulator the servo phase's b1
+/// fitted under the commanded arcs was 0.6–1.3 % steeper than under the estimated arcs while
+/// the rotation frequency came from the estimate's normal acceleration over the commanded
+/// radius (0.2 % low: the sampled acceleration's polygon bias and the estimate's smaller
+/// circle); with f the estimate's rate about the commanded centre
+/// ([`crate::estimator::rotation`]) 0.15–0.6 % is left, and only with `accel_deflection` on:
+/// a systematic of the arc's description that no statistic of one fit can show. Its size is a model-form uncertainty
 /// (the spread between descriptions the data cannot tell apart, Burnham & Anderson 2002
 /// §4.3), given by [`widen_by_arc_source`]. Empty when no point lies on a commanded arc or the
 /// model has no effect that uses arcs (`servo_phase`, `servo_gain`, `custom`).

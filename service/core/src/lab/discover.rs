@@ -131,6 +131,13 @@ pub struct Discovery {
     pub r#final: Final,
     /// Candidates the data could not test, and why (last diagnosis).
     pub skipped: Vec<String>,
+    /// The steps of the run not kept when the loop was restarted (see [`discover`]); their
+    /// versions exist (each was handed to `on_step`), their parent chain leads to step 0.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub abandoned: Vec<Step>,
+    /// What the restart did and which run was kept, when the loop was restarted.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub restart: Option<String>,
 }
 
 /// Two candidates whose corrections look alike, told apart by their scores.
@@ -611,6 +618,16 @@ struct FitOutcomeLite {
 
 /// Runs the loop. `on_step` sees every step as soon as its version exists (to write it and
 /// show progress); `on_progress` gets a line of what the loop is doing.
+///
+/// When the loop ends far above the noise floor (more than [`STALL_FACTOR`]×) with a
+/// structure left that the library does not have, the effects taken before it may have
+/// absorbed part of it and now stand in its way: a table or a polynomial fitted to a cyclic
+/// error extrapolates badly once the cyclic error is in, so the structure is refused beside
+/// them although it is the largest component left (machine 43 of the simulator: a pitch table
+/// about the wrong axis and a second-order rigid body, 14.4× the floor). The loop is then run
+/// once more from the refit start with that structure first, and the branch that ends lower on
+/// the held-out data is kept; the other's steps are returned as `abandoned`, and `restart`
+/// says what was done and why.
 pub fn discover(
     bags: &[BagData],
     start: &Calibration,
@@ -618,62 +635,171 @@ pub fn discover(
     on_step: &mut dyn FnMut(&Step) -> Result<(), LabError>,
     on_progress: &mut dyn FnMut(&str),
 ) -> Result<Discovery, LabError> {
+    let first = discover_from(bags, Begin::Start(start), o, on_step, on_progress)?
+        .map_err(LabError::Data)?;
+    let noise = first.r#final.noise_floor_um;
+    let ratio = first.r#final.heldout_rms_um / noise.max(1e-9);
+    if !(ratio > STALL_FACTOR) {
+        return Ok(first);
+    }
+    let Some((custom, s)) = first.unexplained.iter().take(2).find_map(|s| {
+        beyond::custom_effect(s)
+            .filter(|c| !first.r#final.effects.contains(&c.config.id()))
+            .map(|c| (c, s))
+    }) else {
+        return Ok(first);
+    };
+    let why = format!(
+        "the loop stalled at {ratio:.2}× the noise floor with {} left ({:.3} µm, {:.0} % of the residual) beside the effects taken before it: restarted from the refit start with it first",
+        custom.what,
+        s.amplitude_um,
+        s.explained * 100.0
+    );
+    on_progress(&why);
+    let next_version = first.steps.iter().map(|s| s.version).max().unwrap_or(0) + 1;
+    let branch = Begin::Branch {
+        step0: &first.steps[0],
+        custom,
+        version: next_version,
+        why: why.clone(),
+    };
+    let Some(second) = discover_branch(bags, branch, o, on_step, on_progress)? else {
+        return Ok(first);
+    };
+    let (a, b) = (first.r#final.heldout_rms_um, second.r#final.heldout_rms_um);
+    let (mut kept, other, verdict) = if b < a {
+        (
+            second,
+            first,
+            format!(
+                "{why}; kept: it ends at {b:.3} µm held out where the first run ended at {a:.3} µm"
+            ),
+        )
+    } else {
+        (
+            first,
+            second,
+            format!("{why}; not kept: it ends at {b:.3} µm held out, the first run at {a:.3} µm"),
+        )
+    };
+    on_progress(&verdict);
+    kept.start_heldout_rms_um = other.start_heldout_rms_um.max(kept.start_heldout_rms_um);
+    kept.abandoned = other.steps.into_iter().skip(1).collect();
+    kept.restart = Some(verdict);
+    Ok(kept)
+}
+
+/// Where a run of the loop begins.
+enum Begin<'a> {
+    /// The user's starting calibration (step 0 refits it).
+    Start(&'a Calibration),
+    /// A restart: the first run's step 0, with `custom` added first as version `version`.
+    Branch {
+        step0: &'a Step,
+        custom: beyond::CustomEffect,
+        version: u64,
+        why: String,
+    },
+}
+
+/// [`discover_from`] for a restart; None when the structure cannot be fitted on the refit
+/// start or makes its held-out data worse there (then there is nothing to restart from).
+fn discover_branch(
+    bags: &[BagData],
+    b: Begin<'_>,
+    o: &Options,
+    on_step: &mut dyn FnMut(&Step) -> Result<(), LabError>,
+    on_progress: &mut dyn FnMut(&str),
+) -> Result<Option<Discovery>, LabError> {
+    match discover_from(bags, b, o, on_step, on_progress)? {
+        Ok(d) => Ok(Some(d)),
+        Err(why) => {
+            on_progress(&format!("no restart: {why}"));
+            Ok(None)
+        }
+    }
+}
+
+/// The loop from `begin` (see [`discover`]); the inner Err says why a restart could not begin.
+fn discover_from(
+    bags: &[BagData],
+    begin: Begin<'_>,
+    o: &Options,
+    on_step: &mut dyn FnMut(&Step) -> Result<(), LabError>,
+    on_progress: &mut dyn FnMut(&str),
+) -> Result<Result<Discovery, String>, LabError> {
     let um = |x: f64| format!("{x:.3}");
-    // Step 0: the nominal model and the effects the start has.
-    on_progress("correcting the bags with the starting calibration");
-    let ds0 = dataset::build(bags, start, &o.build)?;
-    let p0 = analysis::prepare(&ds0)?;
-    on_progress("refitting the nominal model (axis time constants) and the start's effects");
-    let raw: Vec<&dyn dataset::Samples> = bags
-        .iter()
-        .filter(|b| !b.validation)
-        .map(|b| &*b.samples)
-        .collect();
-    let (nominal, axes) = match fit_nominal(&raw, start) {
-        Ok(v) => v,
-        Err(e) => {
-            on_progress(&format!("nominal model kept: {e}"));
-            (start.clone(), vec![])
+    let (p0, mut cal, mut ds, mut prep, mut steps, mut seen) = match begin {
+        Begin::Start(start) => {
+            let (p0, cal, ds, prep, s0) = step_zero(bags, start, o, on_progress)?;
+            on_step(&s0)?;
+            let seen = vec![signature(&cal.effects)];
+            (p0, cal, ds, prep, vec![s0], seen)
+        }
+        Begin::Branch {
+            step0,
+            custom,
+            version,
+            why,
+        } => {
+            let ds0 = dataset::build(bags, &step0.calibration, &o.build)?;
+            let p0 = analysis::prepare(&ds0)?;
+            let name = if custom.config.kind() == "custom" {
+                format!("custom:{}", custom.config.id())
+            } else {
+                format!("{}:{}", custom.config.kind(), custom.config.id())
+            };
+            let cand = Candidate {
+                action: Move::Add,
+                effect: name.clone(),
+                replaces: None,
+                config: Some(custom.config.clone()),
+            };
+            let applied = match analysis::apply(&ds0, vec![cand], false) {
+                Ok(a) => a,
+                Err(e) => return Ok(Err(format!("{name} cannot be fitted: {e}"))),
+            };
+            let mut cal = version::next(&step0.calibration, applied.effects, &o.created);
+            cal.version = version;
+            let ds = dataset::build(bags, &cal, &o.build)?;
+            let prep = analysis::prepare(&ds)?;
+            if !(prep.rms_held_um <= p0.rms_held_um) {
+                return Ok(Err(format!(
+                    "{name} on the refit start leaves the held-out RMS at {:.3} µm (was {:.3})",
+                    prep.rms_held_um, p0.rms_held_um
+                )));
+            }
+            let what = format!("add {name} ({}), restarted", custom.what);
+            version::describe(
+                &mut cal,
+                &format!("lab discover step 1: {what}"),
+                ds.noise_floor_um,
+                &p0,
+                &prep,
+            );
+            let s1 = Step {
+                index: 1,
+                action: "add".into(),
+                effect: name,
+                replaces: None,
+                version: cal.version,
+                rms_um: prep.rms_fit_um,
+                cv_rms_um: applied.outcome.cv_rms_after_um,
+                heldout_rms_before_um: p0.rms_held_um,
+                heldout_rms_um: prep.rms_held_um,
+                confounded_with: vec![],
+                found: Some(format!("{}; {why}", custom.what)),
+                nominal: vec![],
+                calibration: cal.clone(),
+            };
+            on_step(&s1)?;
+            let seen = vec![
+                signature(&step0.calibration.effects),
+                signature(&cal.effects),
+            ];
+            (p0, cal, ds, prep, vec![step0.clone(), s1], seen)
         }
     };
-    let mut cal = nominal;
-    if !cal.effects.is_empty() {
-        let ds = dataset::build(bags, &cal, &o.build)?;
-        let prep = analysis::prepare(&ds)?;
-        let fit = analysis::fit_effects(&ds, &prep, &cal.effects)?;
-        cal.effects = fit.configs;
-    }
-    let refit = cal;
-    let mut cal = version::next(start, refit.effects.clone(), &o.created);
-    cal.nominal = refit.nominal.clone();
-    let mut ds = dataset::build(bags, &cal, &o.build)?;
-    let mut prep = analysis::prepare(&ds)?;
-    version::describe(
-        &mut cal,
-        "lab discover step 0 (refit of the start)",
-        ds.noise_floor_um,
-        &p0,
-        &prep,
-    );
-    let mut steps = vec![];
-    let s0 = Step {
-        index: 0,
-        action: "fit".into(),
-        effect: "nominal model".into(),
-        replaces: None,
-        version: cal.version,
-        rms_um: prep.rms_fit_um,
-        cv_rms_um: prep.rms_fit_um,
-        heldout_rms_before_um: p0.rms_held_um,
-        heldout_rms_um: prep.rms_held_um,
-        confounded_with: vec![],
-        found: None,
-        nominal: axes,
-        calibration: cal.clone(),
-    };
-    on_step(&s0)?;
-    steps.push(s0);
-    let mut seen = vec![signature(&cal.effects)];
     let mut confounded: Vec<Confounded> = vec![];
     let mut separated: Vec<Separated> = vec![];
     let mut refused: Vec<String> = vec![];
@@ -944,7 +1070,7 @@ pub fn discover(
     let arcs = analysis::arc_source_spread(bags, &ds, &o.build, &fin)?;
     analysis::widen_by_arc_source(&mut fin, &arcs);
     let fin_params = fin.by_effect();
-    Ok(Discovery {
+    Ok(Ok(Discovery {
         start_heldout_rms_um: p0.rms_held_um,
         start_rms_um: p0.rms_fit_um,
         steps,
@@ -965,7 +1091,70 @@ pub fn discover(
             params: fin_params,
         },
         skipped: last_dg.skipped,
-    })
+        abandoned: vec![],
+        restart: None,
+    }))
+}
+
+/// Step 0: the start corrected as given (`p0`), then its nominal model (the axes' time
+/// constants) and its effects refitted, as the first version of the loop.
+fn step_zero(
+    bags: &[BagData],
+    start: &Calibration,
+    o: &Options,
+    on_progress: &mut dyn FnMut(&str),
+) -> Result<(Prepared, Calibration, dataset::Dataset, Prepared, Step), LabError> {
+    on_progress("correcting the bags with the starting calibration");
+    let ds0 = dataset::build(bags, start, &o.build)?;
+    let p0 = analysis::prepare(&ds0)?;
+    on_progress("refitting the nominal model (axis time constants) and the start's effects");
+    let raw: Vec<&dyn dataset::Samples> = bags
+        .iter()
+        .filter(|b| !b.validation)
+        .map(|b| &*b.samples)
+        .collect();
+    let (nominal, axes) = match fit_nominal(&raw, start) {
+        Ok(v) => v,
+        Err(e) => {
+            on_progress(&format!("nominal model kept: {e}"));
+            (start.clone(), vec![])
+        }
+    };
+    let mut cal = nominal;
+    if !cal.effects.is_empty() {
+        let ds = dataset::build(bags, &cal, &o.build)?;
+        let prep = analysis::prepare(&ds)?;
+        let fit = analysis::fit_effects(&ds, &prep, &cal.effects)?;
+        cal.effects = fit.configs;
+    }
+    let refit = cal;
+    let mut cal = version::next(start, refit.effects.clone(), &o.created);
+    cal.nominal = refit.nominal.clone();
+    let ds = dataset::build(bags, &cal, &o.build)?;
+    let prep = analysis::prepare(&ds)?;
+    version::describe(
+        &mut cal,
+        "lab discover step 0 (refit of the start)",
+        ds.noise_floor_um,
+        &p0,
+        &prep,
+    );
+    let s0 = Step {
+        index: 0,
+        action: "fit".into(),
+        effect: "nominal model".into(),
+        replaces: None,
+        version: cal.version,
+        rms_um: prep.rms_fit_um,
+        cv_rms_um: prep.rms_fit_um,
+        heldout_rms_before_um: p0.rms_held_um,
+        heldout_rms_um: prep.rms_held_um,
+        confounded_with: vec![],
+        found: None,
+        nominal: axes,
+        calibration: cal.clone(),
+    };
+    Ok((p0, cal, ds, prep, s0))
 }
 
 /// Candidates the lab tries that a default campaign leaves confounded with a model effect: the

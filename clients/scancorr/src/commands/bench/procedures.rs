@@ -5,6 +5,8 @@
 //! Variants on their own programs: `tips-one-angle` (one head angle), `tips-repeat` (the styli's
 //! expansion, after `scales`; the styli's lengths judged at the qualification's temperature), `probe-force-quarter|approach|sine`, `dynamics-faces` (the rings
 //! with the faces scanned while the carriage oscillates: `calibrate dynamics --bag --bag`),
+//! `dynamics-quadratic` (the rings on a machine whose P changes quadratically along X, `sim
+//! --with deflection_quadratic`; P2's entries judged as fitted, also where BIC leaves them out),
 //! `zero-force-three-forces` (the thin wall at three forces).
 //! `scales` (a ball bar along X, Y and Z read over the room's drift) judges each scale's
 //! expansion coefficient (the simulator's truth names `scale_i.alpha_per_k`; the machine's
@@ -47,6 +49,9 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                 (proc.as_str(), "probe-force", None)
             }
             "dynamics-faces" => ("dynamics", "dynamics", Some("dynamics-faces")),
+            // The rings on a machine whose P changes quadratically along X (`sim --with
+            // deflection_quadratic`).
+            "dynamics-quadratic" => (proc.as_str(), "dynamics", None),
             "tips-repeat" => {
                 let v = tips_repeat(&dir, machine, runs, json)?;
                 all.insert(proc.clone(), v);
@@ -92,6 +97,10 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                 tips_truth_at_qualification(&r, &mut truth);
             }
             judge_params(&r, &truth, &mut t)?;
+            if r["quadratic"]["params"].is_object() && r["quadratic"]["decision"] != "selected" {
+                // P's ξx² entries as fitted with the term, also when the data left it out.
+                judge_params(&r["quadratic"], &truth, &mut t)?;
+            }
             if !json {
                 eprintln!("{proc}: run {seed}/{runs} done");
             }
@@ -107,7 +116,7 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
 }
 
 /// The procedures this benchmark runs (`--procedure`).
-pub const PROCEDURES: [&str; 16] = [
+pub const PROCEDURES: [&str; 17] = [
     "tips",
     "tips-one-angle",
     "tips-repeat",
@@ -119,6 +128,7 @@ pub const PROCEDURES: [&str; 16] = [
     "zero-force-three-forces",
     "dynamics",
     "dynamics-faces",
+    "dynamics-quadratic",
     "dynamic-map",
     "straightness",
     "straightness-shear-unequal",
@@ -705,24 +715,27 @@ fn measure_and_calibrate(
     t: &mut Tally,
 ) -> Result<serde_json::Value> {
     let (ms, s) = (machine.to_string(), seed.to_string());
-    sim_nominal(
-        dir,
-        &[
-            "sim",
-            "--program",
-            program,
-            "--machine-seed",
-            &ms,
-            "--seed",
-            &s,
-            "--out",
-            "m.mcap",
-            "--calib-out",
-            "start.json",
-            "--truth",
-            "truth.json",
-        ],
-    )?;
+    let (program, with) = match program {
+        "dynamics-quadratic" => ("dynamics", &["--with", "deflection_quadratic"][..]),
+        p => (p, &[][..]),
+    };
+    let mut args = vec![
+        "sim",
+        "--program",
+        program,
+        "--machine-seed",
+        &ms,
+        "--seed",
+        &s,
+        "--out",
+        "m.mcap",
+        "--calib-out",
+        "start.json",
+        "--truth",
+        "truth.json",
+    ];
+    args.extend(with);
+    sim_nominal(dir, &args)?;
     let mut cal = vec!["calibrate", proc, "--bag", "m.mcap"];
     let s2 = (1000 + seed).to_string();
     if let Some(p) = second {

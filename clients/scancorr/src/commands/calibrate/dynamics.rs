@@ -3,7 +3,7 @@
 //! while the carriage oscillates (`sim --program dynamics-faces`) — its text and JSON output.
 
 use super::args::{helps, PrintArgs, VersionArgs};
-use super::procedure::{open, outcome_json, points_without, renamed, Opened};
+use super::procedure::{open, outcome_json, points_without, renamed, sigma_json, Opened};
 use crate::shared::calib::{closing, commit_version, now_rfc3339};
 use anyhow::Result;
 use scancorr_core::calibrate::{dynamics, Param};
@@ -102,6 +102,45 @@ fn print_faces(faces: &[dynamics::FaceScan]) -> Result<()> {
     Ok(())
 }
 
+/// ΔR per scan along X and Y (the patent's maxima) with σ, before → after the mean, and ΔR/a
+/// per position.
+fn print_delta_r(positions: &[dynamics::Position]) -> Result<()> {
+    outln!(
+        "ΔR per scan against each position's static pattern, along X / along Y ± σ (mean before → after), µm:"
+    )?;
+    for p in positions {
+        let scans: Vec<String> = p
+            .scans
+            .iter()
+            .map(|s| {
+                format!(
+                    "{}{:.0} mm/s ({:.0} mm/s²) {:+.2}/{:+.2} ±{:.2} ({:+.2}→{:+.2})",
+                    if s.direction > 0 { "+" } else { "−" },
+                    s.speed_mm_s,
+                    s.accel_mm_s2,
+                    s.delta_r_x_um,
+                    s.delta_r_y_um,
+                    s.delta_r_x_sigma_um.max(s.delta_r_y_sigma_um),
+                    s.delta_r_um,
+                    s.delta_r_after_um
+                )
+            })
+            .collect();
+        outln!(
+            "  ({:>6.1} {:>6.1} {:>7.1})  {}  ΔR/a along X {:+.2} ± {:.2}, along Y {:+.2} ± {:.2} µm per m/s²",
+            p.center_mm[0],
+            p.center_mm[1],
+            p.center_mm[2],
+            scans.join("  "),
+            p.dr_x_per_accel_um_per_m_s2,
+            p.dr_x_per_accel_sigma_um_per_m_s2,
+            p.dr_y_per_accel_um_per_m_s2,
+            p.dr_y_per_accel_sigma_um_per_m_s2
+        )?;
+    }
+    Ok(())
+}
+
 /// Runs the procedure.
 pub(super) fn exec(a: Args) -> Result<()> {
     let (out, json) = (a.io.out, a.print.json);
@@ -136,22 +175,37 @@ pub(super) fn exec(a: Args) -> Result<()> {
         ds.noise_floor_um,
         o.gain.chosen
     );
-    commit_version(
-        &mut new,
-        vec![
-            ("dynamics_residual_before_um", o.residual_before_um),
-            ("dynamics_residual_after_um", o.residual_after_um),
-            ("noise_floor_um", ds.noise_floor_um),
-        ],
-        out_file,
-        report_file,
-        || crate::report::dynamics(&start, &o, ds.noise_floor_um),
-    )?;
+    // The static phase φ0 by the patent's name (it is servo_phase's b0 of the constant term).
+    let phi0: Vec<(String, f64)> = o
+        .phase0
+        .iter()
+        .flat_map(|p| {
+            let k = p.name.replace('.', "_");
+            [
+                (format!("{k}_rad"), p.value),
+                (format!("{k}_rad_sigma"), p.sigma),
+            ]
+        })
+        .collect();
+    let mut metrics = vec![
+        ("dynamics_residual_before_um", o.residual_before_um),
+        ("dynamics_residual_after_um", o.residual_after_um),
+        ("noise_floor_um", ds.noise_floor_um),
+    ];
+    metrics.extend(phi0.iter().map(|(k, v)| (k.as_str(), *v)));
+    commit_version(&mut new, metrics, out_file, report_file, || {
+        crate::report::dynamics(&start, &o, ds.noise_floor_um)
+    })?;
     if json {
         // Each key states its unit (the table of `scancorr_core::units`).
         let named = renamed(&o.params, json_key);
         let mut v = outcome_json(&o, &named, ds.noise_floor_um, &new, &start, &out)?;
         v["nominal"] = serde_json::to_value(&axes)?;
+        let (p2, s2) = sigma_json(&renamed(&o.quadratic.params, json_key));
+        v["quadratic"]["params"] = p2;
+        v["quadratic"]["uncertainty"] = s2;
+        let (p0, s0) = sigma_json(&renamed(&o.phase0, |n| format!("{n}_rad")));
+        v["phase0"] = serde_json::json!({ "params": p0, "uncertainty": s0 });
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
         return Ok(());
     }
@@ -162,32 +216,7 @@ pub(super) fn exec(a: Args) -> Result<()> {
         o.residual_after_um,
         ds.noise_floor_um
     )?;
-    outln!("ΔR per scan against each position's static pattern (before → after, µm):")?;
-    for p in &o.positions {
-        let scans: Vec<String> = p
-            .scans
-            .iter()
-            .map(|s| {
-                format!(
-                    "{}{:.0} mm/s ({:.0} mm/s²) {:+.2}→{:+.2}",
-                    if s.direction > 0 { "+" } else { "−" },
-                    s.speed_mm_s,
-                    s.accel_mm_s2,
-                    s.delta_r_um,
-                    s.delta_r_after_um
-                )
-            })
-            .collect();
-        outln!(
-            "  ({:>6.1} {:>6.1} {:>7.1})  {}  ΔR/a along X {:+.2}, along Y {:+.2} µm per m/s²",
-            p.center_mm[0],
-            p.center_mm[1],
-            p.center_mm[2],
-            scans.join("  "),
-            p.dr_x_per_accel_um_per_m_s2,
-            p.dr_y_per_accel_um_per_m_s2
-        )?;
-    }
+    print_delta_r(&o.positions)?;
     print_faces(&o.faces)?;
     outln!(
         "servo gain: {} form (held-out rings: theoretical {:.3} µm, polynomial in f {:.3} µm)",
@@ -200,6 +229,19 @@ pub(super) fn exec(a: Args) -> Result<()> {
         let (name, v, s, u) = dynamic_unit(p);
         outln!("  {:<28} {:>11.4} ± {:.4} {u}", name, v, s)?;
     }
+    for p in &o.phase0 {
+        outln!(
+            "  static phase {:<15} {:>11.4} ± {:.4} µrad (the phase's f⁰ term, stored as servo_phase b0)",
+            p.name.trim_start_matches("dynamics."),
+            p.value * 1e6,
+            p.sigma * 1e6
+        )?;
+    }
+    outln!(
+        "  P quadratic in X: {} — {}",
+        o.quadratic.decision,
+        o.quadratic.reason
+    )?;
     for c in &o.confounded {
         outln!("  confounded: {c}")?;
     }

@@ -20,10 +20,10 @@ pub struct Args {
     /// not scanned alike (c: a quarter beside a full turn; d: approaches; b: a wave).
     #[arg(long)]
     steady_only: bool,
-    /// Fit the structure's compliance under the carriage's acceleration beside the force, each
-    /// axis with the prior 0 ± this many µm per m/s² (unless the start has `accel_deflection`):
-    /// a wave of the deflection (b) accelerates the carriage in phase with it, and what the
-    /// scans cannot separate goes into the coefficients' σ instead of a bias.
+    /// Take the structure's compliance under the carriage's acceleration as 0 ± this many µm
+    /// per m/s² per axis (unless the start has `accel_deflection`), not fitted, with its effect
+    /// added to the coefficients' σ: a wave of the deflection (b) accelerates the carriage in
+    /// phase with it, so the scans cannot separate the two and a fitted compliance biases k.
     #[arg(long, value_name = "UM_PER_M_S2")]
     compliance_prior: Option<f64>,
 }

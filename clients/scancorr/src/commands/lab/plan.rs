@@ -51,9 +51,18 @@ pub struct PlanArgs {
     /// Room temperature at the start, °C.
     #[arg(long, default_value_t = 20.5)]
     temp_c: f64,
-    /// Its rise over the campaign, K.
+    /// Its rise over the campaign, K (a program record's temperature span takes its place).
     #[arg(long, default_value_t = 1.0)]
     temp_rise_k: f64,
+    /// The largest rise of the room's temperature you can produce over the campaign, K (the
+    /// air conditioning off, the day's drift): the plan weighs spans up to it for the thermal
+    /// effects' σ and writes the span to reach into the record (`temperature.span_k`).
+    #[arg(long)]
+    temp_span_k: Option<f64>,
+    /// With --temp-span-k: the corrections are to hold within ±K of 20 °C (the span is chosen
+    /// so each thermal correction's uncertainty there is within a third of the noise floor).
+    #[arg(long, default_value_t = 2.0)]
+    temp_use_k: f64,
     /// Simulated measurements of the design the lab fits to predict its σ (0: the design's
     /// normal matrix alone, no penalty or fold spread).
     #[arg(long, default_value_t = plan::FIT_REPLICATES)]
@@ -124,8 +133,8 @@ pub fn exec(a: PlanArgs) -> Result<()> {
     };
     if let Some(path) = &a.program {
         anyhow::ensure!(
-            a.artifact.is_empty() && a.out.is_none(),
-            "--program predicts a program record as it is: --artifact and --out are for planning one"
+            a.artifact.is_empty() && a.out.is_none() && a.temp_span_k.is_none(),
+            "--program predicts a program record as it is (at its own temperature span, if it names one): --artifact, --out and --temp-span-k are for planning one"
         );
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("--program {}: reading", path.display()))?;
@@ -175,32 +184,19 @@ pub fn exec(a: PlanArgs) -> Result<()> {
         .iter()
         .map(|s| Owned::parse(s).map_err(|e| anyhow::anyhow!("--artifact {e}")))
         .collect::<Result<Vec<_>>>()?;
-    let travel = match &a.datasheet {
-        Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("--datasheet {}: reading", p.display()))?;
-            let d = scancorr_core::datasheet::DataSheet::from_json(&text)
-                .map_err(|e| anyhow::anyhow!("--datasheet {}: {e}", p.display()))?;
-            [d.axes.x.travel_mm, d.axes.y.travel_mm, d.axes.z.travel_mm]
-        }
-        None => {
-            let t = cal.limits.travel_mm;
-            anyhow::ensure!(
-                t.iter().all(|[lo, hi]| hi - lo < 9000.0),
-                "--calib {}: limits.travel_mm is the default ±5000 mm, not the machine's: give --datasheet (or make the calibration with `calib nominal --datasheet`)",
-                a.calib.display()
-            );
-            t
-        }
-    };
     let req = PlanRequest {
-        travel_mm: travel,
+        travel_mm: travel(&a, &cal)?,
         owned,
         minutes: a.minutes,
         candidates,
         assumptions,
     };
     let mut planned = plan::plan(&cal, &req)?;
+    // The temperature span to reach, when the user says what span they can produce.
+    let thermal = match a.temp_span_k {
+        Some(s) => plan::apply_thermal(&cal, &mut planned, &req, s, a.temp_use_k)?,
+        None => None,
+    };
     if a.replicates > 0 {
         planned.prediction = predict(
             &a,
@@ -217,9 +213,65 @@ pub fn exec(a: PlanArgs) -> Result<()> {
         &planned.program,
         &planned.prediction,
         None,
-        Some(&planned),
+        Some((&planned, thermal.as_ref())),
         None,
     )
+}
+
+/// The machine's travel: the data sheet's, else the calibration's limits (refused when they
+/// are the default ±5000 mm).
+fn travel(a: &PlanArgs, cal: &scancorr_core::Calibration) -> Result<[[f64; 2]; 3]> {
+    Ok(match &a.datasheet {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("--datasheet {}: reading", p.display()))?;
+            let d = scancorr_core::datasheet::DataSheet::from_json(&text)
+                .map_err(|e| anyhow::anyhow!("--datasheet {}: {e}", p.display()))?;
+            [d.axes.x.travel_mm, d.axes.y.travel_mm, d.axes.z.travel_mm]
+        }
+        None => {
+            let t = cal.limits.travel_mm;
+            anyhow::ensure!(
+                t.iter().all(|[lo, hi]| hi - lo < 9000.0),
+                "--calib {}: limits.travel_mm is the default ±5000 mm, not the machine's: give --datasheet (or make the calibration with `calib nominal --datasheet`)",
+                a.calib.display()
+            );
+            t
+        }
+    })
+}
+
+/// The temperature span in words: the span to reach, why, and the worst thermal parameter's
+/// σ and correction uncertainty at each span weighed.
+fn print_thermal(t: &plan::ThermalPlan) -> Result<()> {
+    outln!(
+        "  temperature: let the room's temperature rise by {} K over the campaign (the record's temperature.span_k){}",
+        t.span_k,
+        if t.meets_target { "" } else { " — short of the target" }
+    )?;
+    outln!("             why: {}", t.why)?;
+    for st in &t.ladder {
+        let w = st
+            .params
+            .iter()
+            .max_by(|x, y| {
+                x.error_um
+                    .unwrap_or(f64::INFINITY)
+                    .total_cmp(&y.error_um.unwrap_or(f64::INFINITY))
+            })
+            .map(|p| match (p.sigma, p.error_um) {
+                (Some(s), Some(e)) => format!("{}: {} σ {s:.2e}, {e:.3} µm", p.effect, p.name),
+                _ => format!("{}: {} undetermined", p.effect, p.name),
+            })
+            .unwrap_or_default();
+        outln!(
+            "    {}{:>5} K: worst at ±{} K about 20 °C: {w}",
+            if st.span_k == t.span_k { "→" } else { " " },
+            st.span_k,
+            t.use_k
+        )?;
+    }
+    Ok(())
 }
 
 /// The prediction: the lab's fit on `--replicates` simulated measurements, or the design's
@@ -293,9 +345,13 @@ fn print_prediction(
     program: &Program,
     pred: &Prediction,
     measured: Option<&(Vec<Measured>, f64, f64)>,
-    planned: Option<&plan::Planned>,
+    planned: Option<(&plan::Planned, Option<&plan::ThermalPlan>)>,
     at_measured: Option<&Prediction>,
 ) -> Result<()> {
+    let (planned, thermal) = match planned {
+        Some((p, t)) => (Some(p), t),
+        None => (None, None),
+    };
     if a.json {
         let mut j = serde_json::json!({
             "program": program,
@@ -306,6 +362,9 @@ fn print_prediction(
             j["groups"] = serde_json::to_value(&p.groups)?;
             j["left_out"] = serde_json::to_value(&p.left_out)?;
             j["out"] = serde_json::json!(a.out);
+            if let Some(t) = thermal {
+                j["thermal"] = serde_json::to_value(t)?;
+            }
         }
         if let Some((m, noise, rho)) = measured {
             j["measured"] = serde_json::to_value(m)?;
@@ -341,12 +400,20 @@ fn print_prediction(
                 g.why
             )?;
         }
+        if let Some(t) = thermal {
+            print_thermal(t)?;
+        }
     } else {
         outln!(
-            "program {}: {} scans on {} artifact placements",
+            "program {}: {} scans on {} artifact placements{}",
             program.name,
             program.scans.len(),
-            program.features.len()
+            program.features.len(),
+            program
+                .temperature
+                .as_ref()
+                .map(|t| format!(", the temperature rising by {} K", t.span_k))
+                .unwrap_or_default()
         )?;
     }
     outln!(

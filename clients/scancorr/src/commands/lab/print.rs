@@ -286,6 +286,20 @@ pub(super) fn print_discovery(
         dir.join("calibration.json").display(),
         f.effects.join(", ")
     )?;
+    if let Some(r) = &d.restart {
+        outln!("  restart: {r}")?;
+        if !d.abandoned.is_empty() {
+            outln!(
+                "  the other run's steps (versions kept in {}): {}",
+                dir.display(),
+                d.abandoned
+                    .iter()
+                    .map(|s| format!("{} {} (v{})", s.action, s.effect, s.version))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )?;
+        }
+    }
     for c in &d.confounded {
         outln!(
             "  confounded on this campaign: {} and {} — to separate them:",

@@ -39,8 +39,10 @@ use std::f64::consts::{PI, TAU};
 mod greedy;
 mod predict;
 mod record;
+mod thermal;
 pub use predict::*;
 pub use record::*;
+pub use thermal::*;
 
 /// An artifact the user owns (`ring:d=50`, `sphere:d=25`, `straightedge:l=400`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -458,6 +460,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         ),
         features: vec![],
         scans: vec![],
+        temperature: None,
     };
     let mut taken = vec![];
     let mut left_out = vec![];
@@ -549,7 +552,7 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
 
 /// Parameters no campaign with these artifacts can determine beside this model: those left
 /// undetermined by the plan with every place of the rigid body's pool added (the ring at
-/// each, both ways, and with every stylus). With rings in the horizontal plane, an error that
+/// each, with every stylus). With rings in the horizontal plane, an error that
 /// moves every stylus's ring alike (the z axis's positioning, EZZ; a squareness to z) is a
 /// shift of the ring's centre (the fit's own nuisance), and a term a model effect carries (a
 /// guide table's straightness and yaw) is that effect's: no place tells them apart. The plan
@@ -728,8 +731,10 @@ fn rigid_group(
         };
         for (i, f) in ord.iter().enumerate() {
             g.features.push(ring_at(places[*f].center, d));
+            // One turn each, the direction alternating along the lines (see [`greedy`]).
+            let dir = if i % 2 == 0 { 1 } else { -1 };
             g.scans
-                .extend(greedy::place_scans(i, &places[*f], &configs, why));
+                .extend(greedy::place_scans(i, &places[*f], &configs, dir, why));
         }
         let with_styli = ord.iter().filter(|f| places[**f].styli).count();
         let mut trial = program.clone();
@@ -761,7 +766,7 @@ fn rigid_group(
             }
         }
         g.what = format!(
-            "ring d={d} mm at {} places chosen one by one for the rigid body ({} of {} pool places every {step:.0} mm, the last worth {:.1} % of the first per second; its terms seen: {} of {}): {}; 30 mm/s both ways; at {with_styli} of them every stylus and head angle as well (the z axis's own errors are seen only between styli)",
+            "ring d={d} mm at {} places chosen one by one for the rigid body ({} of {} pool places every {step:.0} mm, the last worth {:.1} % of the first per second; its terms seen: {} of {}): {}; {}; at {with_styli} of them every stylus and head angle as well (the z axis's own errors are seen only between styli)",
             ord.len(),
             ord.len(),
             places.iter().filter(|p| !p.styli).count(),
@@ -772,7 +777,12 @@ fn rigid_group(
                 .iter()
                 .map(|(l, n, a, b)| format!("along {l}: {n} from {a:.0} to {b:.0}"))
                 .collect::<Vec<_>>()
-                .join("; ")
+                .join("; "),
+            if greedy::ONE_WAY {
+                "one turn at 30 mm/s, the direction alternating"
+            } else {
+                "30 mm/s both ways"
+            }
         );
         return Ok(Some(g));
     }
@@ -812,6 +822,7 @@ mod tests {
             note: String::new(),
             features: vec![ring_at(Vec3::new(400.0, 300.0, -300.0), 50.0012)],
             scans: vec![],
+            temperature: None,
         };
         for v in [10.0, 30.0, 60.0, 90.0] {
             for d in [1, -1] {

@@ -16,7 +16,7 @@ pub struct Assumptions {
     pub heldout_alternate: bool,
     /// Room temperature at the start, °C, and its rise over the program, K.
     pub temp_c: f64,
-    /// Rise over the program, K.
+    /// Rise over the program, K (a program record's `temperature.span_k` takes its place).
     pub temp_rise_k: f64,
 }
 
@@ -90,6 +90,12 @@ pub fn ideal_dataset(
         .enumerate()
         .map(|(i, f)| (0usize, f.spec(i as u32 + 1)))
         .collect();
+    // The program's own span when it asks for one, else the room's assumed rise.
+    let rise = program
+        .temperature
+        .as_ref()
+        .map(|t| t.span_k)
+        .unwrap_or(a.temp_rise_k);
     let mut points = vec![];
     let mut scan_no = vec![0usize; program.features.len()];
     let mut t_run = 0.0;
@@ -197,7 +203,7 @@ pub fn ideal_dataset(
             ctx.head_a1_deg = s.a1_deg;
             ctx.head_a2_deg = s.a2_deg;
             ctx.segment_id = i as u32 + 1;
-            let temp = a.temp_c + a.temp_rise_k * tt / total.max(1e-9);
+            let temp = a.temp_c + rise * tt / total.max(1e-9);
             ctx.temps = [temp; MAX_SENSORS];
             ctx.temps_valid = (1u16 << MAX_SENSORS) - 1;
             points.push(LabPoint {

@@ -117,7 +117,26 @@ pub struct Program {
     pub features: Vec<ProgramFeature>,
     /// Scans in order.
     pub scans: Vec<Scan>,
+    /// The temperature span the program should be measured over (see `plan::thermal`);
+    /// absent: whatever the room does.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub temperature: Option<TemperatureSpan>,
 }
+
+/// The temperature span a program asks for: the room's (and so the scales' and styli's)
+/// temperature rising by `span_k` from the first scan to the last, about linearly.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TemperatureSpan {
+    /// Rise from the first scan to the last, K; 0 … 20 K.
+    pub span_k: f64,
+    /// Why (what it buys), for people.
+    #[serde(default)]
+    pub why: String,
+}
+
+/// Largest temperature span a program may ask for, K.
+pub const MAX_SPAN_K: f64 = 20.0;
 
 /// Speed ramp of a circle scan, s (as the simulator and the controller command it).
 pub fn circle_ramp_s(speed: f64) -> f64 {
@@ -212,6 +231,9 @@ impl Program {
         }
         if self.scans.is_empty() {
             return Err("scans: a program needs at least one scan".into());
+        }
+        if let Some(t) = &self.temperature {
+            fnum("temperature.span_k", t.span_k, 0.0, MAX_SPAN_K, "K")?;
         }
         for (i, f) in self.features.iter().enumerate() {
             let p = format!("features[{i}]");
