@@ -168,26 +168,12 @@ fn settle_samples(model: &[Discrete; 3]) -> u64 {
 }
 
 /// Rotation on an arc: (f in Hz, unit angular-velocity axis), both zero off arcs or at rest.
-#[inline]
-pub fn rotation(pos: &Vec3, vel: &Vec3, acc: &Vec3, center: &Vec3, radius: f64) -> (f64, Vec3) {
-    rotation_with(pos, vel, acc, center, radius, 1.0 / radius)
-}
-
-/// [`rotation`]; `inv_radius` (1 / `radius`, which a caller on a long arc computes once) and
-/// `acc` are not needed by the rate about the centre and kept for the callers' signature.
 ///
 /// f = |r × V|/(2π|r|²), r = `pos` − `center` (module doc). |r|² is taken at least
 /// (`radius`/2)²: an estimate nearer the centre than half the commanded radius is not on the
 /// arc (a transient), and its rate about c would mean nothing.
 #[inline]
-pub(crate) fn rotation_with(
-    pos: &Vec3,
-    vel: &Vec3,
-    _acc: &Vec3,
-    center: &Vec3,
-    radius: f64,
-    _inv_radius: f64,
-) -> (f64, Vec3) {
+pub fn rotation(pos: &Vec3, vel: &Vec3, center: &Vec3, radius: f64) -> (f64, Vec3) {
     if radius <= 0.0 {
         return (0.0, Vec3::zeros());
     }
@@ -293,7 +279,7 @@ mod tests {
         let radial = (c0 - e.pos).normalize();
         assert!(e.acc.normalize().dot(&radial) > 0.9999);
         // f: the estimate's rate about the commanded centre, exact (A's bias does not enter).
-        let (f, axis) = rotation(&e.pos, &e.vel, &e.acc, &c0, r);
+        let (f, axis) = rotation(&e.pos, &e.vel, &c0, r);
         assert!((f - w / (2.0 * PI)).abs() < 2e-5 * f, "{f}");
         assert!((axis - Vec3::z()).norm() < 1e-9);
         assert!(est.settled());
@@ -320,7 +306,7 @@ mod tests {
                 }
                 let e = e.unwrap();
                 let exact = w / (2.0 * PI);
-                let (f, axis) = rotation(&e.pos, &e.vel, &e.acc, &c0, r);
+                let (f, axis) = rotation(&e.pos, &e.vel, &c0, r);
                 assert!(
                     (f / exact - 1.0).abs() < 2e-5,
                     "v {v}: f/exact = {}",
@@ -355,10 +341,7 @@ mod tests {
             }
         };
         let e0 = est.step(&cmd(0.0, c0 + Vec3::new(r, 0.0, 0.0), c0, r));
-        assert_eq!(
-            rotation(&e0.pos, &e0.vel, &e0.acc, &c0, r),
-            (0.0, Vec3::zeros())
-        );
+        assert_eq!(rotation(&e0.pos, &e0.vel, &c0, r), (0.0, Vec3::zeros()));
         for k in 1..800 {
             let tt = k as f64 * t;
             let th = s(tt) / r;
@@ -368,7 +351,7 @@ mod tests {
                 c0,
                 r,
             ));
-            let (f, _) = rotation(&e.pos, &e.vel, &e.acc, &c0, r);
+            let (f, _) = rotation(&e.pos, &e.vel, &c0, r);
             let rr = e.pos - c0;
             let v_t = Vec3::z().cross(&rr.normalize()).dot(&e.vel);
             let want = v_t / (2.0 * PI * rr.norm());
@@ -426,7 +409,7 @@ mod tests {
 
     /// f and axis from a command stream without arcs (the osculating circle filled in).
     fn rotation_of(e: &Estimate) -> (f64, Vec3) {
-        rotation(&e.pos, &e.vel, &e.acc, &e.cmd.arc_center, e.cmd.arc_radius)
+        rotation(&e.pos, &e.vel, &e.cmd.arc_center, e.cmd.arc_radius)
     }
 
     #[test]
@@ -450,7 +433,7 @@ mod tests {
                     (c - c0).norm() < 1e-9 && (rr - r).abs() < 1e-9,
                     "{c:?} {rr}"
                 );
-                let (f, axis) = rotation(&p, &vel, &acc, &c, rr);
+                let (f, axis) = rotation(&p, &vel, &c, rr);
                 assert!((f / (v / (2.0 * PI * r)) - 1.0).abs() < 1e-3, "{f}");
                 assert!((axis - u1.cross(&u2) * dir).norm() < 1e-9, "{axis:?}");
                 // A tangential part (speeding up) changes neither.

@@ -60,7 +60,7 @@
 use crate::calib::{CalibError, Calibration, Limits, Model, Settings};
 use crate::effects::thermal_drift::Lag;
 use crate::effects::{BuiltEffect, Effect};
-use crate::estimator::{rotation_with, Estimate, Estimator};
+use crate::estimator::{rotation, Estimate, Estimator};
 use crate::judge::Judge;
 use crate::sample::*;
 use crate::stylus::TipPose;
@@ -114,8 +114,6 @@ pub struct Corrector {
     /// The tip last found to be of `probe_type` (so its probe name is not compared again on
     /// every point); `None` whenever `probe_type` or the model changes.
     probe_tip: Option<u32>,
-    /// The last commanded arc radius and its reciprocal (constant along an arc).
-    inv_radius: (f64, f64),
     /// The pose of the last point's tip and head angles (they rarely change).
     pose: Option<TipPose>,
     /// The estimates at the last two commands (the bracket of the next scale time), written
@@ -170,7 +168,6 @@ impl Corrector {
             estimator: None,
             probe_type: String::new(),
             probe_tip: None,
-            inv_radius: (0.0, f64::INFINITY),
             pose: None,
             estimates: [None, None],
             newest: 0,
@@ -867,17 +864,7 @@ impl Corrector {
         };
         let r = pose.machine_from_probe;
         let cmd = &est.cmd;
-        if cmd.arc_radius != self.inv_radius.0 {
-            self.inv_radius = (cmd.arc_radius, 1.0 / cmd.arc_radius);
-        }
-        let (f_hz, rot_axis) = rotation_with(
-            &est.pos,
-            &est.vel,
-            &est.acc,
-            &cmd.arc_center,
-            cmd.arc_radius,
-            self.inv_radius.1,
-        );
+        let (f_hz, rot_axis) = rotation(&est.pos, &est.vel, &cmd.arc_center, cmd.arc_radius);
         let mut ctx = PointContext {
             t_ns: t,
             scale: s.pos,

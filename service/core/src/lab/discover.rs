@@ -229,6 +229,11 @@ fn refused_by_heldout(
     v
 }
 
+/// A custom effect's name in a step: `kind:id` (`custom:cyclic_x_4p000mm`).
+fn effect_name(e: &EffectConfig) -> String {
+    format!("{}:{}", e.kind(), e.id())
+}
+
 /// A model's structure, for recognising one the loop already had.
 fn signature(effects: &[EffectConfig]) -> Vec<String> {
     let mut v: Vec<String> = effects
@@ -352,11 +357,7 @@ impl Ctx<'_> {
         if self.cal.effects.iter().any(|e| e.id() == id) {
             return Ok(None);
         }
-        let name = if ce.config.kind() == "custom" {
-            format!("custom:{id}")
-        } else {
-            format!("{}:{id}", ce.config.kind())
-        };
+        let name = effect_name(&ce.config);
         let (effects, cv) = if with.is_empty() {
             let cand = Candidate {
                 action: Move::Add,
@@ -744,11 +745,7 @@ fn discover_from(
         } => {
             let ds0 = dataset::build(bags, &step0.calibration, &o.build)?;
             let p0 = analysis::prepare(&ds0)?;
-            let name = if custom.config.kind() == "custom" {
-                format!("custom:{}", custom.config.id())
-            } else {
-                format!("{}:{}", custom.config.kind(), custom.config.id())
-            };
+            let name = effect_name(&custom.config);
             let cand = Candidate {
                 action: Move::Add,
                 effect: name.clone(),
