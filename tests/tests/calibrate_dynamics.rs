@@ -207,6 +207,7 @@ fn dynamics_recovers_the_machine_from_the_nominal_model() {
     for plot in [
         "delta-r-before",
         "delta-r-after",
+        "delta-r-xy",
         "p-along-x",
         "p-along-y",
         "p-along-z",
@@ -214,6 +215,12 @@ fn dynamics_recovers_the_machine_from_the_nominal_model() {
         assert!(html.contains(&format!("data-plot=\"{plot}\"")), "{plot}");
     }
     assert!(!html.contains("NaN"));
+    // … and ΔR/a along X and Y per position, each with its σ.
+    let n_positions = r["positions"].as_array().unwrap().len();
+    assert!(
+        html.contains("ΔR/a along X") && html.matches(" ± ").count() >= 2 * n_positions,
+        "the report's ΔR/a table"
+    );
     // The README quotes this run (its command with run seed 3): held to what it prints.
     let q = readme_figures("every one of its", 1);
     assert_eq!(

@@ -615,42 +615,15 @@ fn zero_force_per_point_brings_a_thin_wall_to_the_floor() {
 fn probe_force_approaches_at_steady_speed_are_honest() {
     let dir = scratch("calibrate-probe-force-approach-steady");
     for seed in ["1", "2", "3", "4"] {
-        measure_from_nominal(&dir, "probe-force-approach", "263", seed, "a.mcap", true);
-        let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
-        let r = json(&ok(
+        steady_judged(
             &dir,
-            &[
-                "calibrate",
-                "probe-force",
-                "--bag",
-                "a.mcap",
-                "--calib",
-                "nominal.json",
-                "--out",
-                "a.json",
-                "--force",
-                "--json",
-                "--steady-only",
-                "--compliance-prior",
-                "30",
-            ],
-        ));
-        for t in [1, 2] {
-            for a in ["u", "v"] {
-                let name = format!("tip{t}.probe_k_{a}_mm_per_mm");
-                let v = r["params"][&name]
-                    .as_f64()
-                    .unwrap_or_else(|| panic!("{name}: {r:#}"));
-                let s = r["uncertainty"][&name].as_f64().unwrap();
-                let tv = truth["params"][&name].as_f64().unwrap();
-                eprintln!("run {seed} {name}: {v:.6} ± {s:.6}, truth {tv:.6}");
-                assert!(s.is_finite() && s > 0.0, "run {seed} {name}: σ {s}");
-                assert!(
-                    (v - tv).abs() <= 3.0 * s,
-                    "run {seed} {name}: {v} ± {s}, truth {tv}"
-                );
-            }
-        }
+            "probe-force-approach",
+            "263",
+            seed,
+            &["u", "v"],
+            3.0,
+            None,
+        );
     }
 }
 
@@ -664,47 +637,94 @@ fn probe_force_approaches_at_steady_speed_are_honest() {
 #[test]
 fn probe_force_sine_from_nominal_is_honest() {
     let dir = scratch("calibrate-probe-force-sine-honest");
-    for (program, seed) in [("probe-force-sine", "1"), ("probe-force-sine", "2")] {
-        measure_from_nominal(&dir, program, "269", seed, "q.mcap", true);
-        let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
-        let r = json(&ok(
+    for seed in ["1", "2"] {
+        let notes = steady_judged(
             &dir,
-            &[
-                "calibrate",
-                "probe-force",
-                "--bag",
-                "q.mcap",
-                "--calib",
-                "nominal.json",
-                "--out",
-                "q.json",
-                "--force",
-                "--json",
-                "--steady-only",
-                "--compliance-prior",
-                "30",
-            ],
-        ));
-        for t in [1, 2] {
-            for a in ["u", "v", "w"] {
-                let name = format!("tip{t}.probe_k_{a}_mm_per_mm");
-                let v = r["params"][&name]
-                    .as_f64()
-                    .unwrap_or_else(|| panic!("{program} {name}: {r:#}"));
-                let s = r["uncertainty"][&name].as_f64().unwrap();
-                let tv = truth["params"][&name].as_f64().unwrap();
-                eprintln!("{program} run {seed} {name}: {v:.6} ± {s:.6}, truth {tv:.6}");
-                assert!(
-                    s.is_finite() && s > 0.0 && s < 0.1 * tv.abs(),
-                    "{program} run {seed} {name}: σ {s}, truth {tv}"
-                );
-                assert!(
-                    (v - tv).abs() <= 3.0 * s,
-                    "{program} run {seed} {name}: {v} ± {s}, truth {tv}"
-                );
-            }
-        }
-        let notes = r["notes"].to_string();
+            "probe-force-sine",
+            "269",
+            seed,
+            &["u", "v", "w"],
+            3.0,
+            Some(0.1),
+        );
         assert!(notes.contains("not fitted"), "{notes}");
+    }
+}
+
+/// `program` from the nominal start on machine `machine`, run `seed`, with `--steady-only
+/// --compliance-prior 30`: each tip's coefficients along `axes` within `n_sigma`·σ of the
+/// truth, σ finite and positive (and below `rel_sigma` of the truth when given). Returns the
+/// procedure's notes.
+fn steady_judged(
+    dir: &Path,
+    program: &str,
+    machine: &str,
+    seed: &str,
+    axes: &[&str],
+    n_sigma: f64,
+    rel_sigma: Option<f64>,
+) -> String {
+    measure_from_nominal(dir, program, machine, seed, "q.mcap", true);
+    let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
+    let r = json(&ok(
+        dir,
+        &[
+            "calibrate",
+            "probe-force",
+            "--bag",
+            "q.mcap",
+            "--calib",
+            "nominal.json",
+            "--out",
+            "q.json",
+            "--force",
+            "--json",
+            "--steady-only",
+            "--compliance-prior",
+            "30",
+        ],
+    ));
+    for t in [1, 2] {
+        for a in axes {
+            let name = format!("tip{t}.probe_k_{a}_mm_per_mm");
+            let at = format!("{program} machine {machine} run {seed} {name}");
+            let v = r["params"][&name]
+                .as_f64()
+                .unwrap_or_else(|| panic!("{at}: {r:#}"));
+            let s = r["uncertainty"][&name].as_f64().unwrap();
+            let tv = truth["params"][&name].as_f64().unwrap();
+            eprintln!("{at}: {v:.6} ± {s:.6}, truth {tv:.6}");
+            assert!(s.is_finite() && s > 0.0, "{at}: σ {s}");
+            if let Some(rel) = rel_sigma {
+                assert!(s < rel * tv.abs(), "{at}: σ {s}, truth {tv}");
+            }
+            assert!((v - tv).abs() <= n_sigma * s, "{at}: {v} ± {s}, truth {tv}");
+        }
+    }
+    r["notes"].to_string()
+}
+
+/// Variant (b) from the nominal start on a machine no other test uses (seed 2729), every effect
+/// on: the sphere's drift while a circle is scanned is the styli's and the scales' expansion
+/// from their sensors, not a free linear drift per circle. Over a whole turn a linear drift is a
+/// sawtooth in the angle whose harmonics above the static map's include the wave's own (1/15
+/// of it at 15 waves a turn), and beside the sensors' columns it took what they explain
+/// exactly: tip 2's k_w came out 1.6–1.7 % low at −2.5σ to −2.7σ on these runs (the scales'
+/// z coefficient fitted near 0 against 8.6 ppm/K on machine 241). Every coefficient within
+/// 2σ of the truth, σ below 10 % of it.
+#[test]
+fn probe_force_sine_drift_from_the_sensors() {
+    let dir = scratch("calibrate-probe-force-sine-drift");
+    for seed in ["1", "2"] {
+        let notes = steady_judged(
+            &dir,
+            "probe-force-sine",
+            "2729",
+            seed,
+            &["u", "v", "w"],
+            2.0,
+            Some(0.1),
+        );
+        assert!(notes.contains("expansion from their sensors"), "{notes}");
     }
 }

@@ -199,10 +199,14 @@ fn a_planned_campaign_measures_what_it_predicted() {
 /// determines every rigid-body term any place of the pool could: the others are reported
 /// beyond reach (with horizontal rings, an error of z alone that moves every stylus alike shifts
 /// each ring's centre, which the fit takes as its own; the guide table in the model carries the x axis' straightness and
-/// yaw). Measured: 24 of 33 terms within reach (16 before the places along z were scanned
-/// with every stylus: the z axis' straightness and rotations are seen only between styli),
-/// all determined by the plan. Machine seed 131, run seed 4311 (no other test uses
-/// them). 12 s (25 s under heavy load: the two simulations and `lab fit`; the plan 2.4 s).
+/// yaw). Measured: 25 of 33 terms within reach, all determined by the plan (24 of 33 while
+/// each place was scanned both ways; 16 before the places along z were scanned with every
+/// stylus: the z axis' straightness and rotations are seen only between styli). With one turn
+/// per place (`greedy::ONE_WAY`) the first plan left `AZX c1` (the x axis' yaw varying along
+/// x) undetermined (neither a turn the other way nor a second speed at its places
+/// determined it; every stylus along x does): the plan is made again with every stylus along x.
+/// Machine seed 131, run seed 4311 (no other test uses them). 12 s (25 s under heavy load:
+/// the two simulations and `lab fit`; the plan 2.4 s, twice when it is made again).
 #[test]
 fn the_plan_determines_every_rigid_body_term_within_reach() {
     let t0 = std::time::Instant::now();
@@ -271,8 +275,9 @@ fn the_plan_determines_every_rigid_body_term_within_reach() {
 /// rigid_body` brings a held-out ring at another position within 1.2× the noise floor. Run
 /// seeds 4312–4313.
 ///
-/// Measured 29 Nov: 0.405 → 0.108 µm against a 0.102 µm floor (1.05×; 1.10× before the
-/// plan scanned its places along z with every stylus). It stood at 1.52×
+/// Measured 29 Nov: 0.405 → 0.106 µm against a 0.103 µm floor (1.03×; 1.05× while each place
+/// was scanned both ways, 1.10× before the plan scanned its places along z with every
+/// stylus). It stood at 1.52×
 /// while the lab's fit left every translation table of the rigid body out (`select`: a column
 /// was "weak" beside its effect's strongest, and a rotation's column is its Abbe lever,
 /// hundreds of mm, times a translation's): the rotations times their levers stood in for the

@@ -523,9 +523,30 @@ pub struct Program {
     small_start: [f64; SMALL_REGISTERS],
 }
 
-/// One instruction: operand and destination registers.
+/// One instruction: operand and destination registers. The arithmetic operators have their
+/// own steps (one dispatch, not a step's and then a function's).
 #[derive(Debug, Clone, Copy)]
 enum Step {
+    Add {
+        a: usize,
+        b: usize,
+        dst: usize,
+    },
+    Sub {
+        a: usize,
+        b: usize,
+        dst: usize,
+    },
+    Mul {
+        a: usize,
+        b: usize,
+        dst: usize,
+    },
+    Div {
+        a: usize,
+        b: usize,
+        dst: usize,
+    },
     Unary {
         f: Func1,
         x: usize,
@@ -542,6 +563,35 @@ enum Step {
         sin: usize,
         cos: usize,
     },
+}
+
+/// A register file: a fixed array whose size is a power of two (a register index, below the
+/// size, is taken modulo it: no bounds check), or a slice of any length (checked).
+trait Registers {
+    fn get(&self, i: usize) -> f64;
+    fn set(&mut self, i: usize, v: f64);
+}
+
+impl<const N: usize> Registers for [f64; N] {
+    #[inline(always)]
+    fn get(&self, i: usize) -> f64 {
+        self[i & (N - 1)]
+    }
+    #[inline(always)]
+    fn set(&mut self, i: usize, v: f64) {
+        self[i & (N - 1)] = v;
+    }
+}
+
+impl Registers for [f64] {
+    #[inline(always)]
+    fn get(&self, i: usize) -> f64 {
+        self[i]
+    }
+    #[inline(always)]
+    fn set(&mut self, i: usize, v: f64) {
+        self[i] = v;
+    }
 }
 
 /// A node of the expressions' shared graph (operands are earlier nodes).
@@ -561,11 +611,21 @@ fn exact_reciprocal(c: f64) -> Option<f64> {
     (c.is_normal() && r.is_normal() && c.to_bits() & MANTISSA == 0).then_some(r)
 }
 
-/// Registers a program evaluates in without allocating.
+/// Registers a program evaluates in without allocating (a power of two, as each size below).
 const STACK_REGISTERS: usize = 64;
 
 /// Registers of the smaller register file, for programs of a few terms.
 const SMALL_REGISTERS: usize = 16;
+
+/// Registers of the smallest register file, for a program of one or two terms.
+const TINY_REGISTERS: usize = 8;
+
+// A register index is taken modulo the size of a fixed register file ([`Registers`]).
+const _: () = assert!(
+    TINY_REGISTERS.is_power_of_two()
+        && SMALL_REGISTERS.is_power_of_two()
+        && STACK_REGISTERS.is_power_of_two()
+);
 
 impl Program {
     /// Compiles `exprs` into one program over `n_inputs` inputs; each expression comes with
@@ -698,12 +758,16 @@ impl Program {
                     x: reg[x],
                     dst: reg[id],
                 }),
-                Node::Binary(f, a, b) => steps.push(Step::Binary {
-                    f,
-                    a: reg[a],
-                    b: reg[b],
-                    dst: reg[id],
-                }),
+                Node::Binary(f, a, b) => {
+                    let (a, b, dst) = (reg[a], reg[b], reg[id]);
+                    steps.push(match f {
+                        Func2::Add => Step::Add { a, b, dst },
+                        Func2::Sub => Step::Sub { a, b, dst },
+                        Func2::Mul => Step::Mul { a, b, dst },
+                        Func2::Div => Step::Div { a, b, dst },
+                        f => Step::Binary { f, a, b, dst },
+                    })
+                }
                 Node::Const(_) | Node::Input(_) => {}
             }
         }
@@ -744,40 +808,58 @@ impl Program {
     pub fn eval_with(&self, input: impl Fn(usize) -> f64, out: impl FnMut(usize, f64)) {
         // The register file is zeroed on every evaluation: on the stack and no larger than
         // the program needs, for the usual few-term programs.
-        if self.n_regs <= SMALL_REGISTERS {
+        if self.n_regs <= TINY_REGISTERS {
+            let mut r = [0.0; TINY_REGISTERS];
+            r.copy_from_slice(&self.small_start[..TINY_REGISTERS]);
+            self.run(&mut r, input, out);
+        } else if self.n_regs <= SMALL_REGISTERS {
             let mut r = self.small_start;
             self.run(&mut r, input, out);
         } else if self.n_regs <= STACK_REGISTERS {
             let mut r = [0.0; STACK_REGISTERS];
-            self.run(self.with_consts(&mut r), input, out);
+            self.with_consts(&mut r);
+            self.run(&mut r, input, out);
         } else {
             let mut r = vec![0.0; self.n_regs];
-            self.run(self.with_consts(&mut r), input, out);
+            self.with_consts(&mut r);
+            self.run(r.as_mut_slice(), input, out);
         }
     }
 
-    /// `r` with the constants in their registers.
-    fn with_consts<'r>(&self, r: &'r mut [f64]) -> &'r mut [f64] {
+    /// Puts the constants in their registers of `r`.
+    fn with_consts(&self, r: &mut [f64]) {
         r[self.n_inputs..self.n_inputs + self.consts.len()].copy_from_slice(&self.consts);
-        r
     }
 
-    /// Runs the steps on the register file `r` (at least `n_regs` long, the constants in
+    /// Runs the steps on the register file `r` (at least `n_regs` registers, the constants in
     /// their registers).
-    #[inline]
-    fn run(&self, r: &mut [f64], input: impl Fn(usize) -> f64, mut out: impl FnMut(usize, f64)) {
-        for (i, v) in r[..self.n_inputs].iter_mut().enumerate() {
-            *v = input(i);
+    #[inline(always)]
+    fn run<R: Registers + ?Sized>(
+        &self,
+        r: &mut R,
+        input: impl Fn(usize) -> f64,
+        mut out: impl FnMut(usize, f64),
+    ) {
+        for i in 0..self.n_inputs {
+            r.set(i, input(i));
         }
         for step in &self.steps {
             match *step {
-                Step::Unary { f, x, dst } => r[dst] = f.apply(r[x]),
-                Step::Binary { f, a, b, dst } => r[dst] = f.apply(r[a], r[b]),
-                Step::SinCos { x, sin, cos } => (r[sin], r[cos]) = crate::trig::sin_cos(r[x]),
+                Step::Add { a, b, dst } => r.set(dst, r.get(a) + r.get(b)),
+                Step::Sub { a, b, dst } => r.set(dst, r.get(a) - r.get(b)),
+                Step::Mul { a, b, dst } => r.set(dst, r.get(a) * r.get(b)),
+                Step::Div { a, b, dst } => r.set(dst, r.get(a) / r.get(b)),
+                Step::Unary { f, x, dst } => r.set(dst, f.apply(r.get(x))),
+                Step::Binary { f, a, b, dst } => r.set(dst, f.apply(r.get(a), r.get(b))),
+                Step::SinCos { x, sin, cos } => {
+                    let (s, c) = crate::trig::sin_cos(r.get(x));
+                    r.set(sin, s);
+                    r.set(cos, c);
+                }
             }
         }
         for (i, &o) in self.outputs.iter().enumerate() {
-            out(i, r[o]);
+            out(i, r.get(o));
         }
     }
 }
@@ -967,13 +1049,20 @@ mod tests {
             .collect();
         let long_list = [(&long, long_slots.as_slice())];
         let big = Program::compile(&long_list, names.len());
-        assert!(big.n_regs > STACK_REGISTERS && two.n_regs <= SMALL_REGISTERS);
-        assert!((SMALL_REGISTERS..=STACK_REGISTERS).contains(&p.n_regs));
-        for ((p, list), inputs) in [(&p, &list[..]), (&two, &list[..2]), (&big, &long_list[..])]
-            .into_iter()
-            .flat_map(|p| {
-                [[0.7, -3.0, 22.5], [-1.3, 0.0, 19.0], [1e3, 5.0, f64::NAN]].map(|i| (p, i))
-            })
+        // One term over the first input alone: the smallest register file.
+        let tiny = Program::compile(&list[..1], 1);
+        assert!(tiny.n_regs <= TINY_REGISTERS);
+        assert!(big.n_regs > STACK_REGISTERS);
+        assert!((TINY_REGISTERS + 1..=SMALL_REGISTERS).contains(&two.n_regs));
+        assert!((SMALL_REGISTERS + 1..=STACK_REGISTERS).contains(&p.n_regs));
+        for ((p, list), inputs) in [
+            (&p, &list[..]),
+            (&two, &list[..2]),
+            (&tiny, &list[..1]),
+            (&big, &long_list[..]),
+        ]
+        .into_iter()
+        .flat_map(|p| [[0.7, -3.0, 22.5], [-1.3, 0.0, 19.0], [1e3, 5.0, f64::NAN]].map(|i| (p, i)))
         {
             let mut got = vec![];
             p.eval(&inputs, |i, v| got.push((i, v)));

@@ -1,6 +1,6 @@
 //! The calibration procedures' reports: dynamics, probe force, tips, straightness, dynamic map.
 
-use super::svg::{bars, esc, page, xy, Series, PALETTE};
+use super::svg::{bars, esc, page, value_sigma, xy, Series, PALETTE};
 use scancorr_core::Calibration;
 use std::fmt::Write;
 
@@ -58,6 +58,32 @@ pub fn dynamics(
         xy("delta-r-before", &per_pos(false), "acceleration v²/r (mm/s²)", "ΔR (µm)"),
         xy("delta-r-after", &per_pos(true), "acceleration v²/r (mm/s²)", "ΔR (µm)")
     );
+    // ΔR along X and along Y per scan, as the patent reports it, and ΔR/a per position.
+    let _ = write!(
+        body,
+        "<h2>ΔR along X and along Y</h2><figure>{}<figcaption>Before the fit: each scan's radius change along X (θ = 0, π) and along Y (θ = ±π/2) against the centripetal acceleration v²/r, per position (for a ring standing on its edge, along its plane's first and second axes). Unequal slopes are an unequal compliance along the two axes; the slopes are tabled below with σ.</figcaption></figure>",
+        xy("delta-r-xy", &delta_r_xy(o), "acceleration v²/r (mm/s²)", "ΔR (µm)")
+    );
+    body += "<table><tr><th>position (mm)</th><th>plane</th><th>ΔR/a along X (µm per m/s²)</th><th>ΔR/a along Y (µm per m/s²)</th></tr>";
+    for p in &o.positions {
+        let _ = write!(
+            body,
+            "<tr><td>({:.0}, {:.0}, {:.0})</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            p.center_mm[0],
+            p.center_mm[1],
+            p.center_mm[2],
+            esc(&p.plane),
+            value_sigma(
+                p.dr_x_per_accel_um_per_m_s2,
+                Some(p.dr_x_per_accel_sigma_um_per_m_s2)
+            ),
+            value_sigma(
+                p.dr_y_per_accel_um_per_m_s2,
+                Some(p.dr_y_per_accel_sigma_um_per_m_s2)
+            )
+        );
+    }
+    body += "</table>";
     // The fitted compliance's diagonal and cross terms along each line of positions.
     let val = |n: &str| {
         o.params
@@ -594,4 +620,39 @@ mod pv_tests {
         assert!((pv - 2.0).abs() < 1e-6, "{pv}");
         assert!(super::straightness_pv_um(&x[..2], &v[..2]).is_none());
     }
+}
+
+/// ΔR along X and along Y per scan against v²/r: two series per position (X solid colour,
+/// Y the next colour), each scan a point, sorted by acceleration.
+fn delta_r_xy(o: &scancorr_core::calibrate::dynamics::Outcome) -> Vec<Series> {
+    let mut out = Vec::new();
+    for (i, p) in o.positions.iter().enumerate() {
+        let at = format!(
+            "({:.0}, {:.0}, {:.0})",
+            p.center_mm[0], p.center_mm[1], p.center_mm[2]
+        );
+        for (k, (axis, pick)) in [
+            (
+                "X",
+                (|s: &scancorr_core::calibrate::dynamics::Scan| s.delta_r_x_um) as fn(_) -> f64,
+            ),
+            ("Y", |s: &scancorr_core::calibrate::dynamics::Scan| {
+                s.delta_r_y_um
+            }),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let mut pts: Vec<(f64, f64)> =
+                p.scans.iter().map(|s| (s.accel_mm_s2, pick(s))).collect();
+            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+            out.push((
+                format!("{at} along {axis}"),
+                PALETTE[(2 * i + k) % PALETTE.len()],
+                pts,
+                false,
+            ));
+        }
+    }
+    out
 }

@@ -11,8 +11,17 @@
 //! n·(p + R·(K_t·d) − C(t)) = ρ_c + Σ_h (a_ch·cos hθ + b_ch·sin hθ),   n = (p − C)/|p − C|,
 //!
 //! per circle c (a setting g — a tip at one head angle — at one latitude, every deflection),
-//! θ the angle about the sphere's z axis and C(t) = C_g + Ċ_c·(t − t_c) a centre that may
-//! drift slowly while the circle's deflections are scanned (the room warms, the stylus grows). The right-hand side is the **static error map** of that
+//! θ the angle about the sphere's z axis and C(t) a centre that drifts while the circle's
+//! deflections are scanned: the room warms, the stylus grows along itself by α_t·L·ΔT_stylus
+//! and the scales read α_s,j·(T_s,j − 20 °C)·s_j less (`stylus_thermal` and `scale_thermal`,
+//! their coefficients free, from the bags' `stylus` and `scale_x|y|z` sensors). Where the bags
+//! lack those sensors, or a circle has a scan that does not go round it whole (variant (c)'s
+//! quarter), the drift is C_g + Ċ_c·(t − t_c), free per circle. A free drift per circle
+//! beside the sensors' columns is not harmless: over a whole turn t is a sawtooth in θ whose
+//! harmonics above the static map's (1/h of it at h = 15) are the wave's own (variant b), and
+//! the drift took from the sensors' columns what they explain exactly (on machine 241, with
+//! only the scales' expansion on, α_z came out 0.8 against 8.6 ppm/K and the tip's k_w 1.1–1.5 %
+//! low at 1–2σ; without the free drift α_z 8.51, every k within 0.2σ). The right-hand side is the **static error map** of that
 //! circle: what each point extrapolates to at zero deflection, the same for every
 //! deflection, whatever its cause (the sphere's form, the machine's geometry there, a servo
 //! ellipse at that speed). Linearised about each setting's own sphere fit, the equation is
@@ -91,8 +100,10 @@ const POSITION_DEG: f64 = 10.0;
 /// Harmonics of each circle's static pattern.
 const HARMONICS: usize = 12;
 /// Drift columns per circle: the centre moving linearly in time (mm per 100 s) while its
-/// deflections are scanned.
+/// deflections are scanned (only where the sensors do not give the drift).
 const DRIFT: usize = 3;
+/// A scan covering at least this many of a turn's 36 bins of 10° goes round its circle whole.
+const WHOLE_TURN_BINS: u32 = 32;
 /// Least within-scan spread (5th to 95th percentile) of a scan whose deflection varies, mm.
 const VARYING_MM: f64 = 0.1;
 /// A bridge CMM's compliance, for the bias a wave's acceleration would cause: 30 µm per m/s²,
@@ -484,6 +495,29 @@ pub fn run_with(
         circles_of_group[*gi].push(*c);
         position_only[*c] = !lin[*gi].sphere;
     }
+    // The centre's drift while a circle's scans run: the styli's and the scales' expansion from
+    // their sensors (the thermal columns above) when the bags carry those sensors and each of
+    // the circle's scans goes round it whole; a free linear drift per circle otherwise (see
+    // the module's doc).
+    let sensors_drift = std::iter::once("stylus")
+        .chain(scale_thermal::SENSORS)
+        .all(|n| ds.sensors.find(n).is_some());
+    let mut turn_bins: BTreeMap<(usize, u32), u64> = BTreeMap::new();
+    for (gi, g) in groups.iter().enumerate() {
+        for &i in &g.idx {
+            let n = dir(gi, i);
+            let b = ((n.y.atan2(n.x).to_degrees().rem_euclid(360.0) / 10.0) as u32).min(35);
+            *turn_bins
+                .entry((circle_of[i], ds.points[i].segment))
+                .or_default() |= 1 << b;
+        }
+    }
+    let mut free_drift = vec![!sensors_drift; n_circles];
+    for ((c, _), bins) in &turn_bins {
+        if bins.count_ones() < WHOLE_TURN_BINS {
+            free_drift[*c] = true;
+        }
+    }
     let n_cols = n_dense + (DRIFT + per_circle) * n_circles;
     // Each position's mean distance (approaches): its rows are taken about it. Its static
     // term absorbs it either way, but a distance of millimetres in the rows is lost to
@@ -584,7 +618,9 @@ pub fn run_with(
         if position_only[ci] {
             return n.dot(&(p.surface - l.center)) - l.radius - circle_ref[ci];
         }
-        sparse.extend([(c0, -n.x * dt), (c0 + 1, -n.y * dt), (c0 + 2, -n.z * dt)]);
+        if free_drift[ci] {
+            sparse.extend([(c0, -n.x * dt), (c0 + 1, -n.y * dt), (c0 + 2, -n.z * dt)]);
+        }
         let th = n.y.atan2(n.x);
         for h in 1..=harmonics {
             let a = h as f64 * th;
@@ -624,7 +660,8 @@ pub fn run_with(
     // by it (0.5 % on the sine program with every effect off). (The drift of a circle scanned
     // only in part at one deflection, a quarter beside a full turn, takes the force's shape
     // over the part as well; as a nuisance of 1 nm/s it left the quarter's k_v −3σ with the
-    // effects on, so it stays fitted.)
+    // effects on, so it stays fitted there. Without it the scales' columns take the same
+    // shape — n_y·ΔT·y over a quarter against sin²θ — and k_v is −3σ to −4σ.)
     let mut nuisance: Vec<(usize, f64)> = vec![];
     if let Some(sc) = compliance_prior {
         nuisance.extend((n_thermal..n_dense).map(|c| (c, sc)));
@@ -1227,6 +1264,24 @@ pub fn run_with(
          speed): their σ is the statistical part only; the force coefficients are free of it"
             .to_string(),
     ];
+    let n_free = (0..n_circles)
+        .filter(|&c| free_drift[c] && !position_only[c])
+        .count();
+    notes.push(if n_free == 0 {
+        "the sphere's drift while each circle is scanned is the styli's and the scales' \
+         expansion from their sensors (coefficients fitted with the force)"
+            .to_string()
+    } else if sensors_drift {
+        format!(
+            "{n_free} circle(s) with a scan that does not go round them whole get a free linear \
+             drift beside the sensors' expansion (over part of a turn the sensors' columns and \
+             the force are nearly one)"
+        )
+    } else {
+        "the bags carry no stylus and scale temperature sensors: each circle's drift is free \
+         and linear in time"
+            .to_string()
+    });
     if opts.steady_only {
         notes.push(
             "only points at each scan's programmed speed are used (no dwell, spin-up or \

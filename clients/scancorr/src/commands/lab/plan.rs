@@ -297,6 +297,16 @@ struct Measured {
     name: String,
     value: f64,
     sigma: Option<f64>,
+    /// Its parts, as the lab composes σ: the normal matrix's, the scan-clustered (sandwich)
+    /// one, half the folds' difference and the penalty's shift.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sigma_stat: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sigma_scan: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    fold_spread: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    penalty_shift: Option<f64>,
     /// What the lab says determines it, when not the data alone.
     #[serde(skip_serializing_if = "Option::is_none")]
     note: Option<String>,
@@ -333,6 +343,10 @@ fn measure(
                 name: p.name.clone(),
                 value: p.value,
                 sigma: p.sigma,
+                sigma_stat: p.sigma_stat,
+                sigma_scan: p.sigma_scan,
+                fold_spread: p.fold_spread,
+                penalty_shift: p.penalty_shift,
                 note: p.note.clone(),
             });
         }

@@ -131,6 +131,7 @@ pub struct Planned {
     pub prediction: Prediction,
 }
 
+#[derive(Clone)]
 struct Group {
     what: String,
     why: String,
@@ -190,7 +191,8 @@ pub const WEAVE: (f64, f64, [f64; 2]) = (0.1, 0.3, [4.0, 8.0]);
 /// requested candidates come first; then, when the rigid body is a candidate or in the model,
 /// the ring placed one place at a time where it most reduces the predicted variance of the
 /// rigid-body terms per minute (see [`greedy`]) in the time those leave; then the other
-/// groups while time is left.
+/// groups while time is left. When the prediction then leaves a rigid-body term within reach
+/// undetermined, the places are chosen again with every stylus along that term's axis.
 pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
     let tr = req.travel_mm;
     for (i, [lo, hi]) in tr.iter().enumerate() {
@@ -452,18 +454,6 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
     }
     // Take the groups in order while they fit the time.
     let budget = req.minutes * 60.0;
-    let mut program = Program {
-        name: "lab-plan".into(),
-        note: format!(
-            "planned by `scancorr lab plan` for {} v{}",
-            cal.machine_id, cal.version
-        ),
-        features: vec![],
-        scans: vec![],
-        temperature: None,
-    };
-    let mut taken = vec![];
-    let mut left_out = vec![];
     let tip_r = |id: u32| {
         cal.geometry
             .tips
@@ -479,68 +469,95 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         .collect();
     let rigid =
         kinds.contains(&"rigid_body") || cal.effects.iter().any(|e| e.kind() == "rigid_body");
-    // The base group, then the groups for the requested candidates, then (for the rigid
-    // body) the ring placements chosen one by one, then the others while time is left.
-    let (mut first, mut rest): (Vec<Option<Group>>, Vec<Option<Group>>) = (vec![], vec![]);
-    let mut later = vec![];
-    for g in groups {
-        if g.serves.is_empty() || g.serves.iter().any(|k| kinds.contains(k)) {
-            first.push(Some(g));
-        } else {
-            later.push(Some(g));
-        }
-    }
-    if rigid {
-        first.push(None);
-    }
-    rest.extend(later);
-    let mut used = 0.0;
-    // Whether the ring was placed for the rigid body (then what no place reaches is said).
-    let mut rigid_placed = false;
-    for g in first.into_iter().chain(rest) {
-        let (g, for_rigid) = match g {
-            Some(g) => (g, false),
-            None => match rigid_group(cal, req, &styli, big, &program, budget, &tip_r)? {
-                Some(g) => (g, true),
-                None => continue,
-            },
+    // The axes whose lines the rigid body's places are scanned along with every stylus: z
+    // always; another when a rigid-body term of it within reach is left undetermined (see
+    // [`styli_axes_needed`]), and the plan is made again.
+    let mut styli_axes: Vec<usize> = vec![2];
+    let (program, taken, left_out, used, prediction) = loop {
+        let mut program = Program {
+            name: "lab-plan".into(),
+            note: format!(
+                "planned by `scancorr lab plan` for {} v{}",
+                cal.machine_id, cal.version
+            ),
+            features: vec![],
+            scans: vec![],
+            temperature: None,
         };
-        let base = program.features.len();
-        let mut trial = program.clone();
-        trial.features.extend(g.features.iter().cloned());
-        trial.scans.extend(g.scans.iter().cloned().map(|mut s| {
-            s.feature += base;
-            s
-        }));
-        let t = machine_time_s(&trial, &tip_r);
-        let summary = GroupSummary {
-            what: g.what.clone(),
-            why: g.why.clone(),
-            minutes: (t - used) / 60.0,
-        };
-        if t <= budget {
-            program = trial;
-            used = t;
-            rigid_placed |= for_rigid;
-            taken.push(summary);
-        } else {
-            left_out.push(summary);
+        let mut taken = vec![];
+        let mut left_out = vec![];
+        // The base group, then the groups for the requested candidates, then (for the rigid
+        // body) the ring placements chosen one by one, then the others while time is left.
+        let (mut first, mut rest): (Vec<Option<Group>>, Vec<Option<Group>>) = (vec![], vec![]);
+        let mut later = vec![];
+        for g in groups.iter().cloned() {
+            if g.serves.is_empty() || g.serves.iter().any(|k| kinds.contains(k)) {
+                first.push(Some(g));
+            } else {
+                later.push(Some(g));
+            }
         }
-    }
-    if program.scans.is_empty() {
-        return Err(LabError::Data(format!(
-            "minutes: {} min is too short for the first group of scans ({:.1} min)",
-            req.minutes,
-            left_out.first().map(|g| g.minutes).unwrap_or(0.0)
-        )));
-    }
-    program
-        .validate()
-        .map_err(|e| LabError::Data(format!("the planned program: {e}")))?;
-    let mut prediction = predict(cal, &program, &req.candidates, &req.assumptions)?;
-    if rigid_placed {
-        prediction.beyond_reach = beyond_reach(cal, req, &program, &prediction, &styli, big)?;
-    }
+        if rigid {
+            first.push(None);
+        }
+        rest.extend(later);
+        let mut used = 0.0;
+        // Whether the ring was placed for the rigid body (then what no place reaches is said).
+        let mut rigid_placed = false;
+        for g in first.into_iter().chain(rest) {
+            let (g, for_rigid) = match g {
+                Some(g) => (g, false),
+                None => {
+                    match rigid_group(cal, req, &styli, &styli_axes, big, &program, budget, &tip_r)?
+                    {
+                        Some(g) => (g, true),
+                        None => continue,
+                    }
+                }
+            };
+            let base = program.features.len();
+            let mut trial = program.clone();
+            trial.features.extend(g.features.iter().cloned());
+            trial.scans.extend(g.scans.iter().cloned().map(|mut s| {
+                s.feature += base;
+                s
+            }));
+            let t = machine_time_s(&trial, &tip_r);
+            let summary = GroupSummary {
+                what: g.what.clone(),
+                why: g.why.clone(),
+                minutes: (t - used) / 60.0,
+            };
+            if t <= budget {
+                program = trial;
+                used = t;
+                rigid_placed |= for_rigid;
+                taken.push(summary);
+            } else {
+                left_out.push(summary);
+            }
+        }
+        if program.scans.is_empty() {
+            return Err(LabError::Data(format!(
+                "minutes: {} min is too short for the first group of scans ({:.1} min)",
+                req.minutes,
+                left_out.first().map(|g| g.minutes).unwrap_or(0.0)
+            )));
+        }
+        program
+            .validate()
+            .map_err(|e| LabError::Data(format!("the planned program: {e}")))?;
+        let mut prediction = predict(cal, &program, &req.candidates, &req.assumptions)?;
+        if rigid_placed {
+            prediction.beyond_reach = beyond_reach(cal, req, &program, &prediction, &styli, big)?;
+            let more = styli_axes_needed(&prediction, &styli_axes);
+            if !more.is_empty() && styli.len() > 1 {
+                styli_axes.extend(more);
+                continue;
+            }
+        }
+        break (program, taken, left_out, used, prediction);
+    };
     Ok(Planned {
         minutes: used / 60.0,
         program,
@@ -548,6 +565,32 @@ pub fn plan(cal: &Calibration, req: &PlanRequest) -> Result<Planned, LabError> {
         left_out,
         prediction,
     })
+}
+
+/// The axes (0 x, 1 y) of the rigid-body terms the plan leaves undetermined though a campaign
+/// of the pool could determine them (not in `beyond_reach`), beyond those already in `have`.
+/// Such a term (e.g. `AZX c1`, the yaw of x varying along x) is one the greedy choice counted
+/// as seen by one stylus, where in the joint fit the model's other effects take its shape;
+/// between styli of different offsets a rotation moves each ball by its own θ × o. Its lines
+/// are then scanned with every stylus (see [`greedy`]).
+fn styli_axes_needed(p: &Prediction, have: &[usize]) -> Vec<usize> {
+    let mut v = vec![];
+    for u in &p.undetermined {
+        if !u.starts_with("rigid_body") || p.beyond_reach.contains(u) {
+            continue;
+        }
+        let term = u.split(": ").nth(1).unwrap_or("");
+        let code = term.split_whitespace().next().unwrap_or("").as_bytes();
+        if code.len() != 3 || !(code[0] == b'A' || code[0] == b'E') {
+            continue;
+        }
+        if let Some(ax) = b"XYZ".iter().position(|c| *c == code[2]) {
+            if !have.contains(&ax) && !v.contains(&ax) {
+                v.push(ax);
+            }
+        }
+    }
+    v
 }
 
 /// Parameters no campaign with these artifacts can determine beside this model: those left
@@ -567,7 +610,7 @@ fn beyond_reach(
     d: f64,
 ) -> Result<Vec<String>, LabError> {
     // Every place with every stylus: what any campaign of these places could see.
-    let (places, _) = rigid_pool(req, styli, d);
+    let (places, _) = rigid_pool(req, styli, &[], d);
     let places: Vec<greedy::Place> = places
         .into_iter()
         .filter(|p| !p.styli)
@@ -621,11 +664,14 @@ const RIGID_MIN_S: f64 = 180.0;
 /// 40 mm) along the [`POOL_LINES`] over 10–90 % of the travel, where the first stylus
 /// (`styli[0]`) reaches; each place once with the first stylus alone and, on the lines along
 /// z where every stylus of `styli` keeps the carriage inside the travel, once with all (see
-/// [`greedy`]); with each place its line's index, axis and coordinate along it.
+/// [`greedy`]); on the lines along another axis of `styli_axes` (one whose term the first
+/// plan left undetermined, see [`styli_axes_needed`]), with all alone where they fit; with
+/// each place its line's index, axis and coordinate along it.
 #[allow(clippy::type_complexity)]
 fn rigid_pool(
     req: &PlanRequest,
     styli: &[(u32, f64, Vec3)],
+    styli_axes: &[usize],
     d: f64,
 ) -> (Vec<greedy::Place>, Vec<(usize, usize, f64)>) {
     let tr = req.travel_mm;
@@ -663,7 +709,7 @@ fn rigid_pool(
             // On the lines along z (the z axis's own errors vary along z alone; elsewhere the
             // Abbe levers of two levels see the other axes' rotations), where every stylus's
             // carriage position stays inside the travel.
-            let inside = *ax == 2
+            let inside = styli_axes.contains(ax)
                 && styli.len() > 1
                 && styli.iter().all(|s| {
                     let q = c - s.2;
@@ -671,6 +717,10 @@ fn rigid_pool(
                 });
             for with in [false, true] {
                 if with && !inside {
+                    continue;
+                }
+                // Along a line added for a term seen only between styli, every stylus.
+                if !with && inside && *ax != 2 {
                     continue;
                 }
                 line_of.push((li, *ax, c[*ax]));
@@ -694,6 +744,7 @@ fn rigid_group(
     cal: &Calibration,
     req: &PlanRequest,
     styli: &[(u32, f64, Vec3)],
+    styli_axes: &[usize],
     d: f64,
     program: &Program,
     budget: f64,
@@ -706,7 +757,7 @@ fn rigid_group(
         return Ok(None);
     }
     let step = d.max(40.0);
-    let (places, line_of) = rigid_pool(req, styli, d);
+    let (places, line_of) = rigid_pool(req, styli, styli_axes, d);
     let configs: Vec<(u32, f64)> = styli.iter().map(|s| (s.0, s.1)).collect();
     let mut chosen = greedy::choose(cal, &places, d, &configs, left, &req.assumptions, tip_r)?;
     let why = "rigid-body errors: the ring placed where it most reduces the predicted variance of the rigid-body terms per second (each error's shape along its axis, the lab's spline variant; two levels of the other axes for the Abbe levers; every stylus at some places, for the z axis's own errors), one place at a time";
@@ -766,7 +817,7 @@ fn rigid_group(
             }
         }
         g.what = format!(
-            "ring d={d} mm at {} places chosen one by one for the rigid body ({} of {} pool places every {step:.0} mm, the last worth {:.1} % of the first per second; its terms seen: {} of {}): {}; {}; at {with_styli} of them every stylus and head angle as well (the z axis's own errors are seen only between styli)",
+            "ring d={d} mm at {} places chosen one by one for the rigid body ({} of {} pool places every {step:.0} mm, the last worth {:.1} % of the first per second; its terms seen: {} of {}): {}; {}; at {with_styli} of them every stylus and head angle as well (the z axis's own errors{} are seen only between styli)",
             ord.len(),
             ord.len(),
             places.iter().filter(|p| !p.styli).count(),
@@ -782,6 +833,19 @@ fn rigid_group(
                 "one turn at 30 mm/s, the direction alternating"
             } else {
                 "30 mm/s both ways"
+            },
+            if styli_axes.len() > 1 {
+                format!(
+                    ", and along {} the rotations' terms the model's other effects mimic with one stylus",
+                    styli_axes
+                        .iter()
+                        .filter(|a| **a != 2)
+                        .map(|a| ["x", "y", "z"][*a])
+                        .collect::<Vec<_>>()
+                        .join(" and ")
+                )
+            } else {
+                String::new()
             }
         );
         return Ok(Some(g));
