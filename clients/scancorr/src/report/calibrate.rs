@@ -61,7 +61,7 @@ pub fn dynamics(
     // ΔR along X and along Y per scan, as the patent reports it, and ΔR/a per position.
     let _ = write!(
         body,
-        "<h2>ΔR along X and along Y</h2><figure>{}<figcaption>Before the fit: each scan's radius change along X (θ = 0, π) and along Y (θ = ±π/2) against the centripetal acceleration v²/r, per position (for a ring standing on its edge, along its plane's first and second axes). Unequal slopes are an unequal compliance along the two axes; the slopes are tabled below with σ.</figcaption></figure>",
+        "<h2>ΔR along X and along Y</h2><figure>{}<figcaption>Before the fit: each scan's radius change along X (θ = 0, π) and along Y (θ = ±π/2) against the centripetal acceleration v²/r, every position's scans as points (for a ring standing on its edge, along its plane's first and second axes). Unequal slopes are an unequal compliance along the two axes; each position's slopes are tabled below with σ.</figcaption></figure>",
         xy("delta-r-xy", &delta_r_xy(o), "acceleration v²/r (mm/s²)", "ΔR (µm)")
     );
     body += "<table><tr><th>position (mm)</th><th>plane</th><th>ΔR/a along X (µm per m/s²)</th><th>ΔR/a along Y (µm per m/s²)</th></tr>";
@@ -622,37 +622,22 @@ mod pv_tests {
     }
 }
 
-/// ΔR along X and along Y per scan against v²/r: two series per position (X solid colour,
-/// Y the next colour), each scan a point, sorted by acceleration.
+/// ΔR along X and along Y per scan against v²/r: one series per direction, every position's
+/// scans in it (the table beside gives each position's slope).
 fn delta_r_xy(o: &scancorr_core::calibrate::dynamics::Outcome) -> Vec<Series> {
-    let mut out = Vec::new();
-    for (i, p) in o.positions.iter().enumerate() {
-        let at = format!(
-            "({:.0}, {:.0}, {:.0})",
-            p.center_mm[0], p.center_mm[1], p.center_mm[2]
-        );
-        for (k, (axis, pick)) in [
-            (
-                "X",
-                (|s: &scancorr_core::calibrate::dynamics::Scan| s.delta_r_x_um) as fn(_) -> f64,
-            ),
-            ("Y", |s: &scancorr_core::calibrate::dynamics::Scan| {
-                s.delta_r_y_um
-            }),
-        ]
-        .into_iter()
+    type Pick = fn(&scancorr_core::calibrate::dynamics::Scan) -> f64;
+    let along: [(&str, Pick); 2] = [("X", |s| s.delta_r_x_um), ("Y", |s| s.delta_r_y_um)];
+    along
+        .iter()
         .enumerate()
-        {
-            let mut pts: Vec<(f64, f64)> =
-                p.scans.iter().map(|s| (s.accel_mm_s2, pick(s))).collect();
+        .map(|(k, (axis, pick))| {
+            let mut pts: Vec<(f64, f64)> = o
+                .positions
+                .iter()
+                .flat_map(|p| p.scans.iter().map(|s| (s.accel_mm_s2, pick(s))))
+                .collect();
             pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-            out.push((
-                format!("{at} along {axis}"),
-                PALETTE[(2 * i + k) % PALETTE.len()],
-                pts,
-                false,
-            ));
-        }
-    }
-    out
+            (format!("along {axis}"), PALETTE[k], pts, false)
+        })
+        .collect()
 }

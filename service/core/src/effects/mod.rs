@@ -118,12 +118,13 @@ macro_rules! each_model {
 /// A built effect model of any kind: one variant per kind of [`EffectConfig`].
 ///
 /// An enum rather than a `Box<dyn Effect>`: the corrector calls every effect for every point,
-/// and a `match` on the kind is one jump (no vtable), each kind's `correction` inlined into
-/// its arm. The match itself is not inlined into the corrector's loop over the effects: there
-/// the compiler hoisted every kind's per-point work (norms, square roots, divisions) out of
-/// the loop, so each point paid it for the kinds its calibration does not have (with one
-/// effect, ≈150 instructions per point of ≈3 000; with the eight of `bench core`, 35 of
-/// ≈4 700). The larger models are boxed, so that
+/// and a `match` on the kind is one jump (no vtable). The match is inlined into the corrector's
+/// loop over the effects, but each kind's `correction` is its own function, not inlined into
+/// its arm: inlined, the compiler hoisted every kind's per-point work (norms, square roots,
+/// divisions) out of the loop, so each point paid it for the kinds its calibration does not
+/// have (with one effect, ≈150 instructions per point of ≈3 000); one outlined function for
+/// all kinds saved every kind's registers on each call (the per-kind functions save 9–20
+/// instructions per effect and point). The larger models are boxed, so that
 /// every effect of a calibration does not take the room of the largest kind (a service keeps
 /// one model per machine).
 #[derive(Debug, Clone)]
