@@ -78,7 +78,7 @@ fn the_servo_phase_fitted_on_commanded_arcs_is_the_machines() {
         {"kind": "servo_phase", "y": [[0.0, 0.0, 0.0]], "z": [[0.0, 0.0, 0.0]]}
     ]);
     std::fs::write(dir.join("model.json"), model.to_string()).unwrap();
-    ok(
+    let printed = ok(
         &dir,
         &[
             "lab",
@@ -121,6 +121,41 @@ fn the_servo_phase_fitted_on_commanded_arcs_is_the_machines() {
         .iter()
         .map(|v| v.as_f64().unwrap())
         .collect();
+    // `lab fit` says what it fitted, as `lab add` and `lab discover` do: the values it wrote,
+    // each with a σ that covers the truth, and the Z phase (horizontal rings) not determined.
+    let printed: Value =
+        serde_json::from_str(&printed).unwrap_or_else(|e| panic!("{e}: {printed}"));
+    let ps = printed["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["effect"] == "servo_phase")
+        .unwrap_or_else(|| panic!("no servo_phase in lab fit's params: {printed}"))["params"]
+        .as_array()
+        .unwrap()
+        .clone();
+    let param = |name: &str| {
+        ps.iter()
+            .find(|p| p["name"] == name)
+            .unwrap_or_else(|| panic!("no `{name}` in {ps:?}"))
+    };
+    let p1 = param("φ_y b1 (rad/Hz)");
+    assert_eq!(p1["value"].as_f64(), Some(b[1]), "printed ≠ written: {p1}");
+    let s1 = p1["sigma"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("b1 without σ: {p1}"));
+    assert!(
+        (b[1] - b1_true).abs() <= 2.0 * s1 && s1 < 0.05 * b1_true.abs(),
+        "b1 {:.4e} ± {s1:.2e} against the truth {b1_true:.4e}",
+        b[1]
+    );
+    for z in ["φ_z b0 (rad)", "φ_z b1 (rad/Hz)", "φ_z b2 (rad/Hz²)"] {
+        assert!(
+            param(z)["sigma"].is_null(),
+            "horizontal rings determine {z}? {}",
+            param(z)
+        );
+    }
     let rel = b[1] / b1_true - 1.0;
     eprintln!(
         "φ_y: b0 {:.3e} rad, b1 {:.6e} rad/Hz (truth {b1_true:.6e}, {:+.3} %), b2 {:.3e} rad/Hz²; {:.1} s",

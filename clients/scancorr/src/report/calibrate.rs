@@ -23,38 +23,80 @@ pub fn dynamics(
         o.gain.heldout_theoretical_um,
         o.gain.heldout_polynomial_um
     );
-    // ΔR against acceleration: one series per position (mean of both directions per speed).
+    // ΔR against acceleration: one series per position (mean of both directions per speed)
+    // while every position has a colour of its own; beyond the palette, every position's
+    // points in one colour and their mean per speed as the line (the table below the ΔR
+    // along X and Y has each position's slope).
+    let mean_by_speed = |p: &scancorr_core::calibrate::dynamics::Position, after: bool| {
+        let mut by: std::collections::BTreeMap<i64, (f64, f64, usize)> = Default::default();
+        for s in &p.scans {
+            let e = by.entry((s.accel_mm_s2 * 10.0).round() as i64).or_default();
+            e.0 = s.accel_mm_s2;
+            e.1 += if after {
+                s.delta_r_after_um
+            } else {
+                s.delta_r_um
+            };
+            e.2 += 1;
+        }
+        by
+    };
+    let each = o.positions.len() <= PALETTE.len();
     let per_pos = |after: bool| -> Vec<Series> {
+        if !each {
+            let mut all: std::collections::BTreeMap<i64, (f64, f64, usize)> = Default::default();
+            let mut pts = vec![];
+            for p in &o.positions {
+                for (k, (a, d, n)) in mean_by_speed(p, after) {
+                    pts.push((a, d / n as f64));
+                    let e = all.entry(k).or_default();
+                    e.0 = a;
+                    e.1 += d / n as f64;
+                    e.2 += 1;
+                }
+            }
+            return vec![
+                (
+                    format!("each of {} positions", o.positions.len()),
+                    PALETTE[0],
+                    pts,
+                    false,
+                ),
+                (
+                    "mean over positions".into(),
+                    PALETTE[1],
+                    all.values().map(|(a, d, n)| (*a, d / *n as f64)).collect(),
+                    true,
+                ),
+            ];
+        }
         o.positions
             .iter()
             .enumerate()
             .map(|(i, p)| {
-                let mut by: std::collections::BTreeMap<i64, (f64, f64, usize)> = Default::default();
-                for s in &p.scans {
-                    let e = by.entry((s.accel_mm_s2 * 10.0).round() as i64).or_default();
-                    e.0 = s.accel_mm_s2;
-                    e.1 += if after {
-                        s.delta_r_after_um
-                    } else {
-                        s.delta_r_um
-                    };
-                    e.2 += 1;
-                }
                 (
                     format!(
                         "({:.0}, {:.0}, {:.0})",
                         p.center_mm[0], p.center_mm[1], p.center_mm[2]
                     ),
-                    PALETTE[i % PALETTE.len()],
-                    by.values().map(|(a, d, n)| (*a, d / *n as f64)).collect(),
+                    PALETTE[i],
+                    mean_by_speed(p, after)
+                        .values()
+                        .map(|(a, d, n)| (*a, d / *n as f64))
+                        .collect(),
                     true,
                 )
             })
             .collect()
     };
+    let whose = if each {
+        "each position's mean radius change per speed"
+    } else {
+        "every position's mean radius change per speed (points; more positions than colours) and their mean (line)"
+    };
     let _ = write!(
         body,
-        "<h2>ΔR against acceleration</h2><figure>{}<figcaption>Before: each position's mean radius change per speed against the centripetal acceleration v²/r (v² on the same axis scaled by 1/r), relative to its static pattern. A straight line through zero is compliance and the gain's f² term; curvature the f¹ term.</figcaption></figure><figure>{}<figcaption>After the fit: what is left per position and speed.</figcaption></figure>",
+        "<h2>ΔR against acceleration</h2><figure>{}<figcaption>Before: {whose} against the centripetal acceleration v²/r (v² on the same axis scaled by 1/r), relative to its static pattern. A straight line through zero is compliance and the gain's f² term; curvature the f¹ term.</figcaption></figure><figure>{}<figcaption>After the fit: what is left per position and speed.</figcaption></figure>",
         xy("delta-r-before", &per_pos(false), "acceleration v²/r (mm/s²)", "ΔR (µm)"),
         xy("delta-r-after", &per_pos(true), "acceleration v²/r (mm/s²)", "ΔR (µm)")
     );

@@ -2,6 +2,7 @@
 
 use super::args::LabCmd;
 use super::data::{dataset_for, load, um};
+use super::print::{print_params, print_undetermined};
 use crate::report;
 use crate::shared::calib::now_rfc3339;
 use crate::shared::output::commit_all;
@@ -126,7 +127,12 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
             l.cal.version
         )?;
         print_figures(&figures, l.cal.version, new.version, ds.noise_floor_um)?;
-        print_params(&o)?;
+        print_params(
+            o.params.last().map(Vec::as_slice).unwrap_or_default(),
+            "    ",
+            "every one in --json and --report",
+        )?;
+        print_undetermined(&o)?;
     }
     Ok(())
 }
@@ -236,41 +242,4 @@ fn candidates(
         }
         c
     })
-}
-
-/// The fitted parameters of `lab add`'s text output (the first 12) and how many the data
-/// did not determine.
-fn print_params(o: &analysis::FitOutcome) -> Result<()> {
-    let ps = o.params.last().map(Vec::as_slice).unwrap_or_default();
-    for p in ps.iter().take(12) {
-        match p.sigma {
-            Some(_) => outln!(
-                "    {:<44} {}{}",
-                p.name,
-                report::value_sigma(p.value, p.sigma),
-                p.note
-                    .as_deref()
-                    .map(|n| format!("  ({n})"))
-                    .unwrap_or_default()
-            )?,
-            None => outln!(
-                "    {:<44} {} (not determined by this data)",
-                p.name,
-                report::value_sigma(p.value, None)
-            )?,
-        }
-    }
-    if ps.len() > 12 {
-        outln!(
-            "    … {} more (every one in --json and --report)",
-            ps.len() - 12
-        )?;
-    }
-    if !o.unidentifiable.is_empty() {
-        outln!(
-            "  {} parameter(s) not determined by this data (minimum-norm values)",
-            o.unidentifiable.len()
-        )?;
-    }
-    Ok(())
 }

@@ -2,6 +2,7 @@
 
 use super::args::LabCmd;
 use super::data::{dataset_for, load, um};
+use super::print::{print_params, print_undetermined};
 use crate::shared::calib::now_rfc3339;
 use crate::shared::output::commit_all;
 use crate::shared::output::{outputs, put};
@@ -34,12 +35,14 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
     let p0 = analysis::prepare(&ds0)?;
     let ds = dataset_for(&l, &new)?;
     let prep = analysis::prepare(&ds)?;
-    let mut unident = vec![];
-    if !new.effects.is_empty() {
+    // Each effect's parameters ± σ, as `lab add` and `lab discover` report theirs.
+    let fitted = if new.effects.is_empty() {
+        None
+    } else {
         let o = analysis::fit_effects(&ds, &prep, &new.effects)?;
-        new.effects = o.configs;
-        unident = o.unidentifiable;
-    }
+        new.effects = o.configs.clone();
+        Some(o)
+    };
     // `new` is the start with its nominal model and effects refitted: its child.
     let mut new = version::next(&new, new.effects.clone(), &now_rfc3339());
     let ds_after = dataset_for(&l, &new)?;
@@ -81,7 +84,8 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
         "rms_after_um": after.rms_fit_um,
         "heldout_rms_before_um": p0.rms_held_um,
         "heldout_rms_after_um": after.rms_held_um,
-        "unidentifiable": unident,
+        "params": fitted.as_ref().map(|o| o.by_effect()).unwrap_or_default(),
+        "unidentifiable": fitted.as_ref().map(|o| o.unidentifiable.clone()).unwrap_or_default(),
         "judged_on": if data.validate.is_empty() { "fit data" } else { "fit data and held-out data (--validate)" },
         "worse_than_start": !worse.is_empty(),
     });
@@ -106,6 +110,13 @@ pub(super) fn exec(cmd: LabCmd) -> Result<()> {
             um(p0.rms_held_um),
             um(after.rms_held_um)
         )?;
+        if let Some(o) = &fitted {
+            for e in o.by_effect() {
+                outln!("  {}", e.effect)?;
+                print_params(&e.params, "    ", "every one in --json")?;
+            }
+            print_undetermined(o)?;
+        }
     }
     Ok(())
 }

@@ -327,3 +327,41 @@ pub(super) fn print_discovery(
     }
     Ok(())
 }
+
+/// Fitted parameters in the text output, the first 12 (`rest`: where the others are), each
+/// value ± σ with what determines it when not the data alone, or "not determined".
+pub(super) fn print_params(ps: &[analysis::Param], indent: &str, rest: &str) -> Result<()> {
+    for p in ps.iter().take(12) {
+        match p.sigma {
+            Some(_) => outln!(
+                "{indent}{:<44} {}{}",
+                p.name,
+                crate::report::value_sigma(p.value, p.sigma),
+                p.note
+                    .as_deref()
+                    .map(|n| format!("  ({n})"))
+                    .unwrap_or_default()
+            )?,
+            None => outln!(
+                "{indent}{:<44} {} (not determined by this data)",
+                p.name,
+                crate::report::value_sigma(p.value, None)
+            )?,
+        }
+    }
+    if ps.len() > 12 {
+        outln!("{indent}… {} more ({rest})", ps.len() - 12)?;
+    }
+    Ok(())
+}
+
+/// How many of a fit's parameters the data did not determine (kept at minimum-norm values).
+pub(super) fn print_undetermined(o: &analysis::FitOutcome) -> Result<()> {
+    if !o.unidentifiable.is_empty() {
+        outln!(
+            "  {} parameter(s) not determined by this data (minimum-norm values)",
+            o.unidentifiable.len()
+        )?;
+    }
+    Ok(())
+}
