@@ -388,13 +388,21 @@ pub fn plan(name: &str, m: &TrueMachine, position: Option<V3>) -> Result<Plan, S
         "probe-force-quarter" => {
             // Variant (c): per tip and latitude a full revolution at 0.3 mm and a quarter at
             // 0.1 mm; across the quarter the deflection turns from X to Y, which separates k_u
-            // from k_v, and the full revolution carries the correction round the circle.
+            // from k_v, and the full revolution carries the correction round the circle. The
+            // quarter is scanned twice at 0.1 mm around one at 0.5 mm (A-B-A): over a quarter
+            // turn the sphere's drift (n·Ċ·t, the room warming the scales) has nearly the
+            // force's shape, and only the repeat tells a drift linear in time from the force
+            // (a single second quarter left k_u 0.3–1.7 % off, the sign following the order;
+            // the quarter there and back, k_v 50–70 %: the servo's errors change with the
+            // direction).
             let sphere = b.feature(master_sphere(position));
             for tip in b.m.styli.iter().map(|s| s.id).collect::<Vec<_>>() {
                 b.set_tip(tip, 0.0, 0.0);
                 for lat in [-35.0, 0.0, 35.0] {
                     b.sphere_arc(sphere, 5.0, 1.0, 0.3, lat, 1.0);
-                    b.sphere_arc(sphere, 5.0, 1.0, 0.1, lat, 0.25);
+                    for defl in [0.1, 0.5, 0.1] {
+                        b.sphere_arc(sphere, 5.0, 1.0, defl, lat, 0.25);
+                    }
                 }
             }
         }

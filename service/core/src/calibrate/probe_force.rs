@@ -21,7 +21,26 @@
 //! harmonics above the static map's (1/h of it at h = 15) are the wave's own (variant b), and
 //! the drift took from the sensors' columns what they explain exactly (on machine 241, with
 //! only the scales' expansion on, α_z came out 0.8 against 8.6 ppm/K and the tip's k_w 1.1–1.5 %
-//! low at 1–2σ; without the free drift α_z 8.51, every k within 0.2σ). The right-hand side is the **static error map** of that
+//! low at 1–2σ; without the free drift α_z 8.51, every k within 0.2σ).
+//!
+//! Over part of a turn (variant (c)'s quarter beside a full turn) the drift n·Ċ·t has nearly
+//! the force's shape (over θ = 0…90°, cos θ, sin θ against cos²θ, sin²θ), so a drift model
+//! free per circle, or the sensors' columns, trade against k_v (−2 % to −3 % at −1.7σ to −4σ
+//! on machine 241). The measurement separates them: the part-turn scanned at one deflection,
+//! then another, then the first again (A-B-A, `sim --program probe-force-quarter`). Such a
+//! circle's part-turn scans get their own drift, an offset and a rate, −n·(ΔC_p + Ċ_p·(t −
+//! t_p)) with t_p their mean time: the repeat of A around B tells the rate from the force (a
+//! drift linear in time moves A's two scans apart, the force does not), and the force
+//! coefficients come from the part-turn scans, the full turn carrying the static map round the
+//! circle. A single second part-turn at another deflection left k_u 0.3–1.7 % off, its sign
+//! following the order of the two (the rate between them is the force's shape again); the
+//! part-turn there and back, k_v 50–70 % off (the servo's radial errors change with the
+//! direction, and the static map is one for both). A bag whose part-turns do not repeat a
+//! deflection gets the free linear drift and a note that the drift and the force are
+//! confounded there. (What A-B-A leaves, 0.2–0.7 % on k_u and k_v on machine 241, is beyond
+//! its σ and not traced.)
+//!
+//! The right-hand side is the **static error map** of that
 //! circle: what each point extrapolates to at zero deflection, the same for every
 //! deflection, whatever its cause (the sphere's form, the machine's geometry there, a servo
 //! ellipse at that speed). Linearised about each setting's own sphere fit, the equation is
@@ -54,10 +73,11 @@
 //!
 //! Variant (b) — a circle at a constant deflection and one whose deflection varies
 //! sinusoidally around it — enters the same fit (its points carry their own deflections). Such
-//! a varying scan also gets the real-time form ([`super::zero_force`]): per wave, the points
-//! below and above the wave's median deflection are two readings (R1, F1), (R2, F2) of that
-//! place, R0 = R1 − (R2 − R1)·F1/(F2 − F1), compared with what the fit's zero-force model
-//! gives for the same points (and the lower-force reading R1 with it: the error removed). The wave accelerates the carriage radially
+//! a varying scan also gets the real-time form ([`real_time`]): per wave, the points above
+//! the wave's median deflection are a reading (R2, F2) and the lower-force halves around it,
+//! interpolated to its place, the other (R1, F1); R0 = R1 − (R2 − R1)·F1/(F2 − F1), compared
+//! with what the fit's zero-force model gives for the same points (and the lower-force reading
+//! R1 with it: the error removed). The wave accelerates the carriage radially
 //! in phase with the deflection (a = −ω²·d for a sinusoid): a compliance C of the structure
 //! bends it by C·a, which the force fit cannot tell from a force coefficient −C·ω². The
 //! procedure measures that coupling (the estimated radial acceleration against the
@@ -69,7 +89,8 @@
 //! coefficient is a property of the stylus (one per tip, ISO 10360-5 qualifies stylus by
 //! stylus), not of the machine.
 
-use super::zero_force::{self, Reading, ZeroForce};
+mod real_time;
+
 use super::{Param, ProcedureError};
 use crate::calib::Calibration;
 use crate::effects::{
@@ -80,8 +101,9 @@ use crate::lab::fit::Normal;
 use crate::lab::program::FeatureKind;
 use crate::sample::Vec3;
 use crate::shape;
+pub use real_time::RealTime;
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// Points deflected less than this are not used (no probing direction), mm.
 const MIN_DEFLECTION_MM: f64 = 0.005;
@@ -100,12 +122,11 @@ const POSITION_DEG: f64 = 10.0;
 /// Harmonics of each circle's static pattern.
 const HARMONICS: usize = 12;
 /// Drift columns per circle: the centre moving linearly in time (mm per 100 s) while its
-/// deflections are scanned (only where the sensors do not give the drift).
-const DRIFT: usize = 3;
+/// deflections are scanned (only where the sensors do not give the drift), then the part-turn
+/// scans' own offset (mm) and rate (mm per 100 s) where they repeat a deflection (A-B-A).
+const DRIFT: usize = 9;
 /// A scan covering at least this many of a turn's 36 bins of 10° goes round its circle whole.
 const WHOLE_TURN_BINS: u32 = 32;
-/// Least within-scan spread (5th to 95th percentile) of a scan whose deflection varies, mm.
-const VARYING_MM: f64 = 0.1;
 /// A bridge CMM's compliance, for the bias a wave's acceleration would cause: 30 µm per m/s²,
 /// in s² (mm per mm/s²).
 const TYPICAL_COMPLIANCE_S2: f64 = 30e-6;
@@ -194,41 +215,6 @@ pub struct StaticMap {
 
 /// Knots of a static map (every 5°: the map's 12 harmonics, linearly interpolated, within 3 %).
 const STATIC_KNOTS: usize = 72;
-
-/// The real-time form (two forces per place, R0 = R1 − (R2 − R1)·F1/(F2 − F1)) on one scan
-/// whose deflection varies within it.
-#[derive(Debug, Clone, Serialize)]
-pub struct RealTime {
-    /// Tip.
-    pub tip: u32,
-    /// Head angles, degrees.
-    pub head_deg: [f64; 2],
-    /// Command segment of the scan.
-    pub segment: u32,
-    /// Latitude of the circle on the sphere, degrees.
-    pub latitude_deg: f64,
-    /// Deflection range scanned (5th, 95th percentile), mm.
-    pub deflection_mm: [f64; 2],
-    /// Waves of the deflection around the scan (one pair of readings each).
-    pub waves: usize,
-    /// Waves extrapolated to zero force.
-    pub extrapolated: usize,
-    /// Waves whose lower force was below significance (taken as zero).
-    pub force_zero: usize,
-    /// Waves whose two forces did not differ significantly (no zero-force value).
-    pub alike: usize,
-    /// RMS over the waves of the lower-force reading R1 minus the fit's zero-force value of
-    /// the same points: the force's error that the real-time form removes, µm.
-    pub before_um: f64,
-    /// RMS of R0 minus the fit's zero-force value of the same points, µm.
-    pub rms_um: f64,
-    /// RMS of R0's statistical standard uncertainty (the points' noise), µm; what `rms_um`
-    /// holds beyond it is what the fit leaves systematically between a wave's two halves.
-    pub sigma_um: f64,
-    /// The carriage's radial acceleration per mm of deflection in this scan (estimated from
-    /// the command), mm/s² per mm: a compliance C acts like a force coefficient −C times this.
-    pub accel_per_deflection_s2: f64,
-}
 
 struct Group {
     tip: u32,
@@ -513,11 +499,36 @@ pub fn run_with(
         }
     }
     let mut free_drift = vec![!sensors_drift; n_circles];
-    for ((c, _), bins) in &turn_bins {
+    let mut partial_levels: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    let mut partial_seg: BTreeSet<(usize, u32)> = BTreeSet::new();
+    let mut partial_scans: Vec<BTreeSet<u32>> = vec![BTreeSet::new(); n_circles];
+    for ((c, seg), bins) in &turn_bins {
         if bins.count_ones() < WHOLE_TURN_BINS {
             free_drift[*c] = true;
+            partial_seg.insert((*c, *seg));
         }
     }
+    for (gi, g) in groups.iter().enumerate() {
+        for &i in &g.idx {
+            let c = circle_of[i];
+            if partial_seg.contains(&(c, ds.points[i].segment)) {
+                let l = level_of(&lvls[gi], ds.points[i].ctx.deflection_probe.norm());
+                let v = partial_levels.entry(c).or_default();
+                if !v.contains(&l) {
+                    v.push(l);
+                }
+                partial_scans[c].insert(ds.points[i].segment);
+            }
+        }
+    }
+    // A circle whose part-turn scans repeat one deflection around another (A-B-A): their
+    // drift gets its own offset and rate (see the module's doc).
+    let repeated: Vec<bool> = (0..n_circles)
+        .map(|c| {
+            let levels = partial_levels.get(&c).map_or(&[][..], |v| &v[..]);
+            levels.len() >= 2 && partial_scans[c].len() > levels.len()
+        })
+        .collect();
     let n_cols = n_dense + (DRIFT + per_circle) * n_circles;
     // Each position's mean distance (approaches): its rows are taken about it. Its static
     // term absorbs it either way, but a distance of millimetres in the rows is lost to
@@ -550,6 +561,19 @@ pub fn run_with(
         }
     }
     for (t, n) in t_circle.iter_mut().zip(&n_in) {
+        *t /= (*n).max(1) as f64;
+    }
+    let mut t_part = vec![0.0; n_circles];
+    let mut n_part = vec![0usize; n_circles];
+    for g in &groups {
+        for &i in &g.idx {
+            if partial_seg.contains(&(circle_of[i], ds.points[i].segment)) {
+                t_part[circle_of[i]] += ds.points[i].ctx.t_ns as f64 * 1e-9;
+                n_part[circle_of[i]] += 1;
+            }
+        }
+    }
+    for (t, n) in t_part.iter_mut().zip(&n_part) {
         *t /= (*n).max(1) as f64;
     }
     let mut ne = Normal::new(n_cols);
@@ -620,6 +644,15 @@ pub fn run_with(
         }
         if free_drift[ci] {
             sparse.extend([(c0, -n.x * dt), (c0 + 1, -n.y * dt), (c0 + 2, -n.z * dt)]);
+        }
+        if repeated[ci] && partial_seg.contains(&(ci, p.segment)) {
+            let dt2 = (p.ctx.t_ns as f64 * 1e-9 - t_part[ci]) / 100.0;
+            sparse.extend([(c0 + 3, -n.x), (c0 + 4, -n.y), (c0 + 5, -n.z)]);
+            sparse.extend([
+                (c0 + 6, -n.x * dt2),
+                (c0 + 7, -n.y * dt2),
+                (c0 + 8, -n.z * dt2),
+            ]);
         }
         let th = n.y.atan2(n.x);
         for h in 1..=harmonics {
@@ -1084,7 +1117,7 @@ pub fn run_with(
             stored,
         });
     }
-    // The real-time form on the scans whose deflection varies within them.
+    // The real-time form on the scans whose deflection varies within them (`real_time`).
     let point_sigma = (point_var * inflate).sqrt();
     let mut real_time = vec![];
     for (gi, g) in groups.iter().enumerate() {
@@ -1094,168 +1127,34 @@ pub fn run_with(
         }
         for (seg, idx) in by_seg {
             let defl = |i: usize| ds.points[i].ctx.deflection_probe.norm();
-            let mut d: Vec<f64> = idx.iter().map(|&i| defl(i)).collect();
-            d.sort_by(|a, b| a.total_cmp(b));
-            let pct = |q: f64| d[((d.len() - 1) as f64 * q).round() as usize];
-            let (d5, d50, d95) = (pct(0.05), pct(0.5), pct(0.95));
-            if d95 - d5 < VARYING_MM || idx.len() < 40 {
+            let d: Vec<f64> = idx.iter().map(|&i| defl(i)).collect();
+            let Some(pct) = real_time::varying(&d) else {
                 continue;
-            }
-            // Points in order around the circle; the waves from the crossings of the median.
-            let mut order: Vec<(f64, usize)> = idx
+            };
+            let pts: Vec<real_time::Point> = idx
                 .iter()
                 .map(|&i| {
                     let n = dir(gi, i);
-                    (n.y.atan2(n.x), i)
+                    let y = row(gi, i, &mut dense, &mut r, &mut sparse);
+                    let force: f64 = dense[..n_force]
+                        .iter()
+                        .zip(&theta)
+                        .map(|(a, t)| a * t)
+                        .sum();
+                    let e = residual(gi, i, &theta, &mut dense, &mut r, &mut sparse);
+                    real_time::Point {
+                        theta: n.y.atan2(n.x),
+                        latitude: n.z.clamp(-1.0, 1.0).asin(),
+                        f: defl(i),
+                        y,
+                        model: y + force - e,
+                        bending: -force,
+                        t_ns: ds.points[i].ctx.t_ns,
+                        accel: n.dot(&ds.points[i].ctx.est_acc),
+                    }
                 })
                 .collect();
-            order.sort_by(|a, b| a.0.total_cmp(&b.0));
-            // Crossings with hysteresis (a quarter of the wave's amplitude either side of the
-            // median): the deflection's noise near the median makes no crossing of its own.
-            let band = 0.125 * (d95 - d5);
-            let (mut side, mut first) = (0i8, 0i8);
-            let mut crossings = 0usize;
-            // Where the first upward crossing is: the waves are cut there, so that each holds
-            // one rise above the median and one fall below it, side by side.
-            let mut rise_at: Option<usize> = None;
-            for (k, (_, i)) in order.iter().enumerate() {
-                let now = if defl(*i) > d50 + band {
-                    1
-                } else if defl(*i) < d50 - band {
-                    -1
-                } else {
-                    continue;
-                };
-                if side != 0 && now != side {
-                    crossings += 1;
-                    if now == 1 && rise_at.is_none() {
-                        rise_at = Some(k);
-                    }
-                }
-                if first == 0 {
-                    first = now;
-                }
-                side = now;
-            }
-            // Around the circle: the crossing between the last point and the first.
-            if first != 0 && side != first {
-                crossings += 1;
-            }
-            let waves = (crossings / 2).max(1);
-            // The fit's zero-force value of a point (its model without the force, no noise)
-            // and the point's own radial reading.
-            let model0 = |i: usize,
-                          dense: &mut Vec<f64>,
-                          r: &mut Vec<Vec3>,
-                          sparse: &mut Vec<(usize, f64)>| {
-                let y = row(gi, i, dense, r, sparse);
-                let force: f64 = dense[..n_force]
-                    .iter()
-                    .zip(&theta)
-                    .map(|(a, t)| a * t)
-                    .sum();
-                let e = residual(gi, i, &theta, dense, r, sparse);
-                (y, y + force - e)
-            };
-            // The deflection's noise from its second differences in time (the wave is smooth
-            // over three samples): σ² = E[(d₋ − 2d + d₊)²]/6.
-            let mut by_t = idx.clone();
-            by_t.sort_by_key(|&i| ds.points[i].ctx.t_ns);
-            let d2: Vec<f64> = by_t
-                .windows(3)
-                .map(|w| (defl(w[0]) - 2.0 * defl(w[1]) + defl(w[2])).powi(2))
-                .collect();
-            let f_sigma = (d2.iter().sum::<f64>() / (6.0 * d2.len().max(1) as f64))
-                .sqrt()
-                .max(1e-6);
-            let (mut n_ex, mut n_zero, mut n_alike) = (0, 0, 0);
-            let (mut ss, mut su, mut sb) = (0.0, 0.0, 0.0);
-            if let Some(k) = rise_at {
-                order.rotate_left(k);
-            }
-            let per = order.len() as f64 / waves as f64;
-            for w in 0..waves {
-                let lo_i = (w as f64 * per).round() as usize;
-                let hi_i = (((w + 1) as f64 * per).round() as usize).min(order.len());
-                let bin = &order[lo_i..hi_i];
-                let mut bd: Vec<f64> = bin.iter().map(|(_, i)| defl(*i)).collect();
-                bd.sort_by(|a, b| a.total_cmp(b));
-                if bd.len() < 8 {
-                    continue;
-                }
-                let med = bd[bd.len() / 2];
-                // Sums per half: n, R, F, model.
-                let mut h = [[0.0f64; 4]; 2];
-                for (_, i) in bin {
-                    let (y, m) = model0(*i, &mut dense, &mut r, &mut sparse);
-                    let k = usize::from(defl(*i) > med);
-                    h[k][0] += 1.0;
-                    h[k][1] += y;
-                    h[k][2] += defl(*i);
-                    h[k][3] += m;
-                }
-                if h[0][0] < 3.0 || h[1][0] < 3.0 {
-                    continue;
-                }
-                let read = |k: usize, col: usize| Reading {
-                    r: h[k][col] / h[k][0],
-                    r_sigma: point_sigma / h[k][0].sqrt(),
-                    f: h[k][2] / h[k][0],
-                    f_sigma: f_sigma / h[k][0].sqrt(),
-                };
-                let z = zero_force::two_force(read(0, 1), read(1, 1));
-                let m = zero_force::two_force(read(0, 3), read(1, 3));
-                match z {
-                    ZeroForce::Extrapolated { .. } => n_ex += 1,
-                    ZeroForce::ForceZero { .. } => n_zero += 1,
-                    ZeroForce::Alike => n_alike += 1,
-                }
-                if let (Some((r0, s0)), Some((m0, _))) = (z.value(), m.value()) {
-                    ss += (r0 - m0).powi(2);
-                    su += s0 * s0;
-                    let lower = usize::from(h[1][2] / h[1][0] < h[0][2] / h[0][0]);
-                    sb += ((h[lower][1] - h[lower][3]) / h[lower][0]).powi(2);
-                }
-            }
-            let used = (n_ex + n_zero).max(1) as f64;
-            // The radial acceleration against the deflection (least-squares slope).
-            let (mut sd, mut sa, mut sdd, mut sda, mut sn) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            for &i in &idx {
-                let p = &ds.points[i];
-                let a = dir(gi, i).dot(&p.ctx.est_acc);
-                let x = defl(i);
-                sn += 1.0;
-                sd += x;
-                sa += a;
-                sdd += x * x;
-                sda += x * a;
-            }
-            let var = sdd / sn - (sd / sn).powi(2);
-            let slope = if var > 0.0 {
-                (sda / sn - sd / sn * sa / sn) / var
-            } else {
-                0.0
-            };
-            let lat = order
-                .iter()
-                .map(|(_, i)| dir(gi, *i).z.clamp(-1.0, 1.0).asin())
-                .sum::<f64>()
-                / order.len() as f64;
-            real_time.push(RealTime {
-                tip: g.tip,
-                head_deg: g.head,
-                segment: seg,
-                latitude_deg: lat.to_degrees(),
-                deflection_mm: [d5, d95],
-                waves,
-                extrapolated: n_ex,
-                force_zero: n_zero,
-                alike: n_alike,
-                before_um: (sb / used).sqrt() * 1e3,
-                rms_um: (ss / used).sqrt() * 1e3,
-                sigma_um: (su / used).sqrt() * 1e3,
-                accel_per_deflection_s2: slope,
-            });
+            real_time.push(real_time::scan(g.tip, g.head, seg, &pts, pct, point_sigma));
         }
     }
     let mut notes = vec![
@@ -1267,6 +1166,29 @@ pub fn run_with(
     let n_free = (0..n_circles)
         .filter(|&c| free_drift[c] && !position_only[c])
         .count();
+    let n_repeated = repeated.iter().filter(|&&r| r).count();
+    let n_single = (0..n_circles)
+        .filter(|&c| !repeated[c] && !partial_scans[c].is_empty() && !position_only[c])
+        .count();
+    if n_repeated > 0 {
+        notes.push(format!(
+            "{n_repeated} circle(s) with part-turn scans that repeat one deflection around \
+             another (A-B-A): those scans' drift has its own offset and rate, told from the \
+             force by the repeat; the force coefficients come from them, the full turn carries \
+             the static map round the circle"
+        ));
+    }
+    if n_single > 0 {
+        notes.push(format!(
+            "confounded: {n_single} circle(s) have part-turn scans that do not repeat a \
+             deflection around another: over part of a turn the sphere's drift (the room \
+             warming the scales, n·Ċ·t) has nearly the force's shape, so the drift and the \
+             coefficient of the axis the part turns towards (k_v over a quarter from X to Y) \
+             trade against each other and their σ understates it; scan the part twice at one \
+             deflection around a scan at another (e.g. 0.1, 0.5, 0.1 mm: `sim --program \
+             probe-force-quarter`), or a whole turn at each deflection"
+        ));
+    }
     notes.push(if n_free == 0 {
         "the sphere's drift while each circle is scanned is the styli's and the scales' \
          expansion from their sensors (coefficients fitted with the force)"

@@ -20,9 +20,13 @@
 //! variance of a penalised fit (Wahba 1983, Nychka 1988: it carries the smoothing's bias on
 //! average over a table), shift = |θ̂(λ, R) − θ̂(λ_least, R_least)| the plug-in estimate of
 //! the bias the chosen penalty adds (θ̂_u − θ̂_λ = (A + λP)⁻¹λPθ̂_u exactly, the bias with the
-//! least-penalised fit for the truth). A table knot no scan sees (its data column below
-//! 10⁻³ of its group's strongest) has its value from the penalty alone: reported without σ,
-//! as not determined, not with the penalty's σ around it.
+//! least-penalised fit for the truth). The ridge R (r·A_jj, r chosen by cross-validation) is
+//! put only on the parameters whose least-squares change is within 3 of their own σ: on a
+//! parameter the data determine it would be a prior pulling r·V/(1 + r·V) of its change back
+//! to the start (V its variance inflation), a bias of most of a σ on a start many σ off.
+//! A table knot no scan sees (its data column below 10⁻³ of its group's strongest) has its
+//! value from the penalty alone: reported without σ, as not determined, not with the
+//! penalty's σ around it.
 //!
 //! Source idea: cross-validated model selection (Stone 1974) and smoothing splines /
 //! Tikhonov regularisation of tables (Whittaker 1923; Reinsch 1967).
@@ -40,8 +44,13 @@ const SMOOTHNESS_LADDER: [f64; 4] = [1e-3, 1e-2, 1e-1, 1.0];
 
 /// Ridge weights tried on the effects' parameters (columns scaled to unit diagonal): nearly
 /// collinear effects (a rigid-body positioning error and a scale's expansion on a campaign at
-/// one temperature) must not trade huge opposite values that only fit the noise.
+/// one temperature) must not trade huge opposite values that only fit the noise. Only on the
+/// parameters the data do not determine ([`Space::determined`]).
 const RIDGE_LADDER: [f64; 3] = [1e-9, 1e-5, 1e-3];
+
+/// A parameter whose least-squares change is this many of its own σ from its start is
+/// determined by the data: the ridge is not put on it (see [`Space::determined`]).
+const DETERMINED_T: f64 = 3.0;
 
 /// A column whose RMS is below this fraction of its effect's strongest is not fitted.
 const WEAK_COLUMN: f64 = 1e-3;
@@ -169,6 +178,8 @@ pub struct Space {
     rows: Vec<(u32, f64, Box<[(usize, f64)]>)>,
     /// Number of scans (clusters) among `rows`.
     n_clusters: usize,
+    /// n / n_eff: the residuals' serial correlation's inflation of the variance.
+    infl: f64,
 }
 
 /// Second-difference rows of each table of an effect, grouped by the tables that share one
@@ -414,6 +425,7 @@ impl Space {
             internal: held_within_fit_bags(ds, prep),
             rows,
             n_clusters: clusters.len(),
+            infl: ((1.0 + prep.rho) / (1.0 - prep.rho).max(1e-3)).max(1.0),
             blocks: out,
             n_fx,
             n_nu,
@@ -577,11 +589,80 @@ impl Space {
         fitted: &[usize],
         lambda: &[f64],
         ridge: f64,
+        free: &[bool],
     ) -> Vec<f64> {
         let (mut a, mut b, _, _) = self.system(gs, cols, fixed);
         self.penalise(&mut a, &mut b, fitted, lambda);
-        let x = solve_ridge(&a, &b, cols.len(), ridge);
+        let x = solve_ridge(&a, &b, cols.len(), ridge, free);
         x.iter().take(cols.len()).copied().collect()
+    }
+
+    /// Which of the first `k_fx` columns of the unpenalised system (a, b) (`yy`, `n` its
+    /// data) the data determine: the least-squares change is at least [`DETERMINED_T`] times
+    /// its σ, s²·[a⁻¹]_jj with s² the residual variance (inflated for serial correlation).
+    ///
+    /// The ridge is put on the others only. A ridge relative to a column's own diagonal
+    /// (r·A_jj) is a prior of precision r·V/σ² on a parameter with variance inflation V: on a
+    /// parameter the data determine but that shares its column with others (a scale's
+    /// expansion beside a rigid-body term, V ≈ 140) it pulls r·V/(1 + r·V) ≈ 12 % of the change
+    /// back to the start, which on a start 7 σ off is 0.8 σ of bias; a pair of near-collinear
+    /// parameters trading opposite values that only fit the noise has changes within a few
+    /// of their (large) σ and stays held.
+    fn determined(
+        &self,
+        a: &DMatrix<f64>,
+        b: &DVector<f64>,
+        yy: f64,
+        n: usize,
+        k_fx: usize,
+    ) -> Vec<bool> {
+        let k = b.len();
+        let mut det = vec![false; k_fx];
+        if k_fx == 0 || n <= k {
+            return det;
+        }
+        let s: Vec<f64> = (0..k)
+            .map(|i| {
+                if a[(i, i)] > 0.0 {
+                    1.0 / a[(i, i)].sqrt()
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut m = DMatrix::zeros(k, k);
+        for i in 0..k {
+            for j in 0..k {
+                m[(i, j)] = a[(i, j)] * s[i] * s[j];
+            }
+            m[(i, i)] += 1e-9 + if s[i] == 0.0 { 1.0 } else { 0.0 };
+        }
+        let Some(ch) = nalgebra::Cholesky::new(m) else {
+            return det;
+        };
+        let rhs = DVector::from_iterator(k, (0..k).map(|i| -b[i] * s[i]));
+        let z = ch.solve(&rhs);
+        let x: Vec<f64> = (0..k).map(|i| z[i] * s[i]).collect();
+        let ss = (yy + (0..k).map(|i| b[i] * x[i]).sum::<f64>()).max(0.0);
+        let s2 = ss / (n - k) as f64 * self.infl;
+        // [m⁻¹]_jj = |L⁻¹ e_j|² (m = L Lᵀ): forward substitution from row j down, the rows
+        // above j of L⁻¹ e_j being zero — a sixth of a full solve against the identity.
+        let l = ch.l_dirty();
+        let mut y = vec![0.0; k];
+        for (j, d) in det.iter_mut().enumerate() {
+            let mut inv_jj = 0.0;
+            for i in j..k {
+                let mut acc = if i == j { 1.0 } else { 0.0 };
+                for (m, ym) in y.iter().enumerate().take(i).skip(j) {
+                    acc -= l[(i, m)] * ym;
+                }
+                y[i] = acc / l[(i, i)];
+                inv_jj += y[i] * y[i];
+            }
+            let var = s2 * inv_jj * s[j] * s[j];
+            *d = s[j] > 0.0 && var > 0.0 && x[j].abs() >= DETERMINED_T * var.sqrt();
+        }
+        det
     }
 
     /// Scores a candidate model by cross-validation, choosing the tables' smoothness.
@@ -598,12 +679,14 @@ impl Space {
             vec![0.0]
         };
         let cv_n = self.g[0].n + self.g[1].n;
-        let folds: Vec<(usize, DMatrix<f64>, DVector<f64>)> = [(0usize, 1usize), (1, 0)]
+        type FoldSystem = (usize, DMatrix<f64>, DVector<f64>, Vec<bool>);
+        let folds: Vec<FoldSystem> = [(0usize, 1usize), (1, 0)]
             .into_iter()
             .filter(|(_, test)| self.g[*test].n > 0)
             .map(|(train, test)| {
-                let (a, b, _, _) = self.system(&[train], &cols, &fixed);
-                (test, a, b)
+                let (a, b, yy, n) = self.system(&[train], &cols, &fixed);
+                let free = self.determined(&a, &b, yy, n, cols.len());
+                (test, a, b, free)
             })
             .collect();
         let mut best: Option<Score> = None;
@@ -621,10 +704,10 @@ impl Space {
                 .collect();
             for &ridge in &RIDGE_LADDER {
                 let mut ss = 0.0;
-                for (test, a, b) in &folds {
+                for (test, a, b, free) in &folds {
                     let (mut a, mut b) = (a.clone(), b.clone());
                     self.penalise(&mut a, &mut b, &spec.fitted, &lambda);
-                    let x = solve_ridge(&a, &b, cols.len(), ridge);
+                    let x = solve_ridge(&a, &b, cols.len(), ridge, free);
                     ss += self.eval(*test, &cols, &x.as_slice()[..cols.len()], &fixed);
                 }
                 let s = Score {
@@ -716,11 +799,14 @@ impl Space {
         let fixed = self.removal(spec);
         let k = cols.len();
         let (mut a, mut b, yy, n) = self.system(&[0, 1], &cols, &fixed);
+        let free = self.determined(&a, &b, yy, n, k);
         // The sum of squares before any change, placements refitted.
         let ss0 = self.eval(0, &[], &[], &[]) + self.eval(1, &[], &[], &[]);
         self.penalise(&mut a, &mut b, &spec.fitted, &score.lambda);
         for i in 0..k {
-            a[(i, i)] *= 1.0 + score.ridge;
+            if !free[i] {
+                a[(i, i)] *= 1.0 + score.ridge;
+            }
         }
         let diag: Vec<f64> = (0..k).map(|i| a[(i, i)]).collect();
         let mut ne = Normal::new(a.nrows());
@@ -753,6 +839,7 @@ impl Space {
                 &spec.fitted,
                 &least_lambda,
                 RIDGE_LADDER[0],
+                &free,
             )
         } else {
             theta.clone()
@@ -768,6 +855,7 @@ impl Space {
                         &spec.fitted,
                         &score.lambda,
                         score.ridge,
+                        &free,
                     )
                 })
                 .collect()
@@ -982,9 +1070,15 @@ fn pinv(m: &DMatrix<f64>) -> DMatrix<f64> {
 
 /// x minimising ‖y + A x‖² from the normal equations (a, b): a x = −b, with the columns
 /// scaled to unit diagonal and a ridge (`ridge` on the first `k_fx` columns, the effects'
-/// parameters; a tiny one on the placements) so that directions the data does not determine
-/// stay near zero.
-fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>, k_fx: usize, ridge: f64) -> DVector<f64> {
+/// parameters, except those `free` marks as determined by the data; a tiny one on the
+/// others and the placements) so that directions the data does not determine stay near zero.
+fn solve_ridge(
+    a: &DMatrix<f64>,
+    b: &DVector<f64>,
+    k_fx: usize,
+    ridge: f64,
+    free: &[bool],
+) -> DVector<f64> {
     let k = b.len();
     let s: Vec<f64> = (0..k)
         .map(|i| {
@@ -1000,8 +1094,9 @@ fn solve_ridge(a: &DMatrix<f64>, b: &DVector<f64>, k_fx: usize, ridge: f64) -> D
         for j in 0..k {
             m[(i, j)] = a[(i, j)] * s[i] * s[j];
         }
+        let held = i < k_fx && !free.get(i).copied().unwrap_or(false);
         m[(i, i)] +=
-            if i < k_fx { ridge.max(1e-9) } else { 1e-9 } + if s[i] == 0.0 { 1.0 } else { 0.0 };
+            if held { ridge.max(1e-9) } else { 1e-9 } + if s[i] == 0.0 { 1.0 } else { 0.0 };
     }
     let rhs = DVector::from_iterator(k, (0..k).map(|i| -b[i] * s[i]));
     let z = match nalgebra::Cholesky::new(m.clone()) {

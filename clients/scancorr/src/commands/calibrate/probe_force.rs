@@ -187,10 +187,10 @@ fn print_static_maps(o: &probe_force::Outcome) -> Result<()> {
 /// Prints the real-time form per segment, if any.
 fn print_real_time(o: &probe_force::Outcome) -> Result<()> {
     if !o.real_time.is_empty() {
-        outln!("real-time form, R0 = R1 − (R2 − R1)·F1/(F2 − F1) per wave of the deflection, against the fit's zero-force values:")?;
+        outln!("real-time form, R0 = R1 − (R2 − R1)·F1/(F2 − F1) per wave of the deflection (the lower-force reading interpolated to the higher one's place), against the fit's zero-force values:")?;
         for rt in &o.real_time {
             outln!(
-                "  tip {} segment {} (latitude {:+.0}°, {:.2}–{:.2} mm): {} waves, {} extrapolated, {} at a force below significance, {} alike; R1 {:.3} µm RMS from the fit's zero force → R0 {:.3} µm RMS (statistical σ {:.3} µm); radial acceleration {:+.1} mm/s² per mm of deflection",
+                "  tip {} segment {} (latitude {:+.0}°, {:.2}–{:.2} mm): {} waves, {} extrapolated, {} at a force below significance, {} alike, {} unpaired; R1 {:.3} µm RMS from the fit's zero force → R0 {:.3} µm RMS: systematic {:.3} µm (the fit's bending, which varies along the circle, through the same arithmetic), {:.3} µm beyond it against a statistical σ of {:.3} µm (halves side by side, half a wave apart: {:.3} µm, {:.3} µm predicted); radial acceleration {:+.1} mm/s² per mm of deflection",
                 rt.tip,
                 rt.segment,
                 rt.latitude_deg,
@@ -200,9 +200,14 @@ fn print_real_time(o: &probe_force::Outcome) -> Result<()> {
                 rt.extrapolated,
                 rt.force_zero,
                 rt.alike,
+                rt.unpaired,
                 rt.before_um,
                 rt.rms_um,
+                rt.systematic_um,
+                rt.unexplained_um,
                 rt.sigma_um,
+                rt.side_by_side_um,
+                rt.side_by_side_systematic_um,
                 rt.accel_per_deflection_s2
             )?;
         }
