@@ -621,22 +621,7 @@ impl Space {
         if k_fx == 0 || n <= k {
             return det;
         }
-        let s: Vec<f64> = (0..k)
-            .map(|i| {
-                if a[(i, i)] > 0.0 {
-                    1.0 / a[(i, i)].sqrt()
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        let mut m = DMatrix::zeros(k, k);
-        for i in 0..k {
-            for j in 0..k {
-                m[(i, j)] = a[(i, j)] * s[i] * s[j];
-            }
-            m[(i, i)] += 1e-9 + if s[i] == 0.0 { 1.0 } else { 0.0 };
-        }
+        let (s, m) = unit_diagonal(a, |_| 1e-9);
         let Some(ch) = nalgebra::Cholesky::new(m) else {
             return det;
         };
@@ -1068,18 +1053,11 @@ fn pinv(m: &DMatrix<f64>) -> DMatrix<f64> {
     p
 }
 
-/// x minimising ‖y + A x‖² from the normal equations (a, b): a x = −b, with the columns
-/// scaled to unit diagonal and a ridge (`ridge` on the first `k_fx` columns, the effects'
-/// parameters, except those `free` marks as determined by the data; a tiny one on the
-/// others and the placements) so that directions the data does not determine stay near zero.
-fn solve_ridge(
-    a: &DMatrix<f64>,
-    b: &DVector<f64>,
-    k_fx: usize,
-    ridge: f64,
-    free: &[bool],
-) -> DVector<f64> {
-    let k = b.len();
+/// The normal matrix `a` with its columns scaled to unit diagonal (s_i = 1/√a_ii, 0 for an
+/// empty column) and `add(i)` on its diagonal (an empty column gets 1 more, so it stays 0):
+/// the scales and the scaled matrix.
+fn unit_diagonal(a: &DMatrix<f64>, add: impl Fn(usize) -> f64) -> (Vec<f64>, DMatrix<f64>) {
+    let k = a.nrows();
     let s: Vec<f64> = (0..k)
         .map(|i| {
             if a[(i, i)] > 0.0 {
@@ -1094,10 +1072,31 @@ fn solve_ridge(
         for j in 0..k {
             m[(i, j)] = a[(i, j)] * s[i] * s[j];
         }
-        let held = i < k_fx && !free.get(i).copied().unwrap_or(false);
-        m[(i, i)] +=
-            if held { ridge.max(1e-9) } else { 1e-9 } + if s[i] == 0.0 { 1.0 } else { 0.0 };
+        m[(i, i)] += add(i) + if s[i] == 0.0 { 1.0 } else { 0.0 };
     }
+    (s, m)
+}
+
+/// x minimising ‖y + A x‖² from the normal equations (a, b): a x = −b, with the columns
+/// scaled to unit diagonal and a ridge (`ridge` on the first `k_fx` columns, the effects'
+/// parameters, except those `free` marks as determined by the data; a tiny one on the
+/// others and the placements) so that directions the data does not determine stay near zero.
+fn solve_ridge(
+    a: &DMatrix<f64>,
+    b: &DVector<f64>,
+    k_fx: usize,
+    ridge: f64,
+    free: &[bool],
+) -> DVector<f64> {
+    let k = b.len();
+    let (s, m) = unit_diagonal(a, |i| {
+        let held = i < k_fx && !free.get(i).copied().unwrap_or(false);
+        if held {
+            ridge.max(1e-9)
+        } else {
+            1e-9
+        }
+    });
     let rhs = DVector::from_iterator(k, (0..k).map(|i| -b[i] * s[i]));
     let z = match nalgebra::Cholesky::new(m.clone()) {
         Some(ch) => ch.solve(&rhs),
