@@ -142,3 +142,26 @@ fn bench_core_refuses_a_calibration_its_ring_cannot_scan() {
         &["reading calibration missing.json"],
     );
 }
+
+/// `bench core --hash`: the check that a change to the core's arithmetic keeps its output bit
+/// for bit (run it with the binaries before and after). The same pass gives the same hash; the
+/// campaign's effects give another output than every effect's.
+#[test]
+fn bench_core_hashes_its_output() {
+    let d = scratch("bench-core-hash");
+    let run = || {
+        json(&ok(
+            &d,
+            &["bench", "core", "--points", "2000", "--hash", "--json"],
+        ))
+    };
+    let (a, b) = (run(), run());
+    assert_eq!(a, b, "two passes of the same input hash differently");
+    let rows = a["hashes"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{a}");
+    for r in rows {
+        assert!(r["points"].as_u64().unwrap() > 1000, "{a}");
+        assert_eq!(r["hash"].as_str().unwrap().len(), 16, "{a}");
+    }
+    assert_ne!(rows[0]["hash"], rows[1]["hash"], "{a}");
+}

@@ -109,7 +109,8 @@ pub fn prepare(ds: &Dataset) -> Result<Prepared, LabError> {
 /// A fitted parameter.
 ///
 /// `sigma` is honest about what moved the value:
-/// σ² = max(σ_stat, σ_scan, spread)² + shift² + model², with σ_stat from the penalised normal
+/// σ² = s² + shift² + model², s = max(σ_stat, σ_scan) or the spread where it is above twice
+/// that (one draw: see `select::statistical`), with σ_stat from the penalised normal
 /// matrix (scaled by the residual, inflated for correlated residuals), σ_scan the same
 /// covariance with the residual's scatter taken scan by scan (the cluster-robust "sandwich"
 /// (AᵀA)⁻¹ Σ_c s_c s_cᵀ (AᵀA)⁻¹, s_c = A_cᵀ r_c the score of scan c: a model error that

@@ -83,6 +83,10 @@ pub enum BenchCmd {
         /// timed in rounds (median and range), and what the effects share.
         #[arg(long)]
         per_effect: bool,
+        /// Instead of timing: one pass with the points' contexts recorded, and a hash of every
+        /// point, alarm, context and count it gave (equal hashes: equal output bit for bit).
+        #[arg(long)]
+        hash: bool,
     },
     /// One scancorrd process serving many machines at 1 kHz each in real time: delivered
     /// points, seq gaps, latency, memory and CPU per machine.
@@ -183,11 +187,13 @@ pub fn exec(cmd: BenchCmd) -> Result<()> {
             repeat,
             calib,
             per_effect,
+            hash,
         } => throughput::core(&throughput::CoreOptions {
             points,
             repeat,
             calib,
             per_effect,
+            hash,
             json,
         }),
         BenchCmd::Correct { json, repeat } => throughput::correct(repeat, json),

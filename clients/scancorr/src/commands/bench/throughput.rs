@@ -8,6 +8,70 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
+/// A hash of everything one pass of the pure core over `samples` with `cal` gives: every
+/// point, alarm and context (each value printed in full, so equal hashes mean equal output
+/// bit for bit) and the counts.
+fn output_hash(cal: &Calibration, samples: &[Sample]) -> Result<(u64, usize)> {
+    use std::hash::{Hash, Hasher};
+    let mut corr = Corrector::with_model(Arc::new(cal.build()?));
+    corr.record_context(true);
+    let mut out = Output::default();
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    let mut points = 0;
+    let mut digest = |out: &mut Output| {
+        points += out.points.len();
+        for p in &out.points {
+            format!("{p:?}").hash(&mut h);
+        }
+        for a in &out.alarms {
+            format!("{a:?}").hash(&mut h);
+        }
+        for c in &out.contexts {
+            format!("{c:?}").hash(&mut h);
+        }
+        out.clear();
+    };
+    for s in samples {
+        corr.push(s.clone(), &mut out);
+        digest(&mut out);
+    }
+    corr.flush(&mut out);
+    digest(&mut out);
+    format!("{:?}", corr.stats()).hash(&mut h);
+    Ok((h.finish(), points))
+}
+
+/// `bench core --hash`: the output's hash with the calibration timed (and the campaign's).
+fn print_hashes(
+    label: &str,
+    cal: &Calibration,
+    campaign: bool,
+    samples: &[Sample],
+    json: bool,
+) -> Result<()> {
+    let mut rows = vec![(label.to_string(), output_hash(cal, samples)?)];
+    if campaign {
+        rows.push((
+            "campaign effects".to_string(),
+            output_hash(&campaign_calibration()?, samples)?,
+        ));
+    }
+    if json {
+        let v: Vec<_> = rows
+            .iter()
+            .map(|(l, (h, n))| {
+                serde_json::json!({"calibration": l, "points": n, "hash": format!("{h:016x}")})
+            })
+            .collect();
+        outln!("{}", serde_json::json!({ "bench": "core", "hashes": v }))?;
+    } else {
+        for (l, (h, n)) in &rows {
+            outln!("{l}: {n} points, output hash {h:016x}")?;
+        }
+    }
+    Ok(())
+}
+
 /// Throughput of one run of the pure core over `samples` with `cal`'s effects.
 struct CoreFigures {
     effects: usize,
@@ -341,6 +405,8 @@ pub struct CoreOptions {
     pub calib: Option<PathBuf>,
     /// Also what each effect costs.
     pub per_effect: bool,
+    /// A hash of the output instead of timings.
+    pub hash: bool,
     pub json: bool,
 }
 
@@ -362,6 +428,9 @@ pub fn core(o: &CoreOptions) -> Result<()> {
     };
     let samples = synth::ring_scan_with(o.points, &setup);
     let n = samples.len();
+    if o.hash {
+        return print_hashes(&label, &cal, o.calib.is_none(), &samples, o.json);
+    }
     let main = run_core(&cal, &samples, o.repeat).with_context(|| label.clone())?;
     let campaign = match o.calib {
         None => Some(run_core(&campaign_calibration()?, &samples, o.repeat)?),

@@ -146,10 +146,11 @@ pub fn exec(a: PlanArgs) -> Result<()> {
         } else {
             Some(measure(&a, &cal, &candidates)?)
         };
-        // The same design at the noise and residual correlation the bags showed: what the
-        // Jacobian alone predicts, the assumptions set aside.
+        // The same design at the residual and its correlation the bags showed (the lab's
+        // residual after its fit, which carries what the model leaves beside the noise floor:
+        // the lab's σ is scaled by it), the assumptions set aside.
         let at_measured = match &measured {
-            Some((_, noise, rho)) if *noise > 0.0 => Some(predict(
+            Some((_, _, noise, rho)) if *noise > 0.0 => Some(predict(
                 &a,
                 &cal,
                 &program,
@@ -317,7 +318,7 @@ fn measure(
     a: &PlanArgs,
     cal: &scancorr_core::Calibration,
     candidates: &[String],
-) -> Result<(Vec<Measured>, f64, f64)> {
+) -> Result<(Vec<Measured>, f64, f64, f64)> {
     let bags = load_bags(&a.bag, &[], &cal.machine_id)?;
     let opts = BuildOptions {
         stride: a.stride,
@@ -351,14 +352,19 @@ fn measure(
             });
         }
     }
-    Ok((v, ds.noise_floor_um, prep.rho))
+    Ok((
+        v,
+        ds.noise_floor_um,
+        o.rms_after_um.max(ds.noise_floor_um),
+        prep.rho,
+    ))
 }
 
 fn print_prediction(
     a: &PlanArgs,
     program: &Program,
     pred: &Prediction,
-    measured: Option<&(Vec<Measured>, f64, f64)>,
+    measured: Option<&(Vec<Measured>, f64, f64, f64)>,
     planned: Option<(&plan::Planned, Option<&plan::ThermalPlan>)>,
     at_measured: Option<&Prediction>,
 ) -> Result<()> {
@@ -380,9 +386,10 @@ fn print_prediction(
                 j["thermal"] = serde_json::to_value(t)?;
             }
         }
-        if let Some((m, noise, rho)) = measured {
+        if let Some((m, noise, residual, rho)) = measured {
             j["measured"] = serde_json::to_value(m)?;
             j["measured_noise_floor_um"] = serde_json::json!(noise);
+            j["measured_residual_um"] = serde_json::json!(residual);
             j["measured_rho"] = serde_json::json!(rho);
         }
         if let Some(p) = at_measured {
@@ -463,7 +470,7 @@ fn print_prediction(
             .and_then(|q| q.params.get(i))
             .and_then(|q| q.sigma);
         let meas = measured
-            .and_then(|(m, _, _)| m.get(i))
+            .and_then(|(m, _, _, _)| m.get(i))
             .map(|m| match (m.sigma, ps_m.or(p.sigma)) {
                 (Some(ms), Some(ps)) if ps > 0.0 => {
                     format!(
@@ -523,11 +530,11 @@ fn print_prediction(
             )?;
         }
     }
-    if let Some((_, noise, rho)) = measured {
+    if let Some((_, noise, residual, rho)) = measured {
         outln!(
-            "  measured: noise floor {noise:.3} µm, residual lag-1 correlation {rho:.2}{}",
+            "  measured: noise floor {noise:.3} µm, residual after the lab's fit {residual:.3} µm, its lag-1 correlation {rho:.2}{}",
             if at_measured.is_some() {
-                " (the ratios are to the design's prediction at these)"
+                " (the ratios are to the prediction at the residual and its correlation)"
             } else {
                 ""
             }

@@ -927,6 +927,33 @@ mod tests {
         c
     }
 
+    /// The design's ideal points lie on the artifact as the lab's fit holds it (the certified
+    /// diameter): noiseless, the lab's artifact fit leaves nothing. On the nominal diameter
+    /// (50.0 for a 50.0012 mm ring) every point sat 0.6 µm off, and `predict_by_fit`'s σ was
+    /// scaled by that offset (14–30× the design's) instead of by the noise.
+    #[test]
+    fn the_ideal_points_lie_on_the_certified_artifact() {
+        let a = Assumptions::default();
+        let ds = ideal_dataset(&cal(), &ring_prog(&[]), &a).unwrap();
+        let prep = crate::lab::types::prepare(&ds).unwrap();
+        assert!(
+            prep.rms_fit_um < 1e-4,
+            "noiseless ideal points leave {} µm RMS",
+            prep.rms_fit_um
+        );
+        let by_fit = predict_by_fit(&cal(), &ring_prog(&[]), &[], &a, 2).unwrap();
+        let design = predict(&cal(), &ring_prog(&[]), &[], &a).unwrap();
+        for (p, q) in by_fit.params.iter().zip(&design.params) {
+            if let (Some(f), Some(d)) = (p.sigma, q.sigma_design) {
+                assert!(
+                    (0.25..=2.0).contains(&(f / d)),
+                    "{}: the lab's σ on the design's replicates {f:e} against the design's {d:e}",
+                    p.name
+                );
+            }
+        }
+    }
+
     #[test]
     fn a_program_record_names_the_field_it_refuses() {
         let mut p = ring_prog(&[[0.0, -1.0, 0.0]]);

@@ -132,7 +132,10 @@ pub fn ideal_dataset(
                         -u * (sd * sd / r) + tang * sdd,
                         n,
                         s.deflection_mm,
-                        c + u * (f.nominal_diameter_mm / 2.0),
+                        // On the artifact as the lab's fit holds it: the certified
+                        // diameter (the nominal one put every point 0.6 µm off a 50.0012 mm
+                        // ring, and `predict_by_fit`'s σ came from that offset, not noise).
+                        c + u * (f.certified_diameter_mm.unwrap_or(f.nominal_diameter_mm) / 2.0),
                         Some((cc, r, sd / (TAU * r), Vec3::z() * dir)),
                     )
                 }
@@ -588,7 +591,15 @@ pub fn noisy(ds: &Dataset, a: &Assumptions, seed: u64) -> Dataset {
 /// the design's own σ are those of [`predict`].
 ///
 /// The simulated measurements carry noise and no model error, around the calibration's
-/// current values: what a penalty does to a large unmodelled signal is not in it.
+/// current values: what a penalty does to a large unmodelled signal is not in it. Their points
+/// lie on the artifacts' certified diameters, where the lab's fit holds them (on the nominal
+/// ones the lab's σ was scaled by a 0.6 µm offset: 14–30× the design's).
+///
+/// With no model error the lab's σ comes out about 0.55× the design's (a campaign's plan, white
+/// noise): the final fit uses both folds where the design counts the fit half's points (1/√2);
+/// the rest is not traced. On a measured bag the residual carries
+/// what the model leaves, and the lab's σ its scan-clustered part: `lab plan --bag` predicts at
+/// that residual.
 pub fn predict_by_fit(
     cal: &Calibration,
     program: &Program,
