@@ -37,8 +37,26 @@
 //! part-turn there and back, k_v 50–70 % off (the servo's radial errors change with the
 //! direction, and the static map is one for both). A bag whose part-turns do not repeat a
 //! deflection gets the free linear drift and a note that the drift and the force are
-//! confounded there. (What A-B-A leaves, 0.2–0.7 % on k_u and k_v on machine 241, is beyond
-//! its σ and not traced.)
+//! confounded there.
+//!
+//! What else passes for force over a part-turn, traced on machine 241 (k_u −0.5 to −0.7 % at
+//! −5σ, k_v −0.2 % at −3σ to −4σ; with every simulator effect but the force off, unbiased):
+//! the machine's geometry (half of it, and the scales' expansion the other half). The carriage
+//! sits Δd further in at the larger deflection, so an error field E of the carriage's position
+//! (guide straightness, ~0.1 µm per mm of slope) adds n·J·D to each point (J = ∂E/∂x, D the
+//! deflection in machine axes): the force's own form. J's diagonal is the force's shape at one
+//! head angle and stays in it; over a whole turn the off-diagonal part is orthogonal to the
+//! force (sin 2θ against cos 2θ), over a quarter not quite: X's guide straightness towards Y
+//! alone (J_yx, 9.7·10⁻⁵ there) left k_u −0.37 % at −3σ, and with J_xy fitted −0.03 %. A
+//! circle with A-B-A part-turns fits J_xy, −(n_x·D_y + n_y·D_x)·J_xy (its xz and yz parts have
+//! the form of k_w's over a quarter: fitted per circle they took k_w −160 to −250 %, per
+//! setting k_w fell to 0–20 % within 2σ). Not treated: beside the free drifts the scales'
+//! columns see only what the temperatures curve over a circle (mK), as large as a reading's
+//! noise (2 mK), so their coefficients are diluted toward zero (0.1–1.5 ± 0.5–1.3 ppm/K
+//! against 8.6–11; errors in variables) and their gradient α·(T − 20 °C)·Δd, the force's shape
+//! again, goes into k (−0.3 % at −2.6σ on 241 with only the scales' expansion on). Fitting the
+//! columns to each sensor's straight line over ±5 s removed the dilution (α ± 13 ppm/K) but
+//! left k_u −0.6 % with every simulator effect off on machine 5381, so it was not kept.
 //!
 //! The right-hand side is the **static error map** of that
 //! circle: what each point extrapolates to at zero deflection, the same for every
@@ -123,8 +141,9 @@ const POSITION_DEG: f64 = 10.0;
 const HARMONICS: usize = 12;
 /// Drift columns per circle: the centre moving linearly in time (mm per 100 s) while its
 /// deflections are scanned (only where the sensors do not give the drift), then the part-turn
-/// scans' own offset (mm) and rate (mm per 100 s) where they repeat a deflection (A-B-A).
-const DRIFT: usize = 9;
+/// scans' own offset (mm) and rate (mm per 100 s) where they repeat a deflection (A-B-A), and
+/// there the geometry's change over the deflection's travel, its xy part (J_xy, mm per mm).
+const DRIFT: usize = 10;
 /// A scan covering at least this many of a turn's 36 bins of 10° goes round its circle whole.
 const WHOLE_TURN_BINS: u32 = 32;
 /// A bridge CMM's compliance, for the bias a wave's acceleration would cause: 30 µm per m/s²,
@@ -653,6 +672,11 @@ pub fn run_with(
                 (c0 + 7, -n.y * dt2),
                 (c0 + 8, -n.z * dt2),
             ]);
+        }
+        if repeated[ci] {
+            // The geometry's change over the deflection's travel, its xy part (module doc).
+            let dm = p.ctx.machine_from_probe * p.ctx.deflection_probe;
+            sparse.push((c0 + 9, -(n.x * dm.y + n.y * dm.x)));
         }
         let th = n.y.atan2(n.x);
         for h in 1..=harmonics {
