@@ -621,7 +621,7 @@ fn probe_force_approaches_at_steady_speed_are_honest() {
             "263",
             seed,
             &["u", "v"],
-            3.0,
+            Within::Sigma(3.0),
             None,
         );
     }
@@ -644,7 +644,7 @@ fn probe_force_sine_from_nominal_is_honest() {
             "269",
             seed,
             &["u", "v", "w"],
-            3.0,
+            Within::Sigma(3.0),
             Some(0.1),
         );
         assert!(notes.contains("not fitted"), "{notes}");
@@ -662,47 +662,15 @@ fn probe_force_sine_from_nominal_is_honest() {
 fn probe_force_quarter_repeated_tells_drift_from_force() {
     let dir = scratch("calibrate-probe-force-quarter-repeated");
     for seed in ["1", "2"] {
-        measure_from_nominal(&dir, "probe-force-quarter", "3517", seed, "q.mcap", true);
-        let truth = json(&std::fs::read_to_string(dir.join("truth.json")).unwrap());
-        let r = json(&ok(
+        let notes = steady_judged(
             &dir,
-            &[
-                "calibrate",
-                "probe-force",
-                "--bag",
-                "q.mcap",
-                "--calib",
-                "nominal.json",
-                "--out",
-                "q.json",
-                "--force",
-                "--json",
-                "--steady-only",
-                "--compliance-prior",
-                "30",
-            ],
-        ));
-        for t in [1, 2] {
-            for a in ["u", "v", "w"] {
-                let name = format!("tip{t}.probe_k_{a}_mm_per_mm");
-                let at = format!("run {seed} {name}");
-                let v = r["params"][&name]
-                    .as_f64()
-                    .unwrap_or_else(|| panic!("{at}: {r:#}"));
-                let s = r["uncertainty"][&name].as_f64().unwrap();
-                let tv = truth["params"][&name].as_f64().unwrap();
-                eprintln!("{at}: {v:.6} ± {s:.6}, truth {tv:.6}");
-                assert!(
-                    s.is_finite() && s > 0.0 && s < 0.01 * tv.abs(),
-                    "{at}: σ {s}, truth {tv}"
-                );
-                assert!(
-                    (v - tv).abs() < 0.01 * tv.abs(),
-                    "{at}: {v} ± {s}, truth {tv}"
-                );
-            }
-        }
-        let notes = r["notes"].to_string();
+            "probe-force-quarter",
+            "3517",
+            seed,
+            &["u", "v", "w"],
+            Within::Rel(0.01),
+            Some(0.01),
+        );
         assert!(notes.contains("A-B-A"), "{notes}");
         assert!(!notes.contains("confounded"), "{notes}");
     }
@@ -723,23 +691,29 @@ fn probe_force_quarter_geometry_gradient_fitted() {
         "241",
         "11",
         &["u", "v", "w"],
-        3.0,
+        Within::Sigma(3.0),
         Some(0.02),
     );
     assert!(notes.contains("A-B-A"), "{notes}");
 }
 
+/// How close to the truth a coefficient must come: within n·σ, or within a fraction of it.
+enum Within {
+    Sigma(f64),
+    Rel(f64),
+}
+
 /// `program` from the nominal start on machine `machine`, run `seed`, with `--steady-only
-/// --compliance-prior 30`: each tip's coefficients along `axes` within `n_sigma`·σ of the
-/// truth, σ finite and positive (and below `rel_sigma` of the truth when given). Returns the
-/// procedure's notes.
+/// --compliance-prior 30`: each tip's coefficients along `axes` `within` the truth, σ finite
+/// and positive (and below `rel_sigma` of the truth when given). Returns the procedure's
+/// notes.
 fn steady_judged(
     dir: &Path,
     program: &str,
     machine: &str,
     seed: &str,
     axes: &[&str],
-    n_sigma: f64,
+    within: Within,
     rel_sigma: Option<f64>,
 ) -> String {
     measure_from_nominal(dir, program, machine, seed, "q.mcap", true);
@@ -776,7 +750,11 @@ fn steady_judged(
             if let Some(rel) = rel_sigma {
                 assert!(s < rel * tv.abs(), "{at}: σ {s}, truth {tv}");
             }
-            assert!((v - tv).abs() <= n_sigma * s, "{at}: {v} ± {s}, truth {tv}");
+            let close = match within {
+                Within::Sigma(n) => (v - tv).abs() <= n * s,
+                Within::Rel(f) => (v - tv).abs() < f * tv.abs(),
+            };
+            assert!(close, "{at}: {v} ± {s}, truth {tv}");
         }
     }
     r["notes"].to_string()
@@ -800,7 +778,7 @@ fn probe_force_sine_drift_from_the_sensors() {
             "2729",
             seed,
             &["u", "v", "w"],
-            2.0,
+            Within::Sigma(2.0),
             Some(0.1),
         );
         assert!(notes.contains("expansion from their sensors"), "{notes}");

@@ -934,6 +934,14 @@ pub fn run_with(
         }
         per_tip.insert(t, k);
     }
+    // The fitted force's share of a point's row (its force columns come first).
+    let force_of = |dense: &[f64]| -> f64 {
+        dense[..n_force]
+            .iter()
+            .zip(&theta)
+            .map(|(a, t)| a * t)
+            .sum()
+    };
     // Settings' radii per deflection level before and after, and at zero force.
     let mut settings = vec![];
     for (gi, g) in groups.iter().enumerate() {
@@ -944,11 +952,7 @@ pub fn run_with(
         for &i in &g.idx {
             let p = &ds.points[i];
             let y = row(gi, i, &mut dense, &mut r, &mut sparse);
-            let force: f64 = dense[..n_force]
-                .iter()
-                .zip(&theta)
-                .map(|(a, t)| a * t)
-                .sum();
+            let force = force_of(&dense);
             let k = level_of(&lvls[gi], p.ctx.deflection_probe.norm());
             before[k] += y;
             after[k] += y + force;
@@ -1160,11 +1164,7 @@ pub fn run_with(
                 .map(|&i| {
                     let n = dir(gi, i);
                     let y = row(gi, i, &mut dense, &mut r, &mut sparse);
-                    let force: f64 = dense[..n_force]
-                        .iter()
-                        .zip(&theta)
-                        .map(|(a, t)| a * t)
-                        .sum();
+                    let force = force_of(&dense);
                     let e = residual(gi, i, &theta, &mut dense, &mut r, &mut sparse);
                     real_time::Point {
                         theta: n.y.atan2(n.x),

@@ -916,11 +916,12 @@ impl Space {
                 // SPREAD_SIGNIFICANT·s: taken at face value through a max it put a run's σ
                 // above 1.5 s about one run in eight by chance (see `statistical`).
                 let st = stat.max(scan.filter(|s| s.is_finite()).unwrap_or(0.0));
-                let total = (statistical(st, spread).powi(2) + shift.powi(2)).sqrt();
+                let s_part = statistical(st, spread);
+                let total = (s_part.powi(2) + shift.powi(2)).sqrt();
                 let r2 = 1.0 - 1.0 / (sol.cov[(col, col)] * diag[col]).max(1.0);
                 let unseen = self.unseen[block.off + j];
                 let ident = !sol.unidentifiable.contains(&col) && total.is_finite() && !unseen;
-                let moved = ident && shift > statistical(st, spread);
+                let moved = ident && shift > s_part;
                 let note = if unseen {
                     unidentifiable.push(format!("{}: {name}", block.config.id()));
                     Some("not seen by this data (no scan moves it): its value is the smoothness penalty's, carried from the knots beside it; not determined".into())
