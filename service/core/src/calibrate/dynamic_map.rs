@@ -77,7 +77,7 @@ pub const PLACE_TOLERANCE_MM: f64 = 1.0;
 /// start does not correct.
 const ALPHA_TYPICAL_PER_K: f64 = 11.5e-6;
 /// With the start's `scale_thermal`: the share of its coefficients taken as their uncertainty.
-const ALPHA_SHARE: f64 = 0.1;
+pub(crate) const ALPHA_SHARE: f64 = 0.1;
 
 /// The scales' expansion as the σ sees it: each axis's sensor slot, the uncertainty of its
 /// coefficient (1/K) and its zero point (mm).

@@ -14,9 +14,10 @@
 //! θ the angle about the sphere's z axis and C(t) a centre that drifts while the circle's
 //! deflections are scanned: the room warms, the stylus grows along itself by α_t·L·ΔT_stylus
 //! and the scales read α_s,j·(T_s,j − 20 °C)·s_j less (`stylus_thermal` and `scale_thermal`,
-//! their coefficients free, from the bags' `stylus` and `scale_x|y|z` sensors). Where the bags
-//! lack those sensors, or a circle has a scan that does not go round it whole (variant (c)'s
-//! quarter), the drift is C_g + Ċ_c·(t − t_c), free per circle. A free drift per circle
+//! their coefficients free, from the bags' `stylus` and `scale_x|y|z` sensors; the scales' a
+//! prior on a circle scanned in part, below). Where the bags lack those sensors, or a circle
+//! has a scan that does not go round it whole (variant (c)'s quarter), the drift is C_g +
+//! Ċ_c·(t − t_c), free per circle. A free drift per circle
 //! beside the sensors' columns is not harmless: over a whole turn t is a sawtooth in θ whose
 //! harmonics above the static map's (1/h of it at h = 15) are the wave's own (variant b), and
 //! the drift took from the sensors' columns what they explain exactly (on machine 241, with
@@ -50,13 +51,23 @@
 //! alone (J_yx, 9.7·10⁻⁵ there) left k_u −0.37 % at −3σ, and with J_xy fitted −0.03 %. A
 //! circle with A-B-A part-turns fits J_xy, −(n_x·D_y + n_y·D_x)·J_xy (its xz and yz parts have
 //! the form of k_w's over a quarter: fitted per circle they took k_w −160 to −250 %, per
-//! setting k_w fell to 0–20 % within 2σ). Not treated: beside the free drifts the scales'
-//! columns see only what the temperatures curve over a circle (mK), as large as a reading's
-//! noise (2 mK), so their coefficients are diluted toward zero (0.1–1.5 ± 0.5–1.3 ppm/K
-//! against 8.6–11; errors in variables) and their gradient α·(T − 20 °C)·Δd, the force's shape
-//! again, goes into k (−0.3 % at −2.6σ on 241 with only the scales' expansion on). Fitting the
-//! columns to each sensor's straight line over ±5 s removed the dilution (α ± 13 ppm/K) but
-//! left k_u −0.6 % with every simulator effect off on machine 5381, so it was not kept.
+//! setting k_w fell to 0–20 % within 2σ).
+//!
+//! The scales' expansion over a part-turn: the scale j reads α_j·(T_j − 20 °C)·(s_j − o_j)
+//! long (ISO 1), and at the larger deflection the carriage sits D further in, so the reading
+//! changes by α_j·(T_j − 20 °C)·D_j — J's diagonal again, the force's form. Beside the free
+//! drifts the scales' columns see only what the temperatures curve over a circle (mK), as large
+//! as a reading's noise (2 mK), so fitted there their coefficients were diluted toward zero
+//! (0.1–1.5 ± 0.5–1.3 ppm/K against 8.6–11; errors in variables) and the gradient went into k
+//! (−0.3 % at −2.6σ on 241 with only the scales' expansion on); a fit of the columns to each
+//! sensor's straight line over ±5 s removed the dilution but left k_u −0.6 % with every
+//! simulator effect off on machine 5381. So on a circle with a part-turn scan (a free drift)
+//! the scales' term is not fitted: α_j = 0 ± σ_α,j beyond the start's (whose `scale_thermal`
+//! the points already carry), its column n_j·(T_j − 20 °C)·(s_j − o_j) a nuisance like the
+//! compliance below (σ_α²·(Mc)(Mc)ᵀ added to the covariance), with σ_α,j 10 % of the start's
+//! α_j when it corrects the scales (as `dynamic-map` takes it), else 12 ppm/K (as `tips`:
+//! glass-ceramic ≈ 0 to steel 11.5, aluminium's 23 at 2σ). A circle scanned whole keeps the
+//! columns fitted: there the drift is the sensors' and determines them (variant a).
 //!
 //! The right-hand side is the **static error map** of that
 //! circle: what each point extrapolates to at zero deflection, the same for every
@@ -392,19 +403,36 @@ pub fn run_with(
     // temperatures (the tip centre moves along the stylus, the sphere's apparent centre with
     // the scales) — not linear in time over a circle's scans.
     let mut sensors = ds.sensors.clone();
-    let thermal: Vec<crate::effects::Model> = [
+    let built: Vec<(bool, crate::effects::Model)> = [
         EffectConfig::StylusThermal(stylus_thermal::Config::zeros_per_tip(&tips, false)),
         EffectConfig::ScaleThermal(scale_thermal::Config::zeros()),
     ]
     .iter()
-    .filter_map(|c| c.build(&mut sensors).ok().map(|b| b.model))
+    .filter_map(|c| {
+        let scale = matches!(c, EffectConfig::ScaleThermal(_));
+        c.build(&mut sensors).ok().map(|b| (scale, b.model))
+    })
     .collect();
+    // The scales' columns (α_x, α_y, α_z) among the thermal ones.
+    let mut scale_col = None;
+    let mut off = n_force;
+    for (scale, m) in &built {
+        if *scale {
+            scale_col = Some(off);
+        }
+        off += m.n_params();
+    }
+    let thermal: Vec<crate::effects::Model> = built.into_iter().map(|(_, m)| m).collect();
     let n_thermal = n_force + thermal.iter().map(|m| m.n_params()).sum::<usize>();
     // Nuisance: the structure's compliance under the carriage's acceleration, one per machine
     // axis (the sphere stands at one place), unless the start corrects it.
     let compliance_corrected = start.effects.iter().any(|e| e.kind() == "accel_deflection");
     let compliance_prior = opts.compliance_prior_s2.filter(|_| !compliance_corrected);
-    let n_dense = n_thermal + if compliance_prior.is_some() { 3 } else { 0 };
+    let n_compliance = if compliance_prior.is_some() { 3 } else { 0 };
+    // Nuisance: the scales' expansion on the circles with a part-turn scan, α_j = 0 ± σ_α,j
+    // beyond the start's (module doc): three columns after the compliance's.
+    let scale_prior_col = scale_col.map(|_| n_thermal + n_compliance);
+    let n_dense = n_thermal + n_compliance + if scale_col.is_some() { 3 } else { 0 };
     let tip_col = |t: u32| 3 + 3 * tips.iter().position(|x| *x == t).expect("listed tip");
     // Per setting: its own sphere fit (the point of linearisation).
     // Where the points cover too little of the sphere to fit it (approaches at a few
@@ -548,6 +576,10 @@ pub fn run_with(
             levels.len() >= 2 && partial_scans[c].len() > levels.len()
         })
         .collect();
+    // The circles whose drift is free (a part-turn scan): their scales' columns are the prior's.
+    let scale_prior: Vec<bool> = (0..n_circles)
+        .map(|c| free_drift[c] && !position_only[c])
+        .collect();
     let n_cols = n_dense + (DRIFT + per_circle) * n_circles;
     // Each position's mean distance (approaches): its rows are taken about it. Its static
     // term absorbs it either way, but a distance of millimetres in the rows is lost to
@@ -640,7 +672,7 @@ pub fn run_with(
             m.regressors(&p.ctx, &mut r[off..off + k]);
             off += k;
         }
-        for j in 0..n_dense - n_thermal {
+        for j in 0..n_compliance {
             let mut a = Vec3::zeros();
             a[j] = p.ctx.est_acc[j];
             r[n_thermal + j] = a;
@@ -653,6 +685,17 @@ pub fn run_with(
             };
         }
         let ci = circle_of[i];
+        if let (Some(sc), Some(sp)) = (scale_col, scale_prior_col) {
+            // On a circle with a part-turn scan the scales' columns are their prior's (not
+            // fitted); elsewhere they are fitted.
+            for j in 0..3 {
+                dense[sp + j] = if scale_prior[ci] {
+                    std::mem::take(&mut dense[sc + j])
+                } else {
+                    0.0
+                };
+            }
+        }
         let dt = (p.ctx.t_ns as f64 * 1e-9 - t_circle[ci]) / 100.0;
         let c0 = DRIFT * ci;
         sparse.clear();
@@ -721,7 +764,12 @@ pub fn run_with(
     // shape — n_y·ΔT·y over a quarter against sin²θ — and k_v is −3σ to −4σ.)
     let mut nuisance: Vec<(usize, f64)> = vec![];
     if let Some(sc) = compliance_prior {
-        nuisance.extend((n_thermal..n_dense).map(|c| (c, sc)));
+        nuisance.extend((n_thermal..n_thermal + n_compliance).map(|c| (c, sc)));
+    }
+    // (2) The scales' expansion on the circles with a part-turn scan (module doc).
+    let scale_sigma = scale_alpha_sigma(start);
+    if let Some(sp) = scale_prior_col {
+        nuisance.extend((0..3).map(|j| (sp + j, scale_sigma[j])));
     }
     // The machine-wide k has no rows (every tip is listed); a tip's axis the measurement
     // barely sees (no deflection along it) is not determined.
@@ -1292,6 +1340,32 @@ pub fn run_with(
     if let (Some(text), true) = (&compliance_text, real_time.is_empty()) {
         notes.push(text.clone());
     }
+    // The scales' expansion as a nuisance on the part-turn circles: the largest shift it could
+    // give a force coefficient.
+    let n_scale_prior = scale_prior.iter().filter(|&&p| p).count();
+    if let (Some(sp), true) = (scale_prior_col, n_scale_prior > 0) {
+        let worst = nuisance
+            .iter()
+            .zip(&shifts)
+            .filter(|((c, _), _)| (sp..sp + 3).contains(c))
+            .flat_map(|(_, (su, d))| (0..n_force).map(move |c| (su * d[c]).abs()))
+            .fold(0.0, f64::max);
+        let source = if start.effects.iter().any(|e| e.kind() == "scale_thermal") {
+            "10 % of the start's `scale_thermal` beyond it"
+        } else {
+            "the start corrects none: glass-ceramic to steel"
+        };
+        notes.push(format!(
+            "{n_scale_prior} circle(s) with a part-turn scan: the scales' expansion there is not \
+             fitted (beside their free drift its columns see only the temperatures' curvature) \
+             but taken as α = 0 ± ({:.1}, {:.1}, {:.1}) ppm/K ({source}); its change over the \
+             deflection's travel, α·(T − 20 °C)·Δd, has the force's form and is in the \
+             coefficients' σ, up to {worst:.6} of one",
+            scale_sigma[0] * 1e6,
+            scale_sigma[1] * 1e6,
+            scale_sigma[2] * 1e6
+        ));
+    }
     if groups.iter().any(|g| g.head != [0.0, 0.0]) {
         notes.push(
             "a tip measured at several head angles gets one coefficient triple in its probe \
@@ -1351,6 +1425,23 @@ pub fn run_with(
         undetermined,
         notes,
     })
+}
+
+/// The σ of the scales' expansion coefficients beyond what the start corrects, per axis (1/K):
+/// 10 % of the start's `scale_thermal` coefficients (as `dynamic-map` takes them), else 12 ppm/K
+/// about zero (as `tips` takes them: glass-ceramic to steel, aluminium at 2σ).
+fn scale_alpha_sigma(start: &Calibration) -> [f64; 3] {
+    start
+        .effects
+        .iter()
+        .find_map(|e| match e {
+            EffectConfig::ScaleThermal(c) => Some(
+                c.alpha_per_k
+                    .map(|a| super::dynamic_map::ALPHA_SHARE * a.abs()),
+            ),
+            _ => None,
+        })
+        .unwrap_or([super::tips::SCALE_ALPHA_PRIOR_PER_K; 3])
 }
 
 /// Solves `ne` with every column that carries no information (all zero: a position's unused

@@ -72,7 +72,7 @@ const MIN_TEMP_RANGE_K: f64 = 0.02;
 
 /// The scales' expansion coefficient assumed when the starting calibration states none, per
 /// K: 0 ± 12 ppm/K covers glass-ceramic (≈ 0), steel (11.5) and, at 2σ, aluminium (23).
-const SCALE_ALPHA_PRIOR_PER_K: f64 = 12e-6;
+pub(crate) const SCALE_ALPHA_PRIOR_PER_K: f64 = 12e-6;
 
 /// One setting: a tip at one head angle, measuring the sphere.
 #[derive(Debug, Clone, Serialize)]
