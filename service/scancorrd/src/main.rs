@@ -28,11 +28,19 @@ struct Args {
     log_format: String,
 }
 
-/// zenoh's runtimes unless `ZENOH_RUNTIME` says otherwise: four transmit workers. A link
-/// whose subscriber stopped reading holds its queue lock while a publication waits for room,
-/// and zenoh's transmit task for that link then blocks its worker; with one worker (zenoh's
-/// default) every other link would wait too.
-const ZENOH_RUNTIME_DEFAULT: &str = "(tx: (worker_threads: 4))";
+/// zenoh's runtimes unless `ZENOH_RUNTIME` says otherwise (an operator's own setting wins):
+/// - four transmit workers. A link whose subscriber stopped reading holds its queue lock while
+///   a publication waits for room, and zenoh's transmit task for that link then blocks its
+///   worker; with one worker (zenoh's default) every other link would wait too.
+/// - the acceptor's runtime handed over to the receiving one. An accepted link's socket is
+///   registered with the reactor of the runtime that accepted it, so with zenoh's default
+///   every incoming batch woke the acceptor's thread, which then woke a receiving worker to
+///   read it: two task switches where one does. Paired runs of `scancorr bench fleet
+///   --machines 1000 --seconds 5` (5 pairs): the service's task switches 0.76x (0.74–0.85),
+///   its CPU per point 0.99x (0.89–1.04: no gain beyond the noise). The cost: a receiving
+///   worker held up now holds up the links' reactor too; the service's callbacks never wait
+///   for a link (the one wait, a queryable's bounded channel, is for the control task).
+const ZENOH_RUNTIME_DEFAULT: &str = "(tx: (worker_threads: 4), acc: (handover: rx))";
 
 fn main() {
     // Read once by zenoh at its first use, so set before any thread or runtime exists.
