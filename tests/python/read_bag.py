@@ -101,6 +101,17 @@ def column_samples(columns, sample_desc, where, problems):
     ]
     cols = {name: list(getattr(columns, name)) for name in names}
     n = len(cols["seq"])
+
+    def optional(name):
+        # A proto3 `optional` field of the sample (scancorr.v1.5's probing force): its
+        # column is empty when no sample of the batch has it.
+        f = sample_fields.get(name)
+        oneof = f.containing_oneof if f is not None else None
+        return oneof is not None and oneof.name.startswith("_")
+
+    for name in [k for k, col in cols.items() if not col and n and optional(k)]:
+        del cols[name]
+        names.remove(name)
     for name, col in cols.items():
         if len(col) != n:
             problems.add(f"{where}: column {name} holds {len(col)} values for {n} samples")

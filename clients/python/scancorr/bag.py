@@ -189,6 +189,11 @@ def _sample_dtype(desc: Any) -> tuple:
     for f in desc.fields:
         if f.name == "machine_id" or getattr(f, "is_repeated", False):
             continue
+        # An `optional` scalar (scancorr.v1.5's probing force, `force_n`) is not read here:
+        # absent in most samples, it would read as 0 (not yet a column of these arrays).
+        oneof = getattr(f, "containing_oneof", None)
+        if oneof is not None and oneof.name.startswith("_"):
+            continue
         if f.type == _STRING:
             names.append(f.name)
             formats.append(object)

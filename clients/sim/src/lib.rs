@@ -54,7 +54,13 @@ pub const LIBRARY_EFFECTS: [&str; 6] = [
 /// `deflection_quadratic` is the compliance's change quadratic in X
 /// ([`TrueMachine::compliance_x2`]): the library's `accel_deflection` describes it (position
 /// order 2, the ξx² monomial), so when it is on the true calibration carries it.
-pub const EXTRA_EFFECTS: [&str; 7] = [
+///
+/// `force_probe` makes the probe a force probe ([`machine::ForceProbe`]): the stylus bends with
+/// the force F = F0 + c·|d| (its preload F0 scaled by the factor), and the probe publishes the
+/// force (wire v1.5). The library describes the bending per mm of deflection only, so the
+/// preload's share (a constant bending along the probing direction) is not in the true
+/// calibration.
+pub const EXTRA_EFFECTS: [&str; 8] = [
     "cyclic_error",
     "backlash",
     "latching",
@@ -62,6 +68,7 @@ pub const EXTRA_EFFECTS: [&str; 7] = [
     "rigid_body",
     "squareness",
     "deflection_quadratic",
+    "force_probe",
 ];
 
 /// Faults for the judgement stage.
@@ -257,7 +264,18 @@ pub fn procedure_params(m: &TrueMachine) -> BTreeMap<String, f64> {
         p.insert(format!("{t}.alpha_per_k"), s.alpha_per_k);
         for (a, k) in ["u", "v", "w"].iter().zip(m.probe_k) {
             p.insert(format!("{t}.probe_k_{a}_mm_per_mm"), k * s.bend_scale);
+            if let Some(fp) = &m.force_probe {
+                // A force probe's stylus bends per newton.
+                p.insert(
+                    format!("{t}.probe_kf_{a}_mm_per_n"),
+                    k * s.bend_scale / fp.rate_n_per_mm,
+                );
+            }
         }
+    }
+    if let Some(fp) = &m.force_probe {
+        p.insert("force_probe.preload_n".into(), fp.preload_n);
+        p.insert("force_probe.rate_n_per_mm".into(), fp.rate_n_per_mm);
     }
     // The scales' expansion, as `calibrate scales` prints it.
     for (a, alpha) in ["x", "y", "z"].iter().zip(m.scale_alpha) {
@@ -348,6 +366,10 @@ fn scaled_machine(seed: u64, f: &BTreeMap<String, f64>) -> TrueMachine {
     m.mount_compliance_s2
         .iter_mut()
         .for_each(|c| *c *= k("accel_deflection"));
+    let fp = k("force_probe");
+    if fp != 0.0 {
+        m.force_probe = Some(machine::ForceProbe::from_seed(seed, fp));
+    }
     let q = k("deflection_quadratic");
     if q != 0.0 {
         m.compliance_x2 = m.quadratic_compliance().map(|r| r.map(|c| c * q));
@@ -757,6 +779,8 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
     let mut t_range: BTreeMap<String, [f64; 2]> = BTreeMap::new();
 
     let mut noise = Rng::new(o.seed, "noise");
+    // The force probe's own noise (a stream of its own: no other draw moves).
+    let mut force_noise = Rng::new(o.seed, "force_noise");
     let nz = m.noise;
     let mut st = State::default();
     // Start at rest at the first command.
@@ -848,25 +872,49 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             }
             _ => V3::zeros(),
         };
-        // A thin wall gives under the probing force (`wall`).
-        let d_total = match seg.feature {
-            Some(fid) => wall::yielded(
-                &plan.features[fid as usize - 1],
-                &tip_free,
-                d_total,
-                &rot,
-                m.probe_k.map(|k| k * stylus.bend_scale),
-            ),
-            None => d_total,
+        let feature = seg.feature.map(|fid| &plan.features[fid as usize - 1]);
+        let bending = m.probe_k.map(|k| k * stylus.bend_scale);
+        // The probe's deflection (before its noise) and, for a force probe, its force.
+        let (d_read, force) = match &m.force_probe {
+            None => {
+                // A thin wall gives under the probing force (`wall`).
+                let d_total = match feature {
+                    Some(f) => wall::yielded(f, &tip_free, d_total, &rot, bending),
+                    None => d_total,
+                };
+                let mut d_probe = rot.transpose() * d_total;
+                if lobing {
+                    d_probe = m.lobing.apply(&d_probe);
+                }
+                let d = V3::from_fn(|i, _| d_probe[i] / (1.0 + bending[i]));
+                (d, None)
+            }
+            Some(fp) => {
+                // The stylus bends with the force; a thin wall gives by c_w·F/c.
+                let cw = feature.map_or(0.0, |f| wall::compliance(f, &tip_free));
+                let len = d_total.norm();
+                let (d, f) = fp.solve(
+                    |f| {
+                        let give = if len > 0.0 {
+                            (1.0 - cw * f / fp.rate_n_per_mm / len).max(0.0)
+                        } else {
+                            0.0
+                        };
+                        let d_probe = rot.transpose() * d_total * give;
+                        if lobing {
+                            m.lobing.apply(&d_probe)
+                        } else {
+                            d_probe
+                        }
+                    },
+                    bending,
+                );
+                (d, Some(f + fp.noise_n * force_noise.normal()))
+            }
         };
-        let mut d_probe = rot.transpose() * d_total;
-        if lobing {
-            d_probe = m.lobing.apply(&d_probe);
-        }
         let mut defl = V3::zeros();
         for i in 0..3 {
-            let dm = d_probe[i] / (1.0 + m.probe_k[i] * stylus.bend_scale)
-                + nz.probe_sigma_mm * noise.normal();
+            let dm = d_read[i] + nz.probe_sigma_mm * noise.normal();
             defl[i] = quantise(dm, nz.probe_resolution_mm);
         }
         // The counters latch the carriage where it is τ_i after the time stamp.
@@ -926,6 +974,7 @@ pub fn run(o: &Options, mut sink: impl FnMut(Sample)) -> Result<RunResult, SimEr
             tip_id: seg.tip,
             head_a1_deg: seg.a1_deg,
             head_a2_deg: seg.a2_deg,
+            force_n: force,
         }));
         counts[0] += 1;
         counts[1] += 1;

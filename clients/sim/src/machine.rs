@@ -230,6 +230,77 @@ pub struct TrueMachine {
     /// `rigid_body` is switched on).
     #[serde(default)]
     pub rigid_body: RigidBody,
+    /// A force probe reporting its probing force (wire v1.5; `None` unless `force_probe` is
+    /// switched on, `sim --with force_probe`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub force_probe: Option<ForceProbe>,
+}
+
+/// A force probe (or an active probe in constant-force mode): it reports the probing force
+/// itself, and the force is not proportional to the deflection. Its springs are preloaded,
+///
+/// F = F0 + c·|d|  (F0 the preload, c the spring rate, d the probe's deflection),
+///
+/// and the stylus, a cantilever, bends with the force, not with the deflection: by
+/// b = K_F·F·û (K_F = diag(k_i/c) mm per N, k_i the stylus's bending per mm of deflection of
+/// a probe without preload, û the direction of the interference in probe axes). A thin wall
+/// gives by c_w(s)·F/c (the `wall` module's compliance per mm of deflection at the spring
+/// rate). With F0 = 0 this is the deflection-only probe of every other machine. Not in
+/// contact, the probe reports no force. The reported force carries its own noise.
+///
+/// Source idea: Renishaw's calibration of a coordinate positioning apparatus — the variants
+/// with a measured probing force (a force probe, or a constant-force probe), where each point
+/// is extrapolated to zero force in the force itself.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ForceProbe {
+    /// Preload F0, N: the force at zero deflection.
+    pub preload_n: f64,
+    /// Spring rate c, N per mm of deflection.
+    pub rate_n_per_mm: f64,
+    /// Noise of the reported force (1σ), N.
+    pub noise_n: f64,
+}
+
+impl ForceProbe {
+    /// The force probe of machine `seed`, its preload scaled by `scale` (the effect factor):
+    /// a preload about 0.2 N, a spring rate about 1 N/mm, 1 mN of noise.
+    pub fn from_seed(seed: u64, scale: f64) -> ForceProbe {
+        let mut r = Rng::new(seed, "force_probe");
+        ForceProbe {
+            preload_n: jitter(&mut r, 0.2, 0.3) * scale,
+            rate_n_per_mm: jitter(&mut r, 1.0, 0.2),
+            noise_n: 1.0e-3,
+        }
+    }
+
+    /// The probe's deflection (probe axes, mm) and its force (N) for the interference
+    /// `interference(F)` (probe axes, mm; the interference may depend on the force, as a thin
+    /// wall gives under it), with `k` the stylus's bending per mm of deflection per probe
+    /// axis: d = δ − K_F·F·û with F = F0 + c·|d|, solved by iteration (the bending is a
+    /// percent of the deflection, so each step gains two digits). An interference the stylus
+    /// takes alone (its bending under a force below the preload) leaves the deflection 0.
+    pub fn solve(&self, interference: impl Fn(f64) -> V3, k: [f64; 3]) -> (V3, f64) {
+        let c = self.rate_n_per_mm;
+        let kf = V3::new(k[0] / c, k[1] / c, k[2] / c);
+        let mut f = self.preload_n;
+        let mut d = V3::zeros();
+        for _ in 0..8 {
+            let delta = interference(f);
+            let len = delta.norm();
+            if len == 0.0 {
+                return (V3::zeros(), 0.0);
+            }
+            let u = delta / len;
+            d = delta - kf.component_mul(&u) * f;
+            if d.dot(&u) <= 0.0 {
+                // The stylus bends by the whole interference: F = δ/(K_F along û) < F0.
+                let along = kf.component_mul(&u).dot(&u);
+                return (V3::zeros(), (len / along).min(self.preload_n));
+            }
+            f = self.preload_n + c * d.norm();
+        }
+        (d, f)
+    }
 }
 
 fn is_zero_matrix(m: &[[f64; 3]; 3]) -> bool {
@@ -640,6 +711,7 @@ impl TrueMachine {
             latching: Latching::from_seed(seed),
             lobing: ProbeLobing::from_seed(seed),
             rigid_body: RigidBody::from_seed(seed),
+            force_probe: None,
         }
     }
 

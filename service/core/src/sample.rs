@@ -83,6 +83,9 @@ pub struct ProbeSample {
     pub head_a1_deg: f64,
     /// Head tilt angle A2, degrees.
     pub head_a2_deg: f64,
+    /// The probing force the probe reports, N (a force probe or an active probe in
+    /// constant-force mode, wire v1.5); `None` without a force signal.
+    pub force_n: Option<f64>,
 }
 
 /// One temperature reading.
@@ -146,6 +149,7 @@ impl Sample {
                 c.deflection.iter().all(|v| v.is_finite())
                     && c.head_a1_deg.is_finite()
                     && c.head_a2_deg.is_finite()
+                    && c.force_n.is_none_or(f64::is_finite)
             }
             Sample::Temperature(c) => c.celsius.is_finite(),
         }
@@ -282,6 +286,9 @@ pub struct PointContext {
     pub deflection_probe: Vec3,
     /// Stylus deflection, machine axes, mm.
     pub deflection: Vec3,
+    /// The probing force the probe reports, N, interpolated to this time like the
+    /// deflection; `None` without a force signal.
+    pub force_n: Option<f64>,
     /// Rotation machine_from_probe of the articulating head.
     pub machine_from_probe: Matrix3<f64>,
     /// Nominal shank part of the tip offset (l1), machine axes, mm.
@@ -327,6 +334,7 @@ impl PointContext {
             rot_axis: Vec3::zeros(),
             deflection_probe: Vec3::zeros(),
             deflection: Vec3::zeros(),
+            force_n: None,
             machine_from_probe: Matrix3::identity(),
             tip_shank: Vec3::new(0.0, 0.0, -50.0),
             tip_bent: Vec3::zeros(),

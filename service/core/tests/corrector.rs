@@ -52,6 +52,7 @@ fn ring_streams(n: usize, ring_r: f64, tip_r: f64, defl: f64) -> [Vec<Sample>; 4
             tip_id: 1,
             head_a1_deg: 0.0,
             head_a2_deg: 0.0,
+            force_n: None,
         }));
         if k % 100 == 0 {
             tp.push(Sample::Temperature(TemperatureSample {
@@ -713,6 +714,7 @@ fn an_effect_without_its_signal_is_named_inactive() {
             tip_id: 1,
             head_a1_deg: 0.0,
             head_a2_deg: 0.0,
+            force_n: None,
         }));
     }
     let mut corr = Corrector::new(&cal).unwrap();

@@ -28,6 +28,7 @@ fn streams(n: u64) -> [Vec<Sample>; 3] {
             tip_id: 1,
             head_a1_deg: 0.0,
             head_a2_deg: 0.0,
+            force_n: None,
         }));
     }
     [cmd, sc, pr]

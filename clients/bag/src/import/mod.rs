@@ -576,6 +576,7 @@ fn sample(kind: &GroupKind, machine: &str, seq: u64, t_ns: i64, v: &[f64]) -> Sa
             tip_id: id(v[3]),
             head_a1_deg: v[4],
             head_a2_deg: v[5],
+            force_n: None,
         }),
         GroupKind::Temperature(sensor) => Sample::Temperature(TemperatureSample {
             machine_id,

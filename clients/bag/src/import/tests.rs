@@ -516,6 +516,7 @@ fn write_bag(path: &std::path::Path) -> Vec<Sample> {
             tip_id: 3,
             head_a1_deg: 90.0,
             head_a2_deg: 7.5,
+            force_n: None,
         };
         probe.push(p.clone());
         all.push(Sample::Probe(p));

@@ -82,7 +82,7 @@ fn decode(msg: &BagMessage, machine: &str, out: &mut Vec<Sample>) -> Result<u64,
     let start = out.len();
     // The columns of a packed batch (v1.3) as samples, each field its column's value.
     macro_rules! unpack {
-        ($batch:expr, $variant:ident, $ty:ident, [$($f:ident),*]) => {{
+        ($batch:expr, $variant:ident, $ty:ident, [$($f:ident),*] $(, optional $opt:ident)*) => {{
             let b = $batch;
             if b.columns.is_some() && !b.samples.is_empty() {
                 return Err(format!(
@@ -96,11 +96,16 @@ fn decode(msg: &BagMessage, machine: &str, out: &mut Vec<Sample>) -> Result<u64,
                 if [$(c.$f.len()),*].iter().any(|&l| l != n) {
                     return Err(malformed());
                 }
+                // Optional columns (v1.5's force): empty, or one value per sample.
+                $(if !c.$opt.is_empty() && c.$opt.len() != n {
+                    return Err(malformed());
+                })*
                 for i in 0..n {
                     out.push(Sample::$variant($ty {
                         machine_id: c.machine_id.clone(),
                         seq: c.seq[i],
-                        $($f: Clone::clone(&c.$f[i])),*
+                        $($f: Clone::clone(&c.$f[i]),)*
+                        $($opt: c.$opt.get(i).copied(),)*
                     }));
                 }
             }
@@ -118,7 +123,8 @@ fn decode(msg: &BagMessage, machine: &str, out: &mut Vec<Sample>) -> Result<u64,
             b,
             Probe,
             ProbeSample,
-            [t_ns, u, v, w, tip_id, head_a1_deg, head_a2_deg]
+            [t_ns, u, v, w, tip_id, head_a1_deg, head_a2_deg],
+            optional force_n
         ),
         RawBatch::Temperature(b) => {
             unpack!(b, Temperature, TemperatureSample, [t_ns, sensor, celsius])
@@ -282,6 +288,12 @@ pub fn export_wide(
                 }
             }
             match s {
+                Sample::Probe(p) if p.force_n.is_some() => {
+                    return Err(WideError::Unrepresentable(format!(
+                        "{}: a probing force (force_n, wire v1.5), which a wide table has no column for",
+                        what()
+                    )));
+                }
                 Sample::Temperature(t) if !sensors.contains(&t.sensor) => {
                     names::check("sensor name", &t.sensor)
                         .map_err(|e| WideError::Unrepresentable(format!("{}: {e}", what())))?;

@@ -159,7 +159,7 @@ class ScaleBatch(_message.Message):
     def __init__(self, samples: _Optional[_Iterable[_Union[ScaleSample, _Mapping]]] = ..., stream: _Optional[_Union[StreamKind, str]] = ..., columns: _Optional[_Union[ScaleColumns, _Mapping]] = ...) -> None: ...
 
 class ProbeSample(_message.Message):
-    __slots__ = ("machine_id", "seq", "t_ns", "u", "v", "w", "tip_id", "head_a1_deg", "head_a2_deg")
+    __slots__ = ("machine_id", "seq", "t_ns", "u", "v", "w", "tip_id", "head_a1_deg", "head_a2_deg", "force_n")
     MACHINE_ID_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     T_NS_FIELD_NUMBER: _ClassVar[int]
@@ -169,6 +169,7 @@ class ProbeSample(_message.Message):
     TIP_ID_FIELD_NUMBER: _ClassVar[int]
     HEAD_A1_DEG_FIELD_NUMBER: _ClassVar[int]
     HEAD_A2_DEG_FIELD_NUMBER: _ClassVar[int]
+    FORCE_N_FIELD_NUMBER: _ClassVar[int]
     machine_id: str
     seq: int
     t_ns: int
@@ -178,10 +179,11 @@ class ProbeSample(_message.Message):
     tip_id: int
     head_a1_deg: float
     head_a2_deg: float
-    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[int] = ..., t_ns: _Optional[int] = ..., u: _Optional[float] = ..., v: _Optional[float] = ..., w: _Optional[float] = ..., tip_id: _Optional[int] = ..., head_a1_deg: _Optional[float] = ..., head_a2_deg: _Optional[float] = ...) -> None: ...
+    force_n: float
+    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[int] = ..., t_ns: _Optional[int] = ..., u: _Optional[float] = ..., v: _Optional[float] = ..., w: _Optional[float] = ..., tip_id: _Optional[int] = ..., head_a1_deg: _Optional[float] = ..., head_a2_deg: _Optional[float] = ..., force_n: _Optional[float] = ...) -> None: ...
 
 class ProbeColumns(_message.Message):
-    __slots__ = ("machine_id", "seq", "t_ns", "u", "v", "w", "tip_id", "head_a1_deg", "head_a2_deg")
+    __slots__ = ("machine_id", "seq", "t_ns", "u", "v", "w", "tip_id", "head_a1_deg", "head_a2_deg", "force_n")
     MACHINE_ID_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     T_NS_FIELD_NUMBER: _ClassVar[int]
@@ -191,6 +193,7 @@ class ProbeColumns(_message.Message):
     TIP_ID_FIELD_NUMBER: _ClassVar[int]
     HEAD_A1_DEG_FIELD_NUMBER: _ClassVar[int]
     HEAD_A2_DEG_FIELD_NUMBER: _ClassVar[int]
+    FORCE_N_FIELD_NUMBER: _ClassVar[int]
     machine_id: str
     seq: _containers.RepeatedScalarFieldContainer[int]
     t_ns: _containers.RepeatedScalarFieldContainer[int]
@@ -200,7 +203,8 @@ class ProbeColumns(_message.Message):
     tip_id: _containers.RepeatedScalarFieldContainer[int]
     head_a1_deg: _containers.RepeatedScalarFieldContainer[float]
     head_a2_deg: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[_Iterable[int]] = ..., t_ns: _Optional[_Iterable[int]] = ..., u: _Optional[_Iterable[float]] = ..., v: _Optional[_Iterable[float]] = ..., w: _Optional[_Iterable[float]] = ..., tip_id: _Optional[_Iterable[int]] = ..., head_a1_deg: _Optional[_Iterable[float]] = ..., head_a2_deg: _Optional[_Iterable[float]] = ...) -> None: ...
+    force_n: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, machine_id: _Optional[str] = ..., seq: _Optional[_Iterable[int]] = ..., t_ns: _Optional[_Iterable[int]] = ..., u: _Optional[_Iterable[float]] = ..., v: _Optional[_Iterable[float]] = ..., w: _Optional[_Iterable[float]] = ..., tip_id: _Optional[_Iterable[int]] = ..., head_a1_deg: _Optional[_Iterable[float]] = ..., head_a2_deg: _Optional[_Iterable[float]] = ..., force_n: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ProbeBatch(_message.Message):
     __slots__ = ("samples", "stream", "columns")

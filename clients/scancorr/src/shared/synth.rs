@@ -143,6 +143,7 @@ pub fn ring_scan_with(n: usize, setup: &RingSetup) -> Vec<Sample> {
             tip_id: setup.tip_id,
             head_a1_deg: 0.0,
             head_a2_deg: 0.0,
+            force_n: None,
         }));
         if k % 100 == 0 {
             for s in &setup.sensors {

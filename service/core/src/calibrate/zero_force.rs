@@ -42,6 +42,28 @@
 //! Source idea: Renishaw's calibration of a coordinate positioning apparatus — the part
 //! itself scanned at two forces, each point extrapolated to zero force; where the error is not
 //! linear in the force, a look-up table or polynomial in the force.
+//!
+//! ## The force: a force signal, or the deflection ([`Force`])
+//!
+//! A deflection-only probe says nothing of its force, and the force is taken as its
+//! deflection |d| (a spring without preload: F = c·|d|, so F = 0 at |d| = 0). A force probe,
+//! or an active probe in constant-force mode, reports the force itself (wire v1.5, `force_n`,
+//! N), and its force is not proportional to the deflection: preloaded springs give
+//!
+//! F = F0 + c·|d|,
+//!
+//! and the stylus bends with the force (b = K·F along the probing direction) while the part
+//! gives with it. The error of a point is then linear in F, not in |d|: the polynomial above
+//! is taken in the reported F, and y(F = 0) is the point at zero force. Taken in |d| instead,
+//! the polynomial lands at |d| = 0, where the force is still F0: the result keeps the error
+//! at the preload, K·F0 (plus the part's give under F0), on every point. Where every point of
+//! a set carries a force, the force is the signal ([`Force::Signal`]); otherwise the
+//! deflection ([`Force::Deflection`], also on request, to compare). The forces are reported in
+//! their unit: `forces_n` (N) from the signal, `forces_mm` (mm of deflection) from |d|.
+//!
+//! Source idea: Renishaw's calibration of a coordinate positioning apparatus — the variants
+//! with a measured probing force (a force probe, a constant-force probe): the extrapolation
+//! to zero force in the measured force.
 
 use crate::lab::dataset::{Dataset, Phase};
 use nalgebra::Vector3;
@@ -146,15 +168,36 @@ pub const QUADRATIC_CHI2: f64 = 1.5;
 pub const ALIKE_FRACTION: f64 = 0.2;
 
 /// One point of a pass: the corrected surface point, its unit normal (out of the material)
-/// and the probing force there (the probe's deflection |d|, mm).
+/// and the probing force there (the force signal, N, or the probe's deflection |d|, mm: see
+/// [`Force`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PassPoint {
     /// Surface point, mm.
     pub p: Vector3<f64>,
     /// Unit normal.
     pub n: Vector3<f64>,
-    /// Force (deflection), mm.
+    /// Force, N (a force signal), or deflection, mm.
     pub f: f64,
+}
+
+/// What the force of a point is taken from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Force {
+    /// The probe's deflection |d|, mm (F ∝ |d|, no preload).
+    Deflection,
+    /// The force the probe reports, N.
+    Signal,
+}
+
+impl Force {
+    /// The unit of the force's values.
+    pub fn unit(self) -> &'static str {
+        match self {
+            Force::Deflection => "mm of deflection",
+            Force::Signal => "N",
+        }
+    }
 }
 
 /// One point of the part at zero force.
@@ -173,8 +216,15 @@ pub struct ZeroPoint {
 /// Per-point extrapolation of one set of passes.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PerPoint {
-    /// Mean force (deflection) of each pass, lowest first, mm.
+    /// What the force was taken from.
+    pub force: Force,
+    /// Mean deflection of each pass, lowest first, mm (the force taken as the deflection;
+    /// empty with a force signal).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
     pub forces_mm: Vec<f64>,
+    /// Mean force of each pass, lowest first, N (from the force signal; empty otherwise).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub forces_n: Vec<f64>,
     /// The polynomial's degree in the force (1: a line; 2: a quadratic).
     pub degree: usize,
     /// Reduced χ² of the linear fits (K ≥ 3 passes; none with two).
@@ -278,8 +328,18 @@ fn poly_fit(fs: &[f64], ys: &[f64], degree: usize) -> Option<(Vec<f64>, f64, f64
 }
 
 /// Per-point extrapolation to zero force of `passes` (each in scan order, K ≥ 2, any order of
-/// force) with `sigma_mm` the noise of one point (the dataset's floor). Errors name the pass.
+/// force; the force their deflection) with `sigma_mm` the noise of one point (the dataset's
+/// floor). Errors name the pass.
 pub fn per_point(passes: &[Vec<PassPoint>], sigma_mm: f64) -> Result<PerPoint, String> {
+    per_point_in(passes, sigma_mm, Force::Deflection)
+}
+
+/// [`per_point`] with the passes' forces taken from `force` (their values in its unit).
+pub fn per_point_in(
+    passes: &[Vec<PassPoint>],
+    sigma_mm: f64,
+    force: Force,
+) -> Result<PerPoint, String> {
     if passes.len() < 2 {
         return Err(format!(
             "{} pass(es): per-point zero force needs the same path scanned at ≥ 2 forces",
@@ -306,11 +366,12 @@ pub fn per_point(passes: &[Vec<PassPoint>], sigma_mm: f64) -> Result<PerPoint, S
     for w in order.windows(2) {
         if w[1].0 - w[0].0 < ALIKE_FRACTION * w[1].0 {
             return Err(format!(
-                "passes {} and {}: forces {:.3} and {:.3} mm of deflection are alike (need ≥ {:.0} % apart)",
+                "passes {} and {}: forces {:.3} and {:.3} {} are alike (need ≥ {:.0} % apart)",
                 w[0].1 + 1,
                 w[1].1 + 1,
                 w[0].0,
                 w[1].0,
+                force.unit(),
                 ALIKE_FRACTION * 100.0
             ));
         }
@@ -382,8 +443,15 @@ pub fn per_point(passes: &[Vec<PassPoint>], sigma_mm: f64) -> Result<PerPoint, S
             sigma_um: sigma_mm * v00.sqrt() * 1e3,
         });
     }
+    let forces: Vec<f64> = order.iter().map(|o| o.0).collect();
+    let (forces_mm, forces_n) = match force {
+        Force::Deflection => (forces, vec![]),
+        Force::Signal => (vec![], forces),
+    };
     Ok(PerPoint {
-        forces_mm: order.iter().map(|o| o.0).collect(),
+        force,
+        forces_mm,
+        forces_n,
         degree,
         chi2_linear,
         points,
@@ -411,12 +479,21 @@ pub struct PartSet {
 }
 
 /// Groups the steady scan points of `ds` by bag, feature, tip and head angles, each scan
-/// segment a pass (its points in time order, the force |d| of each), and extrapolates every
-/// group with ≥ 2 passes per point to zero force. Groups of one pass are skipped; none with
-/// two is an error naming what to scan.
+/// segment a pass (its points in time order, the force of each: the force signal where every
+/// point of the group has one, else the deflection |d|), and extrapolates every group with
+/// ≥ 2 passes per point to zero force. Groups of one pass are skipped; none with two is an
+/// error naming what to scan.
 pub fn part(ds: &Dataset) -> Result<Vec<PartSet>, String> {
+    part_with(ds, Force::Signal)
+}
+
+/// [`part`] with the force taken from `force`: [`Force::Signal`] where every point of a group
+/// carries one (the deflection for the other groups), [`Force::Deflection`] always.
+pub fn part_with(ds: &Dataset, force: Force) -> Result<Vec<PartSet>, String> {
     type Key = (usize, usize, u32, i64, i64);
-    let mut groups: BTreeMap<Key, BTreeMap<u32, Vec<PassPoint>>> = BTreeMap::new();
+    // Per pass: its points with the deflection as force, and with the signal where there is one.
+    type Pass = (Vec<PassPoint>, Vec<f64>);
+    let mut groups: BTreeMap<Key, BTreeMap<u32, Pass>> = BTreeMap::new();
     for p in &ds.points {
         if p.phase != Phase::Steady || p.normal.norm() < 0.5 {
             continue;
@@ -428,16 +505,15 @@ pub fn part(ds: &Dataset) -> Result<Vec<PartSet>, String> {
             (p.ctx.head_a1_deg * 1e3).round() as i64,
             (p.ctx.head_a2_deg * 1e3).round() as i64,
         );
-        groups
-            .entry(key)
-            .or_default()
-            .entry(p.segment)
-            .or_default()
-            .push(PassPoint {
-                p: p.surface,
-                n: p.normal,
-                f: p.ctx.deflection_probe.norm(),
-            });
+        let pass = groups.entry(key).or_default().entry(p.segment).or_default();
+        pass.0.push(PassPoint {
+            p: p.surface,
+            n: p.normal,
+            f: p.ctx.deflection_probe.norm(),
+        });
+        if let Some(f) = p.ctx.force_n.filter(|f| f.is_finite()) {
+            pass.1.push(f);
+        }
     }
     let sigma = ds.noise_floor_um * 1e-3;
     let mut out = vec![];
@@ -445,8 +521,23 @@ pub fn part(ds: &Dataset) -> Result<Vec<PartSet>, String> {
         if passes.len() < 2 {
             continue;
         }
-        let (segments, pts): (Vec<u32>, Vec<Vec<PassPoint>>) = passes.into_iter().unzip();
-        let result = per_point(&pts, sigma).map_err(|e| {
+        // The signal when every point of the set carries one.
+        let signal = force == Force::Signal && passes.values().all(|(p, f)| f.len() == p.len());
+        let (segments, pts): (Vec<u32>, Vec<Vec<PassPoint>>) = passes
+            .into_iter()
+            .map(|(s, (mut p, f))| {
+                if signal {
+                    p.iter_mut().zip(f).for_each(|(q, f)| q.f = f);
+                }
+                (s, p)
+            })
+            .unzip();
+        let used = if signal {
+            Force::Signal
+        } else {
+            Force::Deflection
+        };
+        let result = per_point_in(&pts, sigma, used).map_err(|e| {
             format!(
                 "bag {} feature {} tip {tip} (segments {segments:?}): {e}",
                 bag + 1,

@@ -808,15 +808,20 @@ impl Corrector {
         if p0.t_ns > t {
             return Err(DropReason::NoProbe);
         }
-        let defl_probe = if p0.t_ns == t {
-            p0.deflection
+        let (defl_probe, force_n) = if p0.t_ns == t {
+            (p0.deflection, p0.force_n)
         } else {
             let p1 = *self.probe_q.get(1).ok_or(DropReason::NoProbe)?;
             if p1.t_ns - p0.t_ns > gap {
                 return Err(DropReason::ProbeGap);
             }
             let w = (t - p0.t_ns) as f64 / (p1.t_ns - p0.t_ns) as f64;
-            p0.deflection + (p1.deflection - p0.deflection) * w
+            // The force between two readings that both carry one; none otherwise.
+            let force = match (p0.force_n, p1.force_n) {
+                (Some(a), Some(b)) => Some(a + (b - a) * w),
+                _ => None,
+            };
+            (p0.deflection + (p1.deflection - p0.deflection) * w, force)
         };
         // Temperatures measured up to t − delay.
         let t_temp = t - self.model.temperature_delay_ns;
@@ -882,6 +887,7 @@ impl Corrector {
             rot_axis,
             deflection_probe: defl_probe,
             deflection: r * defl_probe,
+            force_n,
             machine_from_probe: r,
             tip_shank: pose.shank,
             tip_bent: pose.bent,

@@ -23,6 +23,8 @@ pub struct Batcher {
     command: v1::CommandColumns,
     scale: v1::ScaleColumns,
     probe: v1::ProbeColumns,
+    /// Per pending probe sample, whether it carries a force (v1.5).
+    probe_forced: Vec<bool>,
     temperature: v1::TemperatureColumns,
 }
 
@@ -45,6 +47,7 @@ impl Batcher {
                 machine_id: machine_id.clone(),
                 ..Default::default()
             },
+            probe_forced: vec![],
             temperature: v1::TemperatureColumns {
                 machine_id,
                 ..Default::default()
@@ -93,6 +96,11 @@ impl Batcher {
                 c.tip_id.push(s.tip_id);
                 c.head_a1_deg.push(s.head_a1_deg);
                 c.head_a2_deg.push(s.head_a2_deg);
+                // The force column (v1.5) holds the forces of the samples that carry one.
+                if let Some(f) = s.force_n {
+                    c.force_n.push(f);
+                }
+                self.probe_forced.push(s.force_n.is_some());
                 (StreamId::Probe, c.seq.len())
             }
             Sample::Temperature(s) => {
@@ -137,12 +145,34 @@ impl Batcher {
                 [seq, t_ns, x, y, z, arc_cx, arc_cy, arc_cz, arc_radius, segment_id]
             ),
             StreamId::Scale => take!(self.scale, ScaleBatch, scale_samples, [seq, t_ns, x, y, z]),
-            StreamId::Probe => take!(
-                self.probe,
-                ProbeBatch,
-                probe_samples,
-                [seq, t_ns, u, v, w, tip_id, head_a1_deg, head_a2_deg]
-            ),
+            StreamId::Probe => {
+                let c = &mut self.probe;
+                if c.seq.is_empty() {
+                    return None;
+                }
+                // The force column holds a force for every sample or none (v1.5): a batch
+                // whose samples differ in this is written one message per sample.
+                let mixed = !c.force_n.is_empty() && c.force_n.len() != c.seq.len();
+                let layout = if mixed { Layout::PerSample } else { layout };
+                let forced = &mut self.probe_forced;
+                let bytes = encode_batch(layout, tag, &*c, |c| v1::ProbeBatch {
+                    stream: tag,
+                    samples: probe_samples(c, forced),
+                    columns: None,
+                });
+                let (first, last) = ends(&c.t_ns);
+                c.seq.clear();
+                c.t_ns.clear();
+                c.u.clear();
+                c.v.clear();
+                c.w.clear();
+                c.tip_id.clear();
+                c.head_a1_deg.clear();
+                c.head_a2_deg.clear();
+                c.force_n.clear();
+                forced.clear();
+                (bytes, first, last)
+            }
             StreamId::Temperature => take!(
                 self.temperature,
                 TemperatureBatch,
@@ -217,7 +247,9 @@ fn scale_samples(c: &v1::ScaleColumns) -> Vec<v1::ScaleSample> {
         .collect()
 }
 
-fn probe_samples(c: &v1::ProbeColumns) -> Vec<v1::ProbeSample> {
+/// `forced[i]`: whether sample i has a force (the force column holds those samples' forces).
+fn probe_samples(c: &v1::ProbeColumns, forced: &[bool]) -> Vec<v1::ProbeSample> {
+    let mut forces = c.force_n.iter();
     (0..c.seq.len())
         .map(|i| v1::ProbeSample {
             machine_id: c.machine_id.clone(),
@@ -229,6 +261,11 @@ fn probe_samples(c: &v1::ProbeColumns) -> Vec<v1::ProbeSample> {
             tip_id: c.tip_id[i],
             head_a1_deg: c.head_a1_deg[i],
             head_a2_deg: c.head_a2_deg[i],
+            force_n: if forced.get(i) == Some(&true) {
+                forces.next().copied()
+            } else {
+                None
+            },
         })
         .collect()
 }

@@ -44,6 +44,7 @@ pub fn probe(s: &v1::ProbeSample) -> Sample {
         tip_id: s.tip_id,
         head_a1_deg: s.head_a1_deg,
         head_a2_deg: s.head_a2_deg,
+        force_n: s.force_n,
     })
 }
 
@@ -218,7 +219,7 @@ fn plain_packed(
     let (name, columns) = match stream {
         StreamId::Command => ("CommandBatch", 11),
         StreamId::Scale => ("ScaleBatch", 6),
-        StreamId::Probe => ("ProbeBatch", 9),
+        StreamId::Probe => ("ProbeBatch", 10),
         StreamId::Temperature => return None,
     };
     let (tag, machine, c) = packed_fields(bytes, columns)?;
@@ -298,8 +299,15 @@ fn plain_packed(
             if let Err(e) = column_len(name, n, &counts) {
                 return Some(Err(e));
             }
+            // The force (v1.5): an empty column is no force signal.
+            let forces = doubles(c[10])?;
+            if forces != 0 {
+                if let Err(e) = column_len(name, n, &[("force_n", forces)]) {
+                    return Some(Err(e));
+                }
+            }
             let (mut seq, mut t, mut tip) = (Varints(c[2]), Varints(c[3]), Varints(c[7]));
-            let [u, vv, w, a1, a2] = [4, 5, 6, 8, 9].map(|k| Doubles::new(c[k], n));
+            let [u, vv, w, a1, a2, fz] = [4, 5, 6, 8, 9, 10].map(|k| Doubles::new(c[k], n));
             for i in 0..n {
                 f(
                     machine,
@@ -310,6 +318,7 @@ fn plain_packed(
                         tip_id: tip.next()? as u32,
                         head_a1_deg: a1.at(i),
                         head_a2_deg: a2.at(i),
+                        force_n: (forces != 0).then(|| fz.at(i)),
                     }),
                 );
             }
@@ -603,6 +612,10 @@ fn probe_columns(
             ("head_a2_deg", c.head_a2_deg.len()),
         ],
     )?;
+    // The force (v1.5): an empty column is no force signal.
+    if !c.force_n.is_empty() {
+        column_len("ProbeBatch", n, &[("force_n", c.force_n.len())])?;
+    }
     for i in 0..n {
         f(
             &c.machine_id,
@@ -613,6 +626,7 @@ fn probe_columns(
                 tip_id: c.tip_id[i],
                 head_a1_deg: c.head_a1_deg[i],
                 head_a2_deg: c.head_a2_deg[i],
+                force_n: c.force_n.get(i).copied(),
             }),
         );
     }

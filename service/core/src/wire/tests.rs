@@ -24,6 +24,7 @@ fn samples_round_trip_through_the_wire() {
             tip_id: 2,
             head_a1_deg: 90.0,
             head_a2_deg: 15.0,
+            force_n: None,
         }),
         Sample::Temperature(TemperatureSample {
             seq: 1,
@@ -213,6 +214,8 @@ fn every_stream(n: u64) -> Vec<Sample> {
             tip_id: k as u32 % 3,
             head_a1_deg: 90.0,
             head_a2_deg: -f,
+            // A force probe's force (v1.5), 0 N among them (a force, not none).
+            force_n: Some(0.1 * f - 0.5),
         }));
         v.push(Sample::Temperature(TemperatureSample {
             seq: k,
@@ -431,6 +434,80 @@ fn packed_columns_must_agree_in_length() {
         decode(StreamId::Scale, &both.encode_to_vec()),
         Err(WireError::Malformed { reason, .. }) if reason.contains("both")
     ));
+}
+
+/// The force (v1.5): a force probe's samples carry it on both layouts, a deflection-only
+/// probe's none (the column empty, the field absent); a batch mixing the two is written one
+/// message per sample, nothing lost; a force column of another length is malformed, named.
+#[test]
+fn the_force_column_holds_a_force_for_every_sample_or_none() {
+    let probe = |k: u64, force_n: Option<f64>| {
+        Sample::Probe(ProbeSample {
+            seq: k,
+            t_ns: k as i64 * 1000,
+            deflection: Vec3::new(0.3, 0.0, 0.0),
+            tip_id: 1,
+            head_a1_deg: 0.0,
+            head_a2_deg: 0.0,
+            force_n,
+        })
+    };
+    let cases: [Vec<Sample>; 3] = [
+        (0..4).map(|k| probe(k, None)).collect(),
+        (0..4)
+            .map(|k| probe(k, Some(0.2 + 0.1 * k as f64)))
+            .collect(),
+        (0..4)
+            .map(|k| probe(k, (k % 2 == 1).then_some(0.25)))
+            .collect(),
+    ];
+    for (i, samples) in cases.iter().enumerate() {
+        for layout in [Layout::Packed, Layout::PerSample] {
+            let (stream, bytes) = batches(samples, "m1", layout).swap_remove(0);
+            assert_eq!(stream, StreamId::Probe);
+            let got: Vec<Sample> = decode(stream, &bytes)
+                .unwrap()
+                .samples
+                .into_iter()
+                .map(|(_, s)| s)
+                .collect();
+            assert_eq!(&got, samples, "case {i} {layout:?}");
+            let b = v1::ProbeBatch::decode(&bytes[..]).unwrap();
+            let column = b.columns.as_ref().map_or(0, |c| c.force_n.len());
+            match (i, layout) {
+                (0, Layout::Packed) => assert_eq!(column, 0),
+                (1, Layout::Packed) => assert_eq!(column, 4),
+                // Mixed: one message per sample, whatever the layout asked.
+                _ => assert!(b.columns.is_none() && b.samples.len() == 4),
+            }
+        }
+    }
+    // A force column of another length: the same error as any column, on both readers.
+    let bad = v1::ProbeBatch {
+        stream: v1::StreamKind::Probe as i32,
+        columns: Some(v1::ProbeColumns {
+            machine_id: "m1".into(),
+            seq: vec![1, 2],
+            t_ns: vec![10, 20],
+            u: vec![0.3; 2],
+            v: vec![0.0; 2],
+            w: vec![0.0; 2],
+            tip_id: vec![1; 2],
+            head_a1_deg: vec![0.0; 2],
+            head_a2_deg: vec![0.0; 2],
+            force_n: vec![0.2],
+        }),
+        ..Default::default()
+    }
+    .encode_to_vec();
+    let want = "malformed ProbeBatch: column `force_n` holds 1 values for 2 samples (`seq`)";
+    let e = decode_with(StreamId::Probe, &bad, |_, _| panic!("decoded")).unwrap_err();
+    assert_eq!(e.to_string(), want);
+    // Through prost (an unknown field appended): the same.
+    let mut unknown = bad.clone();
+    unknown.extend([15 << 3, 1]);
+    let e = decode_with(StreamId::Probe, &unknown, |_, _| panic!("decoded")).unwrap_err();
+    assert_eq!(e.to_string(), want);
 }
 
 mod garbled {

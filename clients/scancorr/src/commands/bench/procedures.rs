@@ -7,7 +7,8 @@
 //! with the faces scanned while the carriage oscillates: `calibrate dynamics --bag --bag`),
 //! `dynamics-quadratic` (the rings on a machine whose P changes quadratically along X, `sim
 //! --with deflection_quadratic`; P2's entries judged as fitted, also where BIC leaves them out),
-//! `zero-force-three-forces` (the thin wall at three forces).
+//! `zero-force-three-forces` (the thin wall at three forces), `zero-force-force-probe` (the
+//! thin wall with a force probe, `sim --with force_probe`: each point in the force it reports).
 //! `scales` (a ball bar along X, Y and Z read over the room's drift) judges each scale's
 //! expansion coefficient (the simulator's truth names `scale_i.alpha_per_k`; the machine's
 //! length error g_i has no truth of its own and is not compared).
@@ -58,7 +59,7 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                 continue;
             }
             "zero-force-three-forces" => {
-                let v = zero_force(&dir, "thin-wall-forces", machine, runs, json)?;
+                let v = zero_force(&dir, "thin-wall-forces", &[], machine, runs, json)?;
                 all.insert(proc.clone(), v);
                 continue;
             }
@@ -68,7 +69,21 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
                 continue;
             }
             "zero-force" => {
-                let v = zero_force(&dir, "thin-wall", machine, runs, json)?;
+                let v = zero_force(&dir, "thin-wall", &[], machine, runs, json)?;
+                all.insert(proc.clone(), v);
+                continue;
+            }
+            // The thin wall with a force probe (`sim --with force_probe`: a preload, F = F0 +
+            // c·|d|), each point extrapolated in the force the probe reports.
+            "zero-force-force-probe" => {
+                let v = zero_force(
+                    &dir,
+                    "thin-wall",
+                    &["--with", "force_probe"],
+                    machine,
+                    runs,
+                    json,
+                )?;
                 all.insert(proc.clone(), v);
                 continue;
             }
@@ -116,7 +131,7 @@ pub fn run(procedures: &[String], machine: u64, runs: u64, json: bool) -> Result
 }
 
 /// The procedures this benchmark runs (`--procedure`).
-pub const PROCEDURES: [&str; 17] = [
+pub const PROCEDURES: [&str; 18] = [
     "tips",
     "tips-one-angle",
     "tips-repeat",
@@ -126,6 +141,7 @@ pub const PROCEDURES: [&str; 17] = [
     "probe-force-sine",
     "zero-force",
     "zero-force-three-forces",
+    "zero-force-force-probe",
     "dynamics",
     "dynamics-faces",
     "dynamics-quadratic",
@@ -286,7 +302,7 @@ fn report(
             "worst": worst.iter().map(|(k, f)| serde_json::json!({"name": k, "within_2sigma": f})).collect::<Vec<_>>(),
         });
         if !json {
-            let (what, bound) = if proc == "zero-force" {
+            let (what, bound) = if proc.starts_with("zero-force") {
                 ("series (every zero-force point on the thin wall)", "3σ")
             } else if proc.starts_with("straightness") {
                 ("profiles (every station)", "3σ")
@@ -552,12 +568,13 @@ fn dynamic_map(dir: &Path, machine: u64, runs: u64, json: bool) -> Result<serde_
 /// `zero-force`: per run, the sphere's force coefficients (`probe-force` on the quarter
 /// variant from the nominal start) and the thin-walled part at two forces (`wall_program` =
 /// `thin-wall`; `thin-wall-forces`: at three, the polynomial in the force), the
-/// simulator's other machine errors off; every zero-force point against the true unloaded
-/// wall (about the points' mean: where the part stands along its normal is free), within 2σ
-/// and 3σ of R0's σ.
+/// simulator's other machine errors off, `with` switched on in both measurements; every
+/// zero-force point against the true unloaded wall (about the points' mean: where the part
+/// stands along its normal is free), within 2σ and 3σ of R0's σ.
 fn zero_force(
     dir: &Path,
     wall_program: &str,
+    with: &[&str],
     machine: u64,
     runs: u64,
     json: bool,
@@ -608,6 +625,7 @@ fn zero_force(
             "start.json",
         ]);
         a.extend(OFF);
+        a.extend(with);
         // (The switched-off effects cannot be hidden: the nominal start is the data sheet's.)
         a.extend([
             "--datasheet-out",
@@ -643,6 +661,7 @@ fn zero_force(
         let mut a = vec!["sim", "--program", wall_program, "--machine-seed", &ms];
         a.extend(["--seed", &s2, "--out", "w.mcap", "--truth", "truth.json"]);
         a.extend(OFF);
+        a.extend(with);
         exe(dir, &a)?;
         let t0 = std::time::Instant::now();
         let r: serde_json::Value = serde_json::from_str(&exe(
@@ -692,7 +711,9 @@ fn zero_force(
             eprintln!("zero-force ({wall_program}): run {seed}/{runs} done");
         }
     }
-    let name = if wall_program == "thin-wall" {
+    let name = if !with.is_empty() {
+        format!("zero-force ({wall_program} {})", with.join(" "))
+    } else if wall_program == "thin-wall" {
         "zero-force".to_string()
     } else {
         format!("zero-force ({wall_program})")

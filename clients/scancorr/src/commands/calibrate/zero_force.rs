@@ -1,7 +1,9 @@
 //! `scancorr calibrate zero-force`: a part scanned by the same path at two or more probing
 //! forces, each point extrapolated to zero force (`scancorr_core::calibrate::zero_force::part`)
 //! — the part's own bending (a thin wall gives under the force), which the sphere's force
-//! coefficients cannot know. Writes the zero-force points; reports only (no calibration).
+//! coefficients cannot know. The force is the probe's force signal where it reports one (a
+//! force probe, wire v1.5), else its deflection. Writes the zero-force points; reports only
+//! (no calibration).
 
 use super::procedure::options;
 use crate::shared::bags::load_bags;
@@ -26,10 +28,23 @@ pub struct Args {
     /// Write the zero-force points (`x y z` rows, mm; `#` lines name each set).
     #[arg(long)]
     points_out: Option<PathBuf>,
-    /// Print JSON (`sets`: per feature, tip and head angles the passes' forces, the degree in
-    /// the force, R1 − R0 at the lowest force and R0's σ, µm).
+    /// Print JSON (`sets`: per feature, tip and head angles what the force was taken from,
+    /// the passes' forces (`forces_n`, N, or `forces_mm`, mm of deflection), the degree in the
+    /// force, R1 − R0 at the lowest force and R0's σ, µm).
     #[arg(long)]
     json: bool,
+    /// What the force is taken from: `signal` (the probe's force signal where every point
+    /// of a set has one, else the deflection) or `deflection` (always |d|, as for a probe
+    /// without preload).
+    #[arg(long, value_enum, default_value_t = ForceFrom::Signal)]
+    force_from: ForceFrom,
+}
+
+/// `--force-from`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ForceFrom {
+    Signal,
+    Deflection,
 }
 
 /// Summary of values (µm): mean, RMS about the mean, minimum, maximum.
@@ -53,7 +68,12 @@ pub fn run(a: Args) -> Result<()> {
     for w in &ds.warnings {
         eprintln!("warning: {w}");
     }
-    let sets = zero_force::part(&ds).map_err(|e| anyhow!("calibrate zero-force: {e}"))?;
+    let force = match a.force_from {
+        ForceFrom::Signal => zero_force::Force::Signal,
+        ForceFrom::Deflection => zero_force::Force::Deflection,
+    };
+    let sets =
+        zero_force::part_with(&ds, force).map_err(|e| anyhow!("calibrate zero-force: {e}"))?;
     let mut text = String::new();
     let mut json_sets = vec![];
     for s in &sets {
@@ -100,7 +120,12 @@ pub fn run(a: Args) -> Result<()> {
     )?;
     for (s, v) in sets.iter().zip(&json_sets) {
         let r = &s.result;
-        let f: Vec<String> = r.forces_mm.iter().map(|f| format!("{f:.3}")).collect();
+        let f: Vec<String> = r
+            .forces_mm
+            .iter()
+            .chain(&r.forces_n)
+            .map(|f| format!("{f:.3}"))
+            .collect();
         let e = &v["error_at_f1_um"];
         let g = |k: &str| e[k].as_f64().unwrap_or(0.0);
         let chi2 = r
@@ -108,12 +133,13 @@ pub fn run(a: Args) -> Result<()> {
             .map(|c| format!(", reduced χ² of the lines {c:.2}"))
             .unwrap_or_default();
         outln!(
-            "  {} feature {} tip {} (bag {}): passes at {} mm of deflection; {} points at zero force ({} unpaired), {} in the force{chi2}; R1 − R0 at the lowest force {:+.3} µm mean, {:.3} µm RMS about it ({:+.3} to {:+.3}); σ(R0) {:.3} µm",
+            "  {} feature {} tip {} (bag {}): passes at {} {}; {} points at zero force ({} unpaired), {} in the force{chi2}; R1 − R0 at the lowest force {:+.3} µm mean, {:.3} µm RMS about it ({:+.3} to {:+.3}); σ(R0) {:.3} µm",
             s.artifact,
             s.feature_id,
             s.tip,
             s.bag + 1,
             f.join(", "),
+            r.force.unit(),
             r.points.len(),
             r.unpaired,
             if r.degree == 1 { "linear" } else { "quadratic" },

@@ -52,7 +52,7 @@ pub struct SimCli {
     /// Scale an effect: EFFECT=FACTOR (0 switches it off; repeatable).
     #[arg(long)]
     effect: Vec<String>,
-    /// Switch on physics outside the library: cyclic_error, backlash, latching, probe_lobing, rigid_body, squareness, deflection_quadratic (P quadratic in X) (repeatable).
+    /// Switch on physics outside the library: cyclic_error, backlash, latching, probe_lobing, rigid_body, squareness, deflection_quadratic (P quadratic in X), force_probe (a force probe: preloaded springs, the stylus bending with the force, the force on the wire) (repeatable).
     #[arg(long = "with")]
     with: Vec<String>,
     /// Inject a fault: servo-drift, collision, stall.
