@@ -328,14 +328,9 @@ fn poly_fit(fs: &[f64], ys: &[f64], degree: usize) -> Option<(Vec<f64>, f64, f64
 }
 
 /// Per-point extrapolation to zero force of `passes` (each in scan order, K ≥ 2, any order of
-/// force; the force their deflection) with `sigma_mm` the noise of one point (the dataset's
-/// floor). Errors name the pass.
-pub fn per_point(passes: &[Vec<PassPoint>], sigma_mm: f64) -> Result<PerPoint, String> {
-    per_point_in(passes, sigma_mm, Force::Deflection)
-}
-
-/// [`per_point`] with the passes' forces taken from `force` (their values in its unit).
-pub fn per_point_in(
+/// force; their forces taken from `force`, the values in its unit) with `sigma_mm` the noise
+/// of one point (the dataset's floor). Errors name the pass.
+pub fn per_point(
     passes: &[Vec<PassPoint>],
     sigma_mm: f64,
     force: Force,
@@ -482,14 +477,9 @@ pub struct PartSet {
 /// segment a pass (its points in time order, the force of each: the force signal where every
 /// point of the group has one, else the deflection |d|), and extrapolates every group with
 /// ≥ 2 passes per point to zero force. Groups of one pass are skipped; none with two is an
-/// error naming what to scan.
-pub fn part(ds: &Dataset) -> Result<Vec<PartSet>, String> {
-    part_with(ds, Force::Signal)
-}
-
-/// [`part`] with the force taken from `force`: [`Force::Signal`] where every point of a group
-/// carries one (the deflection for the other groups), [`Force::Deflection`] always.
-pub fn part_with(ds: &Dataset, force: Force) -> Result<Vec<PartSet>, String> {
+/// error naming what to scan. With `force` [`Force::Deflection`] the deflection is taken
+/// everywhere.
+pub fn part(ds: &Dataset, force: Force) -> Result<Vec<PartSet>, String> {
     type Key = (usize, usize, u32, i64, i64);
     // Per pass: its points with the deflection as force, and with the signal where there is one.
     type Pass = (Vec<PassPoint>, Vec<f64>);
@@ -537,7 +527,7 @@ pub fn part_with(ds: &Dataset, force: Force) -> Result<Vec<PartSet>, String> {
         } else {
             Force::Deflection
         };
-        let result = per_point_in(&pts, sigma, used).map_err(|e| {
+        let result = per_point(&pts, sigma, used).map_err(|e| {
             format!(
                 "bag {} feature {} tip {tip} (segments {segments:?}): {e}",
                 bag + 1,
@@ -649,7 +639,7 @@ mod tests {
         // form: every point's line is its own; the two-pass extrapolation lands on the form.
         let form = |x: f64| 1e-3 * (x * 0.7).sin();
         let e = |x: f64, f: f64| form(x) - 0.02 * (x / 20.0) * f;
-        let r = per_point(&passes(&[0.5, 0.1], e, 0.0), 1e-4).unwrap();
+        let r = per_point(&passes(&[0.5, 0.1], e, 0.0), 1e-4, Force::Deflection).unwrap();
         assert_eq!(r.degree, 1);
         assert!((r.forces_mm[0] - 0.1).abs() < 1e-9 && (r.forces_mm[1] - 0.5).abs() < 1e-9);
         assert!(r.unpaired <= 1, "{}", r.unpaired);
@@ -673,13 +663,23 @@ mod tests {
         let form = |x: f64| 1e-3 * (x * 0.3).cos();
         // Linear in the force, with noise: three passes keep the line.
         let lin = |x: f64, f: f64| form(x) - 0.01 * f;
-        let r = per_point(&passes(&[0.1, 0.3, 0.5], lin, 1e-4), 1e-4).unwrap();
+        let r = per_point(
+            &passes(&[0.1, 0.3, 0.5], lin, 1e-4),
+            1e-4,
+            Force::Deflection,
+        )
+        .unwrap();
         assert_eq!(r.degree, 1, "{:?}", r.chi2_linear);
         assert!(r.chi2_linear.unwrap() < 1.3, "{:?}", r.chi2_linear);
         // Stiffening (−0.03·F + 0.04·F²): the quadratic is taken and lands on the form where
         // the best line through the three forces would miss by microns.
         let quad = |x: f64, f: f64| form(x) - 0.03 * f + 0.04 * f * f;
-        let r = per_point(&passes(&[0.1, 0.3, 0.5], quad, 1e-4), 1e-4).unwrap();
+        let r = per_point(
+            &passes(&[0.1, 0.3, 0.5], quad, 1e-4),
+            1e-4,
+            Force::Deflection,
+        )
+        .unwrap();
         assert_eq!(r.degree, 2, "{:?}", r.chi2_linear);
         let rms = (r
             .points
@@ -695,18 +695,18 @@ mod tests {
     #[test]
     fn per_point_refuses_what_it_cannot_extrapolate() {
         let e = |_: f64, f: f64| -0.01 * f;
-        let err = per_point(&passes(&[0.3], e, 0.0), 1e-4).unwrap_err();
+        let err = per_point(&passes(&[0.3], e, 0.0), 1e-4, Force::Deflection).unwrap_err();
         assert!(err.contains("≥ 2 forces"), "{err}");
-        let err = per_point(&passes(&[0.30, 0.32], e, 0.0), 1e-4).unwrap_err();
+        let err = per_point(&passes(&[0.30, 0.32], e, 0.0), 1e-4, Force::Deflection).unwrap_err();
         assert!(err.contains("alike"), "{err}");
         let mut p = passes(&[0.1, 0.5], e, 0.0);
         p[1][5].p.x = f64::NAN;
-        let err = per_point(&p, 1e-4).unwrap_err();
+        let err = per_point(&p, 1e-4, Force::Deflection).unwrap_err();
         assert!(err.contains("pass 2: point 6"), "{err}");
         // Another path: nothing to pair.
         let mut p = passes(&[0.1, 0.5], e, 0.0);
         p[1].iter_mut().for_each(|q| q.p.z += 50.0);
-        let err = per_point(&p, 1e-4).unwrap_err();
+        let err = per_point(&p, 1e-4, Force::Deflection).unwrap_err();
         assert!(err.contains("same path"), "{err}");
     }
 }

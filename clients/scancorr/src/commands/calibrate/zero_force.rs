@@ -72,8 +72,7 @@ pub fn run(a: Args) -> Result<()> {
         ForceFrom::Signal => zero_force::Force::Signal,
         ForceFrom::Deflection => zero_force::Force::Deflection,
     };
-    let sets =
-        zero_force::part_with(&ds, force).map_err(|e| anyhow!("calibrate zero-force: {e}"))?;
+    let sets = zero_force::part(&ds, force).map_err(|e| anyhow!("calibrate zero-force: {e}"))?;
     let mut text = String::new();
     let mut json_sets = vec![];
     for s in &sets {
