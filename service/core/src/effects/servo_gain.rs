@@ -151,6 +151,40 @@ fn f_powers(f: f64) -> [f64; 5] {
     [1.0, f, f2, f2 * f, f2 * f2]
 }
 
+impl Model {
+    /// g_i = Σ_m ξ_m Σ_k α_{i,m,k} f^k, the three axes at once, for `NP` (= the number of
+    /// powers) powers: the same additions in the same order as a loop over them.
+    #[inline(always)]
+    fn gain<const NP: usize>(&self, mono: &[f64], fp: &[f64; 5]) -> Vec3 {
+        let powers: &[usize; NP] = self.powers[..NP]
+            .try_into()
+            .expect("a built model has NP powers");
+        let mut g = Vec3::zeros();
+        for (xi, a) in mono.iter().zip(self.alpha.chunks_exact(NP)) {
+            let a: &[Vec3; NP] = a.try_into().expect("chunks of NP");
+            let mut t = Vec3::zeros();
+            for k in 0..NP {
+                t += a[k] * fp[powers[k]];
+            }
+            g += t * *xi;
+        }
+        g
+    }
+
+    /// [`Model::gain`] for any number of powers: the loop over them.
+    fn gain_any(&self, mono: &[f64], fp: &[f64; 5]) -> Vec3 {
+        let mut g = Vec3::zeros();
+        for (xi, a) in mono.iter().zip(self.alpha.chunks_exact(self.powers.len())) {
+            let mut t = Vec3::zeros();
+            for (a, p) in a.iter().zip(&self.powers) {
+                t += a * fp[*p];
+            }
+            g += t * *xi;
+        }
+        g
+    }
+}
+
 impl Effect for Model {
     fn n_params(&self) -> usize {
         3 * self.alpha.len()
@@ -181,16 +215,17 @@ impl Effect for Model {
         let mut mono = [0.0; 10];
         let n = self.basis.eval(&ctx.scale, &mut mono);
         let fp = f_powers(ctx.f_hz);
-        let np = self.powers.len();
-        // g_i = Σ_m ξ_m Σ_k α_{i,m,k} f^k, the three axes at once.
-        let mut g = Vec3::zeros();
-        for (xi, a) in mono.iter().take(n).zip(self.alpha.chunks_exact(np)) {
-            let mut t = Vec3::zeros();
-            for (a, p) in a.iter().zip(&self.powers) {
-                t += a * fp[*p];
-            }
-            g += t * *xi;
-        }
+        // The number of powers matched once: each monomial's sum is then a straight run of
+        // code over an array of fixed length (no loop, no check per power).
+        let g = match self.powers.len() {
+            1 => self.gain::<1>(&mono[..n], &fp),
+            2 => self.gain::<2>(&mono[..n], &fp),
+            3 => self.gain::<3>(&mono[..n], &fp),
+            4 => self.gain::<4>(&mono[..n], &fp),
+            5 => self.gain::<5>(&mono[..n], &fp),
+            // More powers than there are (one repeated): the loop over them.
+            _ => self.gain_any(&mono[..n], &fp),
+        };
         g.component_mul(&(ctx.scale - ctx.arc_center))
     }
 }
@@ -219,5 +254,53 @@ mod tests {
         assert_linear(&c2.build().unwrap(), &EffectConfig::ServoGain(c2), &ctx);
         ctx.arc_radius = 0.0;
         assert_eq!(m.correction(&ctx), Vec3::zeros());
+    }
+
+    /// The correction of 1 to 5 powers (each count its own straight code) and of more (a
+    /// power repeated: the loop) is the loop's over the powers, bit for bit, at every order.
+    #[test]
+    fn each_count_of_powers_gives_the_loops_bits() {
+        let powers_of = [
+            vec![2],
+            vec![1, 2],
+            vec![0, 2, 4],
+            vec![1, 2, 3, 4],
+            vec![0, 1, 2, 3, 4],
+            vec![1, 2, 2, 3, 0, 4],
+        ];
+        let mut ctx = PointContext::at_rest(Vec3::new(173.25, -41.5, 12.125));
+        ctx.arc_center = Vec3::new(150.0, -20.0, 10.0);
+        ctx.arc_radius = 31.0;
+        ctx.f_hz = 1.7;
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        for powers in powers_of {
+            for order in 0..=2 {
+                let mut c = Config::zeros(order, powers.clone());
+                for v in [&mut c.x, &mut c.y, &mut c.z] {
+                    v.iter_mut().for_each(|a| *a = next() * 1e-4);
+                }
+                let m = c.build().unwrap();
+                // The loop over the powers, as the correction was written before.
+                let mut mono = [0.0; 10];
+                let n = m.basis.eval(&ctx.scale, &mut mono);
+                let g = m.gain_any(&mono[..n], &f_powers(ctx.f_hz));
+                let want = g.component_mul(&(ctx.scale - ctx.arc_center));
+                let got = m.correction(&ctx);
+                assert!(want != Vec3::zeros(), "{powers:?} order {order}");
+                for i in 0..3 {
+                    assert_eq!(
+                        got[i].to_bits(),
+                        want[i].to_bits(),
+                        "{powers:?} order {order} axis {i}: {got:?} against {want:?}"
+                    );
+                }
+            }
+        }
     }
 }
