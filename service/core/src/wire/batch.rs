@@ -122,14 +122,14 @@ impl Batcher {
         let layout = self.layout;
         // Each arm encodes the pending columns, then empties them keeping their capacity.
         macro_rules! take {
-            ($c:expr, $batch:ident, $per_sample:ident, [$($column:ident),*]) => {{
+            ($c:expr, $layout:expr, $batch:ident, |$cs:ident| $samples:expr, [$($column:ident),*]) => {{
                 let c = &mut $c;
                 if c.seq.is_empty() {
                     return None;
                 }
-                let bytes = encode_batch(layout, tag, c, |c| v1::$batch {
+                let bytes = encode_batch($layout, tag, &*c, |$cs| v1::$batch {
                     stream: tag,
-                    samples: $per_sample(c),
+                    samples: $samples,
                     columns: None,
                 });
                 let (first, last) = ends(&c.t_ns);
@@ -137,49 +137,61 @@ impl Batcher {
                 (bytes, first, last)
             }};
         }
-        Some(match stream {
+        // The force column holds a force for every probe sample or none (v1.5): a batch whose
+        // samples differ in this is written one message per sample.
+        let p = &self.probe;
+        let probe_layout = if !p.force_n.is_empty() && p.force_n.len() != p.seq.len() {
+            Layout::PerSample
+        } else {
+            layout
+        };
+        let taken = match stream {
             StreamId::Command => take!(
                 self.command,
+                layout,
                 CommandBatch,
-                command_samples,
+                |c| command_samples(c),
                 [seq, t_ns, x, y, z, arc_cx, arc_cy, arc_cz, arc_radius, segment_id]
             ),
-            StreamId::Scale => take!(self.scale, ScaleBatch, scale_samples, [seq, t_ns, x, y, z]),
+            StreamId::Scale => take!(
+                self.scale,
+                layout,
+                ScaleBatch,
+                |c| scale_samples(c),
+                [seq, t_ns, x, y, z]
+            ),
             StreamId::Probe => {
-                let c = &mut self.probe;
-                if c.seq.is_empty() {
-                    return None;
-                }
-                // The force column holds a force for every sample or none (v1.5): a batch
-                // whose samples differ in this is written one message per sample.
-                let mixed = !c.force_n.is_empty() && c.force_n.len() != c.seq.len();
-                let layout = if mixed { Layout::PerSample } else { layout };
-                let forced = &mut self.probe_forced;
-                let bytes = encode_batch(layout, tag, &*c, |c| v1::ProbeBatch {
-                    stream: tag,
-                    samples: probe_samples(c, forced),
-                    columns: None,
-                });
-                let (first, last) = ends(&c.t_ns);
-                c.seq.clear();
-                c.t_ns.clear();
-                c.u.clear();
-                c.v.clear();
-                c.w.clear();
-                c.tip_id.clear();
-                c.head_a1_deg.clear();
-                c.head_a2_deg.clear();
-                c.force_n.clear();
-                forced.clear();
-                (bytes, first, last)
+                let forced = &self.probe_forced;
+                take!(
+                    self.probe,
+                    probe_layout,
+                    ProbeBatch,
+                    |c| probe_samples(c, forced),
+                    [
+                        seq,
+                        t_ns,
+                        u,
+                        v,
+                        w,
+                        tip_id,
+                        head_a1_deg,
+                        head_a2_deg,
+                        force_n
+                    ]
+                )
             }
             StreamId::Temperature => take!(
                 self.temperature,
+                layout,
                 TemperatureBatch,
-                temperature_samples,
+                |c| temperature_samples(c),
                 [seq, t_ns, sensor, celsius]
             ),
-        })
+        };
+        if stream == StreamId::Probe {
+            self.probe_forced.clear();
+        }
+        Some(taken)
     }
 }
 
