@@ -50,6 +50,11 @@ const EXCLUDED: &[(&str, Option<&str>, &str)] = &[
         "a benchmark: the same subcommand runs, 20 machines for 1 s",
     ),
     (
+        "cargo run --release --bin scancorr -- bench fleet --relay --machines 200 --seconds 5  # the same fleet served by a bare relay (no correction, no shards): what the bus alone costs per point (--relay-effects N: N entries in each point's breakdown)",
+        Some("cargo run --release --bin scancorr -- bench fleet --relay --machines 20 --seconds 1"),
+        "a benchmark: the same subcommand runs, 20 machines for 1 s",
+    ),
+    (
         "cargo run --release --bin scancorr -- bench fleet --largest --workers 2 --from 100 --machines 300 --step 100 --runs 1 --seconds 3  # the largest fleet that keeps real time with N workers, by bisection (defaults --machines 1000 --step 50 --runs 2, 10 s each: minutes)",
         Some(
             "cargo run --release --bin scancorr -- bench fleet --largest --workers 1 --from 4 --machines 8 --step 4 --runs 1 --seconds 1",

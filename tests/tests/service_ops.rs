@@ -632,6 +632,62 @@ fn a_fleet_through_the_router_loses_no_point() {
     assert_eq!(v["seq_gaps"], 0, "{v}");
 }
 
+/// `bench fleet --relay`, the bus's own cost under the service's: a bare relay serves the
+/// same fleet in the service's place with the service's output bytes (its own encoder, as
+/// many breakdown entries), numbered as the service numbers points, so every point arrives
+/// in order; `--relay-effects 0` drops the breakdown (24 bytes an entry less per point). And
+/// the service with `publish_breakdown: false` (`--no-breakdown`) publishes every point in
+/// the bytes of a point without its breakdown.
+#[test]
+fn the_bare_relay_moves_the_services_bytes_and_the_breakdown_can_stay_home() {
+    let d = scratch("fleet-relay");
+    let run = |extra: &[&str]| -> Value {
+        let mut args = vec![
+            "bench",
+            "fleet",
+            "--machines",
+            "10",
+            "--seconds",
+            "2",
+            "--json",
+        ];
+        args.extend(extra);
+        serde_json::from_str(&ok(&d, &args)).unwrap()
+    };
+    let service = run(&[]);
+    let without = run(&["--no-breakdown"]);
+    let relay = run(&["--relay"]);
+    let bare = run(&["--relay", "--relay-effects", "0"]);
+    for v in [&service, &without, &relay, &bare] {
+        assert_eq!(v["received_points"], v["expected_points"], "{v}");
+        assert!(v["expected_points"].as_u64().unwrap() >= 15_000, "{v}");
+        assert_eq!(v["seq_gaps"], 0, "{v}");
+        assert_eq!(v["malformed_point_messages"], 0, "{v}");
+    }
+    assert_eq!(service["bare_relay"], false, "{service}");
+    assert_eq!(relay["bare_relay"], true, "{relay}");
+    assert_eq!(service["publish_breakdown"], true, "{service}");
+    assert_eq!(without["publish_breakdown"], false, "{without}");
+    let per_point = |v: &Value| v["point_bytes_per_point"].as_f64().unwrap();
+    let (s, w) = (per_point(&service), per_point(&without));
+    let (r, b) = (per_point(&relay), per_point(&bare));
+    // The same columns; only the varints' lengths (seq, times, versions) may differ.
+    for (x, y, what) in [(r, s, "relay, service"), (b, w, "without breakdown")] {
+        assert!(
+            (x - y).abs() < 0.02 * y,
+            "{what}: {x} against {y} bytes per point"
+        );
+    }
+    // Eight effects' corrections, three doubles each (192 bytes), and their names, once per
+    // message of a batch's 100 points (a few bytes per point).
+    for (x, y) in [(r, b), (s, w)] {
+        assert!(
+            (x - y - 8.0 * 24.0).abs() < 4.0,
+            "{x} - {y} bytes per point"
+        );
+    }
+}
+
 /// The short CI version of `bench fleet --largest`: a search over two small fleet sizes runs
 /// a fleet measurement per probe in one process, and what it reports holds together: the
 /// bounds are the probes' verdicts, a size kept up only when each of its runs did, and every

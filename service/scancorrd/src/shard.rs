@@ -773,6 +773,8 @@ pub(crate) struct Limits {
     pub(crate) tags: wire::Tags,
     /// A message that waited longer than this on its shard is shed when its turn comes.
     pub(crate) shed_after: Duration,
+    /// Points are published with their per-effect breakdown (`publish_breakdown`).
+    pub(crate) breakdown: bool,
 }
 
 /// A corrector under the service's limits.
@@ -1125,7 +1127,8 @@ impl Shard {
                 if let Some(p) = self.out.points.last() {
                     m.last_point_t_ns = Some(p.t_ns);
                 }
-                publish(m, &mut self.out, name, None, &mut self.ready);
+                let breakdown = self.limits.breakdown;
+                publish(m, &mut self.out, name, None, breakdown, &mut self.ready);
                 m.dirty = true;
                 if m.pending.points > 0 && !self.touched.contains(&k) {
                     self.touched.push(k);
@@ -1282,27 +1285,31 @@ fn on_raw(
     if let Some(p) = out.points.last() {
         m.last_point_t_ns = Some(p.t_ns);
     }
-    publish(m, out, machine, Some(arrived), ready);
+    publish(m, out, machine, Some(arrived), limits.breakdown, ready);
 }
 
 /// Encodes what the core completed into the machine's pending points (alarms go to the
 /// outbox at once, after the points before them); never waits on the bus. `arrived`: when
-/// the raw message that completed these points arrived (none for a flush). Outboxes that need
-/// a lane are added to `ready`.
+/// the raw message that completed these points arrived (none for a flush). `breakdown`: with
+/// each point's per-effect corrections (`publish_breakdown`). Outboxes that need a lane are
+/// added to `ready`.
 fn publish(
     m: &mut Core,
     out: &mut Output,
     machine: &str,
     arrived: Option<Instant>,
+    breakdown: bool,
     ready: &mut Vec<Arc<Outbox>>,
 ) {
+    // Without the breakdown the block names no effect, and so carries no correction column.
+    let ids: &[String] = if breakdown { &m.ids } else { &[] };
     if !out.points.is_empty() {
         // Written straight to protobuf as a packed block (v1.4; the same bytes prost makes).
         if m.pending.bytes.capacity() == 0 {
             // As much room as the machine's last batch took (a machine's batches are alike),
             // at least about what a packed point takes: 100 bytes and 24 per correction.
             let last = m.pending.last_len;
-            let room = (out.points.len() * (100 + 24 * m.ids.len())).max(last + last / 8);
+            let room = (out.points.len() * (100 + 24 * ids.len())).max(last + last / 8);
             m.pending.bytes = m.outbox.pool.get(room);
         }
         if m.seq_shift != 0 {
@@ -1312,7 +1319,7 @@ fn publish(
             }
         }
         let p = &mut m.pending;
-        wire::encode_points(&out.points, machine, &m.ids, &mut p.bytes);
+        wire::encode_points(&out.points, machine, ids, &mut p.bytes);
         let (first, last) = (&out.points[0], &out.points[out.points.len() - 1]);
         if p.points == 0 {
             p.span.seq.0 = first.seq;

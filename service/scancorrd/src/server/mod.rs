@@ -291,6 +291,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
     let workers = cfg.workers();
     let cfg_max_pending = cfg.max_pending_samples;
     let cfg_shed_after_ms = cfg.shed_after_ms;
+    let cfg_breakdown = cfg.publish_breakdown;
     let tags = if cfg.accept_untagged_batches {
         wire::Tags::AllowUntagged
     } else {
@@ -315,6 +316,7 @@ pub async fn run(cfg: Config, shutdown: impl Future<Output = ()>) -> Result<(), 
             max_pending_samples: cfg_max_pending,
             tags,
             shed_after: Duration::from_millis(cfg_shed_after_ms),
+            breakdown: cfg_breakdown,
         },
         uplink: None,
         fo_tx,

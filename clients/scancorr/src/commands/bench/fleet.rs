@@ -47,6 +47,13 @@ pub struct Params {
     /// Controller links: zenoh sessions (connections) the machines are spread over, each
     /// published from its own thread (at most one per machine).
     pub links: usize,
+    /// The bare relay of `bench live` in the service's place: the bus's own cost per point
+    /// (the same keys, input messages and output bytes; no correction, no shards).
+    pub relay: bool,
+    /// The relay's breakdown entries per point (None: the service's).
+    pub relay_effects: Option<usize>,
+    /// The service publishes its points without their breakdown (`publish_breakdown: false`).
+    pub no_breakdown: bool,
     /// Print JSON.
     pub json: bool,
 }
@@ -98,16 +105,43 @@ fn each_point(mut b: &[u8], mut f: impl FnMut(u64, i64)) -> Option<()> {
     Some(())
 }
 
+/// What serves the fleet, as the report names it.
+fn served_by(p: &Params) -> String {
+    if p.relay {
+        let effects = p
+            .relay_effects
+            .map_or("the service's".to_string(), |n| n.to_string());
+        return format!("a bare relay in the service's place (no correction, each message handled as it arrives; {effects} effects per point's breakdown)");
+    }
+    let workers = if p.workers == 0 {
+        "one-per-core".to_string()
+    } else {
+        p.workers.to_string()
+    };
+    let router = if p.router {
+        " behind a scancorr-router"
+    } else {
+        ""
+    };
+    let breakdown = if p.no_breakdown {
+        ", points without their breakdown"
+    } else {
+        ""
+    };
+    format!("one scancorrd process with {workers} worker(s){router}{breakdown}")
+}
+
 fn machine_name(k: usize) -> String {
     format!("f{k:04}")
 }
 
 fn start_service(dir: &Path, port: u16, p: &Params) -> Result<Service> {
     let extra = format!(
-        "max_machines: {}, max_pending_samples: {}, workers: {},",
+        "max_machines: {}, max_pending_samples: {}, workers: {}, publish_breakdown: {},",
         p.machines + 16,
         p.max_pending,
-        p.workers
+        p.workers,
+        !p.no_breakdown
     );
     if p.router {
         start_scancorrd_with(
@@ -262,6 +296,8 @@ fn controller(
 #[derive(Default)]
 struct Received {
     points: u64,
+    /// The bytes of the point messages those points came in.
+    bytes: u64,
     gaps: u64,
     /// Point messages that are not a well-formed batch (none expected).
     malformed: u64,
@@ -320,7 +356,13 @@ fn measure(p: &Params) -> Result<Measured> {
         } else {
             None
         };
-        let mut svc = start_service(&dir, port, p)?;
+        let mut svc = if p.relay {
+            std::fs::remove_dir_all(&dir).ok();
+            let o = super::relay::Options { effects: p.relay_effects, inline: true };
+            super::relay::start(port, "cmm", &o)?
+        } else {
+            start_service(&dir, port, p)?
+        };
         let pid = svc.child.id();
         let cfg = scancorrd::config::zenoh_config("peer", &[], &[format!("tcp/127.0.0.1:{port}")], false)?;
         let session = zenoh::open(cfg.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -328,7 +370,7 @@ fn measure(p: &Params) -> Result<Measured> {
         let t0 = Instant::now();
         while query(&session, "cmm/probe-service/status".into(), None).await.is_err() {
             if let Ok(Some(st)) = svc.child.try_wait() {
-                bail!("scancorrd exited ({st}); log: {}", dir.join("scancorrd.log").display());
+                bail!("{} exited ({st}); log: {}", if p.relay { "the relay" } else { "scancorrd" }, svc.dir.join(if p.relay { "relay.log" } else { "scancorrd.log" }).display());
             }
             anyhow::ensure!(t0.elapsed() < Duration::from_secs(20), "scancorrd did not answer");
             tokio::time::sleep(Duration::from_millis(100)).await;
@@ -339,7 +381,11 @@ fn measure(p: &Params) -> Result<Measured> {
         let n_points = (p.seconds * 1000.0).round() as usize;
         let samples = synth::ring_scan(n_points);
         let cal0 = synth::all_effects_calibration(&machine_name(0));
-        let expected_per_machine = {
+        // The relay makes a point of every probe sample; the service, of each scale sample it
+        // can join.
+        let expected_per_machine = if p.relay {
+            samples.iter().filter(|s| s.stream() == StreamId::Probe).count() as u64
+        } else {
             let mut c = scancorr_core::Corrector::new(&cal0)?;
             let mut o = scancorr_core::Output::default();
             c.push_all(samples.iter().cloned(), &mut o);
@@ -359,6 +405,7 @@ fn measure(p: &Params) -> Result<Measured> {
         // One calibration per machine: the service creates each machine's state on the put.
         let t_cal = Instant::now();
         let puts: Vec<(String, Option<String>)> = (0..p.machines)
+            .filter(|_| !p.relay)
             .map(|m| (scancorr_proto::calibration_write_key("cmm", &machine_name(m)), Some(synth::all_effects_calibration(&machine_name(m)).to_json())))
             .collect();
         in_parallel(&session, puts, 32, "calibrations put", quiet, |_| ()).await?;
@@ -399,6 +446,7 @@ fn measure(p: &Params) -> Result<Measured> {
                     r.next_seq[m] = next;
                     r.gaps += gaps;
                     r.points += n;
+                    r.bytes += bytes.len() as u64;
                     if let Some(start) = start {
                         let period = (last_t - t_min) / batch_ns;
                         let due = start + Duration::from_nanos(((period + 1) * wall_ns) as u64);
@@ -544,7 +592,8 @@ fn measure(p: &Params) -> Result<Measured> {
         let points_per_s = r.points as f64 / span_s.max(1e-9);
         let per_machine_rss = (rss_steady.max(rss_idle) - rss_idle) as f64 / p.machines as f64;
         let per_machine_served = (rss_served.max(rss_idle) - rss_idle) as f64 / p.machines as f64;
-        let state_mean = state.iter().sum::<f64>() / state.len().max(1) as f64;
+        // No figure (the relay has no core state): 0, not the empty sum's −0.
+        let state_mean = if state.is_empty() { 0.0 } else { state.iter().sum::<f64>() / state.len() as f64 };
         let state_max = state.iter().cloned().fold(0.0, f64::max);
         let kept_up = r.points == expected && r.gaps == 0 && r.malformed == 0 && late_periods == 0 && p99 < 2.0 * p.batch_ms as f64 / p.pace;
         // Where the end-to-end latency goes (its own object: `json!` nests only so deep).
@@ -558,6 +607,9 @@ fn measure(p: &Params) -> Result<Measured> {
             "bench": "fleet",
             "machines": p.machines,
             "through_router": p.router,
+            "bare_relay": p.relay,
+            "relay_effects": p.relay_effects,
+            "publish_breakdown": !p.relay && !p.no_breakdown,
             "workers": p.workers,
             "rate_hz_per_machine": 1000,
             "seconds": p.seconds,
@@ -567,6 +619,7 @@ fn measure(p: &Params) -> Result<Measured> {
             "offered_samples_per_s": samples_per_s,
             "expected_points": expected,
             "received_points": r.points,
+            "point_bytes_per_point": r.bytes as f64 / r.points.max(1) as f64,
             "seq_gaps": r.gaps,
             "malformed_point_messages": r.malformed,
             "dropped": drops,
@@ -603,9 +656,9 @@ fn measure(p: &Params) -> Result<Measured> {
         let mut text = String::new();
         {
             let kib = |b: f64| b / 1024.0;
-            writeln!(text, "fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, one scancorrd process with {} worker(s){} (loopback; this process plays the controllers, on {} link(s), and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, if p.workers == 0 { "one-per-core".to_string() } else { p.workers.to_string() }, if p.router { " behind a scancorr-router" } else { "" }, p.links)?;
+            writeln!(text, "fleet: {} machines × 1 kHz, {} ms batches, {:.0} s at {:.0} % of real time, {} (loopback; this process plays the controllers, on {} link(s), and the consumer on the same cores)", p.machines, p.batch_ms, p.seconds, 100.0 * p.pace, served_by(p), p.links)?;
             writeln!(text, "  offered                {samples_per_s:>12.0} samples/s  ({points_expected_per_s:.0} points/s expected)")?;
-            writeln!(text, "  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, {} malformed messages, dropped {:?}", r.points, r.gaps, r.malformed, drops)?;
+            writeln!(text, "  delivered              {points_per_s:>12.0} points/s   {} of {expected} points, {} seq gaps, {} malformed messages, dropped {:?}; {:.0} bytes per point on the bus", r.points, r.gaps, r.malformed, drops, r.bytes as f64 / r.points.max(1) as f64)?;
             writeln!(text, "  latency (period end → points)  p50 {p50:.1} ms, p99 {p99:.1} ms, max {pmax:.1} ms; publisher late in {late_periods} of {n_periods} periods (worst {worst_publish_lag_ms:.1} ms)")?;
             writeln!(text, "  of which               controllers' puts of a period take {put_span_p50:.1} ms (median; max {put_span_max:.1} ms); the service adds p99 {added_p99_median_ms:.1} ms (median machine; worst {added_p99_max_ms:.1} ms) from arrival to publication")?;
             writeln!(text, "  kept up                {}", if kept_up { "yes" } else { "NO" })?;

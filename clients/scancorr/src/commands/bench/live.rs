@@ -13,24 +13,23 @@
 //! of the point it completed (`output.added_latency_us` on its status), not as a difference
 //! of two separate percentiles; the end-to-end latency is printed beside it.
 
-use super::harness::{pct, query, start_scancorrd, Service};
+use super::harness::{pct, query, start_scancorrd};
 use crate::shared::synth;
-use anyhow::{Context, Result};
+use anyhow::Result;
 use scancorr_core::sample::{Sample, StreamId};
 use scancorr_core::wire::Batcher;
 use scancorr_proto::Message;
 use std::collections::HashMap;
-use std::process::{Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-fn z<E: std::fmt::Display>(e: E) -> anyhow::Error {
+pub(super) fn z<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow::anyhow!("{e}")
 }
 
-async fn session(connect: &[u16], listen: Option<u16>) -> Result<zenoh::Session> {
+pub(super) async fn session(connect: &[u16], listen: Option<u16>) -> Result<zenoh::Session> {
     let connect: Vec<String> = connect
         .iter()
         .map(|p| format!("tcp/127.0.0.1:{p}"))
@@ -41,146 +40,6 @@ async fn session(connect: &[u16], listen: Option<u16>) -> Result<zenoh::Session>
         .collect();
     let cfg = scancorrd::config::zenoh_config("peer", &listen, &connect, false)?;
     zenoh::open(cfg).await.map_err(z)
-}
-
-/// `scancorr bench relay`: the floor the service is compared with — the same bus work without
-/// the correction. It declares what the service declares (a subscriber on
-/// `<prefix>/*/raw/**`, each machine's raw keys, a publisher on
-/// `<prefix>/<machine>/corrected/points` with congestion control Block), takes messages in the
-/// same way (a callback that queues them with their arrival instant), and makes the same
-/// output traffic: for each probe message (the stream that closes an instant) one message of
-/// one corrected point, of the size the service's has, stamped with the probe sample's time.
-/// It answers `<prefix>/<machine>/status` with the latency it adds, measured as the service
-/// measures its own (arrival → `put` returned). Runs until SIGTERM or SIGINT.
-pub fn relay(port: u16, prefix: &str) -> Result<()> {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()?;
-    rt.block_on(async {
-        let s = session(&[], Some(port)).await?;
-        let (tx, rx) = std::sync::mpsc::sync_channel::<(Instant, zenoh::sample::Sample)>(256);
-        let _sub = s
-            .declare_subscriber(format!("{prefix}/*/raw/**"))
-            .callback(move |m| {
-                let _ = tx.send((Instant::now(), m));
-            })
-            .await
-            .map_err(z)?;
-        type Figures = HashMap<String, (u64, scancorrd::latency::Latency)>;
-        let figures: Arc<Mutex<Figures>> = Arc::default();
-        let _status = {
-            let figures = figures.clone();
-            let prefix = prefix.to_string();
-            s.declare_queryable(format!("{prefix}/*/status"))
-                .callback(move |q| {
-                    let m = scancorr_proto::machine_of(&prefix, q.key_expr().as_str(), "status")
-                        .unwrap_or_default()
-                        .to_string();
-                    let body = match figures.lock().expect("lock").get(&m) {
-                        Some((n, l)) => serde_json::json!({"machine": m, "served": true, "output": {"points_published": n, "added_latency_us": l.figures()}}),
-                        None => serde_json::json!({"machine": m, "served": false}),
-                    };
-                    let _ = q.reply(q.key_expr().clone(), body.to_string()).wait();
-                })
-                .await
-                .map_err(z)?
-        };
-        let session = s.clone();
-        let prefix = prefix.to_string();
-        let worker = std::thread::spawn(move || -> Result<()> {
-            struct Out {
-                _raw: Vec<zenoh::key_expr::KeyExpr<'static>>,
-                points: zenoh::pubsub::Publisher<'static>,
-                seq: u64,
-            }
-            let mut machines: HashMap<String, Out> = HashMap::new();
-            let effects = scancorr_core::Corrector::new(&synth::all_effects_calibration("x"))?.effect_ids();
-            while let Ok((arrived, m)) = rx.recv() {
-                let Some((machine, stream)) = scancorr_proto::Stream::parse_key(&prefix, m.key_expr().as_str()) else {
-                    continue;
-                };
-                if !machines.contains_key(machine) {
-                    let mut raw = vec![];
-                    for st in StreamId::ALL {
-                        raw.push(session.declare_keyexpr(format!("{prefix}/{machine}/raw/{}", st.name())).wait().map_err(z)?);
-                    }
-                    let ke = session.declare_keyexpr(scancorr_proto::Stream::Points.key(&prefix, machine)).wait().map_err(z)?;
-                    let points = session.declare_publisher(ke).congestion_control(CongestionControl::Block).wait().map_err(z)?;
-                    machines.insert(machine.to_string(), Out { _raw: raw, points, seq: 0 });
-                }
-                if stream != scancorr_proto::Stream::Probe {
-                    continue;
-                }
-                // Packed (v1.3) or per-sample: each probe sample's seq and time.
-                let mut probes = vec![];
-                if scancorr_core::wire::decode_with(StreamId::Probe, &m.payload().to_bytes(), |_, s| probes.push((s.seq(), s.t_ns()))).is_err() {
-                    continue;
-                }
-                let out = machines.get_mut(machine).expect("declared");
-                // The service's output layout (v1.4): one packed block of the instant's points.
-                let n = probes.len();
-                let k = n * effects.len();
-                let columns = scancorr_proto::v1::CorrectedPointColumns {
-                    machine_id: machine.to_string(),
-                    seq: probes.iter().map(|_| { out.seq += 1; out.seq }).collect(),
-                    t_ns: probes.iter().map(|p| p.1).collect(),
-                    sample_seq: probes.iter().map(|p| p.0).collect(),
-                    calibration_version: vec![1; n],
-                    estimator_valid: vec![true; n],
-                    segment_id: vec![1; n],
-                    tip_id: vec![1; n],
-                    surface_x: vec![100.123456; n],
-                    surface_y: vec![100.123456; n],
-                    surface_z: vec![100.123456; n],
-                    tip_center_x: vec![101.123456; n],
-                    tip_center_y: vec![101.123456; n],
-                    tip_center_z: vec![101.123456; n],
-                    normal_x: vec![0.577; n],
-                    normal_y: vec![0.577; n],
-                    normal_z: vec![0.577; n],
-                    effects: effects.clone(),
-                    correction_dx: vec![1e-4; k],
-                    correction_dy: vec![1e-4; k],
-                    correction_dz: vec![1e-4; k],
-                };
-                let n = n as u64;
-                out.points
-                    .put(scancorr_proto::v1::CorrectedPointBatch { points: vec![], columns: vec![columns] }.encode_to_vec())
-                    .wait()
-                    .map_err(z)?;
-                let mut f = figures.lock().expect("lock");
-                let e = f.entry(machine.to_string()).or_default();
-                e.0 += n;
-                e.1.record(arrived.elapsed());
-            }
-            Ok(())
-        });
-        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
-        tokio::select! { _ = term.recv() => {}, _ = tokio::signal::ctrl_c() => {} }
-        drop(_sub);
-        s.close().await.map_err(z)?;
-        let _ = worker.join();
-        Ok(())
-    })
-}
-
-fn start_relay(port: u16, prefix: &str) -> Result<Service> {
-    let dir = crate::shared::output::private_dir(&format!("scancorr-bench-relay-{port}"))?;
-    let child = Command::new(std::env::current_exe()?)
-        .args([
-            "bench",
-            "relay",
-            "--port",
-            &port.to_string(),
-            "--prefix",
-            prefix,
-        ])
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("relay.log"))?)
-        .spawn()
-        .context("starting the relay")?;
-    Ok(Service { child, dir })
 }
 
 fn messages(machine: &str, samples: &[Sample], batch: usize) -> Vec<(StreamId, Vec<u8>, i64)> {
@@ -422,7 +281,7 @@ pub fn run(points: usize, rounds: usize, json: bool) -> Result<()> {
         let (port, relay_port) = (free()?, free()?);
         let dir = crate::shared::output::private_dir("scancorr-bench-live")?;
         let _svc = start_scancorrd(&dir, port, "")?;
-        let _relay = start_relay(relay_port, "cmm")?;
+        let _relay = super::relay::start(relay_port, "cmm", &super::relay::Options::default())?;
         let paths = Paths {
             relay: session(&[relay_port], None).await?,
             service: session(&[port], None).await?,

@@ -7,6 +7,7 @@ pub mod harness;
 pub mod lab_coverage;
 pub mod live;
 pub mod procedures;
+pub mod relay;
 pub mod throughput;
 
 use anyhow::Result;
@@ -123,6 +124,19 @@ pub enum BenchCmd {
         /// batches within a period here; at most one per machine).
         #[arg(long, default_value_t = 4)]
         links: usize,
+        /// The bare relay of `bench live` in the service's place (the same keys, input
+        /// messages and output bytes, no correction and no hand-over to shards): the bus's
+        /// own cost per point on this machine, the floor under the service's.
+        #[arg(long, conflicts_with = "router")]
+        relay: bool,
+        /// With `--relay`: effects in each relayed point's breakdown (default: as the
+        /// service's, every effect's calibration's 8), to see what the breakdown's bytes cost.
+        #[arg(long, requires = "relay")]
+        relay_effects: Option<usize>,
+        /// The service publishes the points without their per-effect breakdown
+        /// (`publish_breakdown: false`).
+        #[arg(long, conflicts_with = "relay")]
+        no_breakdown: bool,
         /// Search for the largest fleet that keeps real time with these `--workers`, by
         /// bisection over `--from` … `--machines` in steps of `--step`, each size run up to
         /// `--runs` times (it keeps up when every run did). Takes minutes: each run is one
@@ -148,6 +162,12 @@ pub enum BenchCmd {
         /// Key prefix: `<prefix>/*/raw/*` is relayed to `<key>/out`.
         #[arg(long, default_value = "bench")]
         prefix: String,
+        /// Effects in each point's breakdown (default: every effect's calibration's count).
+        #[arg(long)]
+        effects: Option<usize>,
+        /// Handle each message in the subscriber's callback (no worker thread).
+        #[arg(long)]
+        inline: bool,
     },
     /// A bare zenoh relay against scancorrd on loopback: throughput, ratio, latency.
     Live {
@@ -220,9 +240,14 @@ pub fn exec(cmd: BenchCmd) -> Result<()> {
             points,
             rounds,
         } => live::run(points, rounds, json),
-        BenchCmd::Relay { port, prefix } => {
+        BenchCmd::Relay {
+            port,
+            prefix,
+            effects,
+            inline,
+        } => {
             crate::shared::output::check_prefix(&prefix)?;
-            live::relay(port, &prefix)
+            relay::run(port, &prefix, &relay::Options { effects, inline })
         }
         BenchCmd::Fleet {
             json,
@@ -234,6 +259,9 @@ pub fn exec(cmd: BenchCmd) -> Result<()> {
             router,
             workers,
             links,
+            relay,
+            relay_effects,
+            no_breakdown,
             largest,
             from,
             step,
@@ -248,6 +276,9 @@ pub fn exec(cmd: BenchCmd) -> Result<()> {
                 router,
                 workers,
                 links,
+                relay,
+                relay_effects,
+                no_breakdown,
                 json,
             };
             if largest {
