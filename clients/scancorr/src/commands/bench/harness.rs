@@ -143,6 +143,25 @@ pub(crate) fn start_scancorrd_with(dir: &Path, head: &str, extra: &str) -> Resul
     })
 }
 
+/// A zenoh error as an `anyhow` one.
+pub(crate) fn z<E: std::fmt::Display>(e: E) -> anyhow::Error {
+    anyhow::anyhow!("{e}")
+}
+
+/// A peer session on loopback, connecting to the `connect` ports and listening on `listen`.
+pub(crate) async fn session(connect: &[u16], listen: Option<u16>) -> Result<zenoh::Session> {
+    let connect: Vec<String> = connect
+        .iter()
+        .map(|p| format!("tcp/127.0.0.1:{p}"))
+        .collect();
+    let listen: Vec<String> = listen
+        .iter()
+        .map(|p| format!("tcp/127.0.0.1:{p}"))
+        .collect();
+    let cfg = scancorrd::config::zenoh_config("peer", &listen, &connect, false)?;
+    zenoh::open(cfg).await.map_err(z)
+}
+
 pub(crate) async fn query(
     s: &zenoh::Session,
     key: String,

@@ -13,7 +13,7 @@
 //! of the point it completed (`output.added_latency_us` on its status), not as a difference
 //! of two separate percentiles; the end-to-end latency is printed beside it.
 
-use super::harness::{pct, query, start_scancorrd};
+use super::harness::{pct, query, session, start_scancorrd, z};
 use crate::shared::synth;
 use anyhow::Result;
 use scancorr_core::sample::{Sample, StreamId};
@@ -24,23 +24,6 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
-
-pub(super) fn z<E: std::fmt::Display>(e: E) -> anyhow::Error {
-    anyhow::anyhow!("{e}")
-}
-
-pub(super) async fn session(connect: &[u16], listen: Option<u16>) -> Result<zenoh::Session> {
-    let connect: Vec<String> = connect
-        .iter()
-        .map(|p| format!("tcp/127.0.0.1:{p}"))
-        .collect();
-    let listen: Vec<String> = listen
-        .iter()
-        .map(|p| format!("tcp/127.0.0.1:{p}"))
-        .collect();
-    let cfg = scancorrd::config::zenoh_config("peer", &listen, &connect, false)?;
-    zenoh::open(cfg).await.map_err(z)
-}
 
 fn messages(machine: &str, samples: &[Sample], batch: usize) -> Vec<(StreamId, Vec<u8>, i64)> {
     let mut b = Batcher::new(machine, batch);

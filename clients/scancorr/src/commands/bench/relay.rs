@@ -14,8 +14,7 @@
 //! hand-over and no wake-up of another thread — the least any service on this bus can spend;
 //! `bench fleet --relay` uses it).
 
-use super::harness::Service;
-use super::live::{session, z};
+use super::harness::{session, z, Service};
 use crate::shared::synth;
 use anyhow::{Context, Result};
 use scancorr_core::sample::{CorrectedPoint, StreamId, Vec3};
