@@ -47,8 +47,8 @@ pub struct Params {
     /// Controller links: zenoh sessions (connections) the machines are spread over, each
     /// published from its own thread (at most one per machine).
     pub links: usize,
-    /// The bare relay of `bench live` in the service's place: the bus's own cost per point
-    /// (the same keys, input messages and output bytes; no correction, no shards).
+    /// A bare relay in the service's place (`bench relay --inline`): the bus's own cost per
+    /// point (the same keys, input messages and output bytes; no correction, no shards).
     pub relay: bool,
     /// The relay's breakdown entries per point (None: the service's).
     pub relay_effects: Option<usize>,
