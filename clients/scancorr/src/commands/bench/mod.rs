@@ -124,7 +124,7 @@ pub enum BenchCmd {
         /// batches within a period here; at most one per machine).
         #[arg(long, default_value_t = 4)]
         links: usize,
-        /// The bare relay of `bench live` in the service's place (the same keys, input
+        /// A bare relay in the service's place (`bench relay --inline`: the same keys, input
         /// messages and output bytes, no correction and no hand-over to shards): the bus's
         /// own cost per point on this machine, the floor under the service's.
         #[arg(long, conflicts_with = "router")]

@@ -46,13 +46,36 @@ struct Out {
     seq: u64,
 }
 
-/// What the relay keeps: each machine's declarations, the breakdown's names, the figures.
+/// What the relay keeps: each machine's declarations, the breakdown's names, the figures,
+/// and the buffers each message reuses (the floor it measures is the bus's, not the
+/// allocator's: the service too reuses its output's room).
 struct Relay {
     session: zenoh::Session,
     prefix: String,
     machines: HashMap<String, Out>,
     effects: Vec<String>,
     figures: Arc<Mutex<Figures>>,
+    /// The probe samples' (seq, time) of the message at hand.
+    probes: Vec<(u64, i64)>,
+    /// Its points: fixed values but for their numbers and times.
+    points: Vec<CorrectedPoint>,
+}
+
+/// A relayed point before its numbers and time: values of the service's magnitude.
+fn template(effects: usize) -> CorrectedPoint {
+    CorrectedPoint {
+        seq: 0,
+        t_ns: 0,
+        sample_seq: 0,
+        surface: Vec3::repeat(100.123456),
+        tip_center: Vec3::repeat(101.123456),
+        normal: Vec3::repeat(0.577),
+        corrections: vec![Vec3::repeat(1e-4); effects],
+        calibration_version: 1,
+        estimator_valid: true,
+        segment_id: 1,
+        tip_id: 1,
+    }
 }
 
 impl Relay {
@@ -89,7 +112,8 @@ impl Relay {
             return Ok(());
         }
         // Packed (v1.3) or per-sample: each probe sample's seq and time.
-        let mut probes = vec![];
+        let probes = &mut self.probes;
+        probes.clear();
         let bytes = m.payload().to_bytes();
         let decoded = scancorr_core::wire::decode_with(StreamId::Probe, &bytes, |_, s| {
             probes.push((s.seq(), s.t_ns()))
@@ -98,33 +122,24 @@ impl Relay {
             return Ok(());
         }
         let out = self.machines.get_mut(machine).expect("declared above");
-        let corrections = vec![Vec3::repeat(1e-4); self.effects.len()];
-        let points: Vec<CorrectedPoint> = probes
-            .iter()
-            .map(|&(sample_seq, t_ns)| {
-                out.seq += 1;
-                CorrectedPoint {
-                    seq: out.seq - 1,
-                    t_ns,
-                    sample_seq,
-                    surface: Vec3::repeat(100.123456),
-                    tip_center: Vec3::repeat(101.123456),
-                    normal: Vec3::repeat(0.577),
-                    corrections: corrections.clone(),
-                    calibration_version: 1,
-                    estimator_valid: true,
-                    segment_id: 1,
-                    tip_id: 1,
-                }
-            })
-            .collect();
+        let e = self.effects.len();
+        self.points.resize_with(probes.len(), || template(e));
+        for (p, &(sample_seq, t_ns)) in self.points.iter_mut().zip(probes.iter()) {
+            (p.seq, p.t_ns, p.sample_seq) = (out.seq, t_ns, sample_seq);
+            out.seq += 1;
+        }
+        // The buffer goes to zenoh with the message (as the service's pooled one does).
         let mut bytes = Vec::new();
-        scancorr_core::wire::encode_points(&points, machine, &self.effects, &mut bytes);
+        scancorr_core::wire::encode_points(&self.points, machine, &self.effects, &mut bytes);
         out.points.put(bytes).wait().map_err(z)?;
+        let n = self.points.len() as u64;
         let mut f = self.figures.lock().expect("lock");
-        let e = f.entry(machine.to_string()).or_default();
-        e.0 += points.len() as u64;
-        e.1.record(arrived.elapsed());
+        let at = match f.get_mut(machine) {
+            Some(at) => at,
+            None => f.entry(machine.to_string()).or_default(),
+        };
+        at.0 += n;
+        at.1.record(arrived.elapsed());
         Ok(())
     }
 }
@@ -168,6 +183,8 @@ pub fn run(port: u16, prefix: &str, o: &Options) -> Result<()> {
             machines: HashMap::new(),
             effects,
             figures,
+            probes: vec![],
+            points: vec![],
         };
         let raw = format!("{prefix}/*/raw/**");
         let (sub, worker) = if o.inline {
